@@ -1,0 +1,39 @@
+# Finds every third-party dependency once (all Debian bookworm packages; see
+# scripts/install-deps.sh). Notes on the Debian packaging are in docs/DESIGN.md.
+find_package(PkgConfig REQUIRED)
+find_package(Threads REQUIRED)
+find_package(absl CONFIG REQUIRED)
+find_package(TBB CONFIG REQUIRED)
+find_package(DCMTK CONFIG REQUIRED)
+find_package(nlohmann_json CONFIG REQUIRED)
+find_package(CLI11 CONFIG REQUIRED)
+find_package(spdlog CONFIG REQUIRED)
+
+# FFTW ships no usable CMake config for the float library: use pkg-config.
+pkg_check_modules(FFTW3F REQUIRED IMPORTED_TARGET fftw3f)
+pkg_check_modules(FFTW3 REQUIRED IMPORTED_TARGET fftw3)
+
+# OpenVDB ships only FindOpenVDB.cmake in the multiarch cmake folder.
+if(CMAKE_LIBRARY_ARCHITECTURE)
+  list(APPEND CMAKE_MODULE_PATH
+       /usr/lib/${CMAKE_LIBRARY_ARCHITECTURE}/cmake/OpenVDB)
+endif()
+find_package(OpenVDB REQUIRED COMPONENTS openvdb)
+
+# Only the ITK modules we use, which keeps include paths and link lines short.
+find_package(ITK REQUIRED COMPONENTS
+  ITKCommon ITKPath ITKDistanceMap ITKImageGrid ITKImageIntensity
+  ITKThresholding ITKIOImageBase ITKIONIFTI ITKIONRRD)
+
+# ITK's include directories and libraries as one imported interface target,
+# so that only the modules that use ITK see its (large) include path.
+add_library(interslice_itk INTERFACE)
+target_include_directories(interslice_itk SYSTEM INTERFACE ${ITK_INCLUDE_DIRS})
+target_link_libraries(interslice_itk INTERFACE ${ITK_LIBRARIES})
+
+if(INTERSLICE_BUILD_TESTS)
+  find_package(GTest CONFIG REQUIRED)
+endif()
+if(INTERSLICE_BUILD_BENCHMARKS)
+  find_package(benchmark CONFIG REQUIRED)
+endif()
