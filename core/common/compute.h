@@ -39,11 +39,11 @@ class CancellationToken {
 
 // What a pipeline stage reports while it runs.
 struct ProgressEvent {
-  std::string stage;          // "read", "contour", "stack", "solve", ...
-  double fraction = 0.0;      // of this stage, in [0, 1]
-  int iteration = -1;         // solver iteration (solve stage only), else -1
+  std::string stage;      // "read", "contour", "stack", "solve", ...
+  double fraction = 0.0;  // of this stage, in [0, 1]
+  int iteration = -1;     // solver iteration (solve stage only), else -1
   double relative_residual = -1.0;  // |r_k| / |r_0| (solve stage only)
-  double energy = -1.0;       // curvature energy (solve stage only)
+  double energy = -1.0;             // curvature energy (solve stage only)
 };
 
 using ProgressCallback = std::function<void(const ProgressEvent&)>;

@@ -23,7 +23,8 @@ Vec3 Grid::PhysicalToIndex(const Vec3& point) const {
   Vec3 index = {0, 0, 0};
   for (int c = 0; c < 3; ++c) {
     double dot = 0;
-    for (int r = 0; r < 3; ++r) dot += direction[3 * r + c] * (point[r] - origin[r]);
+    for (int r = 0; r < 3; ++r)
+      dot += direction[3 * r + c] * (point[r] - origin[r]);
     index[c] = dot / spacing[c];
   }
   return index;
@@ -32,9 +33,9 @@ Vec3 Grid::PhysicalToIndex(const Vec3& point) const {
 absl::Status Grid::Validate() const {
   for (int a = 0; a < 3; ++a) {
     if (size[a] <= 0) {
-      return absl::InvalidArgumentError(
-          absl::StrCat("grid size along axis ", a, " is ", size[a],
-                       "; it must be positive"));
+      return absl::InvalidArgumentError(absl::StrCat("grid size along axis ", a,
+                                                     " is ", size[a],
+                                                     "; it must be positive"));
     }
     if (!(spacing[a] > 0) || !std::isfinite(spacing[a])) {
       return absl::InvalidArgumentError(

@@ -106,7 +106,8 @@ Volume<T> CropVolume(const Volume<T>& volume, const VoxelBox& box) {
   const Index3 n = out.grid.size;
   for (int64_t k = 0; k < n[2]; ++k) {
     for (int64_t j = 0; j < n[1]; ++j) {
-      const T* src = &volume.at(box.begin[0], box.begin[1] + j, box.begin[2] + k);
+      const T* src =
+          &volume.at(box.begin[0], box.begin[1] + j, box.begin[2] + k);
       T* dst = &out.data[out.grid.LinearIndex(0, j, k)];
       std::copy(src, src + n[0], dst);
     }

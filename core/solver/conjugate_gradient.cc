@@ -1,0 +1,265 @@
+// Solve(): validation, the statistics shared by every method, and the
+// paper's projected conjugate gradient (section 4 and Appendix).
+#include <algorithm>
+#include <cmath>
+#include <vector>
+
+#include "absl/strings/str_format.h"
+#include "core/common/status_macros.h"
+#include "core/solver/curvature_operator.h"
+#include "core/solver/direct_solver.h"
+#include "core/solver/solver.h"
+#include "tbb/blocked_range.h"
+#include "tbb/enumerable_thread_specific.h"
+#include "tbb/parallel_for.h"
+#include "tbb/task_arena.h"
+
+namespace interslice {
+namespace solver_internal {
+
+FieldStatistics MeasureField(const float* f, const Index3& size,
+                             const std::vector<uint8_t>& fixed,
+                             const StencilCoefficients& c) {
+  const int64_t plane = size[0] * size[1];
+  std::vector<double> energy(size[2]), residual(size[2]);
+  tbb::enumerable_thread_specific<std::vector<float>> scratch(
+      [plane] { return std::vector<float>(plane); });
+  tbb::parallel_for(tbb::blocked_range<int64_t>(0, size[2]),
+                    [&](const tbb::blocked_range<int64_t>& range) {
+                      std::vector<float>& af = scratch.local();
+                      for (int64_t k = range.begin(); k != range.end(); ++k) {
+                        ApplyOperatorSlice(f, size, k, c, af.data());
+                        const float* fk = f + k * plane;
+                        double e = 0, r = 0;
+                        for (int64_t n = 0; n < plane; ++n) {
+                          e += static_cast<double>(fk[n]) * af[n];
+                          r += static_cast<double>(af[n]) * af[n];
+                        }
+                        energy[k] = e;
+                        residual[k] = fixed[k] ? 0.0 : r;
+                      }
+                    });
+  return {OrderedSum(energy), std::sqrt(OrderedSum(residual))};
+}
+
+}  // namespace solver_internal
+
+namespace {
+
+using solver_internal::FieldStatistics;
+using solver_internal::MeasureField;
+using solver_internal::OrderedSum;
+using solver_internal::StencilCoefficients;
+
+// Projected CG on the free slices (paper section 4; Shewchuk's formulation).
+// Vectors are float with double reductions; per-slice partial sums keep the
+// result independent of the thread count.
+absl::Status ConjugateGradient(Volume<float>& field,
+                               const std::vector<uint8_t>& fixed,
+                               const SolverOptions& options,
+                               const StencilCoefficients& c,
+                               const ComputeContext& context,
+                               SolverResult& result) {
+  const Index3 size = field.grid.size;
+  const int64_t plane = size[0] * size[1];
+  const int64_t nz = size[2];
+  float* f = field.data.data();
+  std::vector<float> r(field.data.size()), d(field.data.size()),
+      q(field.data.size());
+  std::vector<double> partial(nz), partial2(nz);
+
+  auto for_slices = [&](auto&& body) {
+    tbb::parallel_for(tbb::blocked_range<int64_t>(0, nz),
+                      [&](const tbb::blocked_range<int64_t>& range) {
+                        for (int64_t k = range.begin(); k != range.end(); ++k)
+                          body(k);
+                      });
+  };
+
+  // r_0 = -P A f_0, d_0 = r_0; E(f_0) = f_0 . A f_0.
+  for_slices([&](int64_t k) {
+    float* qk = q.data() + k * plane;
+    solver_internal::ApplyOperatorSlice(f, size, k, c, qk);
+    const float* fk = f + k * plane;
+    float* rk = r.data() + k * plane;
+    float* dk = d.data() + k * plane;
+    double e = 0, rr = 0;
+    for (int64_t n = 0; n < plane; ++n) e += static_cast<double>(fk[n]) * qk[n];
+    if (fixed[k]) {
+      std::fill(rk, rk + plane, 0.0f);
+      std::fill(dk, dk + plane, 0.0f);
+    } else {
+      for (int64_t n = 0; n < plane; ++n) {
+        rk[n] = -qk[n];
+        dk[n] = rk[n];
+        rr += static_cast<double>(rk[n]) * rk[n];
+      }
+    }
+    partial[k] = e;
+    partial2[k] = rr;
+  });
+  double energy = OrderedSum(partial);
+  double rr = OrderedSum(partial2);
+  const double rr0 = rr;
+  result.initial_energy = energy;
+  result.initial_residual = std::sqrt(rr0);
+  result.relative_residual = rr0 > 0 ? 1.0 : 0.0;
+  result.energy = energy;
+  if (rr0 == 0) {
+    result.converged = true;
+    return absl::OkStatus();
+  }
+
+  for (int it = 1; it <= options.max_iterations; ++it) {
+    INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
+    // q = A d and d . q, slice by slice while the slice is in cache.
+    for_slices([&](int64_t k) {
+      float* qk = q.data() + k * plane;
+      if (fixed[k]) {
+        partial[k] = 0;  // d is zero there, and q is not needed there.
+        return;
+      }
+      solver_internal::ApplyOperatorSlice(d.data(), size, k, c, qk);
+      const float* dk = d.data() + k * plane;
+      double dq = 0;
+      for (int64_t n = 0; n < plane; ++n)
+        dq += static_cast<double>(dk[n]) * qk[n];
+      partial[k] = dq;
+    });
+    const double dq = OrderedSum(partial);
+    if (!(dq > 0)) break;  // d == 0 to working precision: nothing left to do.
+    const double alpha = rr / dq;
+    const float alpha_f = static_cast<float>(alpha);
+    // f += alpha d; r -= alpha q; r . r.
+    for_slices([&](int64_t k) {
+      if (fixed[k]) {
+        partial[k] = 0;
+        return;
+      }
+      float* fk = f + k * plane;
+      float* rk = r.data() + k * plane;
+      const float* dk = d.data() + k * plane;
+      const float* qk = q.data() + k * plane;
+      double sum = 0;
+      for (int64_t n = 0; n < plane; ++n) {
+        fk[n] += alpha_f * dk[n];
+        rk[n] -= alpha_f * qk[n];
+        sum += static_cast<double>(rk[n]) * rk[n];
+      }
+      partial[k] = sum;
+    });
+    const double rr_next = OrderedSum(partial);
+    // Along a CG step E drops by alpha r.r (d.r = r.r for CG directions).
+    energy -= alpha * rr;
+    const double beta = rr_next / rr;
+    const float beta_f = static_cast<float>(beta);
+    for_slices([&](int64_t k) {
+      if (fixed[k]) return;
+      float* dk = d.data() + k * plane;
+      const float* rk = r.data() + k * plane;
+      for (int64_t n = 0; n < plane; ++n) dk[n] = rk[n] + beta_f * dk[n];
+    });
+    rr = rr_next;
+    result.iterations = it;
+    result.relative_residual = std::sqrt(rr / rr0);
+    result.energy = energy;
+    context.Report(
+        {.stage = "solve",
+         .fraction = static_cast<double>(it) / options.max_iterations,
+         .iteration = it,
+         .relative_residual = result.relative_residual,
+         .energy = energy});
+    if (options.tolerance > 0 &&
+        result.relative_residual <= options.tolerance) {
+      result.converged = true;
+      break;
+    }
+    if (rr == 0) {
+      result.converged = true;
+      break;
+    }
+  }
+  // The recursive residual and energy drift in float; report measured ones.
+  const FieldStatistics final_stats = MeasureField(f, size, fixed, c);
+  result.energy = final_stats.energy;
+  result.relative_residual =
+      final_stats.residual_norm / result.initial_residual;
+  if (options.tolerance > 0) {
+    result.converged = result.relative_residual <= options.tolerance;
+  }
+  return absl::OkStatus();
+}
+
+absl::Status ValidateSolveInputs(const Volume<float>& field,
+                                 const std::vector<uint8_t>& fixed,
+                                 const SolverOptions& options) {
+  INTERSLICE_RETURN_IF_ERROR(field.grid.Validate());
+  if (static_cast<int64_t>(field.data.size()) != field.grid.VoxelCount()) {
+    return absl::InvalidArgumentError(
+        "field data size does not match its grid");
+  }
+  if (static_cast<int64_t>(fixed.size()) != field.grid.size[2]) {
+    return absl::InvalidArgumentError(
+        absl::StrFormat("fixed-slice mask has %d entries for %d slices",
+                        fixed.size(), field.grid.size[2]));
+  }
+  if (std::none_of(fixed.begin(), fixed.end(), [](uint8_t v) { return v; })) {
+    return absl::InvalidArgumentError(
+        "at least one original (fixed) slice is needed");
+  }
+  if (options.max_iterations < 0) {
+    return absl::InvalidArgumentError("iterations must be >= 0");
+  }
+  if (!(options.tolerance >= 0) || !std::isfinite(options.tolerance)) {
+    return absl::InvalidArgumentError("tolerance must be >= 0 and finite");
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::StatusOr<SolverResult> Solve(Volume<float>& field,
+                                   const std::vector<uint8_t>& fixed_slices,
+                                   const SolverOptions& options,
+                                   const ComputeContext& context) {
+  INTERSLICE_RETURN_IF_ERROR(ValidateSolveInputs(field, fixed_slices, options));
+  for (float v : field.data) {
+    if (!std::isfinite(v)) {
+      return absl::InvalidArgumentError("field holds a non-finite value");
+    }
+  }
+  const StencilCoefficients c = StencilCoefficients::From(
+      CurvatureWeights::For(options.units, field.grid.spacing));
+  SolverResult result;
+  result.method = options.method;
+  absl::Status status;
+  tbb::task_arena arena(context.threads > 0 ? context.threads
+                                            : tbb::task_arena::automatic);
+  arena.execute([&] {
+    switch (options.method) {
+      case SolverMethod::kLinear: {
+        const FieldStatistics s =
+            MeasureField(field.data.data(), field.grid.size, fixed_slices, c);
+        result.initial_energy = result.energy = s.energy;
+        result.initial_residual = s.residual_norm;
+        result.relative_residual = s.residual_norm > 0 ? 1.0 : 0.0;
+        result.converged = s.residual_norm == 0;
+        break;
+      }
+      case SolverMethod::kConjugateGradient:
+        status =
+            ConjugateGradient(field, fixed_slices, options, c, context, result);
+        break;
+      case SolverMethod::kDirect:
+        status = solver_internal::DirectSolve(
+            field, fixed_slices,
+            CurvatureWeights::For(options.units, field.grid.spacing), c,
+            context, result);
+        break;
+    }
+  });
+  if (!status.ok()) return status;
+  return result;
+}
+
+}  // namespace interslice
