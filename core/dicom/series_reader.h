@@ -56,8 +56,8 @@ struct DicomReadOptions {
 struct DicomSliceInfo {
   std::string path;
   std::string sop_instance_uid;
-  Vec3 image_position = {0, 0, 0};    // ImagePositionPatient, mm
-  double position_along_normal = 0;   // mm
+  Vec3 image_position = {0, 0, 0};   // ImagePositionPatient, mm
+  double position_along_normal = 0;  // mm
   double rescale_slope = 1, rescale_intercept = 0;
 };
 
@@ -69,7 +69,7 @@ struct DicomSeriesSummary {
 };
 
 struct DicomSeries {
-  Volume<float> image;  // modality values, e.g. HU
+  Volume<float> image;                 // modality values, e.g. HU
   std::vector<DicomSliceInfo> slices;  // size() == image.grid.size[2]
   std::string series_instance_uid;
   std::string study_instance_uid;
@@ -80,13 +80,18 @@ struct DicomSeries {
 };
 
 // Reads the series. `paths` are files or directories.
-absl::StatusOr<DicomSeries> ReadDicomSeries(const std::vector<std::string>& paths,
-                                            const DicomReadOptions& options,
-                                            const ComputeContext& context);
+absl::StatusOr<DicomSeries> ReadDicomSeries(
+    const std::vector<std::string>& paths, const DicomReadOptions& options,
+    const ComputeContext& context);
 
 // Lists the image series found in `paths` (headers only).
 absl::StatusOr<std::vector<DicomSeriesSummary>> ListDicomSeries(
     const std::vector<std::string>& paths);
+
+// Turns DCMTK's own logger (which prints a line to stderr for every file it
+// cannot parse) down to fatal messages. Programs call it once at start-up;
+// the library never changes that process-wide setting by itself.
+void QuietDicomToolkitLogging();
 
 // Registers DCMTK's JPEG, JPEG-LS and RLE decoders; idempotent and
 // thread-safe (ReadDicomSeries calls it).

@@ -14,10 +14,16 @@
 // sign of a pixel is that of its own grey value, which is the side of the
 // linearly interpolated contour it lies on.
 //
-// End caps: a slice with no contour (object absent, or the slice entirely
-// inside) holds the constant -cap (or +cap) everywhere, cap = band radius.
-// Between a slice containing the object and an empty one, the interpolated
-// shape therefore closes off within one slice gap instead of extending along z.
+// End caps: SliceSignedDistance gives a slice with no contour (object
+// absent, or the slice entirely inside) the constant -cap (+cap), cap = band
+// radius. ComputeSliceDistanceMaps, which sees the whole stack, instead gives
+// such a slice -(+) slice_spacing * m, where m is the number of slices to the
+// nearest slice holding inside (outside) voxels, as a 3D distance would be
+// right above the object's last cross-section. Between a slice showing the
+// object at depth rho and the empty slice next to it, the interpolated shape
+// closes off a fraction rho / (rho + spacing) of the gap: within one slice
+// gap, and neither cut flat at the last slice nor extended along z. (Only if
+// no slice at all holds the other state does the constant cap remain.)
 #ifndef INTERSLICE_CORE_SDF_SIGNED_DISTANCE_H_
 #define INTERSLICE_CORE_SDF_SIGNED_DISTANCE_H_
 

@@ -1,0 +1,261 @@
+#include "client/run_command.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <fstream>
+
+#include "CLI/CLI.hpp"
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "absl/strings/str_join.h"
+#include "absl/strings/str_split.h"
+#include "client/progress_display.h"
+
+namespace interslice::client {
+namespace {
+
+// CG iteration cap when only --tolerance is given: far beyond what any
+// reasonable problem needs, but it still bounds the run.
+constexpr int kToleranceIterationCap = 100000;
+
+absl::StatusOr<std::vector<std::string>> ParseList(
+    const std::string& text, const std::vector<std::string>& allowed,
+    const std::string& option) {
+  std::vector<std::string> out;
+  if (text.empty() || text == "none") return out;
+  for (absl::string_view item : absl::StrSplit(text, ',', absl::SkipEmpty())) {
+    std::string value(item);
+    if (std::find(allowed.begin(), allowed.end(), value) == allowed.end()) {
+      return absl::InvalidArgumentError(
+          absl::StrCat(option, ": unknown value '", value, "' (choose from ",
+                       absl::StrJoin(allowed, ", "), ", or none)"));
+    }
+    if (std::find(out.begin(), out.end(), value) == out.end()) {
+      out.push_back(value);
+    }
+  }
+  return out;
+}
+
+absl::StatusOr<VoxelBox> ParseRoi(const std::string& text) {
+  const std::vector<std::string> parts = absl::StrSplit(text, ',');
+  if (parts.size() != 6) {
+    return absl::InvalidArgumentError(
+        "--roi: expected six integers x0,y0,z0,x1,y1,z1 (a half-open voxel "
+        "box)");
+  }
+  int64_t v[6];
+  for (int n = 0; n < 6; ++n) {
+    if (!absl::SimpleAtoi(parts[n], &v[n])) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("--roi: '", parts[n], "' is not an integer"));
+    }
+  }
+  return VoxelBox{{v[0], v[1], v[2]}, {v[3], v[4], v[5]}};
+}
+
+void PrintSummary(const JobReport& report, const std::string& out_dir) {
+  const Grid& g = report.output_grid;
+  std::printf("interslice: wrote %zu file(s) to %s\n", report.artifacts.size(),
+              out_dir.c_str());
+  std::printf(
+      "  grid      %lld x %lld x %lld voxels, spacing %.4g x %.4g x "
+      "%.4g mm (%d slices inserted per gap)\n",
+      static_cast<long long>(g.size[0]), static_cast<long long>(g.size[1]),
+      static_cast<long long>(g.size[2]), g.spacing[0], g.spacing[1],
+      g.spacing[2], report.insertion_factor - 1);
+  std::printf(
+      "  solver    %s, %d iterations, relative residual %.3g, "
+      "energy %.6g -> %.6g (%s units)\n",
+      std::string(SolverMethodName(report.solver.method)).c_str(),
+      report.solver.iterations, report.solver.relative_residual,
+      report.solver.initial_energy, report.solver.energy,
+      std::string(EnergyUnitsName(report.energy_units)).c_str());
+  if (report.mesh_triangles > 0 || report.mesh_vertices > 0) {
+    std::printf("  surface   %lld triangles, %lld vertices\n",
+                static_cast<long long>(report.mesh_triangles),
+                static_cast<long long>(report.mesh_vertices));
+  }
+  std::string timings;
+  double total = 0;
+  for (const StageTiming& s : report.stages) {
+    absl::StrAppendFormat(&timings, " %s %.2fs", s.stage, s.seconds);
+    total += s.seconds;
+  }
+  std::printf("  time     %s (total %.2fs), peak memory %.0f MiB\n",
+              timings.c_str(), total, report.peak_rss_bytes / 1048576.0);
+  for (const Artifact& a : report.artifacts) {
+    std::printf("  %-9s %s\n", a.kind.c_str(), a.path.c_str());
+  }
+}
+
+}  // namespace
+
+void AddRunOptions(CLI::App& app, RunArguments& args) {
+  app.add_option("inputs", args.inputs,
+                 "DICOM folder(s) or file(s); folders are searched recursively")
+      ->required();
+  app.add_option("--threshold", args.threshold,
+                 "Object threshold in modality units (HU for CT): voxels with "
+                 "value >= threshold are inside")
+      ->required();
+  app.add_option("--upper", args.upper,
+                 "Optional upper threshold (HU): inside means threshold <= "
+                 "value <= upper");
+  app.add_option(
+      "--series-uid", args.series_uid,
+      "SeriesInstanceUID to use when the input holds several series");
+  app.add_option("--roi", args.roi,
+                 "Region of interest x0,y0,z0,x1,y1,z1: a half-open voxel box "
+                 "in the input's index space (z in sorted slice order)");
+  app.add_option("--method", args.method,
+                 "direct (exact minimiser), cg (the paper's conjugate "
+                 "gradient) or linear (no refinement)")
+      ->capture_default_str();
+  app.add_option("--iterations", args.iterations,
+                 "CG iterations (default 15, as in the paper)");
+  app.add_option("--tolerance", args.tolerance,
+                 "CG: stop at this relative residual |r|/|r0|");
+  app.add_option("--energy-units", args.energy_units,
+                 "voxel (the paper's, default) or mm")
+      ->capture_default_str();
+  app.add_option("--factor", args.factor, "Insert N-1 slices per gap (N >= 1)");
+  app.add_option("--spacing", args.spacing,
+                 "Target output slice spacing in mm (default: the in-plane "
+                 "spacing, i.e. isotropic)");
+  app.add_option("--band", args.band,
+                 "Radius in mm of the band of exact 2D distances (default 16 "
+                 "pixels)");
+  app.add_option("--adaptivity", args.adaptivity,
+                 "Mesh adaptivity in [0,1]: higher gives fewer triangles")
+      ->capture_default_str();
+  app.add_option("--out", args.out, "Output folder (created if missing)")
+      ->required();
+  app.add_option("--mesh", args.mesh,
+                 "Mesh formats: any of stl,ply,obj, or none")
+      ->capture_default_str();
+  app.add_option("--volume", args.volume,
+                 "Volume formats: any of nii,nrrd, or none")
+      ->capture_default_str();
+  app.add_option("--report", args.report, "Write a JSON report to this file");
+  app.add_option("--threads", args.threads, "Worker threads (0 = all cores)")
+      ->capture_default_str();
+  app.add_flag("--quiet", args.quiet, "No progress display or summary");
+}
+
+absl::StatusOr<JobSpec> BuildJobSpec(const RunArguments& args) {
+  JobSpec spec;
+  spec.inputs = args.inputs;
+  spec.series_instance_uid = args.series_uid;
+  spec.output_dir = args.out;
+  if (!args.threshold.has_value()) {
+    return absl::InvalidArgumentError("--threshold is required");
+  }
+  spec.lower_threshold = static_cast<float>(*args.threshold);
+  if (args.upper.has_value()) {
+    spec.upper_threshold = static_cast<float>(*args.upper);
+  }
+  if (!args.roi.empty()) {
+    absl::StatusOr<VoxelBox> roi = ParseRoi(args.roi);
+    if (!roi.ok()) return roi.status();
+    spec.roi = *roi;
+  }
+  if (args.method == "direct") {
+    spec.solver.method = SolverMethod::kDirect;
+  } else if (args.method == "cg") {
+    spec.solver.method = SolverMethod::kConjugateGradient;
+  } else if (args.method == "linear") {
+    spec.solver.method = SolverMethod::kLinear;
+  } else {
+    return absl::InvalidArgumentError(
+        absl::StrCat("--method: unknown method '", args.method,
+                     "' (choose from direct, cg, linear)"));
+  }
+  if (args.iterations.has_value()) {
+    if (*args.iterations < 0) {
+      return absl::InvalidArgumentError("--iterations must be >= 0");
+    }
+    spec.solver.max_iterations = *args.iterations;
+  } else if (args.tolerance.has_value()) {
+    spec.solver.max_iterations = kToleranceIterationCap;
+  }
+  if (args.tolerance.has_value()) {
+    if (!(*args.tolerance > 0) || !std::isfinite(*args.tolerance)) {
+      return absl::InvalidArgumentError("--tolerance must be positive");
+    }
+    spec.solver.tolerance = *args.tolerance;
+  }
+  if (args.energy_units == "voxel") {
+    spec.solver.units = EnergyUnits::kVoxel;
+  } else if (args.energy_units == "mm") {
+    spec.solver.units = EnergyUnits::kMillimetre;
+  } else {
+    return absl::InvalidArgumentError(
+        absl::StrCat("--energy-units: unknown units '", args.energy_units,
+                     "' (choose from voxel, mm)"));
+  }
+  if (args.factor.has_value() && args.spacing.has_value()) {
+    return absl::InvalidArgumentError(
+        "--factor and --spacing are alternatives; give one");
+  }
+  spec.z_resolution.factor = args.factor;
+  spec.z_resolution.spacing_mm = args.spacing;
+  if (args.band.has_value()) {
+    if (!(*args.band > 0)) {
+      return absl::InvalidArgumentError("--band must be positive (mm)");
+    }
+    spec.band_radius_mm = *args.band;
+  }
+  spec.mesh_adaptivity = args.adaptivity;
+  absl::StatusOr<std::vector<std::string>> mesh =
+      ParseList(args.mesh, {"stl", "ply", "obj"}, "--mesh");
+  if (!mesh.ok()) return mesh.status();
+  spec.mesh_formats = *mesh;
+  absl::StatusOr<std::vector<std::string>> volume =
+      ParseList(args.volume, {"nii", "nrrd"}, "--volume");
+  if (!volume.ok()) return volume.status();
+  spec.volume_formats = *volume;
+  if (args.threads < 0) {
+    return absl::InvalidArgumentError("--threads must be >= 0");
+  }
+  absl::Status valid = ValidateJobSpec(spec);
+  if (!valid.ok()) return valid;
+  return spec;
+}
+
+int ExecuteRun(const RunArguments& args) {
+  absl::StatusOr<JobSpec> spec = BuildJobSpec(args);
+  if (!spec.ok()) {
+    std::fprintf(stderr, "interslice: error: %s\n",
+                 std::string(spec.status().message()).c_str());
+    return 1;
+  }
+  ProgressDisplay display(stderr, !args.quiet);
+  ComputeContext context;
+  context.threads = args.threads;
+  context.progress = [&display](const ProgressEvent& e) { display.Update(e); };
+  absl::StatusOr<JobReport> report = RunJob(*spec, context);
+  display.Finish();
+  if (!report.ok()) {
+    std::fprintf(stderr, "interslice: error: %s\n",
+                 std::string(report.status().message()).c_str());
+    return 1;
+  }
+  report->peak_rss_bytes = PeakRssBytes();
+  if (!args.report.empty()) {
+    std::ofstream file(args.report);
+    file << JobReportToJson(*report) << "\n";
+    file.close();
+    if (!file) {
+      std::fprintf(stderr, "interslice: error: cannot write report %s\n",
+                   args.report.c_str());
+      return 1;
+    }
+  }
+  if (!args.quiet) PrintSummary(*report, spec->output_dir);
+  return 0;
+}
+
+}  // namespace interslice::client

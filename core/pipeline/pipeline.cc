@@ -1,0 +1,262 @@
+#include "core/pipeline/pipeline.h"
+
+#include <sys/resource.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <system_error>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
+#include "core/common/status_macros.h"
+#include "core/dicom/series_reader.h"
+#include "core/sdf/signed_distance.h"
+#include "core/surface/surface.h"
+#include "core/volume_io/volume_io.h"
+#include "nlohmann/json.hpp"
+
+namespace interslice {
+namespace {
+
+class StageClock {
+ public:
+  StageClock(JobReport& report, const ComputeContext& context,
+             std::string stage)
+      : report_(report),
+        stage_(std::move(stage)),
+        start_(std::chrono::steady_clock::now()) {
+    context.Report({.stage = stage_, .fraction = 0});
+  }
+  ~StageClock() {
+    const std::chrono::duration<double> elapsed =
+        std::chrono::steady_clock::now() - start_;
+    report_.stages.push_back({stage_, elapsed.count()});
+  }
+
+ private:
+  JobReport& report_;
+  std::string stage_;
+  std::chrono::steady_clock::time_point start_;
+};
+
+int64_t FileSize(const std::string& path) {
+  std::error_code ec;
+  const auto size = std::filesystem::file_size(path, ec);
+  return ec ? -1 : static_cast<int64_t>(size);
+}
+
+}  // namespace
+
+absl::Status ValidateJobSpec(const JobSpec& spec) {
+  if (spec.inputs.empty()) {
+    return absl::InvalidArgumentError("no input DICOM files or folders given");
+  }
+  if (spec.output_dir.empty()) {
+    return absl::InvalidArgumentError("no output folder given");
+  }
+  if (!std::isfinite(spec.lower_threshold)) {
+    return absl::InvalidArgumentError("threshold must be a finite number");
+  }
+  if (spec.upper_threshold.has_value() &&
+      (!std::isfinite(*spec.upper_threshold) ||
+       *spec.upper_threshold < spec.lower_threshold)) {
+    return absl::InvalidArgumentError(
+        "upper threshold must be finite and not below the threshold");
+  }
+  if (!(spec.mesh_adaptivity >= 0 && spec.mesh_adaptivity <= 1)) {
+    return absl::InvalidArgumentError("mesh adaptivity must be in [0, 1]");
+  }
+  for (const std::string& f : spec.volume_formats) {
+    if (f != "nii" && f != "nrrd") {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "unknown volume format '", f, "' (choose from nii, nrrd)"));
+    }
+  }
+  for (const std::string& f : spec.mesh_formats) {
+    if (f != "stl" && f != "ply" && f != "obj") {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "unknown mesh format '", f, "' (choose from stl, ply, obj)"));
+    }
+  }
+  if (spec.solver.max_iterations < 0) {
+    return absl::InvalidArgumentError("iterations must be >= 0");
+  }
+  if (!(spec.solver.tolerance >= 0) || !std::isfinite(spec.solver.tolerance)) {
+    return absl::InvalidArgumentError("tolerance must be >= 0");
+  }
+  if (spec.max_output_voxels <= 0) {
+    return absl::InvalidArgumentError("max_output_voxels must be positive");
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
+                                 const ComputeContext& context) {
+  INTERSLICE_RETURN_IF_ERROR(ValidateJobSpec(spec));
+  JobReport report;
+  report.energy_units = spec.solver.units;
+
+  // read
+  Volume<float> image;
+  {
+    StageClock clock(report, context, "read");
+    DicomReadOptions options;
+    options.series_instance_uid = spec.series_instance_uid;
+    INTERSLICE_ASSIGN_OR_RETURN(DicomSeries series,
+                                ReadDicomSeries(spec.inputs, options, context));
+    report.input_grid = series.image.grid;
+    report.skipped_files = series.skipped_files;
+    if (spec.roi.has_value()) {
+      INTERSLICE_RETURN_IF_ERROR(
+          ValidateVoxelBox(*spec.roi, series.image.grid));
+      image = CropVolume(series.image, *spec.roi);
+    } else {
+      image = std::move(series.image);
+    }
+    report.input_slices = image.grid.size[2];
+    if (image.grid.size[2] < 2) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("interpolation needs at least 2 slices; the ",
+                       spec.roi.has_value() ? "region of interest" : "series",
+                       " has ", image.grid.size[2]));
+    }
+  }
+  INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
+
+  // contour: 2D signed distance maps of the original slices
+  Volume<float> slice_maps;
+  {
+    StageClock clock(report, context, "contour");
+    ContourOptions options;
+    options.lower = spec.lower_threshold;
+    options.upper = spec.upper_threshold;
+    options.band_radius_mm = spec.band_radius_mm;
+    INTERSLICE_ASSIGN_OR_RETURN(
+        slice_maps, ComputeSliceDistanceMaps(image, options, context));
+    image = Volume<float>();  // release the grey values early
+  }
+
+  // stack
+  StackedField stacked;
+  {
+    StageClock clock(report, context, "stack");
+    INTERSLICE_ASSIGN_OR_RETURN(
+        const int factor,
+        ChooseInsertionFactor(
+            slice_maps.grid.spacing[2],
+            std::min(slice_maps.grid.spacing[0], slice_maps.grid.spacing[1]),
+            spec.z_resolution));
+    INTERSLICE_ASSIGN_OR_RETURN(
+        stacked,
+        StackLinear(slice_maps, factor, spec.max_output_voxels, context));
+    slice_maps = Volume<float>();
+    report.insertion_factor = factor;
+    report.output_grid = stacked.field.grid;
+  }
+
+  // solve
+  {
+    StageClock clock(report, context, "solve");
+    INTERSLICE_ASSIGN_OR_RETURN(
+        report.solver,
+        Solve(stacked.field, stacked.fixed_slices, spec.solver, context));
+  }
+  const Volume<float>& field = stacked.field;
+
+  // mesh
+  Mesh mesh;
+  if (!spec.mesh_formats.empty()) {
+    StageClock clock(report, context, "mesh");
+    SurfaceOptions options;
+    options.adaptivity = spec.mesh_adaptivity;
+    INTERSLICE_ASSIGN_OR_RETURN(mesh, ExtractSurface(field, options, context));
+    report.mesh_vertices = static_cast<int64_t>(mesh.vertices.size());
+    report.mesh_triangles = static_cast<int64_t>(mesh.triangles.size());
+  }
+  INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
+
+  // write
+  {
+    StageClock clock(report, context, "write");
+    std::error_code ec;
+    std::filesystem::create_directories(spec.output_dir, ec);
+    if (ec || !std::filesystem::is_directory(spec.output_dir)) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("cannot create output folder ", spec.output_dir, ": ",
+                       ec ? ec.message() : "not a folder"));
+    }
+    const std::filesystem::path dir(spec.output_dir);
+    auto add = [&](const std::string& kind, const std::filesystem::path& p) {
+      report.artifacts.push_back({kind, p.string(), FileSize(p.string())});
+    };
+    Volume<uint8_t> mask;
+    if (!spec.volume_formats.empty()) {
+      mask.grid = field.grid;
+      mask.data.resize(field.data.size());
+      std::transform(field.data.begin(), field.data.end(), mask.data.begin(),
+                     [](float v) -> uint8_t { return v >= 0 ? 1 : 0; });
+    }
+    for (const std::string& format : spec.volume_formats) {
+      const std::string ext = format == "nii" ? ".nii.gz" : ".nrrd";
+      const auto distance_path = dir / ("distance" + ext);
+      const auto mask_path = dir / ("mask" + ext);
+      INTERSLICE_RETURN_IF_ERROR(WriteVolume(field, distance_path.string()));
+      add("distance", distance_path);
+      INTERSLICE_RETURN_IF_ERROR(WriteVolume(mask, mask_path.string()));
+      add("mask", mask_path);
+    }
+    for (const std::string& format : spec.mesh_formats) {
+      const auto path = dir / ("surface." + format);
+      INTERSLICE_RETURN_IF_ERROR(WriteMesh(mesh, path.string()));
+      add("surface", path);
+    }
+  }
+  return report;
+}
+
+std::string JobReportToJson(const JobReport& report) {
+  using nlohmann::ordered_json;
+  ordered_json j;
+  ordered_json stages = ordered_json::object();
+  for (const StageTiming& s : report.stages) stages[s.stage] = s.seconds;
+  j["stages"] = stages;
+  j["solver"] = {{"method", SolverMethodName(report.solver.method)},
+                 {"iterations", report.solver.iterations},
+                 {"relative_residual", report.solver.relative_residual},
+                 {"initial_residual", report.solver.initial_residual},
+                 {"energy", report.solver.energy},
+                 {"initial_energy", report.solver.initial_energy},
+                 {"energy_units", EnergyUnitsName(report.energy_units)},
+                 {"converged", report.solver.converged}};
+  auto grid_json = [](const Grid& g) {
+    return ordered_json{{"size", g.size},
+                        {"spacing", g.spacing},
+                        {"origin", g.origin},
+                        {"direction", g.direction}};
+  };
+  j["grid"] = grid_json(report.output_grid);
+  j["grid"]["insertion_factor"] = report.insertion_factor;
+  j["input"] = grid_json(report.input_grid);
+  j["input"]["slices_used"] = report.input_slices;
+  j["input"]["skipped_files"] = report.skipped_files;
+  j["mesh"] = {{"vertices", report.mesh_vertices},
+               {"triangles", report.mesh_triangles}};
+  ordered_json artifacts = ordered_json::array();
+  for (const Artifact& a : report.artifacts) {
+    artifacts.push_back(
+        {{"kind", a.kind}, {"path", a.path}, {"size_bytes", a.size_bytes}});
+  }
+  j["artifacts"] = artifacts;
+  j["peak_rss_bytes"] = report.peak_rss_bytes;
+  return j.dump(2);
+}
+
+int64_t PeakRssBytes() {
+  struct rusage usage {};
+  if (getrusage(RUSAGE_SELF, &usage) != 0) return -1;
+  return static_cast<int64_t>(usage.ru_maxrss) * 1024;  // Linux: kilobytes
+}
+
+}  // namespace interslice

@@ -1,0 +1,170 @@
+#include "core/pipeline/pipeline.h"
+
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+
+#include "core/dicom/series_reader.h"
+#include "core/sdf/signed_distance.h"
+#include "core/volume_io/volume_io.h"
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "nlohmann/json.hpp"
+
+namespace interslice {
+namespace {
+
+namespace fs = std::filesystem;
+
+const std::string kSeries = std::string(INTERSLICE_TEST_DATA_DIR) + "/ct-thick";
+
+class PipelineTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    dir_ = fs::temp_directory_path() /
+           ("interslice_pipeline_test_" + std::to_string(getpid()) + "_" +
+            ::testing::UnitTest::GetInstance()->current_test_info()->name());
+    fs::remove_all(dir_);
+  }
+  void TearDown() override { fs::remove_all(dir_); }
+
+  JobSpec SmallJob() const {
+    JobSpec spec;
+    spec.inputs = {kSeries};
+    spec.lower_threshold = 300;
+    spec.roi = VoxelBox{{200, 40, 0}, {280, 120, 4}};
+    spec.z_resolution.factor = 4;
+    spec.solver.method = SolverMethod::kDirect;
+    spec.output_dir = dir_.string();
+    spec.volume_formats = {"nrrd"};
+    spec.mesh_formats = {"stl"};
+    return spec;
+  }
+  fs::path dir_;
+};
+
+TEST_F(PipelineTest, RunsEveryStageAndWritesConsistentOutputs) {
+  std::vector<std::string> stages_seen;
+  ComputeContext context;
+  context.progress = [&](const ProgressEvent& e) {
+    if (stages_seen.empty() || stages_seen.back() != e.stage) {
+      stages_seen.push_back(e.stage);
+    }
+  };
+  const auto report = RunJob(SmallJob(), context);
+  ASSERT_TRUE(report.ok()) << report.status();
+  std::vector<std::string> timed;
+  for (const StageTiming& s : report->stages) timed.push_back(s.stage);
+  EXPECT_THAT(timed, ::testing::ElementsAre("read", "contour", "stack", "solve",
+                                            "mesh", "write"));
+  EXPECT_THAT(stages_seen, ::testing::IsSupersetOf({"read", "contour", "stack",
+                                                    "solve", "mesh", "write"}));
+  EXPECT_EQ(report->output_grid.size, (Index3{80, 80, 13}));
+  EXPECT_EQ(report->input_grid.size, (Index3{512, 512, 4}));
+  EXPECT_GT(report->mesh_triangles, 0);
+  ASSERT_EQ(report->artifacts.size(), 3u);
+
+  // Original slices of the written distance volume are exactly the 2D
+  // signed distance maps of the input (the solver never touches them).
+  const auto distance = ReadVolumeAsFloat((dir_ / "distance.nrrd").string());
+  ASSERT_TRUE(distance.ok()) << distance.status();
+  const auto series = ReadDicomSeries({kSeries}, {}, {});
+  ASSERT_TRUE(series.ok());
+  const Volume<float> roi = CropVolume(series->image, *SmallJob().roi);
+  ContourOptions contour;
+  contour.lower = 300;
+  const auto maps = ComputeSliceDistanceMaps(roi, contour, {});
+  ASSERT_TRUE(maps.ok());
+  const int64_t plane = 80 * 80;
+  for (int64_t s = 0; s < 4; ++s) {
+    EXPECT_EQ(std::memcmp(&distance->data[s * 4 * plane],
+                          &maps->data[s * plane], plane * sizeof(float)),
+              0)
+        << "original slice " << s;
+  }
+  // The mask is the sign of the field.
+  const auto mask = ReadVolumeAsFloat((dir_ / "mask.nrrd").string());
+  ASSERT_TRUE(mask.ok());
+  for (size_t n = 0; n < mask->data.size(); ++n) {
+    ASSERT_EQ(mask->data[n], distance->data[n] >= 0 ? 1.0f : 0.0f) << n;
+  }
+}
+
+TEST_F(PipelineTest, ReportJsonHasTheDocumentedFields) {
+  auto report = RunJob(SmallJob(), {});
+  ASSERT_TRUE(report.ok()) << report.status();
+  report->peak_rss_bytes = PeakRssBytes();
+  const nlohmann::json j = nlohmann::json::parse(JobReportToJson(*report));
+  EXPECT_TRUE(j["stages"].contains("solve"));
+  EXPECT_EQ(j["solver"]["method"], "direct");
+  EXPECT_EQ(j["solver"]["energy_units"], "voxel");
+  EXPECT_EQ(j["grid"]["size"][2], 13);
+  EXPECT_GT(j["peak_rss_bytes"].get<int64_t>(), 1 << 20);
+}
+
+TEST_F(PipelineTest, CancellationStopsTheJobAndWritesNothing) {
+  CancellationToken token;
+  ComputeContext context;
+  context.cancel = &token;
+  context.progress = [&](const ProgressEvent& e) {
+    if (e.stage == "solve") token.Cancel();
+  };
+  JobSpec spec = SmallJob();
+  spec.solver.method = SolverMethod::kConjugateGradient;
+  const auto report = RunJob(spec, context);
+  EXPECT_EQ(report.status().code(), absl::StatusCode::kCancelled);
+  EXPECT_FALSE(fs::exists(dir_ / "distance.nrrd"));
+}
+
+TEST_F(PipelineTest, RejectsBadSpecsWithClearErrors) {
+  JobSpec spec = SmallJob();
+  spec.roi = VoxelBox{{0, 0, 0}, {10, 10, 1}};
+  auto r = RunJob(spec, {});
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(r.status().message(), ::testing::HasSubstr("at least 2 slices"));
+
+  spec = SmallJob();
+  spec.roi = VoxelBox{{0, 0, 0}, {10, 10, 9}};
+  r = RunJob(spec, {});
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(r.status().message(), ::testing::HasSubstr("along z"));
+
+  spec = SmallJob();
+  spec.upper_threshold = 100;
+  EXPECT_EQ(RunJob(spec, {}).status().code(),
+            absl::StatusCode::kInvalidArgument);
+
+  spec = SmallJob();
+  spec.mesh_formats = {"dxf"};
+  EXPECT_EQ(RunJob(spec, {}).status().code(),
+            absl::StatusCode::kInvalidArgument);
+
+  spec = SmallJob();
+  spec.max_output_voxels = 1000;
+  EXPECT_EQ(RunJob(spec, {}).status().code(),
+            absl::StatusCode::kResourceExhausted);
+}
+
+TEST_F(PipelineTest, SameResultWhateverTheThreadCount) {
+  JobSpec spec = SmallJob();
+  spec.solver.method = SolverMethod::kConjugateGradient;
+  spec.output_dir = (dir_ / "one").string();
+  ComputeContext one;
+  one.threads = 1;
+  ASSERT_TRUE(RunJob(spec, one).ok());
+  spec.output_dir = (dir_ / "two").string();
+  ComputeContext two;
+  two.threads = 2;
+  ASSERT_TRUE(RunJob(spec, two).ok());
+  for (const char* name : {"distance.nrrd", "surface.stl"}) {
+    std::ifstream a(dir_ / "one" / name, std::ios::binary);
+    std::ifstream b(dir_ / "two" / name, std::ios::binary);
+    const std::string bytes_a((std::istreambuf_iterator<char>(a)), {});
+    const std::string bytes_b((std::istreambuf_iterator<char>(b)), {});
+    EXPECT_FALSE(bytes_a.empty());
+    EXPECT_EQ(bytes_a, bytes_b) << name;
+  }
+}
+
+}  // namespace
+}  // namespace interslice
