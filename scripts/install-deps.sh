@@ -13,8 +13,13 @@ packages=(
   libfftw3-dev libtbb-dev
   libopenvdb-dev libboost-iostreams-dev
   libcli11-dev prometheus-cpp-dev libabsl-dev nlohmann-json3-dev
-  zlib1g-dev
+  zlib1g-dev libgdcm-dev
+  dicom3tools
 )
+# Extra packages for the evaluation report (scripts/eval.sh): plots.
+if [ "${1:-}" = "--eval" ]; then
+  packages+=(python3-matplotlib python3-numpy)
+fi
 
 missing=()
 for p in "${packages[@]}"; do
