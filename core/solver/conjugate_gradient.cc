@@ -29,14 +29,10 @@ FieldStatistics MeasureField(const float* f, const Index3& size,
                       std::vector<float>& af = scratch.local();
                       for (int64_t k = range.begin(); k != range.end(); ++k) {
                         ApplyOperatorSlice(f, size, k, c, af.data());
-                        const float* fk = f + k * plane;
-                        double e = 0, r = 0;
-                        for (int64_t n = 0; n < plane; ++n) {
-                          e += static_cast<double>(fk[n]) * af[n];
-                          r += static_cast<double>(af[n]) * af[n];
-                        }
-                        energy[k] = e;
-                        residual[k] = fixed[k] ? 0.0 : r;
+                        energy[k] = DotProduct(f + k * plane, af.data(), plane);
+                        residual[k] =
+                            fixed[k] ? 0.0
+                                     : DotProduct(af.data(), af.data(), plane);
                       }
                     });
   return {OrderedSum(energy), std::sqrt(OrderedSum(residual))};
@@ -46,7 +42,40 @@ FieldStatistics MeasureField(const float* f, const Index3& size,
 
 namespace {
 
+using solver_internal::DotProduct;
 using solver_internal::FieldStatistics;
+
+// f += alpha d; r -= alpha q; returns r . r (lane order, see DotProduct).
+INTERSLICE_SIMD_CLONES
+double UpdateSolutionAndResidual(float* __restrict f, float* __restrict r,
+                                 const float* __restrict d,
+                                 const float* __restrict q, float alpha,
+                                 int64_t n) {
+  constexpr int kLanes = solver_internal::kReductionLanes;
+  double lanes[kLanes] = {};
+  int64_t i = 0;
+  for (; i + kLanes <= n; i += kLanes) {
+    for (int l = 0; l < kLanes; ++l) {
+      f[i + l] += alpha * d[i + l];
+      r[i + l] -= alpha * q[i + l];
+      lanes[l] += static_cast<double>(r[i + l]) * r[i + l];
+    }
+  }
+  double tail = 0;
+  for (; i < n; ++i) {
+    f[i] += alpha * d[i];
+    r[i] -= alpha * q[i];
+    tail += static_cast<double>(r[i]) * r[i];
+  }
+  return solver_internal::SumLanes(lanes) + tail;
+}
+
+// d = r + beta d.
+INTERSLICE_SIMD_CLONES
+void UpdateDirection(float* __restrict d, const float* __restrict r, float beta,
+                     int64_t n) {
+  for (int64_t i = 0; i < n; ++i) d[i] = r[i] + beta * d[i];
+}
 using solver_internal::MeasureField;
 using solver_internal::OrderedSum;
 using solver_internal::StencilCoefficients;
@@ -83,8 +112,8 @@ absl::Status ConjugateGradient(Volume<float>& field,
     const float* fk = f + k * plane;
     float* rk = r.data() + k * plane;
     float* dk = d.data() + k * plane;
-    double e = 0, rr = 0;
-    for (int64_t n = 0; n < plane; ++n) e += static_cast<double>(fk[n]) * qk[n];
+    const double e = DotProduct(fk, qk, plane);
+    double rr = 0;
     if (fixed[k]) {
       std::fill(rk, rk + plane, 0.0f);
       std::fill(dk, dk + plane, 0.0f);
@@ -92,8 +121,8 @@ absl::Status ConjugateGradient(Volume<float>& field,
       for (int64_t n = 0; n < plane; ++n) {
         rk[n] = -qk[n];
         dk[n] = rk[n];
-        rr += static_cast<double>(rk[n]) * rk[n];
       }
+      rr = DotProduct(rk, rk, plane);
     }
     partial[k] = e;
     partial2[k] = rr;
@@ -120,11 +149,7 @@ absl::Status ConjugateGradient(Volume<float>& field,
         return;
       }
       solver_internal::ApplyOperatorSlice(d.data(), size, k, c, qk);
-      const float* dk = d.data() + k * plane;
-      double dq = 0;
-      for (int64_t n = 0; n < plane; ++n)
-        dq += static_cast<double>(dk[n]) * qk[n];
-      partial[k] = dq;
+      partial[k] = DotProduct(d.data() + k * plane, qk, plane);
     });
     const double dq = OrderedSum(partial);
     if (!(dq > 0)) break;  // d == 0 to working precision: nothing left to do.
@@ -136,17 +161,9 @@ absl::Status ConjugateGradient(Volume<float>& field,
         partial[k] = 0;
         return;
       }
-      float* fk = f + k * plane;
-      float* rk = r.data() + k * plane;
-      const float* dk = d.data() + k * plane;
-      const float* qk = q.data() + k * plane;
-      double sum = 0;
-      for (int64_t n = 0; n < plane; ++n) {
-        fk[n] += alpha_f * dk[n];
-        rk[n] -= alpha_f * qk[n];
-        sum += static_cast<double>(rk[n]) * rk[n];
-      }
-      partial[k] = sum;
+      partial[k] = UpdateSolutionAndResidual(
+          f + k * plane, r.data() + k * plane, d.data() + k * plane,
+          q.data() + k * plane, alpha_f, plane);
     });
     const double rr_next = OrderedSum(partial);
     // Along a CG step E drops by alpha r.r (d.r = r.r for CG directions).
@@ -155,9 +172,8 @@ absl::Status ConjugateGradient(Volume<float>& field,
     const float beta_f = static_cast<float>(beta);
     for_slices([&](int64_t k) {
       if (fixed[k]) return;
-      float* dk = d.data() + k * plane;
-      const float* rk = r.data() + k * plane;
-      for (int64_t n = 0; n < plane; ++n) dk[n] = rk[n] + beta_f * dk[n];
+      UpdateDirection(d.data() + k * plane, r.data() + k * plane, beta_f,
+                      plane);
     });
     rr = rr_next;
     result.iterations = it;

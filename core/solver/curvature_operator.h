@@ -33,6 +33,29 @@ inline int64_t Mirror(int64_t i, int64_t n) {
 void ApplyOperatorSlice(const float* in, const Index3& size, int64_t k,
                         const StencilCoefficients& c, float* out_slice);
 
+// Hot loops are compiled for several instruction sets and dispatched at load
+// time (GCC function multi-versioning); elsewhere they compile once.
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
+#define INTERSLICE_SIMD_CLONES \
+  __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
+#else
+#define INTERSLICE_SIMD_CLONES
+#endif
+
+// Reductions accumulate in double over this many independent lanes (element
+// n goes to lane n % kReductionLanes), combined in lane order: vectorisable,
+// and the same result whatever the instruction set or thread count.
+inline constexpr int kReductionLanes = 16;
+
+inline double SumLanes(const double (&lanes)[kReductionLanes]) {
+  double sum = 0;
+  for (double v : lanes) sum += v;
+  return sum;
+}
+
+// sum a[n] * b[n] in double (lane order as above).
+double DotProduct(const float* a, const float* b, int64_t n);
+
 // Per-slice partial sums, added in slice order for determinism.
 double OrderedSum(const std::vector<double>& partials);
 

@@ -118,7 +118,12 @@ absl::Status WriteVolumeImpl(const Volume<T>& volume, const std::string& path) {
   std::error_code ec;
   try {
     auto writer = itk::ImageFileWriter<ImageType>::New();
-    writer->SetImageIO(MakeImageIO(info->format));
+    auto io = MakeImageIO(info->format);
+    // zlib's fastest level: float distance fields gain little from harder
+    // compression (about 10% smaller), and the default level made writing
+    // the largest stage of a job by far (20 s of 25 s on the CT phantom).
+    io->SetCompressionLevel(1);
+    writer->SetImageIO(io);
     writer->SetFileName(temp);
     writer->SetInput(image);
     writer->SetUseCompression(info->extension != ".nii");

@@ -258,8 +258,9 @@ TEST_P(DirectVersusCgTest, AgreeAndKeepOriginalSlicesBitIdentical) {
               0)
         << "cg, slice " << k;
   }
-  // The exact minimiser has the lowest energy.
-  EXPECT_LE(direct_result->energy, cg_result->energy * (1 + 1e-6));
+  // The exact minimiser has the lowest energy (to the precision with which
+  // f . A f of a float field can be evaluated).
+  EXPECT_LE(direct_result->energy, cg_result->energy * (1 + 1e-4));
 }
 
 INSTANTIATE_TEST_SUITE_P(

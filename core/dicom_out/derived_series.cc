@@ -1,0 +1,456 @@
+// WriteDerivedSeries: one single-frame DICOM image per output slice.
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <filesystem>
+#include <limits>
+#include <memory>
+#include <string>
+#include <system_error>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "core/common/status_macros.h"
+#include "core/dicom_out/dicom_out_internal.h"
+#include "core/dicom_out/dicom_writer.h"
+// osconfig.h must precede every other DCMTK header.
+#include "dcmtk/config/osconfig.h"
+#include "dcmtk/dcmdata/dcdeftag.h"
+#include "dcmtk/dcmdata/dcfilefo.h"
+#include "dcmtk/dcmdata/dcitem.h"
+#include "dcmtk/dcmdata/dcuid.h"
+
+namespace interslice {
+namespace {
+
+namespace fs = std::filesystem;
+using dicom_out_internal::AddReferencedSeries;
+using dicom_out_internal::CopyPatientStudyFrameOfReference;
+using dicom_out_internal::CurrentDate;
+using dicom_out_internal::CurrentTime;
+using dicom_out_internal::FormatDecimalString;
+using dicom_out_internal::kSourceImagePurposeCode;
+using dicom_out_internal::kSourceImagePurposeMeaning;
+using dicom_out_internal::LoadSourceHeader;
+using dicom_out_internal::NearestSourceSlices;
+using dicom_out_internal::SaveFileAtomically;
+using dicom_out_internal::SlicePositionAlongNormal;
+using dicom_out_internal::ValidateOutputGrid;
+
+// How modality values become stored values: value = stored * slope +
+// intercept.
+struct Encoding {
+  double slope = 1;
+  double intercept = 0;
+  bool is_signed = false;
+  double window_center = 0;
+  double window_width = 1;
+  std::string rescale_type;  // "US" (unspecified) or "HU"
+  std::string description;   // appended to DerivationDescription
+};
+
+// The 1-2-5 ladder times `base`: base, 2 base, 5 base, 10 base, ...
+double LadderStep(double base, int step) {
+  static constexpr double kMantissa[] = {1, 2, 5};
+  return base * kMantissa[step % 3] * std::pow(10.0, step / 3);
+}
+
+struct Range {
+  double min = 0, max = 0;
+};
+
+absl::StatusOr<Range> FiniteRange(const std::vector<float>& data) {
+  Range range{std::numeric_limits<double>::infinity(),
+              -std::numeric_limits<double>::infinity()};
+  for (float v : data) {
+    if (!std::isfinite(v)) {
+      return absl::InvalidArgumentError(
+          "values contain NaN or infinity; cannot encode them in DICOM");
+    }
+    range.min = std::min(range.min, static_cast<double>(v));
+    range.max = std::max(range.max, static_cast<double>(v));
+  }
+  return range;
+}
+
+// Chooses slope (from the ladder starting at `base`) and signedness so that
+// every value of `range` rounds to a 16-bit stored value.
+absl::Status FitSlope(const Range& range, double base, double intercept,
+                      Encoding& encoding) {
+  for (int step = 0; step < 60; ++step) {
+    const double slope = LadderStep(base, step);
+    const double lo = std::round((range.min - intercept) / slope);
+    const double hi = std::round((range.max - intercept) / slope);
+    if (lo >= 0 && hi <= 65535) {
+      encoding.slope = slope;
+      encoding.is_signed = false;
+      return absl::OkStatus();
+    }
+    if (lo >= -32768 && hi <= 32767) {
+      encoding.slope = slope;
+      encoding.is_signed = true;
+      return absl::OkStatus();
+    }
+  }
+  return absl::InvalidArgumentError(
+      absl::StrFormat("values from %g to %g cannot be encoded in 16 bits",
+                      range.min, range.max));
+}
+
+// The first value of a multi-valued DS attribute of the source, if present.
+bool FirstDouble(DcmItem& item, const DcmTagKey& tag, double& value) {
+  Float64 v = 0;
+  if (item.findAndGetFloat64(tag, v, 0).bad()) return false;
+  value = v;
+  return std::isfinite(value);
+}
+
+absl::StatusOr<Encoding> ChooseEncoding(const DicomSeries& source,
+                                        const Volume<float>& values,
+                                        DerivedContent content,
+                                        DcmItem& source_header) {
+  INTERSLICE_ASSIGN_OR_RETURN(const Range range, FiniteRange(values.data));
+  Encoding e;
+  switch (content) {
+    case DerivedContent::kMask:
+      e.slope = 1;
+      e.intercept = 0;
+      e.is_signed = false;
+      e.window_center = 0.5;
+      e.window_width = 1;
+      e.rescale_type = "US";
+      e.description = "object mask, 1 inside, 0 outside";
+      break;
+    case DerivedContent::kDistance: {
+      const double max_abs = std::max(std::abs(range.min), std::abs(range.max));
+      INTERSLICE_RETURN_IF_ERROR(FitSlope({-max_abs, max_abs}, 0.01, 0, e));
+      e.intercept = 0;
+      // Signed even when every distance has the same sign, so that a
+      // distance series always has the same pixel representation.
+      e.is_signed = true;
+      e.window_center = 0;
+      e.window_width = std::clamp(2 * max_abs, 1.0, 20.0);
+      e.rescale_type = "US";
+      e.description = absl::StrCat(
+          "signed distance to the object surface in mm (positive inside), "
+          "stored in steps of ",
+          FormatDecimalString(e.slope), " mm");
+      break;
+    }
+    case DerivedContent::kIntensity: {
+      const DicomSliceInfo& first = source.slices.front();
+      const double base = first.rescale_slope > 0 ? first.rescale_slope : 1;
+      e.intercept = first.rescale_intercept;
+      INTERSLICE_RETURN_IF_ERROR(FitSlope(range, base, e.intercept, e));
+      double center = 0, width = 0;
+      if (FirstDouble(source_header, DCM_WindowCenter, center) &&
+          FirstDouble(source_header, DCM_WindowWidth, width) && width >= 1) {
+        e.window_center = center;
+        e.window_width = width;
+      } else {
+        e.window_center = 0.5 * (range.min + range.max);
+        e.window_width = std::max(1.0, range.max - range.min);
+      }
+      e.rescale_type = source.modality == "CT" ? "HU" : "US";
+      e.description =
+          "source modality values resampled by trilinear interpolation "
+          "(ITK LinearInterpolateImageFunction)";
+      break;
+    }
+  }
+  return e;
+}
+
+enum class Iod { kCt, kMr, kSecondaryCapture };
+
+Iod ChooseIod(const DicomSeries& source) {
+  if (source.sop_class_uid == UID_CTImageStorage) return Iod::kCt;
+  if (source.sop_class_uid == UID_MRImageStorage) return Iod::kMr;
+  return Iod::kSecondaryCapture;
+}
+
+void CopyIfPresent(DcmItem& from, DcmItem& to, const DcmTagKey& tag,
+                   const char* fallback /* nullptr: empty */) {
+  DcmElement* element = nullptr;
+  if (from.findAndGetElement(tag, element, OFFalse, OFTrue).good() &&
+      element != nullptr && element->getLength() > 0) {
+    to.insert(element, OFTrue);
+    return;
+  }
+  delete element;
+  if (fallback != nullptr) {
+    to.putAndInsertString(tag, fallback);
+  } else {
+    to.insertEmptyElement(tag);
+  }
+}
+
+// Acquisition attributes the CT/MR Image modules require (type 1 and 2),
+// copied from the source; they describe how the underlying data were
+// acquired.
+void CopyAcquisitionAttributes(Iod iod, DcmItem& from, DcmItem& to) {
+  if (iod == Iod::kCt) {
+    CopyIfPresent(from, to, DCM_KVP, nullptr);
+    CopyIfPresent(from, to, DCM_AcquisitionNumber, nullptr);
+  } else if (iod == Iod::kMr) {
+    // Type 1: "RM" (research mode) and "NONE" are the neutral values when the
+    // source lacks them.
+    CopyIfPresent(from, to, DCM_ScanningSequence, "RM");
+    CopyIfPresent(from, to, DCM_SequenceVariant, "NONE");
+    for (const DcmTagKey& tag :
+         {DCM_ScanOptions, DCM_MRAcquisitionType, DCM_RepetitionTime,
+          DCM_EchoTime, DCM_EchoTrainLength}) {
+      CopyIfPresent(from, to, tag, nullptr);
+    }
+    for (const DcmTagKey& tag :
+         {DCM_InversionTime, DCM_SequenceName, DCM_AngioFlag,
+          DCM_MagneticFieldStrength, DCM_ImagedNucleus, DCM_FlipAngle}) {
+      DcmElement* element = nullptr;
+      if (from.findAndGetElement(tag, element, OFFalse, OFTrue).good() &&
+          element != nullptr) {
+        to.insert(element, OFTrue);
+      }
+    }
+  }
+  DcmElement* element = nullptr;
+  for (const DcmTagKey& tag : {DCM_PatientPosition, DCM_BodyPartExamined}) {
+    element = nullptr;
+    if (from.findAndGetElement(tag, element, OFFalse, OFTrue).good() &&
+        element != nullptr) {
+      to.insert(element, OFTrue);
+    }
+  }
+  // Patient Position is type 2C for CT and MR images (required unless a
+  // Patient Orientation Code Sequence is present, which we never write).
+  if (iod != Iod::kSecondaryCapture && !to.tagExists(DCM_PatientPosition)) {
+    to.insertEmptyElement(DCM_PatientPosition);
+  }
+}
+
+// Patient orientation letters (L/R, P/A, H/F) of an LPS direction, strongest
+// component first, for the PatientOrientation attribute.
+std::string OrientationLetters(const Vec3& v) {
+  static constexpr char kPositive[] = {'L', 'P', 'H'};
+  static constexpr char kNegative[] = {'R', 'A', 'F'};
+  int order[3] = {0, 1, 2};
+  std::sort(order, order + 3,
+            [&v](int a, int b) { return std::abs(v[a]) > std::abs(v[b]); });
+  std::string letters;
+  for (int axis : order) {
+    if (std::abs(v[axis]) < 1e-4) break;
+    letters.push_back(v[axis] > 0 ? kPositive[axis] : kNegative[axis]);
+  }
+  return letters;
+}
+
+std::string DefaultSeriesDescription(DerivedContent content) {
+  switch (content) {
+    case DerivedContent::kMask:
+      return "interslice mask";
+    case DerivedContent::kDistance:
+      return "interslice signed distance (mm)";
+    case DerivedContent::kIntensity:
+      return "interslice resampled intensity";
+  }
+  return "interslice";
+}
+
+absl::Status CreateFolder(const std::string& dir) {
+  std::error_code ec;
+  fs::create_directories(dir, ec);
+  if (ec) {
+    return absl::InternalError(absl::StrCat("cannot create the output folder ",
+                                            dir, ": ", ec.message()));
+  }
+  if (!fs::is_directory(dir, ec)) {
+    return absl::InternalError(
+        absl::StrCat("the output path ", dir, " is not a folder"));
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::StatusOr<std::vector<std::string>> WriteDerivedSeries(
+    const DicomSeries& source, const Volume<float>& values,
+    DerivedContent content, const DicomWriteOptions& options,
+    const std::string& output_dir) {
+  const Grid& grid = values.grid;
+  INTERSLICE_RETURN_IF_ERROR(
+      ValidateOutputGrid(source, grid, values.data.size(), "derived series"));
+  INTERSLICE_ASSIGN_OR_RETURN(std::unique_ptr<DcmFileFormat> source_file,
+                              LoadSourceHeader(source));
+  DcmDataset& src = *source_file->getDataset();
+  INTERSLICE_ASSIGN_OR_RETURN(const Encoding encoding,
+                              ChooseEncoding(source, values, content, src));
+  INTERSLICE_ASSIGN_OR_RETURN(const std::string series_uid,
+                              GenerateDicomUid(options.uid_root));
+  INTERSLICE_RETURN_IF_ERROR(CreateFolder(output_dir));
+
+  const Iod iod = ChooseIod(source);
+  const char* sop_class = iod == Iod::kCt   ? UID_CTImageStorage
+                          : iod == Iod::kMr ? UID_MRImageStorage
+                                            : UID_SecondaryCaptureImageStorage;
+  // MR images have no Modality LUT module: write the rescale only when it is
+  // not the identity (a standard extended attribute then).
+  const bool write_rescale =
+      iod != Iod::kMr || encoding.slope != 1 || encoding.intercept != 0;
+  const std::string date = CurrentDate();
+  const std::string time = CurrentTime();
+  const std::string description = options.series_description.empty()
+                                      ? DefaultSeriesDescription(content)
+                                      : options.series_description;
+  std::string derivation = options.derivation_description;
+  if (!derivation.empty()) derivation += "; ";
+  derivation += encoding.description;
+  if (derivation.size() > 1024) derivation.resize(1024);  // ST limit
+
+  const Vec3 row = grid.Axis(0), col = grid.Axis(1);
+  const std::string orientation = absl::StrCat(
+      FormatDecimalString(row[0]), "\\", FormatDecimalString(row[1]), "\\",
+      FormatDecimalString(row[2]), "\\", FormatDecimalString(col[0]), "\\",
+      FormatDecimalString(col[1]), "\\", FormatDecimalString(col[2]));
+  const std::string pixel_spacing =
+      absl::StrCat(FormatDecimalString(grid.spacing[1]), "\\",
+                   FormatDecimalString(grid.spacing[0]));
+  const std::string slice_spacing = FormatDecimalString(grid.spacing[2]);
+  // No content-specific value 4: the CT/MR defined terms have none for a
+  // mask or a distance map (SeriesDescription and DerivationDescription say
+  // what the series holds).
+  // MR requires a value 3; "OTHER" is the neutral choice.
+  const std::string image_type = iod == Iod::kCt   ? "DERIVED\\SECONDARY\\AXIAL"
+                                 : iod == Iod::kMr ? "DERIVED\\SECONDARY\\OTHER"
+                                                   : "DERIVED\\SECONDARY";
+
+  const int64_t nx = grid.size[0], ny = grid.size[1], nz = grid.size[2];
+  std::vector<Uint16> pixels(static_cast<size_t>(nx * ny));
+  std::vector<std::string> paths;
+  paths.reserve(static_cast<size_t>(nz));
+  for (int64_t k = 0; k < nz; ++k) {
+    DcmFileFormat file;
+    DcmDataset& ds = *file.getDataset();
+    CopyPatientStudyFrameOfReference(src, ds);
+
+    // SOP Common, General Series, General Equipment.
+    INTERSLICE_ASSIGN_OR_RETURN(const std::string sop_uid,
+                                GenerateDicomUid(options.uid_root));
+    ds.putAndInsertString(DCM_SOPClassUID, sop_class);
+    ds.putAndInsertString(DCM_SOPInstanceUID, sop_uid.c_str());
+    ds.putAndInsertString(DCM_InstanceCreationDate, date.c_str());
+    ds.putAndInsertString(DCM_InstanceCreationTime, time.c_str());
+    ds.putAndInsertString(DCM_Modality, iod == Iod::kSecondaryCapture
+                                            ? source.modality.c_str()
+                                            : (iod == Iod::kCt ? "CT" : "MR"));
+    if (iod == Iod::kSecondaryCapture) {
+      // SC Equipment module: the conversion type of derived data.
+      ds.putAndInsertString(DCM_ConversionType, "WSD");
+    }
+    ds.putAndInsertString(DCM_SeriesInstanceUID, series_uid.c_str());
+    if (options.series_number > 0) {
+      ds.putAndInsertString(DCM_SeriesNumber,
+                            std::to_string(options.series_number).c_str());
+    } else {
+      ds.insertEmptyElement(DCM_SeriesNumber);
+    }
+    ds.putAndInsertString(DCM_SeriesDate, date.c_str());
+    ds.putAndInsertString(DCM_SeriesTime, time.c_str());
+    ds.putAndInsertString(DCM_SeriesDescription, description.c_str());
+    ds.putAndInsertString(DCM_Manufacturer, "interslice");
+    ds.putAndInsertString(DCM_ManufacturerModelName, "interslice");
+    ds.putAndInsertString(DCM_SoftwareVersions,
+                          options.software_version.c_str());
+    CopyAcquisitionAttributes(iod, src, ds);
+
+    // General Image.
+    ds.putAndInsertString(DCM_InstanceNumber, std::to_string(k + 1).c_str());
+    ds.putAndInsertString(DCM_ContentDate, date.c_str());
+    ds.putAndInsertString(DCM_ContentTime, time.c_str());
+    ds.putAndInsertString(DCM_ImageType, image_type.c_str());
+    if (iod == Iod::kSecondaryCapture) {
+      // Type 2C in SC images, whose IOD has no Image Plane module.
+      ds.putAndInsertString(
+          DCM_PatientOrientation,
+          absl::StrCat(OrientationLetters(row), "\\", OrientationLetters(col))
+              .c_str());
+    }
+    ds.putAndInsertString(DCM_DerivationDescription, derivation.c_str());
+    const double position = SlicePositionAlongNormal(grid, k);
+    for (int64_t s : NearestSourceSlices(source, position)) {
+      DcmItem* item = nullptr;
+      ds.findOrCreateSequenceItem(DCM_SourceImageSequence, item, -2);
+      item->putAndInsertString(DCM_ReferencedSOPClassUID,
+                               source.sop_class_uid.c_str());
+      item->putAndInsertString(DCM_ReferencedSOPInstanceUID,
+                               source.slices[s].sop_instance_uid.c_str());
+      DcmItem* purpose = nullptr;
+      item->findOrCreateSequenceItem(DCM_PurposeOfReferenceCodeSequence,
+                                     purpose, 0);
+      purpose->putAndInsertString(DCM_CodeValue, kSourceImagePurposeCode);
+      purpose->putAndInsertString(DCM_CodingSchemeDesignator, "DCM");
+      purpose->putAndInsertString(DCM_CodeMeaning, kSourceImagePurposeMeaning);
+    }
+    AddReferencedSeries(source, ds);
+
+    // Image Plane.
+    const Vec3 origin = grid.IndexToPhysical({0, 0, static_cast<double>(k)});
+    ds.putAndInsertString(DCM_ImagePositionPatient,
+                          absl::StrCat(FormatDecimalString(origin[0]), "\\",
+                                       FormatDecimalString(origin[1]), "\\",
+                                       FormatDecimalString(origin[2]))
+                              .c_str());
+    ds.putAndInsertString(DCM_ImageOrientationPatient, orientation.c_str());
+    ds.putAndInsertString(DCM_PixelSpacing, pixel_spacing.c_str());
+    ds.putAndInsertString(DCM_SliceThickness, slice_spacing.c_str());
+    ds.putAndInsertString(DCM_SpacingBetweenSlices, slice_spacing.c_str());
+    ds.putAndInsertString(DCM_SliceLocation,
+                          FormatDecimalString(position).c_str());
+
+    // Image Pixel and Modality LUT / VOI LUT.
+    ds.putAndInsertUint16(DCM_SamplesPerPixel, 1);
+    ds.putAndInsertString(DCM_PhotometricInterpretation, "MONOCHROME2");
+    ds.putAndInsertUint16(DCM_Rows, static_cast<Uint16>(ny));
+    ds.putAndInsertUint16(DCM_Columns, static_cast<Uint16>(nx));
+    ds.putAndInsertUint16(DCM_BitsAllocated, 16);
+    ds.putAndInsertUint16(DCM_BitsStored, 16);
+    ds.putAndInsertUint16(DCM_HighBit, 15);
+    ds.putAndInsertUint16(DCM_PixelRepresentation, encoding.is_signed ? 1 : 0);
+    if (write_rescale) {
+      ds.putAndInsertString(DCM_RescaleIntercept,
+                            FormatDecimalString(encoding.intercept).c_str());
+      ds.putAndInsertString(DCM_RescaleSlope,
+                            FormatDecimalString(encoding.slope).c_str());
+      ds.putAndInsertString(DCM_RescaleType, encoding.rescale_type.c_str());
+    }
+    ds.putAndInsertString(DCM_WindowCenter,
+                          FormatDecimalString(encoding.window_center).c_str());
+    ds.putAndInsertString(DCM_WindowWidth,
+                          FormatDecimalString(encoding.window_width).c_str());
+
+    const float* slice = &values.data[static_cast<size_t>(nx * ny * k)];
+    for (size_t i = 0; i < pixels.size(); ++i) {
+      double stored;
+      if (content == DerivedContent::kMask) {
+        stored = slice[i] != 0 ? 1 : 0;
+      } else {
+        stored = std::round((slice[i] - encoding.intercept) / encoding.slope);
+      }
+      pixels[i] = encoding.is_signed
+                      ? static_cast<Uint16>(static_cast<int16_t>(stored))
+                      : static_cast<Uint16>(stored);
+    }
+    ds.putAndInsertUint16Array(DCM_PixelData, pixels.data(),
+                               static_cast<unsigned long>(pixels.size()));
+
+    // The file meta header names the same SOP instance.
+    const std::string path =
+        (fs::path(output_dir) / absl::StrFormat("IM%05d.dcm", k + 1)).string();
+    INTERSLICE_RETURN_IF_ERROR(SaveFileAtomically(file, path));
+    paths.push_back(path);
+  }
+  return paths;
+}
+
+}  // namespace interslice

@@ -1,0 +1,68 @@
+// Private to core/dicom_out: helpers shared by the derived-series and SEG
+// writers (validation, copying patient/study data, references, atomic save).
+#ifndef INTERSLICE_CORE_DICOM_OUT_DICOM_OUT_INTERNAL_H_
+#define INTERSLICE_CORE_DICOM_OUT_DICOM_OUT_INTERNAL_H_
+
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "core/dicom/series_reader.h"
+#include "core/geometry/volume.h"
+
+class DcmFileFormat;
+class DcmItem;
+
+namespace interslice::dicom_out_internal {
+
+// Purpose of reference for source images (DICOM CID 7202).
+inline constexpr char kSourceImagePurposeCode[] = "121322";
+inline constexpr char kSourceImagePurposeMeaning[] =
+    "Source image for image processing operation";
+
+// INVALID_ARGUMENT unless `grid` is valid, holds `voxel_count` voxels, fits
+// DICOM's 16-bit Rows/Columns and shares the source grid's direction. `what`
+// names the volume in messages.
+absl::Status ValidateOutputGrid(const DicomSeries& source, const Grid& grid,
+                                size_t voxel_count, const char* what);
+
+// Position of slice k of `grid` along its third axis (the source normal), mm.
+double SlicePositionAlongNormal(const Grid& grid, int64_t k);
+
+// Indices of the source slices an output slice at `position` (mm along the
+// normal) was computed from: the slice it lies on (within 1e-3 mm), else the
+// two that bracket it, else the nearest one.
+std::vector<int64_t> NearestSourceSlices(const DicomSeries& source,
+                                         double position);
+
+// Loads the first source file without its pixel data. FAILED_PRECONDITION
+// (naming the file's base name) if it cannot be read.
+absl::StatusOr<std::unique_ptr<DcmFileFormat>> LoadSourceHeader(
+    const DicomSeries& source);
+
+// Copies SpecificCharacterSet and the Patient, Clinical Trial Subject,
+// General Study, Patient Study, Clinical Trial Study and Frame of Reference
+// attributes present in `from`; writes absent type 2 attributes empty.
+void CopyPatientStudyFrameOfReference(DcmItem& from, DcmItem& to);
+
+// Adds ReferencedSeriesSequence (Common Instance Reference module) listing
+// every source instance.
+void AddReferencedSeries(const DicomSeries& source, DcmItem& to);
+
+// DS text for `value` (at most 16 characters, as many digits as fit).
+std::string FormatDecimalString(double value);
+
+// DCMTK's current date (YYYYMMDD) and time (HHMMSS).
+std::string CurrentDate();
+std::string CurrentTime();
+
+// Saves `file` (Little Endian Explicit) to "<path>.tmp-<random>", syncs it
+// and renames it to `path`. INTERNAL naming `path` on failure; the temporary
+// file never survives a failure.
+absl::Status SaveFileAtomically(DcmFileFormat& file, const std::string& path);
+
+}  // namespace interslice::dicom_out_internal
+
+#endif  // INTERSLICE_CORE_DICOM_OUT_DICOM_OUT_INTERNAL_H_

@@ -1,0 +1,338 @@
+// Helpers shared by the DICOM writers, DerivedContentName and
+// MeshConventionNote.
+#include "core/dicom_out/dicom_writer.h"
+
+#include <fcntl.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <cerrno>
+#include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <filesystem>
+#include <memory>
+#include <random>
+#include <string>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "core/dicom_out/dicom_out_internal.h"
+// osconfig.h must precede every other DCMTK header.
+#include "dcmtk/config/osconfig.h"
+#include "dcmtk/dcmdata/dcdeftag.h"
+#include "dcmtk/dcmdata/dcfilefo.h"
+#include "dcmtk/dcmdata/dcitem.h"
+#include "dcmtk/dcmdata/dcvrda.h"
+#include "dcmtk/dcmdata/dcvrtm.h"
+
+namespace interslice {
+
+std::string_view DerivedContentName(DerivedContent content) {
+  switch (content) {
+    case DerivedContent::kMask:
+      return "mask";
+    case DerivedContent::kDistance:
+      return "distance";
+    case DerivedContent::kIntensity:
+      return "intensity";
+  }
+  return "unknown";
+}
+
+std::string MeshConventionNote(const DicomSeries& source) {
+  return absl::StrCat(
+      "Mesh coordinate convention (interslice)\n"
+      "Vertex coordinates are DICOM patient coordinates (LPS) in millimetres:\n"
+      "  +x towards the patient's left, +y towards the patient's posterior,\n"
+      "  +z towards the patient's head,\n"
+      "in the Frame of Reference of the source series, so they overlay the\n"
+      "source images and the derived DICOM series/SEG without any transform.\n"
+      "FrameOfReferenceUID: ",
+      source.frame_of_reference_uid,
+      "\n"
+      "Source SeriesInstanceUID: ",
+      source.series_instance_uid,
+      "\n"
+      "Triangles are counter-clockwise seen from outside (normals point out).\n"
+      "Tools that expect RAS (e.g. 3D Slicer's default) need x -> -x and\n"
+      "y -> -y (which preserves orientation; no winding change needed).\n");
+}
+
+namespace dicom_out_internal {
+
+absl::Status ValidateOutputGrid(const DicomSeries& source, const Grid& grid,
+                                size_t voxel_count, const char* what) {
+  if (absl::Status status = grid.Validate(); !status.ok()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(what, " grid: ", status.message()));
+  }
+  if (static_cast<int64_t>(voxel_count) != grid.VoxelCount()) {
+    return absl::InvalidArgumentError(
+        absl::StrFormat("%s holds %d voxels but its grid %s needs %d", what,
+                        voxel_count, grid.DebugString(), grid.VoxelCount()));
+  }
+  if (grid.size[0] > 65535 || grid.size[1] > 65535) {
+    return absl::InvalidArgumentError(absl::StrFormat(
+        "%s slices are %dx%d; DICOM allows at most 65535 rows and columns",
+        what, grid.size[0], grid.size[1]));
+  }
+  if (source.slices.empty() ||
+      static_cast<int64_t>(source.slices.size()) != source.image.grid.size[2]) {
+    return absl::InvalidArgumentError(
+        "source series has no slices (or slices do not match its grid)");
+  }
+  for (int i = 0; i < 9; ++i) {
+    if (std::abs(grid.direction[i] - source.image.grid.direction[i]) > 1e-4) {
+      return absl::InvalidArgumentError(absl::StrFormat(
+          "%s grid direction differs from the source series' (output %s, "
+          "source %s); DICOM slices must share the source orientation",
+          what, grid.DebugString(), source.image.grid.DebugString()));
+    }
+  }
+  return absl::OkStatus();
+}
+
+double SlicePositionAlongNormal(const Grid& grid, int64_t k) {
+  const Vec3 p = grid.IndexToPhysical({0, 0, static_cast<double>(k)});
+  const Vec3 n = grid.Axis(2);
+  return p[0] * n[0] + p[1] * n[1] + p[2] * n[2];
+}
+
+std::vector<int64_t> NearestSourceSlices(const DicomSeries& source,
+                                         double position) {
+  constexpr double kOnSlice = 1e-3;  // mm
+  const auto& slices = source.slices;
+  const int64_t n = static_cast<int64_t>(slices.size());
+  // slices are sorted by position_along_normal (the reader's contract).
+  int64_t upper = 0;
+  while (upper < n && slices[upper].position_along_normal < position) ++upper;
+  if (upper < n &&
+      std::abs(slices[upper].position_along_normal - position) <= kOnSlice) {
+    return {upper};
+  }
+  if (upper > 0 && std::abs(slices[upper - 1].position_along_normal -
+                            position) <= kOnSlice) {
+    return {upper - 1};
+  }
+  if (upper == 0) return {0};
+  if (upper == n) return {n - 1};
+  return {upper - 1, upper};
+}
+
+absl::StatusOr<std::unique_ptr<DcmFileFormat>> LoadSourceHeader(
+    const DicomSeries& source) {
+  if (source.slices.empty()) {
+    return absl::InvalidArgumentError("source series has no slices");
+  }
+  const std::string& path = source.slices.front().path;
+  auto file = std::make_unique<DcmFileFormat>();
+  // Large values (pixel data) stay on disk: only the header is needed.
+  const OFCondition cond =
+      file->loadFile(OFFilename(path.c_str()), EXS_Unknown, EGL_noChange,
+                     /*maxReadLength=*/4096, ERM_autoDetect);
+  if (cond.bad()) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("cannot read the source file ",
+                     std::filesystem::path(path).filename().string(),
+                     " again to copy patient and study data: ", cond.text()));
+  }
+  return file;
+}
+
+namespace {
+
+// Type 2 attributes of the copied modules: written empty when absent.
+const DcmTagKey kType2Tags[] = {
+    DCM_PatientName,
+    DCM_PatientID,
+    DCM_PatientBirthDate,
+    DCM_PatientSex,
+    DCM_StudyDate,
+    DCM_StudyTime,
+    DCM_ReferringPhysicianName,
+    DCM_StudyID,
+    DCM_AccessionNumber,
+    DCM_PositionReferenceIndicator,
+};
+
+// Patient, Clinical Trial Subject, General Study, Patient Study, Clinical
+// Trial Study and Frame of Reference modules (DICOM PS3.3 C.7.1.1, C.7.1.3,
+// C.7.2.1, C.7.2.2, C.7.2.3, C.7.4.1), the attributes DCMTK 3.6.7 knows.
+const DcmTagKey kCopiedTags[] = {
+    DCM_SpecificCharacterSet,
+    // Patient
+    DCM_PatientName,
+    DCM_PatientID,
+    DCM_IssuerOfPatientID,
+    DCM_IssuerOfPatientIDQualifiersSequence,
+    DCM_TypeOfPatientID,
+    DCM_PatientBirthDate,
+    DCM_PatientBirthTime,
+    DCM_PatientSex,
+    DCM_QualityControlSubject,
+    DCM_OtherPatientIDsSequence,
+    DCM_OtherPatientNames,
+    DCM_EthnicGroup,
+    DCM_PatientComments,
+    DCM_PatientSpeciesDescription,
+    DCM_PatientSpeciesCodeSequence,
+    DCM_PatientBreedDescription,
+    DCM_PatientBreedCodeSequence,
+    DCM_BreedRegistrationSequence,
+    DCM_StrainDescription,
+    DCM_ResponsiblePerson,
+    DCM_ResponsiblePersonRole,
+    DCM_ResponsibleOrganization,
+    DCM_PatientIdentityRemoved,
+    DCM_DeidentificationMethod,
+    DCM_DeidentificationMethodCodeSequence,
+    // Clinical Trial Subject
+    DCM_ClinicalTrialSponsorName,
+    DCM_ClinicalTrialProtocolID,
+    DCM_ClinicalTrialProtocolName,
+    DCM_ClinicalTrialSiteID,
+    DCM_ClinicalTrialSiteName,
+    DCM_ClinicalTrialSubjectID,
+    DCM_ClinicalTrialSubjectReadingID,
+    // General Study
+    DCM_StudyInstanceUID,
+    DCM_StudyDate,
+    DCM_StudyTime,
+    DCM_ReferringPhysicianName,
+    DCM_ReferringPhysicianIdentificationSequence,
+    DCM_ConsultingPhysicianName,
+    DCM_ConsultingPhysicianIdentificationSequence,
+    DCM_StudyID,
+    DCM_AccessionNumber,
+    DCM_IssuerOfAccessionNumberSequence,
+    DCM_StudyDescription,
+    DCM_PhysiciansOfRecord,
+    DCM_PhysiciansOfRecordIdentificationSequence,
+    DCM_NameOfPhysiciansReadingStudy,
+    DCM_PhysiciansReadingStudyIdentificationSequence,
+    DCM_RequestingServiceCodeSequence,
+    DCM_ReferencedStudySequence,
+    DCM_ProcedureCodeSequence,
+    DCM_ReasonForPerformedProcedureCodeSequence,
+    // Patient Study
+    DCM_AdmittingDiagnosesDescription,
+    DCM_AdmittingDiagnosesCodeSequence,
+    DCM_PatientAge,
+    DCM_PatientSize,
+    DCM_PatientWeight,
+    DCM_PatientSizeCodeSequence,
+    DCM_Occupation,
+    DCM_AdditionalPatientHistory,
+    DCM_AdmissionID,
+    DCM_IssuerOfAdmissionIDSequence,
+    DCM_ServiceEpisodeID,
+    DCM_IssuerOfServiceEpisodeIDSequence,
+    DCM_ServiceEpisodeDescription,
+    DCM_PatientSexNeutered,
+    DCM_MedicalAlerts,
+    DCM_Allergies,
+    DCM_SmokingStatus,
+    DCM_PregnancyStatus,
+    DCM_LastMenstrualDate,
+    DCM_PatientState,
+    // Clinical Trial Study
+    DCM_ClinicalTrialTimePointID,
+    DCM_ClinicalTrialTimePointDescription,
+    DCM_ConsentForClinicalTrialUseSequence,
+    // Frame of Reference
+    DCM_FrameOfReferenceUID,
+    DCM_PositionReferenceIndicator,
+};
+
+}  // namespace
+
+void CopyPatientStudyFrameOfReference(DcmItem& from, DcmItem& to) {
+  for (const DcmTagKey& tag : kCopiedTags) {
+    DcmElement* element = nullptr;
+    if (from.findAndGetElement(tag, element, /*searchIntoSub=*/OFFalse,
+                               /*createCopy=*/OFTrue)
+            .good() &&
+        element != nullptr) {
+      to.insert(element, /*replaceOld=*/OFTrue);
+    }
+  }
+  for (const DcmTagKey& tag : kType2Tags) {
+    if (!to.tagExists(tag)) to.insertEmptyElement(tag);
+  }
+}
+
+void AddReferencedSeries(const DicomSeries& source, DcmItem& to) {
+  to.findAndDeleteElement(DCM_ReferencedSeriesSequence);
+  DcmItem* series = nullptr;
+  to.findOrCreateSequenceItem(DCM_ReferencedSeriesSequence, series, 0);
+  series->putAndInsertString(DCM_SeriesInstanceUID,
+                             source.series_instance_uid.c_str());
+  for (size_t i = 0; i < source.slices.size(); ++i) {
+    DcmItem* instance = nullptr;
+    series->findOrCreateSequenceItem(DCM_ReferencedInstanceSequence, instance,
+                                     -2 /* append */);
+    instance->putAndInsertString(DCM_ReferencedSOPClassUID,
+                                 source.sop_class_uid.c_str());
+    instance->putAndInsertString(DCM_ReferencedSOPInstanceUID,
+                                 source.slices[i].sop_instance_uid.c_str());
+  }
+}
+
+std::string FormatDecimalString(double value) {
+  if (value == 0) return "0";  // also turns -0 into 0
+  for (int precision = 15; precision > 0; --precision) {
+    std::string text = absl::StrFormat("%.*g", precision, value);
+    if (text.size() <= 16) return text;
+  }
+  return absl::StrFormat("%.0e", value);
+}
+
+std::string CurrentDate() {
+  OFString date;
+  DcmDate::getCurrentDate(date);
+  return std::string(date.c_str());
+}
+
+std::string CurrentTime() {
+  OFString time;
+  DcmTime::getCurrentTime(time, /*seconds=*/OFTrue, /*fraction=*/OFFalse);
+  return std::string(time.c_str());
+}
+
+absl::Status SaveFileAtomically(DcmFileFormat& file, const std::string& path) {
+  thread_local std::mt19937_64 random(std::random_device{}());
+  const std::string temp =
+      absl::StrFormat("%s.tmp-%016x", path, static_cast<uint64_t>(random()));
+  const OFCondition cond =
+      file.saveFile(OFFilename(temp.c_str()), EXS_LittleEndianExplicit,
+                    EET_ExplicitLength, EGL_recalcGL, EPD_withoutPadding);
+  if (cond.bad()) {
+    std::remove(temp.c_str());
+    return absl::InternalError(
+        absl::StrCat("cannot write ", path, ": ", cond.text()));
+  }
+  // Data on disk before the name: after a crash the target is either the old
+  // file or the complete new one.
+  const int fd = ::open(temp.c_str(), O_RDONLY);
+  const bool synced = fd >= 0 && ::fsync(fd) == 0;
+  const int sync_errno = errno;
+  if (fd >= 0) ::close(fd);
+  if (!synced) {
+    std::remove(temp.c_str());
+    return absl::InternalError(
+        absl::StrCat("cannot sync ", path, ": ", std::strerror(sync_errno)));
+  }
+  if (std::rename(temp.c_str(), path.c_str()) != 0) {
+    const int rename_errno = errno;
+    std::remove(temp.c_str());
+    return absl::InternalError(absl::StrCat("cannot rename into ", path, ": ",
+                                            std::strerror(rename_errno)));
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace dicom_out_internal
+}  // namespace interslice

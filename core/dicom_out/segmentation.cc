@@ -1,0 +1,229 @@
+// WriteSegmentation: a binary DICOM SEG of the mask (DCMTK dcmseg).
+#include <cstdint>
+#include <filesystem>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/strings/str_cat.h"
+#include "core/common/status_macros.h"
+#include "core/dicom_out/dicom_out_internal.h"
+#include "core/dicom_out/dicom_writer.h"
+// osconfig.h must precede every other DCMTK header.
+#include "dcmtk/config/osconfig.h"
+#include "dcmtk/dcmdata/dcdeftag.h"
+#include "dcmtk/dcmdata/dcfilefo.h"
+#include "dcmtk/dcmfg/fgderimg.h"
+#include "dcmtk/dcmfg/fgfracon.h"
+#include "dcmtk/dcmfg/fgpixmsr.h"
+#include "dcmtk/dcmfg/fgplanor.h"
+#include "dcmtk/dcmfg/fgplanpo.h"
+#include "dcmtk/dcmiod/iodmacro.h"
+#include "dcmtk/dcmseg/segdoc.h"
+#include "dcmtk/dcmseg/segment.h"
+
+namespace interslice {
+namespace {
+
+using dicom_out_internal::AddReferencedSeries;
+using dicom_out_internal::CopyPatientStudyFrameOfReference;
+using dicom_out_internal::CurrentDate;
+using dicom_out_internal::CurrentTime;
+using dicom_out_internal::FormatDecimalString;
+using dicom_out_internal::LoadSourceHeader;
+using dicom_out_internal::NearestSourceSlices;
+using dicom_out_internal::SaveFileAtomically;
+using dicom_out_internal::SlicePositionAlongNormal;
+using dicom_out_internal::ValidateOutputGrid;
+
+absl::Status Check(const OFCondition& cond, const char* what) {
+  if (cond.good()) return absl::OkStatus();
+  return absl::InternalError(
+      absl::StrCat("DICOM SEG: cannot ", what, ": ", cond.text()));
+}
+
+absl::Status ValidateCode(const CodedConcept& code, const char* what) {
+  if (code.value.empty() || code.scheme.empty() || code.meaning.empty()) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "segment ", what, " code needs a value, a scheme and a meaning"));
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::Status WriteSegmentation(const DicomSeries& source,
+                               const Volume<uint8_t>& mask,
+                               const SegmentDescription& segment,
+                               const DicomWriteOptions& options,
+                               const std::string& path) {
+  const Grid& grid = mask.grid;
+  INTERSLICE_RETURN_IF_ERROR(
+      ValidateOutputGrid(source, grid, mask.data.size(), "segmentation mask"));
+  if (segment.label.empty()) {
+    return absl::InvalidArgumentError("segment label is empty");
+  }
+  INTERSLICE_RETURN_IF_ERROR(ValidateCode(segment.category, "category"));
+  INTERSLICE_RETURN_IF_ERROR(ValidateCode(segment.type, "type"));
+  INTERSLICE_ASSIGN_OR_RETURN(std::unique_ptr<DcmFileFormat> source_file,
+                              LoadSourceHeader(source));
+  DcmDataset& src = *source_file->getDataset();
+  INTERSLICE_ASSIGN_OR_RETURN(const std::string series_uid,
+                              GenerateDicomUid(options.uid_root));
+  INTERSLICE_ASSIGN_OR_RETURN(const std::string sop_uid,
+                              GenerateDicomUid(options.uid_root));
+  INTERSLICE_ASSIGN_OR_RETURN(const std::string dimension_uid,
+                              GenerateDicomUid(options.uid_root));
+
+  // The segmentation's creator is interslice (Enhanced General Equipment
+  // needs all four values; a software tool has no serial number).
+  const IODGeneralEquipmentModule::EquipmentInfo equipment(
+      "interslice", "interslice", "0", options.software_version.c_str());
+  const std::string description = options.series_description.empty()
+                                      ? "interslice segmentation"
+                                      : options.series_description;
+  ContentIdentificationMacro content("1", "INTERSLICE",
+                                     description.substr(0, 64).c_str(), "");
+  DcmSegmentation* raw = nullptr;
+  INTERSLICE_RETURN_IF_ERROR(
+      Check(DcmSegmentation::createBinarySegmentation(
+                raw, static_cast<Uint16>(grid.size[1]),
+                static_cast<Uint16>(grid.size[0]), equipment, content),
+            "create the segmentation"));
+  std::unique_ptr<DcmSegmentation> seg(raw);
+
+  // Identity. Patient/study data are copied into the written dataset below;
+  // the type 1 UIDs are set here because dcmseg checks them while writing.
+  INTERSLICE_RETURN_IF_ERROR(Check(
+      seg->getStudy().setStudyInstanceUID(source.study_instance_uid.c_str()),
+      "set StudyInstanceUID"));
+  INTERSLICE_RETURN_IF_ERROR(
+      Check(seg->getFrameOfReference().setFrameOfReferenceUID(
+                source.frame_of_reference_uid.c_str()),
+            "set FrameOfReferenceUID"));
+  INTERSLICE_RETURN_IF_ERROR(
+      Check(seg->getSeries().setSeriesInstanceUID(series_uid.c_str()),
+            "set SeriesInstanceUID"));
+  if (options.series_number > 0) {
+    seg->getSeries().setSeriesNumber(
+        std::to_string(options.series_number).c_str());
+  }
+  seg->getSeries().setSeriesDescription(description.c_str());
+  seg->getSeries().setSeriesDate(CurrentDate().c_str());
+  seg->getSeries().setSeriesTime(CurrentTime().c_str());
+  INTERSLICE_RETURN_IF_ERROR(
+      Check(seg->getSOPCommon().setSOPInstanceUID(sop_uid.c_str()),
+            "set SOPInstanceUID"));
+
+  // The one segment.
+  DcmSegment* raw_segment = nullptr;
+  INTERSLICE_RETURN_IF_ERROR(Check(
+      DcmSegment::create(raw_segment, segment.label.c_str(),
+                         CodeSequenceMacro(segment.category.value.c_str(),
+                                           segment.category.scheme.c_str(),
+                                           segment.category.meaning.c_str()),
+                         CodeSequenceMacro(segment.type.value.c_str(),
+                                           segment.type.scheme.c_str(),
+                                           segment.type.meaning.c_str()),
+                         DcmSegTypes::SAT_AUTOMATIC,
+                         segment.algorithm_name.c_str()),
+      "create the segment"));
+  Uint16 segment_number = 0;
+  {
+    const OFCondition cond = seg->addSegment(raw_segment, segment_number);
+    if (cond.bad()) delete raw_segment;  // ownership passes only on success
+    INTERSLICE_RETURN_IF_ERROR(Check(cond, "add the segment"));
+  }
+
+  // Geometry shared by all frames.
+  FGPixelMeasures measures;
+  measures.setPixelSpacing(absl::StrCat(FormatDecimalString(grid.spacing[1]),
+                                        "\\",
+                                        FormatDecimalString(grid.spacing[0]))
+                               .c_str());
+  measures.setSliceThickness(FormatDecimalString(grid.spacing[2]).c_str());
+  measures.setSpacingBetweenSlices(
+      FormatDecimalString(grid.spacing[2]).c_str());
+  INTERSLICE_RETURN_IF_ERROR(
+      Check(seg->addForAllFrames(measures), "add pixel measures"));
+  const Vec3 row = grid.Axis(0), col = grid.Axis(1);
+  std::unique_ptr<FGPlaneOrientationPatient> orientation(
+      FGPlaneOrientationPatient::createMinimal(
+          FormatDecimalString(row[0]).c_str(),
+          FormatDecimalString(row[1]).c_str(),
+          FormatDecimalString(row[2]).c_str(),
+          FormatDecimalString(col[0]).c_str(),
+          FormatDecimalString(col[1]).c_str(),
+          FormatDecimalString(col[2]).c_str()));
+  if (orientation == nullptr) {
+    return absl::InternalError("DICOM SEG: cannot create plane orientation");
+  }
+  INTERSLICE_RETURN_IF_ERROR(
+      Check(seg->addForAllFrames(*orientation), "add plane orientation"));
+
+  // Dimensions: which segment, then where along the normal (the index of
+  // ImagePositionPatient), as DICOM PS3.3 C.8.20.2.3 recommends for SEG.
+  IODMultiframeDimensionModule& dims = seg->getDimensions();
+  INTERSLICE_RETURN_IF_ERROR(Check(
+      dims.addDimensionIndex(DCM_ReferencedSegmentNumber, dimension_uid.c_str(),
+                             DCM_SegmentIdentificationSequence,
+                             "ReferencedSegmentNumber"),
+      "add the segment dimension"));
+  INTERSLICE_RETURN_IF_ERROR(Check(
+      dims.addDimensionIndex(DCM_ImagePositionPatient, dimension_uid.c_str(),
+                             DCM_PlanePositionSequence, "ImagePositionPatient"),
+      "add the position dimension"));
+
+  const int64_t nx = grid.size[0], ny = grid.size[1], nz = grid.size[2];
+  std::vector<Uint8> frame(static_cast<size_t>(nx * ny));
+  for (int64_t k = 0; k < nz; ++k) {
+    const uint8_t* slice = &mask.data[static_cast<size_t>(nx * ny * k)];
+    for (size_t i = 0; i < frame.size(); ++i) frame[i] = slice[i] != 0;
+
+    const Vec3 p = grid.IndexToPhysical({0, 0, static_cast<double>(k)});
+    std::unique_ptr<FGPlanePosPatient> position(
+        FGPlanePosPatient::createMinimal(FormatDecimalString(p[0]).c_str(),
+                                         FormatDecimalString(p[1]).c_str(),
+                                         FormatDecimalString(p[2]).c_str()));
+    if (position == nullptr) {
+      return absl::InternalError("DICOM SEG: cannot create plane position");
+    }
+    FGFrameContent frame_content;
+    frame_content.setDimensionIndexValues(segment_number, 0);
+    frame_content.setDimensionIndexValues(static_cast<Uint32>(k + 1), 1);
+
+    OFVector<ImageSOPInstanceReferenceMacro> references;
+    for (int64_t s :
+         NearestSourceSlices(source, SlicePositionAlongNormal(grid, k))) {
+      ImageSOPInstanceReferenceMacro reference;
+      reference.setReferencedSOPClassUID(source.sop_class_uid.c_str());
+      reference.setReferencedSOPInstanceUID(
+          source.slices[s].sop_instance_uid.c_str());
+      references.push_back(reference);
+    }
+    std::unique_ptr<FGDerivationImage> derivation(
+        DcmSegmentation::createDerivationImageFG(
+            references,
+            options.derivation_description.substr(0, 1024).c_str()));
+    if (derivation == nullptr) {
+      return absl::InternalError("DICOM SEG: cannot create derivation image");
+    }
+
+    OFVector<FGBase*> per_frame;
+    per_frame.push_back(position.get());
+    per_frame.push_back(&frame_content);
+    per_frame.push_back(derivation.get());
+    INTERSLICE_RETURN_IF_ERROR(Check(
+        seg->addFrame(frame.data(), segment_number, per_frame), "add a frame"));
+  }
+
+  DcmFileFormat file;
+  DcmDataset& ds = *file.getDataset();
+  INTERSLICE_RETURN_IF_ERROR(Check(seg->writeDataset(ds), "encode"));
+  CopyPatientStudyFrameOfReference(src, ds);
+  AddReferencedSeries(source, ds);
+  return SaveFileAtomically(file, path);
+}
+
+}  // namespace interslice
