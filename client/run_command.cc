@@ -66,6 +66,12 @@ void PrintSummary(const JobReport& report, const std::string& out_dir) {
       static_cast<long long>(g.size[0]), static_cast<long long>(g.size[1]),
       static_cast<long long>(g.size[2]), g.spacing[0], g.spacing[1],
       g.spacing[2], report.insertion_factor - 1);
+  if (report.max_snap_mm > 1e-6) {
+    std::printf(
+        "  spacing   non-uniform: slices moved up to %.3g mm to the nearest "
+        "output slice\n",
+        report.max_snap_mm);
+  }
   std::printf(
       "  solver    %s, %d iterations, relative residual %.3g, "
       "energy %.6g -> %.6g (%s units)\n",
@@ -125,6 +131,9 @@ void AddRunOptions(CLI::App& app, RunArguments& args) {
   app.add_option("--spacing", args.spacing,
                  "Target output slice spacing in mm (default: the in-plane "
                  "spacing, i.e. isotropic)");
+  app.add_flag("--strict-spacing", args.strict_spacing,
+               "Fail on non-uniform slice spacing (missing slices) instead "
+               "of placing each slice on the nearest output slice");
   app.add_option("--band", args.band,
                  "Radius in mm of the band of exact 2D distances (default 16 "
                  "pixels)");
@@ -202,6 +211,7 @@ absl::StatusOr<JobSpec> BuildJobSpec(const RunArguments& args) {
   }
   spec.z_resolution.factor = args.factor;
   spec.z_resolution.spacing_mm = args.spacing;
+  spec.strict_spacing = args.strict_spacing;
   if (args.band.has_value()) {
     if (!(*args.band > 0)) {
       return absl::InvalidArgumentError("--band must be positive (mm)");

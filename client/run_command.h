@@ -28,6 +28,7 @@ struct RunArguments {
   std::string energy_units = "voxel";
   std::optional<int> factor;
   std::optional<double> spacing;
+  bool strict_spacing = false;
   std::optional<double> band;
   double adaptivity = 0;
   std::string out;

@@ -5,6 +5,9 @@ find_package(Threads REQUIRED)
 find_package(absl CONFIG REQUIRED)
 find_package(TBB CONFIG REQUIRED)
 find_package(DCMTK CONFIG REQUIRED)
+# GDCM decodes JPEG 2000, which DCMTK's free edition cannot (core/dicom). Its
+# config warns about command-line tools that are not installed; harmless.
+find_package(GDCM CONFIG REQUIRED)
 find_package(nlohmann_json CONFIG REQUIRED)
 find_package(CLI11 CONFIG REQUIRED)
 find_package(spdlog CONFIG REQUIRED)
@@ -23,7 +26,9 @@ find_package(OpenVDB REQUIRED COMPONENTS openvdb)
 # Only the ITK modules we use, which keeps include paths and link lines short.
 find_package(ITK REQUIRED COMPONENTS
   ITKCommon ITKPath ITKDistanceMap ITKImageGrid ITKImageIntensity
-  ITKThresholding ITKIOImageBase ITKIONIFTI ITKIONRRD)
+  ITKThresholding ITKIOImageBase ITKIONIFTI ITKIONRRD
+  # tools/eval (quality harness): LabelOverlapMeasures, connected components
+  ITKImageStatistics ITKConnectedComponents)
 
 # ITK's include directories and libraries as one imported interface target,
 # so that only the modules that use ITK see its (large) include path.
@@ -36,4 +41,14 @@ if(INTERSLICE_BUILD_TESTS)
 endif()
 if(INTERSLICE_BUILD_BENCHMARKS)
   find_package(benchmark CONFIG REQUIRED)
+endif()
+
+# The gRPC daemon and the client commands that talk to it. Debian ships no
+# protobuf CMake config (only CMake's FindProtobuf module) but does ship
+# gRPC's config (gRPC::grpc++, gRPC::grpc_cpp_plugin).
+if(INTERSLICE_BUILD_SERVER)
+  find_package(Protobuf REQUIRED)
+  find_package(gRPC CONFIG REQUIRED)
+  find_package(OpenSSL REQUIRED)  # SHA-256 of uploaded files and artifacts
+  find_package(prometheus-cpp CONFIG REQUIRED)
 endif()

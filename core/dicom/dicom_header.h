@@ -7,6 +7,7 @@
 #include <array>
 #include <cstdint>
 #include <string>
+#include <vector>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
@@ -23,7 +24,7 @@ namespace dicom_internal {
 inline constexpr uint32_t kHeaderMaxReadLength = 4096;
 
 enum class FileKind {
-  kNotDicom,  // unreadable and not attributable to any series
+  kNotDicom,  // unreadable (or refused: see `problem`), no series known
   kDicomDir,
   kNotImage,  // DICOM, but not a slice of an image stack
   kImage,     // a slice (possibly with a `problem` that makes it unusable)
@@ -36,6 +37,34 @@ struct PixelLayout {
   int high_bit = 15;
   bool is_signed = false;
 };
+
+// Geometry and rescale of one frame of an enhanced multi-frame object, from
+// its functional groups (per-frame first, then shared).
+struct FrameGeometry {
+  Vec3 position = {0, 0, 0};
+  std::array<double, 6> orientation = {1, 0, 0, 0, 1, 0};
+  std::array<double, 2> pixel_spacing = {1, 1};
+  double rescale_slope = 1;
+  double rescale_intercept = 0;
+  // Which volume of the object the frame belongs to: StackID, temporal
+  // position and frame type, e.g. "stack 1, temporal position 2, frame type
+  // ORIGINAL\PRIMARY\M\NONE". Frames of different volumes may share
+  // positions, so the reader stacks one volume at a time.
+  std::string volume;
+};
+
+// Objects nested deeper than this (sequences within items within
+// sequences...) are refused before DCMTK parses them: DCMTK parses nesting
+// by recursion without a limit and overflows the stack on a few thousand
+// levels. Real objects (structured reports included) stay far below.
+inline constexpr int kMaxSequenceDepth = 128;
+
+// OK unless `path` is a DICOM stream with sequences nested deeper than
+// `max_depth` (INVALID_ARGUMENT naming the file). Walks the encoded elements
+// iteratively (explicit/implicit little endian, explicit big endian,
+// deflated), skipping values; files it cannot follow are left to DCMTK.
+absl::Status CheckSequenceDepth(const std::string& path,
+                                int max_depth = kMaxSequenceDepth);
 
 struct FileHeader {
   std::string path;
@@ -63,6 +92,10 @@ struct FileHeader {
   double slice_thickness = 0;         // 0 when absent
   double spacing_between_slices = 0;  // 0 when absent
   PixelLayout layout;
+  std::string transfer_syntax_uid;
+  // Enhanced multi-frame objects: one entry per frame (NumberOfFrames);
+  // empty for single-frame images, whose geometry is in the fields above.
+  std::vector<FrameGeometry> frames;
 };
 
 // The file's base name: the only part of a path that goes into messages

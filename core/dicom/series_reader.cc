@@ -1,6 +1,7 @@
 #include "core/dicom/series_reader.h"
 
 #include <algorithm>
+#include <array>
 #include <atomic>
 #include <cmath>
 #include <cstddef>
@@ -18,12 +19,14 @@
 #include "absl/strings/str_join.h"
 #include "core/common/status_macros.h"
 #include "core/dicom/dicom_header.h"
+#include "core/dicom/gdcm_decode.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdatset.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
 #include "dcmtk/dcmdata/dcfilefo.h"
 #include "dcmtk/dcmdata/dcrledrg.h"
+#include "dcmtk/dcmdata/dcuid.h"
 #include "dcmtk/dcmdata/dcxfer.h"
 #include "dcmtk/dcmjpeg/djdecode.h"
 #include "dcmtk/dcmjpls/djdecode.h"
@@ -155,13 +158,30 @@ struct Series {
   DicomSeriesSummary summary;
 };
 
+bool IsSecondaryCapture(const std::string& sop_class_uid) {
+  // 1.2.840.10008.5.1.4.1.1.7 and its multi-frame variants .7.1 - .7.4.
+  const std::string root = UID_SecondaryCaptureImageStorage;
+  return sop_class_uid.compare(0, root.size(), root) == 0;
+}
+
 // Image series by SeriesInstanceUID (ordered by UID for stable messages).
+// Secondary captures that share a series with acquired images (screenshots,
+// dose reports, ...) are not slices of its stack and are left out.
 std::map<std::string, Series> GroupSeries(
     const std::vector<FileHeader>& headers) {
   std::map<std::string, Series> series;
+  std::map<std::string, bool> has_acquired;
+  for (const FileHeader& h : headers) {
+    if (h.kind == FileKind::kImage && !IsSecondaryCapture(h.sop_class_uid)) {
+      has_acquired[h.series_uid] = true;
+    }
+  }
   for (size_t i = 0; i < headers.size(); ++i) {
     const FileHeader& h = headers[i];
     if (h.kind != FileKind::kImage) continue;
+    if (IsSecondaryCapture(h.sop_class_uid) && has_acquired[h.series_uid]) {
+      continue;
+    }
     Series& s = series[h.series_uid];
     if (s.members.empty()) {
       s.summary.series_instance_uid = h.series_uid;
@@ -186,59 +206,152 @@ std::string DescribeSeries(const std::map<std::string, Series>& series) {
 
 std::string DescribeSkipped(const std::vector<FileHeader>& headers) {
   int64_t not_dicom = 0, dicomdir = 0, not_image = 0;
+  std::string refused;
   for (const FileHeader& h : headers) {
-    if (h.kind == FileKind::kNotDicom) ++not_dicom;
+    if (h.kind == FileKind::kNotDicom) {
+      ++not_dicom;
+      if (!h.problem.ok() && refused.empty()) {
+        refused = absl::StrCat("; refused: ", h.problem.message());
+      }
+    }
     if (h.kind == FileKind::kDicomDir) ++dicomdir;
     if (h.kind == FileKind::kNotImage) ++not_image;
   }
   return absl::StrFormat(
       "%d file(s) skipped: %d not DICOM or unreadable, %d DICOMDIR, %d DICOM "
-      "objects that are not image slices with position and orientation",
-      headers.size(), not_dicom, dicomdir, not_image);
+      "objects that are not image slices with position and orientation%s",
+      headers.size(), not_dicom, dicomdir, not_image, refused);
+}
+
+// One original slice: a single-frame file or one frame of an enhanced
+// multi-frame file.
+struct SliceRef {
+  size_t header = 0;
+  int frame = 0;  // 0-based frame number in the file
+  Vec3 position = {0, 0, 0};
+  std::array<double, 6> orientation = {1, 0, 0, 0, 1, 0};
+  std::array<double, 2> pixel_spacing = {1, 1};
+  double rescale_slope = 1, rescale_intercept = 0;
+  std::string volume;  // FrameGeometry::volume; empty for single frames
+};
+
+std::vector<SliceRef> SlicesOf(const std::vector<FileHeader>& headers,
+                               const std::vector<size_t>& members) {
+  std::vector<SliceRef> slices;
+  for (size_t m : members) {
+    const FileHeader& h = headers[m];
+    if (h.frames.empty()) {
+      slices.push_back({m, 0, h.position, h.orientation, h.pixel_spacing,
+                        h.rescale_slope, h.rescale_intercept, ""});
+      continue;
+    }
+    for (size_t f = 0; f < h.frames.size(); ++f) {
+      const dicom_internal::FrameGeometry& g = h.frames[f];
+      slices.push_back({m, static_cast<int>(f), g.position, g.orientation,
+                        g.pixel_spacing, g.rescale_slope, g.rescale_intercept,
+                        g.volume});
+    }
+  }
+  return slices;
+}
+
+std::string SliceName(const std::vector<FileHeader>& headers,
+                      const SliceRef& s) {
+  const FileHeader& h = headers[s.header];
+  if (h.frames.empty()) return BaseName(h.path);
+  return absl::StrCat(BaseName(h.path), " frame ", s.frame + 1);
+}
+
+std::string VolumeLabel(const std::string& volume) {
+  return volume.empty() ? "single-frame images" : volume;
+}
+
+// Frames of different volumes (stacks, temporal positions, frame types such
+// as magnitude and phase) share slice positions; one volume is read at a
+// time: the only one, or options.volume.
+absl::StatusOr<std::vector<SliceRef>> ChooseVolume(
+    std::vector<SliceRef> slices, const DicomReadOptions& options) {
+  std::map<std::string, int64_t> counts;
+  for (const SliceRef& s : slices) ++counts[s.volume];
+  if (counts.size() == 1 && options.volume.empty()) return slices;
+  std::vector<std::string> listing;
+  for (const auto& [volume, count] : counts) {
+    listing.push_back(absl::StrFormat("\"%s\" (%d slice%s)",
+                                      VolumeLabel(volume), count,
+                                      count == 1 ? "" : "s"));
+  }
+  if (options.volume.empty()) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "the series holds ", counts.size(),
+        " volumes that share slice positions (stacks, temporal positions or "
+        "frame types of multi-frame images); choose one (volume option): ",
+        absl::StrJoin(listing, ", ")));
+  }
+  if (counts.count(options.volume) == 0) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("volume \"", options.volume,
+                     "\" is not in the series; volumes present: ",
+                     absl::StrJoin(listing, ", ")));
+  }
+  std::vector<SliceRef> chosen;
+  for (SliceRef& s : slices) {
+    if (s.volume == options.volume) chosen.push_back(std::move(s));
+  }
+  return chosen;
 }
 
 // The geometry of the stack and the order of its slices.
 struct StackLayout {
-  std::vector<size_t> order;      // header indices, sorted along the normal
+  std::vector<SliceRef> order;    // sorted along the normal
   std::vector<double> positions;  // along the normal, in `order`
   Grid grid;
+  bool uniform = true;
+  double min_gap = 0, max_gap = 0;
+  // Gantry tilt: the in-plane offset of each slice from the first, in
+  // pixels along (i, j); empty when the stack is not tilted.
+  std::vector<std::array<double, 2>> tilt_shift;
+  double tilt_degrees = 0;
 };
 
-absl::Status CheckConsistent(const FileHeader& ref, const FileHeader& h) {
-  if (h.rows != ref.rows || h.columns != ref.columns) {
+absl::Status CheckConsistent(const std::vector<FileHeader>& headers,
+                             const SliceRef& ref, const SliceRef& s) {
+  const FileHeader& rh = headers[ref.header];
+  const FileHeader& h = headers[s.header];
+  if (h.rows != rh.rows || h.columns != rh.columns) {
     return absl::InvalidArgumentError(absl::StrFormat(
         "inconsistent Rows/Columns: %s is %d x %d (columns x rows) but %s is "
         "%d x %d",
-        BaseName(h.path), h.columns, h.rows, BaseName(ref.path), ref.columns,
-        ref.rows));
+        SliceName(headers, s), h.columns, h.rows, SliceName(headers, ref),
+        rh.columns, rh.rows));
   }
   for (int c = 0; c < 6; ++c) {
-    if (std::abs(h.orientation[c] - ref.orientation[c]) >
+    if (std::abs(s.orientation[c] - ref.orientation[c]) >
         kOrientationTolerance) {
       return absl::InvalidArgumentError(absl::StrFormat(
           "inconsistent ImageOrientationPatient: %s differs from %s",
-          BaseName(h.path), BaseName(ref.path)));
+          SliceName(headers, s), SliceName(headers, ref)));
     }
   }
   for (int c = 0; c < 2; ++c) {
-    const double a = h.pixel_spacing[c], b = ref.pixel_spacing[c];
+    const double a = s.pixel_spacing[c], b = ref.pixel_spacing[c];
     if (std::abs(a - b) >
         kPixelSpacingRelativeTolerance * std::max(std::abs(a), std::abs(b))) {
       return absl::InvalidArgumentError(absl::StrFormat(
           "inconsistent PixelSpacing: %s has %g\\%g mm but %s has %g\\%g mm",
-          BaseName(h.path), h.pixel_spacing[0], h.pixel_spacing[1],
-          BaseName(ref.path), ref.pixel_spacing[0], ref.pixel_spacing[1]));
+          SliceName(headers, s), s.pixel_spacing[0], s.pixel_spacing[1],
+          SliceName(headers, ref), ref.pixel_spacing[0], ref.pixel_spacing[1]));
     }
   }
   return absl::OkStatus();
 }
 
 absl::StatusOr<StackLayout> LayOutStack(const std::vector<FileHeader>& headers,
-                                        const std::vector<size_t>& members) {
-  const FileHeader& ref = headers[members.front()];
-  for (size_t m : members) {
-    INTERSLICE_RETURN_IF_ERROR(CheckConsistent(ref, headers[m]));
+                                        std::vector<SliceRef> slices) {
+  const SliceRef& ref = slices.front();
+  for (const SliceRef& s : slices) {
+    INTERSLICE_RETURN_IF_ERROR(CheckConsistent(headers, ref, s));
   }
+  const FileHeader& ref_header = headers[ref.header];
 
   Vec3 row = {ref.orientation[0], ref.orientation[1], ref.orientation[2]};
   Vec3 col = {ref.orientation[3], ref.orientation[4], ref.orientation[5]};
@@ -246,7 +359,7 @@ absl::StatusOr<StackLayout> LayOutStack(const std::vector<FileHeader>& headers,
       std::abs(Norm(col) - 1) > kOrthonormalTolerance ||
       std::abs(Dot(row, col)) > kOrthonormalTolerance) {
     return absl::InvalidArgumentError(absl::StrCat(
-        BaseName(ref.path),
+        SliceName(headers, ref),
         ": ImageOrientationPatient is not two orthogonal unit vectors"));
   }
   // Gram-Schmidt, so that the grid's direction is orthonormal to rounding.
@@ -256,54 +369,74 @@ absl::StatusOr<StackLayout> LayOutStack(const std::vector<FileHeader>& headers,
   const Vec3 normal = Cross(row, col);
 
   StackLayout stack;
-  stack.order = members;
-  std::vector<double> along(headers.size(), 0.0);
-  for (size_t m : members) along[m] = Dot(headers[m].position, normal);
-  std::sort(stack.order.begin(), stack.order.end(), [&](size_t a, size_t b) {
-    if (along[a] != along[b]) return along[a] < along[b];
-    return headers[a].path < headers[b].path;
-  });
-  for (size_t m : stack.order) stack.positions.push_back(along[m]);
+  std::sort(slices.begin(), slices.end(),
+            [&](const SliceRef& a, const SliceRef& b) {
+              const double pa = Dot(a.position, normal);
+              const double pb = Dot(b.position, normal);
+              if (pa != pb) return pa < pb;
+              const std::string& fa = headers[a.header].path;
+              const std::string& fb = headers[b.header].path;
+              if (fa != fb) return fa < fb;
+              return a.frame < b.frame;
+            });
+  stack.order = std::move(slices);
+  for (const SliceRef& s : stack.order) {
+    stack.positions.push_back(Dot(s.position, normal));
+  }
 
   const size_t n = stack.order.size();
   for (size_t k = 0; k + 1 < n; ++k) {
     if (stack.positions[k + 1] - stack.positions[k] < kSamePositionTolerance) {
       return absl::InvalidArgumentError(absl::StrFormat(
           "%s and %s are at the same slice position (%.3f mm along the slice "
-          "normal); the series holds duplicate or overlapping slices",
-          BaseName(headers[stack.order[k]].path),
-          BaseName(headers[stack.order[k + 1]].path), stack.positions[k]));
+          "normal); the series holds duplicate or overlapping slices (or "
+          "several images per position, e.g. echoes or diffusion directions)",
+          SliceName(headers, stack.order[k]),
+          SliceName(headers, stack.order[k + 1]), stack.positions[k]));
     }
   }
 
   // Gantry tilt: successive positions move within the image plane as well as
-  // along the normal, so the voxels are sheared, not a rectilinear grid.
-  double max_tilt_degrees = 0;
+  // along the normal. Treatment (see the header): every slice is resampled
+  // onto the in-plane grid of the first slice, shifted along the normal.
   bool tilted = false;
   for (size_t k = 0; k + 1 < n; ++k) {
-    const Vec3 step = Sub(headers[stack.order[k + 1]].position,
-                          headers[stack.order[k]].position);
+    const Vec3 step = Sub(stack.order[k + 1].position, stack.order[k].position);
     const double along_step = Dot(step, normal);
     const double in_plane = Norm(Sub(step, Scale(normal, along_step)));
     if (in_plane > kTiltTolerance * along_step) tilted = true;
-    max_tilt_degrees = std::max(
-        max_tilt_degrees, std::atan2(in_plane, along_step) * 180.0 / M_PI);
   }
+  const double sx = ref.pixel_spacing[1], sy = ref.pixel_spacing[0];
   if (tilted) {
-    return absl::UnimplementedError(absl::StrFormat(
-        "gantry tilt of %.1f degrees (slice positions do not follow the slice "
-        "normal); tilted series are not supported yet",
-        max_tilt_degrees));
+    const Vec3 total =
+        Sub(stack.order.back().position, stack.order.front().position);
+    const double along = Dot(total, normal);
+    stack.tilt_degrees =
+        std::atan2(Norm(Sub(total, Scale(normal, along))), along) * 180.0 /
+        M_PI;
+    for (size_t k = 0; k < n; ++k) {
+      const Vec3 d = Sub(stack.order[k].position, stack.order[0].position);
+      const std::array<double, 2> shift = {Dot(d, row) / sx, Dot(d, col) / sy};
+      if (std::abs(shift[0]) >= ref_header.columns ||
+          std::abs(shift[1]) >= ref_header.rows) {
+        return absl::InvalidArgumentError(absl::StrFormat(
+            "%s is offset by (%.1f, %.1f) pixels within the image plane from "
+            "%s: the slices do not overlap, so they are not one stack",
+            SliceName(headers, stack.order[k]), shift[0], shift[1],
+            SliceName(headers, stack.order[0])));
+      }
+      stack.tilt_shift.push_back(shift);
+    }
   }
 
   double spacing = 1;
   if (n == 1) {
     // One slice has no spacing of its own; its thickness is the best
     // extent for the single voxel layer.
-    if (ref.slice_thickness > 0) {
-      spacing = ref.slice_thickness;
-    } else if (ref.spacing_between_slices > 0) {
-      spacing = ref.spacing_between_slices;
+    if (ref_header.slice_thickness > 0) {
+      spacing = ref_header.slice_thickness;
+    } else if (ref_header.spacing_between_slices > 0) {
+      spacing = ref_header.spacing_between_slices;
     }
   } else {
     std::vector<double> gaps(n - 1);
@@ -317,19 +450,17 @@ absl::StatusOr<StackLayout> LayOutStack(const std::vector<FileHeader>& headers,
                                      : 0.5 * (sorted[mid - 1] + sorted[mid]);
     const double tolerance = std::max(kSpacingAbsoluteTolerance,
                                       kSpacingRelativeTolerance * spacing);
-    if (std::abs(sorted.front() - spacing) > tolerance ||
-        std::abs(sorted.back() - spacing) > tolerance) {
-      return absl::UnimplementedError(absl::StrFormat(
-          "non-uniform slice spacing (%.3f .. %.3f mm); missing slices?",
-          sorted.front(), sorted.back()));
-    }
+    stack.min_gap = sorted.front();
+    stack.max_gap = sorted.back();
+    stack.uniform = std::abs(sorted.front() - spacing) <= tolerance &&
+                    std::abs(sorted.back() - spacing) <= tolerance;
   }
 
   Grid& grid = stack.grid;
-  grid.size = {ref.columns, ref.rows, static_cast<int64_t>(n)};
+  grid.size = {ref_header.columns, ref_header.rows, static_cast<int64_t>(n)};
   // PixelSpacing is (between rows, between columns) = (along j, along i).
-  grid.spacing = {ref.pixel_spacing[1], ref.pixel_spacing[0], spacing};
-  grid.origin = headers[stack.order.front()].position;
+  grid.spacing = {sx, sy, spacing};
+  grid.origin = stack.order.front().position;
   for (int r = 0; r < 3; ++r) {
     grid.direction[3 * r + 0] = row[r];
     grid.direction[3 * r + 1] = col[r];
@@ -365,9 +496,20 @@ void ConvertPixels(const Uint8* bytes, int64_t count, const PixelLayout& l,
   }
 }
 
-// Decodes one slice into `out` (Columns x Rows floats).
-absl::Status LoadSlice(const FileHeader& h, float* out) {
+// Where the frames of one file go in the volume.
+struct FileTarget {
+  size_t header = 0;
+  // (frame, k): frame `frame` of the file becomes slice k.
+  std::vector<std::pair<int, size_t>> frames;
+};
+
+// Decodes the frames of one file into their slices of `volume`.
+absl::Status LoadFile(const FileHeader& h, const FileTarget& target,
+                      const std::vector<SliceRef>& order,
+                      Volume<float>& volume) {
   const std::string name = BaseName(h.path);
+  // The file may have changed since its header was scanned.
+  INTERSLICE_RETURN_IF_ERROR(dicom_internal::CheckSequenceDepth(h.path));
   DcmFileFormat file;
   // The default read limit leaves the pixel data on disk until it is
   // accessed below, which is all that is needed.
@@ -377,18 +519,10 @@ absl::Status LoadSlice(const FileHeader& h, float* out) {
         name, ": truncated or unreadable DICOM file (", cond.text(), ")"));
   }
   DcmDataset& ds = *file.getDataset();
-  const E_TransferSyntax xfer = ds.getOriginalXfer();
-  if (DcmXfer(xfer).isEncapsulated()) {
-    cond = ds.chooseRepresentation(EXS_LittleEndianExplicit, nullptr);
-    if (cond.bad() || !ds.canWriteXfer(EXS_LittleEndianExplicit)) {
-      return absl::UnimplementedError(
-          absl::StrCat(name, ": cannot decode pixel data in transfer syntax '",
-                       DcmXfer(xfer).getXferName(), "'",
-                       cond.bad() ? absl::StrCat(" (", cond.text(), ")") : ""));
-    }
-  }
-  // The file may have changed since its header was scanned, and decoders
-  // may rewrite the pixel module: check again against what was planned.
+  const int64_t frames = h.frames.empty() ? 1 : h.frames.size();
+  const int64_t frame_samples = int64_t{h.rows} * h.columns;
+  // Decoders may rewrite the pixel module: check again against what was
+  // planned.
   Uint16 rows = 0, columns = 0;
   ds.findAndGetUint16(DCM_Rows, rows);
   ds.findAndGetUint16(DCM_Columns, columns);
@@ -398,42 +532,116 @@ absl::Status LoadSlice(const FileHeader& h, float* out) {
   }
   INTERSLICE_ASSIGN_OR_RETURN(const PixelLayout layout,
                               dicom_internal::ReadPixelLayout(ds, name));
-  DcmElement* pixels = nullptr;
-  Uint8* bytes = nullptr;
-  if (ds.findAndGetElement(DCM_PixelData, pixels).bad() || pixels == nullptr) {
-    return absl::InvalidArgumentError(absl::StrCat(name, ": no pixel data"));
+  const int64_t needed = frames * frame_samples * (layout.bits_allocated / 8);
+
+  const Uint8* bytes = nullptr;
+  int64_t length = 0;
+  std::vector<uint8_t> fallback;  // pixels decoded by GDCM
+  const E_TransferSyntax xfer = ds.getOriginalXfer();
+  if (DcmXfer(xfer).isEncapsulated()) {
+    cond = ds.chooseRepresentation(EXS_LittleEndianExplicit, nullptr);
+    if (cond.bad() || !ds.canWriteXfer(EXS_LittleEndianExplicit)) {
+      if (!dicom_internal::IsGdcmFallbackSyntax(h.transfer_syntax_uid)) {
+        return absl::UnimplementedError(absl::StrCat(
+            name, ": cannot decode pixel data in transfer syntax '",
+            DcmXfer(xfer).getXferName(), "' (", h.transfer_syntax_uid, ")",
+            cond.bad() ? absl::StrCat(": ", cond.text()) : ""));
+      }
+      INTERSLICE_ASSIGN_OR_RETURN(fallback, dicom_internal::DecodeWithGdcm(
+                                                h.path, name, h.rows, h.columns,
+                                                frames, layout.bits_allocated));
+      bytes = fallback.data();
+      length = static_cast<int64_t>(fallback.size());
+    }
   }
-  cond = pixels->getUint8Array(bytes);
-  if (cond.bad() || bytes == nullptr) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        name, ": cannot read pixel data (",
-        cond.bad() ? cond.text() : "no value", "); truncated file?"));
+  if (bytes == nullptr) {
+    DcmElement* pixels = nullptr;
+    if (ds.findAndGetElement(DCM_PixelData, pixels).bad() ||
+        pixels == nullptr) {
+      return absl::InvalidArgumentError(absl::StrCat(name, ": no pixel data"));
+    }
+    Uint8* data = nullptr;
+    cond = pixels->getUint8Array(data);
+    if (cond.bad() || data == nullptr) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          name, ": cannot read pixel data (",
+          cond.bad() ? cond.text() : "no value", "); truncated file?"));
+    }
+    bytes = data;
+    const Uint32 element_length = pixels->getLength();
+    length = element_length == DCM_UndefinedLength ? 0 : element_length;
   }
-  const int64_t count = int64_t{h.rows} * h.columns;
-  const int64_t needed = count * (layout.bits_allocated / 8);
-  const Uint32 length = pixels->getLength();
-  if (length == DCM_UndefinedLength || int64_t{length} < needed) {
+  if (length < needed) {
     return absl::InvalidArgumentError(absl::StrFormat(
-        "%s: pixel data is too short: %d bytes, but %d x %d pixels of %d "
-        "bits need %d",
-        name, length == DCM_UndefinedLength ? 0 : int64_t{length}, h.columns,
-        h.rows, layout.bits_allocated, needed));
+        "%s: pixel data is too short: %d bytes, but %d frame(s) of %d x %d "
+        "pixels of %d bits need %d",
+        name, length, frames, h.columns, h.rows, layout.bits_allocated,
+        needed));
   }
-  switch (layout.bits_allocated) {
-    case 8:
-      ConvertPixels<1>(bytes, count, layout, h.rescale_slope,
-                       h.rescale_intercept, out);
-      break;
-    case 16:
-      ConvertPixels<2>(bytes, count, layout, h.rescale_slope,
-                       h.rescale_intercept, out);
-      break;
-    default:
-      ConvertPixels<4>(bytes, count, layout, h.rescale_slope,
-                       h.rescale_intercept, out);
-      break;
+  const int64_t frame_bytes = frame_samples * (layout.bits_allocated / 8);
+  for (const auto& [frame, k] : target.frames) {
+    const SliceRef& s = order[k];
+    const Uint8* src = bytes + frame * frame_bytes;
+    float* out = volume.data.data() + k * frame_samples;
+    switch (layout.bits_allocated) {
+      case 8:
+        ConvertPixels<1>(src, frame_samples, layout, s.rescale_slope,
+                         s.rescale_intercept, out);
+        break;
+      case 16:
+        ConvertPixels<2>(src, frame_samples, layout, s.rescale_slope,
+                         s.rescale_intercept, out);
+        break;
+      default:
+        ConvertPixels<4>(src, frame_samples, layout, s.rescale_slope,
+                         s.rescale_intercept, out);
+        break;
+    }
   }
   return absl::OkStatus();
+}
+
+// Gantry tilt: resamples slice k at (i - shift_i, j - shift_j), bilinearly,
+// so that it lies on the in-plane grid of the first slice. Samples outside
+// the acquired slice get `background`.
+void ResampleTiltedSlices(const std::vector<std::array<double, 2>>& shifts,
+                          float background, Volume<float>& volume,
+                          tbb::task_arena& arena) {
+  const int64_t nx = volume.grid.size[0], ny = volume.grid.size[1];
+  const int64_t plane = nx * ny;
+  arena.execute([&] {
+    tbb::parallel_for(
+        tbb::blocked_range<size_t>(0, shifts.size(), 1),
+        [&](const tbb::blocked_range<size_t>& range) {
+          std::vector<float> original(plane);
+          for (size_t k = range.begin(); k != range.end(); ++k) {
+            const double di = shifts[k][0], dj = shifts[k][1];
+            if (di == 0 && dj == 0) continue;
+            float* slice = volume.data.data() + k * plane;
+            std::copy(slice, slice + plane, original.begin());
+            auto at = [&](int64_t i, int64_t j) -> double {
+              if (i < 0 || j < 0 || i >= nx || j >= ny) return background;
+              return original[j * nx + i];
+            };
+            for (int64_t j = 0; j < ny; ++j) {
+              const double y = j - dj;
+              const double y0 = std::floor(y);
+              const double ty = y - y0;
+              for (int64_t i = 0; i < nx; ++i) {
+                const double x = i - di;
+                const double x0 = std::floor(x);
+                const double tx = x - x0;
+                const int64_t xi = static_cast<int64_t>(x0);
+                const int64_t yi = static_cast<int64_t>(y0);
+                const double v =
+                    (1 - ty) * ((1 - tx) * at(xi, yi) + tx * at(xi + 1, yi)) +
+                    ty * ((1 - tx) * at(xi, yi + 1) + tx * at(xi + 1, yi + 1));
+                slice[j * nx + i] = static_cast<float>(v);
+              }
+            }
+          }
+        });
+  });
 }
 
 }  // namespace
@@ -512,8 +720,11 @@ absl::StatusOr<DicomSeries> ReadDicomSeries(
   for (size_t m : chosen->members) {
     INTERSLICE_RETURN_IF_ERROR(headers[m].problem);
   }
+  INTERSLICE_ASSIGN_OR_RETURN(
+      std::vector<SliceRef> slices,
+      ChooseVolume(SlicesOf(headers, chosen->members), options));
   INTERSLICE_ASSIGN_OR_RETURN(StackLayout stack,
-                              LayOutStack(headers, chosen->members));
+                              LayOutStack(headers, std::move(slices)));
 
   const int64_t voxels = stack.grid.VoxelCount();
   if (voxels > options.max_voxels) {
@@ -524,15 +735,26 @@ absl::StatusOr<DicomSeries> ReadDicomSeries(
         options.max_voxels));
   }
 
+  // Each file is decoded once, whatever number of its frames are used.
+  std::vector<FileTarget> targets;
+  {
+    std::map<size_t, size_t> target_of;  // header -> index in targets
+    for (size_t k = 0; k < stack.order.size(); ++k) {
+      const SliceRef& s = stack.order[k];
+      auto [it, inserted] = target_of.emplace(s.header, targets.size());
+      if (inserted) targets.push_back({s.header, {}});
+      targets[it->second].frames.emplace_back(s.frame, k);
+    }
+  }
+
   DicomSeries result;
   result.image.grid = stack.grid;
   result.image.data.resize(voxels);
-  const int64_t slice_voxels = stack.grid.SliceVoxelCount();
-  const size_t n = stack.order.size();
+  const size_t n = targets.size();
   std::vector<absl::Status> statuses(n);
-  // Slices after the first failing one are skipped, but every slice before
+  // Files after the first failing one are skipped, but every file before
   // it is still tried, so the error reported is the same whatever the
-  // scheduling (the first failing slice along the stack).
+  // scheduling (the first failing file along the stack).
   std::atomic<size_t> first_failed{n};
   size_t done = 0;  // guarded by progress_mutex
   std::mutex progress_mutex;
@@ -540,18 +762,18 @@ absl::StatusOr<DicomSeries> ReadDicomSeries(
     tbb::parallel_for(
         tbb::blocked_range<size_t>(0, n, 1),
         [&](const tbb::blocked_range<size_t>& range) {
-          for (size_t k = range.begin(); k != range.end(); ++k) {
-            if (k > first_failed.load(std::memory_order_relaxed)) return;
+          for (size_t t = range.begin(); t != range.end(); ++t) {
+            if (t > first_failed.load(std::memory_order_relaxed)) return;
             absl::Status status = context.CheckCancelled();
             if (status.ok()) {
-              status = LoadSlice(headers[stack.order[k]],
-                                 result.image.data.data() + k * slice_voxels);
+              status = LoadFile(headers[targets[t].header], targets[t],
+                                stack.order, result.image);
             }
             if (!status.ok()) {
-              statuses[k] = std::move(status);
+              statuses[t] = std::move(status);
               size_t expected = first_failed.load();
-              while (k < expected &&
-                     !first_failed.compare_exchange_weak(expected, k)) {
+              while (t < expected &&
+                     !first_failed.compare_exchange_weak(expected, t)) {
               }
               return;
             }
@@ -568,24 +790,38 @@ absl::StatusOr<DicomSeries> ReadDicomSeries(
     INTERSLICE_RETURN_IF_ERROR(status);
   }
 
-  for (size_t k = 0; k < n; ++k) {
-    const FileHeader& h = headers[stack.order[k]];
+  if (!stack.tilt_shift.empty()) {
+    // Padding with the darkest value keeps the padded border outside any
+    // object defined by a lower threshold (air for CT).
+    const float background =
+        *std::min_element(result.image.data.begin(), result.image.data.end());
+    ResampleTiltedSlices(stack.tilt_shift, background, result.image, arena);
+    result.gantry_tilt_degrees = stack.tilt_degrees;
+  }
+
+  for (size_t k = 0; k < stack.order.size(); ++k) {
+    const SliceRef& s = stack.order[k];
+    const FileHeader& h = headers[s.header];
     DicomSliceInfo& slice = result.slices.emplace_back();
     slice.path = h.path;
+    slice.frame = s.frame;
     slice.sop_instance_uid = h.sop_instance_uid;
-    slice.image_position = h.position;
+    slice.image_position = s.position;
     slice.position_along_normal = stack.positions[k];
-    slice.rescale_slope = h.rescale_slope;
-    slice.rescale_intercept = h.rescale_intercept;
+    slice.rescale_slope = s.rescale_slope;
+    slice.rescale_intercept = s.rescale_intercept;
   }
-  const FileHeader& first = headers[stack.order.front()];
+  const FileHeader& first = headers[stack.order.front().header];
   result.series_instance_uid = first.series_uid;
   result.study_instance_uid = first.study_uid;
   result.frame_of_reference_uid = first.frame_of_reference_uid;
   result.modality = first.modality;
   result.sop_class_uid = first.sop_class_uid;
-  result.skipped_files =
-      static_cast<int64_t>(headers.size() - chosen->members.size());
+  result.volume = stack.order.front().volume;
+  result.uniform_spacing = stack.uniform;
+  result.min_gap_mm = stack.min_gap;
+  result.max_gap_mm = stack.max_gap;
+  result.skipped_files = static_cast<int64_t>(headers.size() - targets.size());
   return result;
 }
 

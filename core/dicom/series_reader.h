@@ -1,9 +1,29 @@
-// Reading one DICOM image series into a volume (DCMTK).
+// Reading one DICOM image series into a volume (DCMTK; GDCM for JPEG 2000).
 //
 // Input: files and/or directories (directories are searched recursively).
-// Files that are not DICOM, DICOMDIR files and DICOM objects that are not
-// single-frame images with a position and orientation (reports, presentation
-// states, ...) are skipped and counted, never fatal on their own.
+// Files that are not DICOM, DICOMDIR files, DICOM objects that are not
+// images with a position and orientation (reports, presentation states,
+// secondary captures without geometry, objects without SeriesInstanceUID)
+// and secondary captures that share a series with acquired images are
+// skipped and counted, never fatal on their own. SOP Class/Instance UIDs are
+// not required. Files whose sequences nest more than 128 levels deep are
+// refused (skipped, and named in the NOT_FOUND message if nothing else is
+// left) before DCMTK parses them, because DCMTK's parser recurses once per
+// level and would overflow the stack.
+//
+// Transfer syntaxes: implicit/explicit little endian, explicit big endian,
+// deflated, JPEG (baseline, extended, lossless), JPEG-LS and RLE through
+// DCMTK; JPEG 2000 (1.2.840.10008.1.2.4.90/.91) through GDCM, used only when
+// DCMTK cannot decode. Anything else: UNIMPLEMENTED naming the syntax.
+//
+// Slices: single-frame images, and the frames of enhanced multi-frame
+// images, whose position, orientation, pixel spacing and rescale come from
+// the functional groups (per-frame item first, then the shared one). Frames
+// are grouped into volumes by StackID, TemporalPositionIndex and FrameType
+// (with ComplexImageComponent). Several volumes in the chosen series (e.g. a
+// Philips B0 map stored as magnitude and field-map frames at the same 32
+// positions, or Siemens XA temporal positions in separate files) are
+// FAILED_PRECONDITION naming each one, unless options.volume picks one.
 //
 // The image stack:
 // - Grouped by SeriesInstanceUID. When several image series are present and
@@ -13,25 +33,37 @@
 // - Sorted along the slice normal n = row x column (ImageOrientationPatient);
 //   the position of a slice is ImagePositionPatient . n.
 // - Voxel values are modality values (HU for CT): stored value * RescaleSlope
-//   + RescaleIntercept, per slice.
+//   + RescaleIntercept, per slice (per frame).
 // - Grid: size = (Columns, Rows, slices); spacing = (PixelSpacing[1] (between
-//   columns), PixelSpacing[0] (between rows), slice spacing from positions);
-//   origin = ImagePositionPatient of the first sorted slice; direction columns
-//   = (row direction, column direction, n). All in LPS mm.
+//   columns), PixelSpacing[0] (between rows), median gap between slice
+//   positions); origin = ImagePositionPatient of the first sorted slice;
+//   direction columns = (row direction, column direction, n). All in LPS mm.
+// - Non-uniform spacing and missing slices are accepted: the grid's z spacing
+//   is then only the median gap, and slices[k].position_along_normal is the
+//   truth (uniform_spacing, min_gap_mm and max_gap_mm say how far off).
+//   Slice k lies at origin + n * (position_along_normal[k] - [0]).
+// - Gantry tilt (positions that move within the image plane from slice to
+//   slice): every slice is resampled onto the in-plane grid of the first
+//   slice, i.e. shifted by its in-plane offset from the first slice
+//   (bilinear; padding with the volume's minimum value), as dcm2niix does.
+//   The result is an orthogonal grid along n whose voxels are at their true
+//   patient positions; gantry_tilt_degrees reports the angle between the
+//   slice-to-slice direction and n. Exact for any in-plane offsets, not just
+//   a tilt about one axis; offsets larger than the image are an error.
 //
 // Errors (INVALID_ARGUMENT unless noted; messages name the problem and the
-// file's base name, never patient data):
+// file's base name (and frame), never patient data):
 // - NOT_FOUND: no readable DICOM image in the input.
-// - FAILED_PRECONDITION: several series and none chosen; chosen UID absent.
+// - FAILED_PRECONDITION: several series and none chosen; chosen UID absent;
+//   several volumes and none chosen; chosen volume absent.
 // - Inconsistent Rows/Columns, PixelSpacing or ImageOrientationPatient
-//   between slices; two slices at the same position; fewer than 1 slice.
-// - Non-uniform slice spacing (more than 1% or 0.01 mm off the median) and
-//   gantry tilt (slice positions not along n): UNIMPLEMENTED for now.
-// - Multi-frame images: UNIMPLEMENTED for now.
-// - Undecodable pixel data (unsupported transfer syntax named), truncated or
-//   short pixel data, SamplesPerPixel != 1, BitsAllocated not 8/16/32:
-//   INVALID_ARGUMENT / UNIMPLEMENTED. Sizes are checked against
-//   options.max_voxels before anything of that size is allocated.
+//   between slices; two slices at the same position.
+// - Undecodable pixel data (UNIMPLEMENTED, transfer syntax named), truncated
+//   or short pixel data, fewer encapsulated fragments than frames,
+//   SamplesPerPixel != 1, BitsAllocated not 8/16/32 (UNIMPLEMENTED).
+//   Native pixel data is checked against Rows x Columns x frames from its
+//   length field before it is loaded, and the volume size against
+//   options.max_voxels before it is allocated.
 #ifndef INTERSLICE_CORE_DICOM_SERIES_READER_H_
 #define INTERSLICE_CORE_DICOM_SERIES_READER_H_
 
@@ -50,13 +82,20 @@ struct DicomReadOptions {
   std::string series_instance_uid;
   // Upper bound on Columns * Rows * slices, checked before allocation.
   int64_t max_voxels = int64_t{1} << 31;
+  // Volume of multi-frame images to read when the series holds several, as
+  // named in the FAILED_PRECONDITION message (e.g. "stack 1, temporal
+  // position 2, frame type ORIGINAL\PRIMARY\M\NONE"); empty means "the
+  // only one".
+  std::string volume;
 };
 
 // One original slice of the series, in volume order (k).
 struct DicomSliceInfo {
   std::string path;
+  int frame = 0;  // 0-based frame number within the file (multi-frame)
   std::string sop_instance_uid;
-  Vec3 image_position = {0, 0, 0};   // ImagePositionPatient, mm
+  // ImagePositionPatient as stored (before any tilt resampling), mm.
+  Vec3 image_position = {0, 0, 0};
   double position_along_normal = 0;  // mm
   double rescale_slope = 1, rescale_intercept = 0;
 };
@@ -76,7 +115,15 @@ struct DicomSeries {
   std::string frame_of_reference_uid;
   std::string modality;
   std::string sop_class_uid;
-  int64_t skipped_files = 0;  // non-DICOM, DICOMDIR, non-image, other series
+  std::string volume;  // the multi-frame volume read; empty for single frames
+  // Gaps between consecutive slice positions, mm (0 for one slice), and
+  // whether all are within 1% (or 0.01 mm) of the median.
+  bool uniform_spacing = true;
+  double min_gap_mm = 0, max_gap_mm = 0;
+  // Non-zero when the slices were resampled for gantry tilt (degrees).
+  double gantry_tilt_degrees = 0;
+  // Files not used: non-DICOM, DICOMDIR, non-image, other series or volumes.
+  int64_t skipped_files = 0;
 };
 
 // Reads the series. `paths` are files or directories.

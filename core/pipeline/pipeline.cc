@@ -7,8 +7,10 @@
 #include <cmath>
 #include <filesystem>
 #include <system_error>
+#include <vector>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
 #include "core/common/status_macros.h"
 #include "core/dicom/series_reader.h"
@@ -100,6 +102,7 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
 
   // read
   Volume<float> image;
+  std::vector<double> positions;  // of the slices used, mm along the normal
   {
     StageClock clock(report, context, "read");
     DicomReadOptions options;
@@ -108,13 +111,25 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
                                 ReadDicomSeries(spec.inputs, options, context));
     report.input_grid = series.image.grid;
     report.skipped_files = series.skipped_files;
+    int64_t first_slice = 0;
     if (spec.roi.has_value()) {
       INTERSLICE_RETURN_IF_ERROR(
           ValidateVoxelBox(*spec.roi, series.image.grid));
       image = CropVolume(series.image, *spec.roi);
+      first_slice = spec.roi->begin[2];
     } else {
       image = std::move(series.image);
     }
+    for (int64_t k = 0; k < image.grid.size[2]; ++k) {
+      positions.push_back(series.slices[first_slice + k].position_along_normal);
+    }
+    // The crop placed the origin by the median spacing; with non-uniform
+    // spacing the first slice used is at its own position.
+    const Vec3 normal = image.grid.Axis(2);
+    const double offset =
+        positions.front() - (series.slices.front().position_along_normal +
+                             first_slice * series.image.grid.spacing[2]);
+    for (int c = 0; c < 3; ++c) image.grid.origin[c] += offset * normal[c];
     report.input_slices = image.grid.size[2];
     if (image.grid.size[2] < 2) {
       return absl::InvalidArgumentError(
@@ -142,17 +157,23 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
   StackedField stacked;
   {
     StageClock clock(report, context, "stack");
-    INTERSLICE_ASSIGN_OR_RETURN(
-        const int factor,
-        ChooseInsertionFactor(
-            slice_maps.grid.spacing[2],
-            std::min(slice_maps.grid.spacing[0], slice_maps.grid.spacing[1]),
-            spec.z_resolution));
+    INTERSLICE_ASSIGN_OR_RETURN(const StackPlan plan,
+                                PlanStack(positions,
+                                          std::min(slice_maps.grid.spacing[0],
+                                                   slice_maps.grid.spacing[1]),
+                                          spec.z_resolution));
+    if (spec.strict_spacing && !plan.uniform) {
+      return absl::InvalidArgumentError(absl::StrFormat(
+          "non-uniform slice spacing: gaps from %.3f to %.3f mm (median "
+          "%.3f mm; missing slices?) and strict spacing was asked for",
+          plan.min_gap_mm, plan.max_gap_mm, plan.median_gap_mm));
+    }
     INTERSLICE_ASSIGN_OR_RETURN(
         stacked,
-        StackLinear(slice_maps, factor, spec.max_output_voxels, context));
+        StackLinear(slice_maps, plan, spec.max_output_voxels, context));
     slice_maps = Volume<float>();
-    report.insertion_factor = factor;
+    report.insertion_factor = plan.factor;
+    report.max_snap_mm = plan.max_snap_mm;
     report.output_grid = stacked.field.grid;
   }
 
@@ -238,6 +259,7 @@ std::string JobReportToJson(const JobReport& report) {
   };
   j["grid"] = grid_json(report.output_grid);
   j["grid"]["insertion_factor"] = report.insertion_factor;
+  j["grid"]["max_snap_mm"] = report.max_snap_mm;
   j["input"] = grid_json(report.input_grid);
   j["input"]["slices_used"] = report.input_slices;
   j["input"]["skipped_files"] = report.skipped_files;

@@ -31,7 +31,12 @@ struct JobSpec {
   std::optional<float> upper_threshold;
   // Band of exact 2D distances, mm; <= 0 = automatic (see sdf module).
   double band_radius_mm = 0;
-  ZResolution z_resolution;    // default: nearly isotropic
+  ZResolution z_resolution;  // default: nearly isotropic
+  // Non-uniform slice spacing (missing slices, irregular gaps) is normally
+  // handled by snapping each original slice to the nearest output node (see
+  // PlanStack); with strict_spacing it is INVALID_ARGUMENT naming the
+  // smallest and largest gap.
+  bool strict_spacing = false;
   SolverOptions solver;        // default: 15 CG iterations, voxel units
   double mesh_adaptivity = 0;  // OpenVDB adaptivity in [0, 1]
   // Outputs, written into output_dir (created if missing):
@@ -63,6 +68,10 @@ struct JobReport {
   Grid input_grid;   // the series as read (before the ROI)
   Grid output_grid;  // the refined grid written out
   int insertion_factor = 1;
+  // Largest distance between an original slice's true position and the
+  // output node it was placed on, mm (<= half the output z spacing; 0 for a
+  // uniform series up to rounding).
+  double max_snap_mm = 0;
   int64_t input_slices = 0;
   int64_t skipped_files = 0;
   int64_t mesh_vertices = 0;
@@ -84,7 +93,8 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
 // The report as JSON: {"stages": {"read": s, ...}, "solver": {"method",
 // "iterations", "relative_residual", "energy", "initial_energy",
 // "energy_units", "converged"}, "grid": {"size": [x,y,z], "spacing": [...],
-// "origin": [...], "direction": [...]}, "input": {...}, "mesh": {...},
+// "origin": [...], "direction": [...], "insertion_factor": n, "max_snap_mm":
+// mm}, "input": {...}, "mesh": {...},
 // "artifacts": [...], "peak_rss_bytes": n}.
 std::string JobReportToJson(const JobReport& report);
 

@@ -413,18 +413,24 @@ absl::Status SliceSignedDistance(const float* slice, int64_t nx, int64_t ny,
 
 namespace {
 
-// End caps along z (see the header): a slice entirely outside (inside) the
-// object gets -(+) slice_spacing * m, m being the number of slices to the
-// nearest slice that holds inside (outside) voxels. Between the last slice
-// showing the object, where the map reaches depth rho inside, and the empty
-// slice after it, the interpolated surface then closes a fraction
-// rho / (rho + spacing) of the gap beyond it, as a shape that ends within
-// one slice gap would, instead of being cut at the last slice (a large
-// constant) or smeared along z (a small one).
+// End caps along z (see the header). A slice entirely outside the object
+// gets, at pixel p, minus the distance from (p, its z) to the nearest slice
+// that holds the object, treating that slice's cross-section as the object:
+// -sqrt((m h)^2 + d(p)^2), with m h the z distance and d(p) the in-plane
+// distance of p to the cross-section there (0 inside it). Entirely inside
+// slices get the mirror image against the nearest slice holding outside
+// voxels. This is continuous with the in-plane maps around it and never
+// crosses zero, so the refined field does not overshoot into spurious blobs
+// between an empty slice and a slice whose far field is strongly negative
+// (a constant cap did: the evaluation harness found 9 components instead of
+// 1 on a sphere at factor 2), while the surface still closes within one slice
+// gap of the last cross-section (at depth rho it closes a fraction
+// rho / (rho + m h) of the gap).
 void CloseEndCaps(const Volume<float>& image, const ContourOptions& options,
                   Volume<float>& maps) {
   const int64_t nz = image.grid.size[2];
   const int64_t plane = image.grid.SliceVoxelCount();
+  const double h = image.grid.spacing[2];
   std::vector<bool> has_inside(nz, false), has_outside(nz, false);
   for (int64_t k = 0; k < nz; ++k) {
     const float* v = image.data.data() + k * plane;
@@ -437,22 +443,35 @@ void CloseEndCaps(const Volume<float>& image, const ContourOptions& options,
       if (has_inside[k] && has_outside[k]) break;
     }
   }
-  auto distance_to = [&](int64_t k, const std::vector<bool>& target) {
-    for (int64_t m = 1; m < nz; ++m) {
-      if ((k - m >= 0 && target[k - m]) || (k + m < nz && target[k + m])) {
-        return m;
-      }
-    }
-    return int64_t{0};  // no such slice anywhere: keep the 2D cap
-  };
+  // The maps of slices with a contour are final; uniform slices are filled
+  // from them (or from a uniform slice of the other state, whose in-plane
+  // distance is 0 anyway), so read the targets from a copy.
+  const std::vector<float> original = maps.data;
   for (int64_t k = 0; k < nz; ++k) {
     if (has_inside[k] == has_outside[k]) continue;  // a contour, or empty grid
-    const int64_t m = distance_to(k, has_inside[k] ? has_outside : has_inside);
-    if (m == 0) continue;
-    const float value =
-        static_cast<float>(image.grid.spacing[2] * static_cast<double>(m));
+    const bool inside = has_inside[k];
+    const std::vector<bool>& target = inside ? has_outside : has_inside;
+    std::vector<int64_t> nearest;
+    int64_t m = 1;
+    for (; m < nz && nearest.empty(); ++m) {
+      if (k - m >= 0 && target[k - m]) nearest.push_back(k - m);
+      if (k + m < nz && target[k + m]) nearest.push_back(k + m);
+    }
+    if (nearest.empty()) continue;  // no such slice anywhere: keep the 2D cap
+    const double dz = h * static_cast<double>(m - 1);
     float* out = maps.data.data() + k * plane;
-    std::fill(out, out + plane, has_inside[k] ? value : -value);
+    for (int64_t p = 0; p < plane; ++p) {
+      // In-plane distance to the other state's region in the target slice;
+      // of two equally near targets the nearer cross-section wins.
+      double in_plane = std::numeric_limits<double>::infinity();
+      for (int64_t t : nearest) {
+        const double d = original[t * plane + p];
+        in_plane = std::min(in_plane, std::max(0.0, inside ? d : -d));
+      }
+      const float distance =
+          static_cast<float>(std::sqrt(dz * dz + in_plane * in_plane));
+      out[p] = inside ? distance : -distance;
+    }
   }
 }
 

@@ -17,13 +17,16 @@
 // End caps: SliceSignedDistance gives a slice with no contour (object
 // absent, or the slice entirely inside) the constant -cap (+cap), cap = band
 // radius. ComputeSliceDistanceMaps, which sees the whole stack, instead gives
-// such a slice -(+) slice_spacing * m, where m is the number of slices to the
-// nearest slice holding inside (outside) voxels, as a 3D distance would be
-// right above the object's last cross-section. Between a slice showing the
-// object at depth rho and the empty slice next to it, the interpolated shape
-// closes off a fraction rho / (rho + spacing) of the gap: within one slice
-// gap, and neither cut flat at the last slice nor extended along z. (Only if
-// no slice at all holds the other state does the constant cap remain.)
+// such a slice the 3D distance to the nearest slice holding the other state,
+// taking that slice's cross-section as the object: at pixel p,
+// -(+) sqrt((m * slice_spacing)^2 + d(p)^2), where m is the number of slices
+// to it and d(p) the in-plane distance of p to the cross-section there (0
+// inside it). Between a slice showing the object at depth rho and the empty
+// slice next to it, the interpolated shape closes off a fraction
+// rho / (rho + spacing) of the gap: within one slice gap, neither cut flat
+// at the last slice nor extended along z, and without a jump against the
+// far field that the refinement would overshoot. (Only if no slice at all
+// holds the other state does the constant cap remain.)
 #ifndef INTERSLICE_CORE_SDF_SIGNED_DISTANCE_H_
 #define INTERSLICE_CORE_SDF_SIGNED_DISTANCE_H_
 

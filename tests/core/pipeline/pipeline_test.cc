@@ -166,5 +166,60 @@ TEST_F(PipelineTest, SameResultWhateverTheThreadCount) {
   }
 }
 
+TEST_F(PipelineTest, MissingSliceIsPlacedOnItsNodeUnlessSpacingIsStrict) {
+  // I10, I20 and I40: gaps of 5 and 10 mm.
+  const fs::path inputs = dir_.string() + "_in";
+  fs::create_directories(inputs);
+  for (const char* name : {"I10.dcm", "I20.dcm", "I40.dcm"}) {
+    fs::copy_file(fs::path(kSeries) / name, inputs / name,
+                  fs::copy_options::overwrite_existing);
+  }
+  JobSpec spec = SmallJob();
+  spec.inputs = {inputs.string()};
+  spec.roi = VoxelBox{{200, 40, 0}, {280, 120, 3}};
+  spec.z_resolution = {.spacing_mm = 2.5};
+  const auto report = RunJob(spec, {});
+  ASSERT_TRUE(report.ok()) << report.status();
+  // Median gap 7.5 mm, N = 3 -> 2.5 mm; nodes 0, 2, 6 exactly.
+  EXPECT_EQ(report->output_grid.size[2], 7);
+  EXPECT_NEAR(report->output_grid.spacing[2], 2.5, 1e-9);
+  EXPECT_NEAR(report->max_snap_mm, 0, 1e-9);
+  EXPECT_NEAR(report->output_grid.origin[2], 696.21, 1e-9);
+  const auto json = nlohmann::json::parse(JobReportToJson(*report));
+  EXPECT_TRUE(json["grid"].contains("max_snap_mm"));
+
+  spec.strict_spacing = true;
+  const auto strict = RunJob(spec, {});
+  EXPECT_EQ(strict.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(std::string(strict.status().message()),
+              ::testing::AllOf(::testing::HasSubstr("5.000"),
+                               ::testing::HasSubstr("10.000")));
+  // A uniform series passes strict spacing with no snap.
+  JobSpec uniform = SmallJob();
+  uniform.strict_spacing = true;
+  const auto ok = RunJob(uniform, {});
+  ASSERT_TRUE(ok.ok()) << ok.status();
+  EXPECT_LT(ok->max_snap_mm, 1e-6);
+  fs::remove_all(inputs);
+}
+
+TEST_F(PipelineTest, RoiOfANonUniformSeriesStartsAtItsFirstSlice) {
+  const fs::path inputs = dir_.string() + "_in";
+  fs::create_directories(inputs);
+  for (const char* name : {"I10.dcm", "I30.dcm", "I40.dcm"}) {
+    fs::copy_file(fs::path(kSeries) / name, inputs / name,
+                  fs::copy_options::overwrite_existing);
+  }
+  JobSpec spec = SmallJob();
+  spec.inputs = {inputs.string()};
+  // Slices 1..2 of {696.21, 706.21, 711.21}: the grid's median spacing
+  // (7.5 mm) would put slice 1 at 703.71.
+  spec.roi = VoxelBox{{200, 40, 1}, {280, 120, 3}};
+  const auto report = RunJob(spec, {});
+  ASSERT_TRUE(report.ok()) << report.status();
+  EXPECT_NEAR(report->output_grid.origin[2], 706.21, 1e-9);
+  fs::remove_all(inputs);
+}
+
 }  // namespace
 }  // namespace interslice

@@ -511,10 +511,13 @@ TEST(ComputeSliceDistanceMapsTest, SameResultForAnyThreadCount) {
         << k;
   }
   // End caps: the empty slice 0 and the full slice 5 are one slice (2.5 mm)
-  // from a slice with the other state, everywhere in the slice.
+  // from a slice with the other state; the in-plane part is the distance to
+  // that slice's cross-section (0 inside it).
   for (int64_t p = 0; p < n; ++p) {
-    ASSERT_EQ(a->data[p], -2.5f) << p;
-    ASSERT_EQ(a->data[5 * n + p], 2.5f) << p;
+    const double out1 = std::max(0.0f, -a->data[1 * n + p]);
+    ASSERT_FLOAT_EQ(a->data[p], -std::sqrt(2.5 * 2.5 + out1 * out1)) << p;
+    const double in4 = std::max(0.0f, a->data[4 * n + p]);
+    ASSERT_FLOAT_EQ(a->data[5 * n + p], std::sqrt(2.5 * 2.5 + in4 * in4)) << p;
   }
 }
 
@@ -530,10 +533,18 @@ TEST(ComputeSliceDistanceMapsTest, EndCapsGrowWithDistanceToTheObject) {
       image.at(i, j, 2) = static_cast<float>(5 - std::hypot(i - 9.5, j - 9.5));
   const auto maps = ComputeSliceDistanceMaps(image, Threshold(0), {});
   ASSERT_TRUE(maps.ok()) << maps.status();
+  // Above the disk (in-plane distance 0): -3 mm per slice of separation.
   const float expected[6] = {-6, -3, 0, -3, -6, -9};
   for (int64_t k : {0, 1, 3, 4, 5}) {
-    EXPECT_EQ(maps->at(0, 0, k), expected[k]) << k;
-    EXPECT_EQ(maps->at(10, 10, k), expected[k]) << k;
+    EXPECT_FLOAT_EQ(maps->at(10, 10, k), expected[k]) << k;
+  }
+  // Beside it: the 3D distance to the disk's rim, continuous with slice 2's
+  // own far field and never crossing zero.
+  const double rim = -maps->at(0, 0, 2);
+  ASSERT_GT(rim, 5.0);
+  for (int64_t k : {0, 1, 3, 4, 5}) {
+    const double dz = 3.0 * std::abs(k - 2);
+    EXPECT_FLOAT_EQ(maps->at(0, 0, k), -std::sqrt(dz * dz + rim * rim)) << k;
   }
   EXPECT_GT(maps->at(10, 10, 2), 4.0f);  // inside the disk
 
