@@ -131,6 +131,16 @@ void AddRunOptions(CLI::App& app, RunArguments& args) {
   app.add_option("--spacing", args.spacing,
                  "Target output slice spacing in mm (default: the in-plane "
                  "spacing, i.e. isotropic)");
+  app.add_option("--output-series", args.output_series,
+                 "Derived DICOM series to write, any of mask,distance,"
+                 "intensity (into DIR/series-<content>/)");
+  app.add_flag("--seg", args.seg,
+               "Write the mask as a binary DICOM SEG (DIR/seg.dcm)");
+  app.add_option("--uid-root", args.uid_root,
+                 "UID root for the new DICOM UIDs (default 2.25 + UUID)");
+  app.add_option("--multiframe-volume", args.multiframe_volume,
+                 "Which volume of a multi-frame series to read, as named in "
+                 "the error that lists them");
   app.add_flag("--strict-spacing", args.strict_spacing,
                "Fail on non-uniform slice spacing (missing slices) instead "
                "of placing each slice on the nearest output slice");
@@ -212,6 +222,13 @@ absl::StatusOr<JobSpec> BuildJobSpec(const RunArguments& args) {
   spec.z_resolution.factor = args.factor;
   spec.z_resolution.spacing_mm = args.spacing;
   spec.strict_spacing = args.strict_spacing;
+  absl::StatusOr<std::vector<std::string>> series = ParseList(
+      args.output_series, {"mask", "distance", "intensity"}, "--output-series");
+  if (!series.ok()) return series.status();
+  spec.output_series = *series;
+  spec.write_seg = args.seg;
+  spec.uid_root = args.uid_root;
+  spec.multiframe_volume = args.multiframe_volume;
   if (args.band.has_value()) {
     if (!(*args.band > 0)) {
       return absl::InvalidArgumentError("--band must be positive (mm)");

@@ -29,6 +29,10 @@ struct RunArguments {
   std::optional<int> factor;
   std::optional<double> spacing;
   bool strict_spacing = false;
+  std::string output_series;  // "mask,distance,intensity"
+  bool seg = false;
+  std::string uid_root;
+  std::string multiframe_volume;
   std::optional<double> band;
   double adaptivity = 0;
   std::string out;

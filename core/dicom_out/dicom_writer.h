@@ -59,7 +59,8 @@ struct DicomWriteOptions {
   // SeriesDescription; empty means a default naming the content ("interslice
   // mask", "interslice signed distance (mm)", ...).
   std::string series_description;
-  // SeriesNumber; <= 0 leaves it empty (it is type 2).
+  // SeriesNumber; <= 0 leaves it empty in derived series (type 2 there)
+  // and uses 9001 for a SEG (type 1 there).
   int series_number = 0;
   // Start of DerivationDescription; the writer appends what the content is
   // (and, for intensity, the interpolator). Keep it free of patient data.

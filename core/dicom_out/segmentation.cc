@@ -26,6 +26,13 @@
 namespace interslice {
 namespace {
 
+// SeriesNumber of a SEG when the caller gives none.
+constexpr int kDefaultSegSeriesNumber = 9001;
+
+}  // namespace
+
+namespace {
+
 using dicom_out_internal::AddReferencedSeries;
 using dicom_out_internal::CopyPatientStudyFrameOfReference;
 using dicom_out_internal::CurrentDate;
@@ -105,10 +112,12 @@ absl::Status WriteSegmentation(const DicomSeries& source,
   INTERSLICE_RETURN_IF_ERROR(
       Check(seg->getSeries().setSeriesInstanceUID(series_uid.c_str()),
             "set SeriesInstanceUID"));
-  if (options.series_number > 0) {
-    seg->getSeries().setSeriesNumber(
-        std::to_string(options.series_number).c_str());
-  }
+  // SeriesNumber is type 1 in the Segmentation Series module (unlike the
+  // image series, where it is type 2 and may stay empty).
+  seg->getSeries().setSeriesNumber(std::to_string(options.series_number > 0
+                                                      ? options.series_number
+                                                      : kDefaultSegSeriesNumber)
+                                       .c_str());
   seg->getSeries().setSeriesDescription(description.c_str());
   seg->getSeries().setSeriesDate(CurrentDate().c_str());
   seg->getSeries().setSeriesTime(CurrentTime().c_str());

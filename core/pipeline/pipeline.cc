@@ -6,6 +6,8 @@
 #include <chrono>
 #include <cmath>
 #include <filesystem>
+#include <fstream>
+#include <functional>
 #include <system_error>
 #include <vector>
 
@@ -14,10 +16,13 @@
 #include "absl/strings/str_join.h"
 #include "core/common/status_macros.h"
 #include "core/dicom/series_reader.h"
+#include "core/dicom_out/dicom_writer.h"
 #include "core/sdf/signed_distance.h"
 #include "core/surface/surface.h"
 #include "core/volume_io/volume_io.h"
 #include "nlohmann/json.hpp"
+#include "tbb/parallel_for.h"
+#include "tbb/task_arena.h"
 
 namespace interslice {
 namespace {
@@ -43,10 +48,73 @@ class StageClock {
   std::chrono::steady_clock::time_point start_;
 };
 
-int64_t FileSize(const std::string& path) {
+// Bytes of a file, or of all files in a folder (a derived series).
+int64_t PathSize(const std::filesystem::path& path) {
   std::error_code ec;
+  if (std::filesystem::is_directory(path, ec)) {
+    int64_t total = 0;
+    for (const auto& entry : std::filesystem::directory_iterator(path, ec)) {
+      if (entry.is_regular_file(ec)) total += entry.file_size(ec);
+    }
+    return total;
+  }
   const auto size = std::filesystem::file_size(path, ec);
   return ec ? -1 : static_cast<int64_t>(size);
+}
+
+absl::Status WriteTextFile(const std::string& path, const std::string& text) {
+  const std::string temp = path + ".tmp";
+  {
+    std::ofstream out(temp, std::ios::binary | std::ios::trunc);
+    out << text;
+    out.close();
+    if (!out) {
+      std::error_code ec;
+      std::filesystem::remove(temp, ec);
+      return absl::InternalError(absl::StrCat("cannot write ", path));
+    }
+  }
+  std::error_code ec;
+  std::filesystem::rename(temp, path, ec);
+  if (ec) return absl::InternalError(absl::StrCat("cannot write ", path));
+  return absl::OkStatus();
+}
+
+// Writes one derived series into `folder`, replacing an older one only once
+// the new one is complete: slices go to a fresh sibling folder, which is then
+// renamed into place (a series never mixes files of two runs).
+absl::Status WriteSeriesFolder(
+    const DicomSeries& source, const std::string& content,
+    const Volume<float>& field, const Volume<float>& mask_values,
+    const Volume<float>& image, const DicomWriteOptions& options,
+    const std::filesystem::path& folder, const ComputeContext& context) {
+  DerivedContent kind = DerivedContent::kDistance;
+  const Volume<float>* values = &field;
+  Volume<float> intensity;
+  if (content == "mask") {
+    kind = DerivedContent::kMask;
+    values = &mask_values;
+  } else if (content == "intensity") {
+    kind = DerivedContent::kIntensity;
+    INTERSLICE_ASSIGN_OR_RETURN(intensity,
+                                ResampleToGrid(image, field.grid, context));
+    values = &intensity;
+  }
+  const std::filesystem::path temp =
+      folder.parent_path() / ("." + folder.filename().string() + ".tmp");
+  std::error_code ec;
+  std::filesystem::remove_all(temp, ec);
+  INTERSLICE_RETURN_IF_ERROR(
+      WriteDerivedSeries(source, *values, kind, options, temp.string())
+          .status());
+  std::filesystem::remove_all(folder, ec);
+  std::filesystem::rename(temp, folder, ec);
+  if (ec) {
+    return absl::InternalError(
+        absl::StrCat("cannot move the derived series into ", folder.string(),
+                     ": ", ec.message()));
+  }
+  return absl::OkStatus();
 }
 
 }  // namespace
@@ -76,6 +144,13 @@ absl::Status ValidateJobSpec(const JobSpec& spec) {
           "unknown volume format '", f, "' (choose from nii, nrrd)"));
     }
   }
+  for (const std::string& f : spec.output_series) {
+    if (f != "mask" && f != "distance" && f != "intensity") {
+      return absl::InvalidArgumentError(
+          absl::StrCat("unknown output series '", f,
+                       "' (choose from mask, distance, intensity)"));
+    }
+  }
   for (const std::string& f : spec.mesh_formats) {
     if (f != "stl" && f != "ply" && f != "obj") {
       return absl::InvalidArgumentError(absl::StrCat(
@@ -100,13 +175,21 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
   JobReport report;
   report.energy_units = spec.solver.units;
 
+  const bool wants_intensity =
+      std::find(spec.output_series.begin(), spec.output_series.end(),
+                "intensity") != spec.output_series.end();
+
   // read
   Volume<float> image;
+  // The source series' metadata (slices, UIDs, grid) for DICOM outputs;
+  // its voxels are moved out.
+  DicomSeries source;
   std::vector<double> positions;  // of the slices used, mm along the normal
   {
     StageClock clock(report, context, "read");
     DicomReadOptions options;
     options.series_instance_uid = spec.series_instance_uid;
+    options.volume = spec.multiframe_volume;
     INTERSLICE_ASSIGN_OR_RETURN(DicomSeries series,
                                 ReadDicomSeries(spec.inputs, options, context));
     report.input_grid = series.image.grid;
@@ -131,6 +214,8 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
                              first_slice * series.image.grid.spacing[2]);
     for (int c = 0; c < 3; ++c) image.grid.origin[c] += offset * normal[c];
     report.input_slices = image.grid.size[2];
+    series.image.data = std::vector<float>();
+    source = std::move(series);
     if (image.grid.size[2] < 2) {
       return absl::InvalidArgumentError(
           absl::StrCat("interpolation needs at least 2 slices; the ",
@@ -150,7 +235,8 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
     options.band_radius_mm = spec.band_radius_mm;
     INTERSLICE_ASSIGN_OR_RETURN(
         slice_maps, ComputeSliceDistanceMaps(image, options, context));
-    image = Volume<float>();  // release the grey values early
+    // Release the grey values early unless an intensity series needs them.
+    if (!wants_intensity) image = Volume<float>();
   }
 
   // stack
@@ -198,7 +284,8 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
   }
   INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
 
-  // write
+  // write: every artifact is independent, so they are written in parallel
+  // (gzip of the float volumes dominates this stage).
   {
     StageClock clock(report, context, "write");
     std::error_code ec;
@@ -209,29 +296,82 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
                        ec ? ec.message() : "not a folder"));
     }
     const std::filesystem::path dir(spec.output_dir);
-    auto add = [&](const std::string& kind, const std::filesystem::path& p) {
-      report.artifacts.push_back({kind, p.string(), FileSize(p.string())});
-    };
     Volume<uint8_t> mask;
-    if (!spec.volume_formats.empty()) {
+    if (!spec.volume_formats.empty() || spec.write_seg) {
       mask.grid = field.grid;
       mask.data.resize(field.data.size());
       std::transform(field.data.begin(), field.data.end(), mask.data.begin(),
                      [](float v) -> uint8_t { return v >= 0 ? 1 : 0; });
     }
+    Volume<float> mask_values;  // the mask as values for a derived series
+    if (std::find(spec.output_series.begin(), spec.output_series.end(),
+                  "mask") != spec.output_series.end()) {
+      mask_values.grid = field.grid;
+      mask_values.data.resize(field.data.size());
+      std::transform(field.data.begin(), field.data.end(),
+                     mask_values.data.begin(),
+                     [](float v) { return v >= 0 ? 1.0f : 0.0f; });
+    }
+    DicomWriteOptions dicom_options;
+    dicom_options.uid_root = spec.uid_root;
+
+    // Each task writes one artifact and records its kind, path and status.
+    struct Task {
+      std::string kind;
+      std::filesystem::path path;
+      std::function<absl::Status()> write;
+      absl::Status status;
+    };
+    std::vector<Task> tasks;
     for (const std::string& format : spec.volume_formats) {
       const std::string ext = format == "nii" ? ".nii.gz" : ".nrrd";
       const auto distance_path = dir / ("distance" + ext);
       const auto mask_path = dir / ("mask" + ext);
-      INTERSLICE_RETURN_IF_ERROR(WriteVolume(field, distance_path.string()));
-      add("distance", distance_path);
-      INTERSLICE_RETURN_IF_ERROR(WriteVolume(mask, mask_path.string()));
-      add("mask", mask_path);
+      tasks.push_back({"distance", distance_path, [&, distance_path] {
+                         return WriteVolume(field, distance_path.string());
+                       }});
+      tasks.push_back({"mask", mask_path, [&, mask_path] {
+                         return WriteVolume(mask, mask_path.string());
+                       }});
     }
     for (const std::string& format : spec.mesh_formats) {
       const auto path = dir / ("surface." + format);
-      INTERSLICE_RETURN_IF_ERROR(WriteMesh(mesh, path.string()));
-      add("surface", path);
+      tasks.push_back({"surface", path,
+                       [&, path] { return WriteMesh(mesh, path.string()); }});
+    }
+    if (!spec.mesh_formats.empty()) {
+      const auto path = dir / "surface-coordinates.txt";
+      tasks.push_back({"surface-coordinates", path, [&, path] {
+                         return WriteTextFile(path.string(),
+                                              MeshConventionNote(source));
+                       }});
+    }
+    for (const std::string& content : spec.output_series) {
+      const auto path = dir / ("series-" + content);
+      tasks.push_back({"series-" + content, path, [&, content, path] {
+                         return WriteSeriesFolder(source, content, field,
+                                                  mask_values, image,
+                                                  dicom_options, path, context);
+                       }});
+    }
+    if (spec.write_seg) {
+      const auto path = dir / "seg.dcm";
+      tasks.push_back({"seg", path, [&, path] {
+                         return WriteSegmentation(source, mask,
+                                                  SegmentDescription{},
+                                                  dicom_options, path.string());
+                       }});
+    }
+    tbb::task_arena arena(context.threads > 0 ? context.threads
+                                              : tbb::task_arena::automatic);
+    arena.execute([&] {
+      tbb::parallel_for(size_t{0}, tasks.size(), size_t{1},
+                        [&](size_t n) { tasks[n].status = tasks[n].write(); });
+    });
+    for (const Task& task : tasks) {
+      INTERSLICE_RETURN_IF_ERROR(task.status);
+      report.artifacts.push_back(
+          {task.kind, task.path.string(), PathSize(task.path)});
     }
   }
   return report;

@@ -45,6 +45,16 @@ struct JobSpec {
   //   mesh formats "stl", "ply", "obj" -> surface.<ext>.
   std::vector<std::string> volume_formats = {"nii"};
   std::vector<std::string> mesh_formats = {"stl"};
+  //   derived DICOM series "mask", "distance", "intensity" ->
+  //                  series-<content>/IM00001.dcm ... (one file per slice);
+  //   write_seg -> seg.dcm (binary DICOM SEG of the mask).
+  std::vector<std::string> output_series;
+  bool write_seg = false;
+  // UID root for new series/instance UIDs; empty = 2.25 + UUID.
+  std::string uid_root;
+  // Multi-frame series holding several volumes: which one (as named in the
+  // error listing them); empty = the only one.
+  std::string multiframe_volume;
   std::string output_dir;
   // Upper bound on voxels of the refined grid, checked before allocation.
   int64_t max_output_voxels = int64_t{1} << 30;

@@ -1,12 +1,14 @@
 // End-to-end tests of the `interslice` binary: real processes, real data.
 #include <sys/wait.h>
 
+#include <algorithm>
 #include <array>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <string>
 
+#include "core/dicom/series_reader.h"
 #include "core/volume_io/volume_io.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
@@ -23,9 +25,8 @@ struct CommandResult {
   std::string output;  // stdout and stderr
 };
 
-CommandResult RunCli(const std::string& arguments) {
-  const std::string command =
-      std::string(INTERSLICE_CLI_PATH) + " " + arguments + " 2>&1";
+CommandResult RunCommand(const std::string& command_line) {
+  const std::string command = command_line + " 2>&1";
   CommandResult result;
   FILE* pipe = popen(command.c_str(), "r");
   if (pipe == nullptr) return result;
@@ -37,6 +38,10 @@ CommandResult RunCli(const std::string& arguments) {
   const int status = pclose(pipe);
   result.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
   return result;
+}
+
+CommandResult RunCli(const std::string& arguments) {
+  return RunCommand(std::string(INTERSLICE_CLI_PATH) + " " + arguments);
 }
 
 class CliTest : public ::testing::Test {
@@ -210,6 +215,67 @@ TEST_F(CliTest, ShippedPhantomGivesIsotropicVolumeAndWatertightSkull) {
   for (const auto& v : mesh.vertices) {
     ASSERT_GT(v[2], 696.21 - 1.0);
     ASSERT_LT(v[2], 831.21 + 1.0);
+  }
+}
+
+// The DICOM outputs of the shipped phantom (all 28 slices, a 100 x 100 pixel
+// region to keep it quick): derived series and SEG pass dciodvfy without
+// errors and read back with the refined grid.
+TEST_F(CliTest, DerivedSeriesAndSegPassDciodvfyAndReadBack) {
+  const fs::path out = dir_ / "dicom";
+  const fs::path report = dir_ / "report.json";
+  const CommandResult r = RunCli(
+      "run " + kPhantom +
+      " --threshold 300 --roi 200,60,0,300,160,28 --method direct --quiet "
+      "--volume nrrd --mesh none --output-series mask,distance,intensity --seg "
+      "--uid-root 1.2.826.0.1.3680043.10.1234 --out " +
+      out.string() + " --report " + report.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  std::ifstream in(report);
+  const nlohmann::json j = nlohmann::json::parse(in);
+  const auto distance = ReadVolumeAsFloat((out / "distance.nrrd").string());
+  ASSERT_TRUE(distance.ok()) << distance.status();
+
+  std::vector<fs::path> to_check = {out / "seg.dcm"};
+  for (const char* content : {"mask", "distance", "intensity"}) {
+    const fs::path folder = out / (std::string("series-") + content);
+    std::vector<fs::path> files;
+    for (const auto& entry : fs::directory_iterator(folder)) {
+      files.push_back(entry.path());
+    }
+    std::sort(files.begin(), files.end());
+    ASSERT_EQ(files.size(), 298u) << content;
+    to_check.push_back(files.front());
+    to_check.push_back(files[files.size() / 2]);
+    to_check.push_back(files.back());
+
+    const auto series = ReadDicomSeries({folder.string()}, {}, {});
+    ASSERT_TRUE(series.ok()) << content << ": " << series.status();
+    const Grid& g = series->image.grid;
+    EXPECT_EQ(g.size, distance->grid.size) << content;
+    for (int a = 0; a < 3; ++a) {
+      EXPECT_NEAR(g.spacing[a], distance->grid.spacing[a], 1e-4) << content;
+      EXPECT_NEAR(g.origin[a], distance->grid.origin[a], 1e-3) << content;
+    }
+    for (int n = 0; n < 9; ++n) {
+      EXPECT_NEAR(g.direction[n], distance->grid.direction[n], 1e-6);
+    }
+    if (std::string(content) == "mask") {
+      for (size_t n = 0; n < distance->data.size(); ++n) {
+        ASSERT_EQ(series->image.data[n], distance->data[n] >= 0 ? 1.0f : 0.0f)
+            << n;
+      }
+    }
+    if (std::string(content) == "distance") {
+      for (size_t n = 0; n < distance->data.size(); ++n) {
+        ASSERT_NEAR(series->image.data[n], distance->data[n], 0.006) << n;
+      }
+    }
+  }
+  for (const fs::path& file : to_check) {
+    const CommandResult v = RunCommand("dciodvfy " + file.string());
+    EXPECT_EQ(v.output.find("Error"), std::string::npos) << file << "\n"
+                                                         << v.output;
   }
 }
 

@@ -359,6 +359,23 @@ TEST_F(DicomWriterTest, SegmentationRoundTripsThroughDcmtk) {
   EXPECT_EQ(instances->card(), source_->slices.size());
 }
 
+// Regression: with default options (no series number) the SEG failed to
+// encode, because SeriesNumber is type 1 in the Segmentation Series module.
+TEST_F(DicomWriterTest, SegmentationWithDefaultOptionsHasASeriesNumber) {
+  TempDir dir;
+  const std::string path = (dir.path() / "seg.dcm").string();
+  const absl::Status status =
+      WriteSegmentation(*source_, Mask(Distance()), SegmentDescription(),
+                        DicomWriteOptions(), path);
+  ASSERT_TRUE(status.ok()) << status;
+  DcmFileFormat file;
+  ASSERT_TRUE(file.loadFile(path.c_str()).good());
+  OFString number;
+  ASSERT_TRUE(
+      file.getDataset()->findAndGetOFString(DCM_SeriesNumber, number).good());
+  EXPECT_EQ(number, "9001");
+}
+
 TEST_F(DicomWriterTest, UidsPositionsAndInstanceNumbers) {
   TempDir dir;
   const Volume<float> mask = ToFloat(Mask(Distance()));

@@ -62,7 +62,8 @@ TEST_F(PipelineTest, RunsEveryStageAndWritesConsistentOutputs) {
   EXPECT_EQ(report->output_grid.size, (Index3{80, 80, 13}));
   EXPECT_EQ(report->input_grid.size, (Index3{512, 512, 4}));
   EXPECT_GT(report->mesh_triangles, 0);
-  ASSERT_EQ(report->artifacts.size(), 3u);
+  // distance, mask, surface, and the coordinate note beside the surface.
+  ASSERT_EQ(report->artifacts.size(), 4u);
 
   // Original slices of the written distance volume are exactly the 2D
   // signed distance maps of the input (the solver never touches them).
