@@ -47,36 +47,38 @@ namespace {
 using solver_internal::DotProduct;
 using solver_internal::FieldStatistics;
 
-// f += alpha d; r -= alpha q; returns r . r (lane order, see DotProduct).
+// r -= alpha q; returns r . r (lane order, see DotProduct).
 INTERSLICE_SIMD_CLONES
-double UpdateSolutionAndResidual(float* __restrict f, float* __restrict r,
-                                 const float* __restrict d,
-                                 const float* __restrict q, float alpha,
-                                 int64_t n) {
+double UpdateResidual(float* __restrict r, const float* __restrict q,
+                      float alpha, int64_t n) {
   constexpr int kLanes = solver_internal::kReductionLanes;
   double lanes[kLanes] = {};
   int64_t i = 0;
   for (; i + kLanes <= n; i += kLanes) {
     for (int l = 0; l < kLanes; ++l) {
-      f[i + l] += alpha * d[i + l];
       r[i + l] -= alpha * q[i + l];
       lanes[l] += static_cast<double>(r[i + l]) * r[i + l];
     }
   }
   double tail = 0;
   for (; i < n; ++i) {
-    f[i] += alpha * d[i];
     r[i] -= alpha * q[i];
     tail += static_cast<double>(r[i]) * r[i];
   }
   return solver_internal::SumLanes(lanes) + tail;
 }
 
-// d = r + beta d.
+// f += alpha d; d = r + beta d. The solution update rides on the direction
+// pass, which reads d anyway: one read of d per iteration instead of two
+// (44 bytes of traffic per voxel and iteration instead of 48).
 INTERSLICE_SIMD_CLONES
-void UpdateDirection(float* __restrict d, const float* __restrict r, float beta,
-                     int64_t n) {
-  for (int64_t i = 0; i < n; ++i) d[i] = r[i] + beta * d[i];
+void UpdateSolutionAndDirection(float* __restrict f, float* __restrict d,
+                                const float* __restrict r, float alpha,
+                                float beta, int64_t n) {
+  for (int64_t i = 0; i < n; ++i) {
+    f[i] += alpha * d[i];
+    d[i] = r[i] + beta * d[i];
+  }
 }
 using solver_internal::MeasureField;
 using solver_internal::OrderedSum;
@@ -164,25 +166,25 @@ absl::Status ConjugateGradient(Volume<float>& field,
     if (!(dq > 0)) break;  // d == 0 to working precision: nothing left to do.
     const double alpha = rr / dq;
     const float alpha_f = static_cast<float>(alpha);
-    // f += alpha d; r -= alpha q; r . r.
+    // r -= alpha q; r . r.
     for_slices([&](int64_t k) {
       if (fixed[k]) {
         partial[k] = 0;
         return;
       }
-      partial[k] = UpdateSolutionAndResidual(
-          f + k * plane, r.data() + k * plane, d.data() + k * plane,
-          q.data() + k * plane, alpha_f, plane);
+      partial[k] = UpdateResidual(r.data() + k * plane, q.data() + k * plane,
+                                  alpha_f, plane);
     });
     const double rr_next = OrderedSum(partial);
     // Along a CG step E drops by alpha r.r (d.r = r.r for CG directions).
     energy -= alpha * rr;
     const double beta = rr_next / rr;
     const float beta_f = static_cast<float>(beta);
+    // f += alpha d (the old d); d = r + beta d.
     for_slices([&](int64_t k) {
       if (fixed[k]) return;
-      UpdateDirection(d.data() + k * plane, r.data() + k * plane, beta_f,
-                      plane);
+      UpdateSolutionAndDirection(f + k * plane, d.data() + k * plane,
+                                 r.data() + k * plane, alpha_f, beta_f, plane);
     });
     rr = rr_next;
     result.iterations = it;

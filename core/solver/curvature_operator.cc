@@ -128,24 +128,29 @@ void StencilRowInterior(const StencilRows& r, const StencilCoefficients& c,
 void ApplyOperatorSlice(const float* in, const Index3& size, int64_t k,
                         const StencilCoefficients& c, float* out_slice) {
   const int64_t nx = size[0], ny = size[1], nz = size[2];
-  auto row = [&](int64_t j, int64_t kk) {
-    return in + nx * (Mirror(j, ny) + ny * Mirror(kk, nz));
+  // The five slices the stencil reads, mirrored once per slice (Mirror's
+  // divisions per row cost as much as the arithmetic at 256^3).
+  const float* slice[5];
+  for (int m = -2; m <= 2; ++m) slice[m + 2] = in + nx * ny * Mirror(k + m, nz);
+  auto row = [&](int64_t j, int dk) {
+    const int64_t mj = j >= 0 && j < ny ? j : Mirror(j, ny);
+    return slice[dk + 2] + nx * mj;
   };
   for (int64_t j = 0; j < ny; ++j) {
     StencilRows r;
-    r.c = row(j, k);
-    r.ym1 = row(j - 1, k);
-    r.yp1 = row(j + 1, k);
-    r.ym2 = row(j - 2, k);
-    r.yp2 = row(j + 2, k);
-    r.zm1 = row(j, k - 1);
-    r.zp1 = row(j, k + 1);
-    r.zm2 = row(j, k - 2);
-    r.zp2 = row(j, k + 2);
-    r.ym2zm2 = row(j - 2, k - 2);
-    r.ym2zp2 = row(j - 2, k + 2);
-    r.yp2zm2 = row(j + 2, k - 2);
-    r.yp2zp2 = row(j + 2, k + 2);
+    r.c = row(j, 0);
+    r.ym1 = row(j - 1, 0);
+    r.yp1 = row(j + 1, 0);
+    r.ym2 = row(j - 2, 0);
+    r.yp2 = row(j + 2, 0);
+    r.zm1 = row(j, -1);
+    r.zp1 = row(j, 1);
+    r.zm2 = row(j, -2);
+    r.zp2 = row(j, 2);
+    r.ym2zm2 = row(j - 2, -2);
+    r.ym2zp2 = row(j - 2, 2);
+    r.yp2zm2 = row(j + 2, -2);
+    r.yp2zp2 = row(j + 2, 2);
     float* out = out_slice + nx * j;
     if (nx < 5) {
       for (int64_t i = 0; i < nx; ++i) {
@@ -154,15 +159,13 @@ void ApplyOperatorSlice(const float* in, const Index3& size, int64_t k,
       }
       continue;
     }
-    for (int64_t i : {int64_t{0}, int64_t{1}}) {
-      out[i] = StencilAt(r, c, i, Mirror(i - 1, nx), i + 1, Mirror(i - 2, nx),
-                         i + 2);
-    }
+    // Mirrored columns at the two ends (nx >= 5): f(-1) = f(0), f(-2) = f(1),
+    // f(nx) = f(nx-1), f(nx+1) = f(nx-2).
+    out[0] = StencilAt(r, c, 0, 0, 1, 1, 2);
+    out[1] = StencilAt(r, c, 1, 0, 2, 0, 3);
     StencilRowInterior(r, c, 2, nx - 2, out);
-    for (int64_t i : {nx - 2, nx - 1}) {
-      out[i] = StencilAt(r, c, i, i - 1, Mirror(i + 1, nx), i - 2,
-                         Mirror(i + 2, nx));
-    }
+    out[nx - 2] = StencilAt(r, c, nx - 2, nx - 3, nx - 1, nx - 4, nx - 1);
+    out[nx - 1] = StencilAt(r, c, nx - 1, nx - 2, nx - 1, nx - 3, nx - 2);
   }
 }
 
