@@ -5,6 +5,7 @@ find_package(Threads REQUIRED)
 find_package(absl CONFIG REQUIRED)
 find_package(TBB CONFIG REQUIRED)
 find_package(DCMTK CONFIG REQUIRED)
+find_package(ZLIB REQUIRED)
 # GDCM decodes JPEG 2000, which DCMTK's free edition cannot (core/dicom). Its
 # config warns about command-line tools that are not installed; harmless.
 find_package(GDCM CONFIG REQUIRED)
