@@ -1,10 +1,14 @@
 #include "client/cli.h"
 
 #include <cstdio>
+#include <cstdlib>
 #include <string>
 
 #include "CLI/CLI.hpp"
 #include "client/run_command.h"
+#ifdef INTERSLICE_WITH_SERVER
+#include "client/remote_commands.h"
+#endif
 #include "core/dicom/series_reader.h"
 
 namespace interslice::client {
@@ -20,6 +24,10 @@ int RunCli(int argc, char** argv) {
   CLI::App* run = app.add_subcommand(
       "run", "Run the whole pipeline in this process (no server)");
   AddRunOptions(*run, run_args);
+#ifdef INTERSLICE_WITH_SERVER
+  RemoteCommands remote;
+  remote.Register(app);
+#endif
 
   // CLI11 reports an unknown command only as "a subcommand is required".
   const auto is_command = [&app](const std::string& name) {
@@ -34,7 +42,8 @@ int RunCli(int argc, char** argv) {
                  argv[1]);
     return 1;
   }
-  QuietDicomToolkitLogging();
+  if (std::getenv("INTERSLICE_DCMTK_LOG") == nullptr)
+    QuietDicomToolkitLogging();
   try {
     app.parse(argc, argv);
   } catch (const CLI::CallForHelp& e) {
@@ -49,6 +58,9 @@ int RunCli(int argc, char** argv) {
     return 1;
   }
   if (run->parsed()) return ExecuteRun(run_args);
+#ifdef INTERSLICE_WITH_SERVER
+  if (const int rc = remote.Execute(); rc >= 0) return rc;
+#endif
   return 1;
 }
 

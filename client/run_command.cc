@@ -93,7 +93,7 @@ void PrintSummary(const JobReport& report, const std::string& out_dir) {
   std::printf("  time     %s (total %.2fs), peak memory %.0f MiB\n",
               timings.c_str(), total, report.peak_rss_bytes / 1048576.0);
   for (const Artifact& a : report.artifacts) {
-    std::printf("  %-9s %s\n", a.kind.c_str(), a.path.c_str());
+    std::printf("  %-20s %s\n", a.kind.c_str(), a.path.c_str());
   }
 }
 

@@ -1,0 +1,107 @@
+#include "client/grpc_channel.h"
+
+#include <fstream>
+#include <sstream>
+
+#include "CLI/CLI.hpp"
+#include "absl/strings/ascii.h"
+#include "absl/strings/str_cat.h"
+
+namespace interslice::client {
+namespace {
+
+absl::StatusOr<std::string> ReadFile(const std::string& path,
+                                     const std::string& option) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) {
+    return absl::NotFoundError(absl::StrCat(option, ": cannot read ", path));
+  }
+  std::stringstream buffer;
+  buffer << in.rdbuf();
+  return buffer.str();
+}
+
+}  // namespace
+
+void AddConnectionOptions(CLI::App& app, ConnectionOptions& options) {
+  app.add_option("--server", options.server, "Server address HOST:PORT")
+      ->capture_default_str();
+  app.add_option("--tls-ca", options.tls_ca,
+                 "Use TLS, trusting this CA certificate (PEM)");
+  app.add_option("--tls-cert", options.tls_cert,
+                 "Client certificate for mutual TLS (PEM)");
+  app.add_option("--tls-key", options.tls_key,
+                 "Private key of the client certificate (PEM)");
+  app.add_option("--token-file", options.token_file,
+                 "Send the bearer token in this file");
+}
+
+absl::StatusOr<Connection> Connection::Open(const ConnectionOptions& options) {
+  Connection c;
+  c.address_ = options.server;
+  std::shared_ptr<grpc::ChannelCredentials> credentials;
+  if (!options.tls_ca.empty() || !options.tls_cert.empty()) {
+    grpc::SslCredentialsOptions ssl;
+    if (!options.tls_ca.empty()) {
+      absl::StatusOr<std::string> ca = ReadFile(options.tls_ca, "--tls-ca");
+      if (!ca.ok()) return ca.status();
+      ssl.pem_root_certs = *ca;
+    }
+    if (!options.tls_cert.empty() || !options.tls_key.empty()) {
+      absl::StatusOr<std::string> cert =
+          ReadFile(options.tls_cert, "--tls-cert");
+      if (!cert.ok()) return cert.status();
+      absl::StatusOr<std::string> key = ReadFile(options.tls_key, "--tls-key");
+      if (!key.ok()) return key.status();
+      ssl.pem_cert_chain = *cert;
+      ssl.pem_private_key = *key;
+    }
+    credentials = grpc::SslCredentials(ssl);
+  } else {
+    credentials = grpc::InsecureChannelCredentials();
+  }
+  if (!options.token_file.empty()) {
+    absl::StatusOr<std::string> token =
+        ReadFile(options.token_file, "--token-file");
+    if (!token.ok()) return token.status();
+    c.token_ = std::string(absl::StripAsciiWhitespace(*token));
+  }
+  grpc::ChannelArguments args;
+  // Fail fast rather than retrying a dead address for the whole deadline.
+  args.SetInt(GRPC_ARG_ENABLE_RETRIES, 0);
+  c.channel_ = grpc::CreateCustomChannel(options.server, credentials, args);
+  return c;
+}
+
+void Connection::Authorize(grpc::ClientContext& context) const {
+  if (!token_.empty()) {
+    context.AddMetadata("authorization", "Bearer " + token_);
+  }
+}
+
+std::string DescribeRpcError(const grpc::Status& status,
+                             const std::string& address) {
+  const std::string message = status.error_message();
+  switch (status.error_code()) {
+    case grpc::UNAVAILABLE:
+      return absl::StrCat("cannot reach the server at ", address, " (", message,
+                          ")");
+    case grpc::DEADLINE_EXCEEDED:
+      return "the deadline expired before the job finished";
+    case grpc::UNAUTHENTICATED:
+      return absl::StrCat("the server refused the credentials (", message, ")");
+    case grpc::RESOURCE_EXHAUSTED:
+      return absl::StrCat("the server refused the job: ", message);
+    case grpc::CANCELLED:
+      return absl::StrCat(
+          "the job was cancelled",
+          message.empty() ? "" : absl::StrCat(" (", message, ")"));
+    default:
+      return message.empty()
+                 ? absl::StrCat("call failed with status code ",
+                                static_cast<int>(status.error_code()))
+                 : message;
+  }
+}
+
+}  // namespace interslice::client

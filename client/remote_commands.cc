@@ -1,0 +1,715 @@
+#include "client/remote_commands.h"
+
+#include <openssl/evp.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <thread>
+#include <vector>
+
+#include "CLI/CLI.hpp"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "client/progress_display.h"
+#include "grpc/health/v1/health.grpc.pb.h"
+#include "interslice/v1/interslice.grpc.pb.h"
+#include "nlohmann/json.hpp"
+
+namespace interslice::client {
+namespace fs = std::filesystem;
+namespace {
+
+constexpr size_t kChunkBytes = 64 * 1024;
+constexpr int kWatchRetries = 30;  // reconnects, 1 s apart
+
+int Fail(const std::string& message) {
+  std::fprintf(stderr, "interslice: error: %s\n", message.c_str());
+  return 1;
+}
+
+class Sha256 {
+ public:
+  Sha256() : ctx_(EVP_MD_CTX_new()) {
+    EVP_DigestInit_ex(ctx_, EVP_sha256(), nullptr);
+  }
+  ~Sha256() { EVP_MD_CTX_free(ctx_); }
+  void Update(const char* data, size_t n) { EVP_DigestUpdate(ctx_, data, n); }
+  std::string Finish() {
+    unsigned char digest[EVP_MAX_MD_SIZE];
+    unsigned int n = 0;
+    EVP_DigestFinal_ex(ctx_, digest, &n);
+    return std::string(reinterpret_cast<char*>(digest), n);
+  }
+
+ private:
+  EVP_MD_CTX* ctx_;
+};
+
+std::string HashFile(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  Sha256 hash;
+  std::vector<char> buffer(1 << 16);
+  while (in) {
+    in.read(buffer.data(), static_cast<std::streamsize>(buffer.size()));
+    hash.Update(buffer.data(), static_cast<size_t>(in.gcount()));
+  }
+  return hash.Finish();
+}
+
+v1::JobSpec SpecToProto(const JobSpec& spec) {
+  v1::JobSpec p;
+  p.set_series_instance_uid(spec.series_instance_uid);
+  p.set_threshold(spec.lower_threshold);
+  if (spec.upper_threshold.has_value()) {
+    p.set_upper_threshold(*spec.upper_threshold);
+  }
+  if (spec.roi.has_value()) {
+    v1::VoxelBox* r = p.mutable_roi();
+    r->set_x0(spec.roi->begin[0]);
+    r->set_y0(spec.roi->begin[1]);
+    r->set_z0(spec.roi->begin[2]);
+    r->set_x1(spec.roi->end[0]);
+    r->set_y1(spec.roi->end[1]);
+    r->set_z1(spec.roi->end[2]);
+  }
+  if (spec.band_radius_mm > 0) p.set_band_radius_mm(spec.band_radius_mm);
+  if (spec.z_resolution.factor.has_value()) {
+    p.set_insertion_factor(*spec.z_resolution.factor);
+  } else if (spec.z_resolution.spacing_mm.has_value()) {
+    p.set_slice_spacing_mm(*spec.z_resolution.spacing_mm);
+  }
+  switch (spec.solver.method) {
+    case SolverMethod::kLinear:
+      p.set_method(v1::SOLVER_METHOD_LINEAR);
+      break;
+    case SolverMethod::kConjugateGradient:
+      p.set_method(v1::SOLVER_METHOD_CONJUGATE_GRADIENT);
+      break;
+    case SolverMethod::kDirect:
+      p.set_method(v1::SOLVER_METHOD_DIRECT);
+      break;
+  }
+  p.set_max_iterations(spec.solver.max_iterations);
+  if (spec.solver.tolerance > 0) p.set_tolerance(spec.solver.tolerance);
+  p.set_energy_units(spec.solver.units == EnergyUnits::kMillimetre
+                         ? v1::ENERGY_UNITS_MILLIMETRE
+                         : v1::ENERGY_UNITS_VOXEL);
+  p.set_mesh_adaptivity(spec.mesh_adaptivity);
+  p.set_strict_spacing(spec.strict_spacing);
+  p.set_uid_root(spec.uid_root);
+  p.set_multiframe_volume(spec.multiframe_volume);
+  p.mutable_segmentation()->set_enabled(spec.write_seg);
+  // Sent as asked: the server says clearly if it cannot serve them.
+  for (const std::string& content : spec.output_series) {
+    p.mutable_derived_series()->add_contents(content);
+  }
+  v1::OutputSelection* outputs = p.mutable_outputs();
+  for (const std::string& f : spec.volume_formats) {
+    outputs->add_volume_formats(f == "nrrd" ? v1::VOLUME_FORMAT_NRRD
+                                            : v1::VOLUME_FORMAT_NIFTI);
+  }
+  for (const std::string& f : spec.mesh_formats) {
+    outputs->add_mesh_formats(f == "ply"   ? v1::MESH_FORMAT_PLY
+                              : f == "obj" ? v1::MESH_FORMAT_OBJ
+                                           : v1::MESH_FORMAT_STL);
+  }
+  return p;
+}
+
+struct LocalFile {
+  std::string path;
+  std::string name;
+  int64_t size = 0;
+};
+
+// Every regular file under the inputs (the server skips what is not DICOM),
+// in a stable order.
+absl::StatusOr<std::vector<LocalFile>> CollectFiles(
+    const std::vector<std::string>& inputs) {
+  std::vector<LocalFile> files;
+  for (const std::string& input : inputs) {
+    std::error_code ec;
+    if (fs::is_regular_file(input, ec)) {
+      files.push_back({input, fs::path(input).filename().string(),
+                       static_cast<int64_t>(fs::file_size(input, ec))});
+    } else if (fs::is_directory(input, ec)) {
+      std::vector<LocalFile> found;
+      for (fs::recursive_directory_iterator it(input, ec), end;
+           !ec && it != end; it.increment(ec)) {
+        if (!it->is_regular_file()) continue;
+        found.push_back({it->path().string(),
+                         fs::relative(it->path(), input).string(),
+                         static_cast<int64_t>(it->file_size())});
+      }
+      std::sort(found.begin(), found.end(),
+                [](const auto& a, const auto& b) { return a.path < b.path; });
+      files.insert(files.end(), found.begin(), found.end());
+    } else {
+      return absl::NotFoundError(
+          absl::StrCat("no such file or folder: ", input));
+    }
+  }
+  if (files.empty()) return absl::NotFoundError("no input files found");
+  return files;
+}
+
+// Sends the header and every file; false as soon as the stream breaks (the
+// caller then reads the status from Finish()).
+template <typename Writer>
+bool Upload(Writer& writer, const v1::UploadHeader& header,
+            const std::vector<LocalFile>& files) {
+  v1::UploadRequest request;
+  *request.mutable_header() = header;
+  if (!writer.Write(request)) return false;
+  std::vector<char> buffer(kChunkBytes);
+  for (size_t i = 0; i < files.size(); ++i) {
+    std::ifstream in(files[i].path, std::ios::binary);
+    const std::string sha = HashFile(files[i].path);
+    int64_t offset = 0;
+    bool first = true;
+    while (first || offset < files[i].size) {
+      const int64_t n = std::min<int64_t>(kChunkBytes, files[i].size - offset);
+      in.read(buffer.data(), n);
+      request.Clear();
+      v1::FileChunk* chunk = request.mutable_chunk();
+      chunk->set_file_index(static_cast<int>(i));
+      if (first) {
+        chunk->set_file_name(files[i].name);
+        chunk->set_file_size(files[i].size);
+        chunk->set_sha256(sha);
+      }
+      chunk->set_offset(offset);
+      chunk->set_data(buffer.data(), static_cast<size_t>(in.gcount()));
+      if (!writer.Write(request)) return false;
+      offset += in.gcount();
+      first = false;
+      if (in.gcount() == 0) break;
+    }
+  }
+  return true;
+}
+
+ProgressEvent ToEvent(const v1::Progress& p) {
+  ProgressEvent e;
+  e.stage = p.stage();
+  e.fraction = p.stage_percent() / 100.0;
+  e.iteration = p.iteration();
+  e.relative_residual = p.relative_residual();
+  e.energy = p.energy();
+  return e;
+}
+
+// Writes one artifact to <dir>/<name>.part, then checks its size and
+// SHA-256 and renames it to <dir>/<name>.
+class ArtifactFile {
+ public:
+  absl::Status Begin(const std::string& dir, const v1::ArtifactInfo& info,
+                     int64_t offset) {
+    info_ = info;
+    final_ = (fs::path(dir) / info.name()).string();
+    part_ = final_ + ".part";
+    if (info.name().find('/') != std::string::npos || info.name().empty()) {
+      return absl::DataLossError("the server sent a bad artifact name");
+    }
+    out_.open(part_, offset > 0 ? std::ios::binary | std::ios::app
+                                : std::ios::binary | std::ios::trunc);
+    if (!out_) return absl::PermissionDeniedError("cannot write " + part_);
+    return absl::OkStatus();
+  }
+  absl::Status Append(const std::string& data) {
+    out_.write(data.data(), static_cast<std::streamsize>(data.size()));
+    if (!out_) return absl::ResourceExhaustedError("cannot write " + part_);
+    return absl::OkStatus();
+  }
+  absl::Status Commit() {
+    out_.close();
+    std::error_code ec;
+    const auto size = fs::file_size(part_, ec);
+    if (ec || static_cast<int64_t>(size) != info_.size_bytes() ||
+        HashFile(part_) != info_.sha256()) {
+      return absl::DataLossError(absl::StrCat(
+          info_.name(), ": size or SHA-256 does not match the server's"));
+    }
+    fs::rename(part_, final_, ec);
+    if (ec) return absl::PermissionDeniedError("cannot rename " + part_);
+    return absl::OkStatus();
+  }
+  bool open() const { return out_.is_open(); }
+  const std::string& part_path() const { return part_; }
+
+ private:
+  v1::ArtifactInfo info_;
+  std::string final_, part_;
+  std::ofstream out_;
+};
+
+// The server's report with artifact paths turned into local ones.
+absl::Status WriteReport(const std::string& report_json,
+                         const std::string& out_dir, const std::string& path) {
+  nlohmann::ordered_json j =
+      nlohmann::ordered_json::parse(report_json, nullptr, false);
+  if (j.is_discarded()) return absl::DataLossError("the report is not JSON");
+  if (j.contains("artifacts")) {
+    for (auto& a : j["artifacts"]) {
+      a["path"] = (fs::path(out_dir) / a["path"].get<std::string>()).string();
+    }
+  }
+  std::ofstream file(path);
+  file << j.dump(2) << "\n";
+  file.close();
+  if (!file) return absl::PermissionDeniedError("cannot write report " + path);
+  return absl::OkStatus();
+}
+
+const char* StateName(v1::JobState s) {
+  switch (s) {
+    case v1::JOB_STATE_UPLOADING:
+      return "uploading";
+    case v1::JOB_STATE_QUEUED:
+      return "queued";
+    case v1::JOB_STATE_RUNNING:
+      return "running";
+    case v1::JOB_STATE_SUCCEEDED:
+      return "succeeded";
+    case v1::JOB_STATE_FAILED:
+      return "failed";
+    case v1::JOB_STATE_CANCELLED:
+      return "cancelled";
+    default:
+      return "unknown";
+  }
+}
+
+bool IsTerminal(v1::JobState s) {
+  return s == v1::JOB_STATE_SUCCEEDED || s == v1::JOB_STATE_FAILED ||
+         s == v1::JOB_STATE_CANCELLED;
+}
+
+void SetTimeout(grpc::ClientContext& context, double seconds) {
+  context.set_deadline(
+      std::chrono::system_clock::now() +
+      std::chrono::milliseconds(static_cast<int64_t>(seconds * 1000)));
+}
+
+absl::StatusOr<v1::UploadHeader> PrepareUpload(const RunArguments& args,
+                                               double deadline_seconds,
+                                               const std::string& label,
+                                               std::vector<LocalFile>* files) {
+  absl::StatusOr<JobSpec> spec = BuildJobSpec(args);
+  if (!spec.ok()) return spec.status();
+  absl::StatusOr<std::vector<LocalFile>> found = CollectFiles(spec->inputs);
+  if (!found.ok()) return found.status();
+  *files = std::move(*found);
+  v1::UploadHeader header;
+  *header.mutable_spec() = SpecToProto(*spec);
+  header.mutable_options()->set_deadline_seconds(deadline_seconds);
+  header.mutable_options()->set_label(label);
+  header.set_file_count(static_cast<int>(files->size()));
+  int64_t total = 0;
+  for (const LocalFile& f : *files) total += f.size;
+  header.set_total_bytes(total);
+  return header;
+}
+
+int RunInterpolate(const Connection& connection, const RunArguments& args,
+                   double deadline_seconds) {
+  std::vector<LocalFile> files;
+  absl::StatusOr<v1::UploadHeader> header = PrepareUpload(args, 0, "", &files);
+  if (!header.ok()) return Fail(std::string(header.status().message()));
+  std::error_code ec;
+  fs::create_directories(args.out, ec);
+  if (ec) return Fail("cannot create output folder " + args.out);
+
+  auto stub = v1::InterSlice::NewStub(connection.channel());
+  grpc::ClientContext context;
+  connection.Authorize(context);
+  if (deadline_seconds > 0) SetTimeout(context, deadline_seconds);
+  auto stream = stub->Interpolate(&context);
+  if (Upload(*stream, *header, files)) stream->WritesDone();
+
+  ProgressDisplay display(stderr, !args.quiet);
+  v1::InterpolateResponse response;
+  ArtifactFile artifact;
+  absl::Status local = absl::OkStatus();
+  std::string job_id;
+  v1::JobSummary summary;
+  bool have_summary = false;
+  while (stream->Read(&response)) {
+    if (response.has_accepted()) {
+      job_id = response.accepted().job_id();
+    } else if (response.has_progress()) {
+      display.Update(ToEvent(response.progress()));
+    } else if (response.has_artifact() && local.ok()) {
+      const v1::ArtifactChunk& chunk = response.artifact();
+      if (chunk.has_info()) {
+        if (artifact.open()) local = artifact.Commit();
+        if (local.ok()) local = artifact.Begin(args.out, chunk.info(), 0);
+      }
+      if (local.ok()) local = artifact.Append(chunk.data());
+    } else if (response.has_summary()) {
+      if (artifact.open() && local.ok()) local = artifact.Commit();
+      summary = response.summary();
+      have_summary = true;
+    }
+    if (!local.ok()) context.TryCancel();
+  }
+  const grpc::Status status = stream->Finish();
+  display.Finish();
+  if (!local.ok()) return Fail(std::string(local.message()));
+  if (!status.ok()) {
+    if (artifact.open()) fs::remove(artifact.part_path(), ec);
+    return Fail(DescribeRpcError(status, connection.address()));
+  }
+  if (!have_summary) return Fail("the server ended the call without a summary");
+  if (!args.report.empty()) {
+    if (absl::Status s =
+            WriteReport(summary.report_json(), args.out, args.report);
+        !s.ok()) {
+      return Fail(std::string(s.message()));
+    }
+  }
+  if (!args.quiet) {
+    std::printf("interslice: wrote %d file(s) to %s (job %s on %s)\n",
+                summary.artifacts_size(), args.out.c_str(), job_id.c_str(),
+                connection.address().c_str());
+    for (const v1::ArtifactInfo& a : summary.artifacts()) {
+      std::printf("  %-9s %s (%lld bytes)\n", a.kind().c_str(),
+                  (fs::path(args.out) / a.name()).string().c_str(),
+                  static_cast<long long>(a.size_bytes()));
+    }
+  }
+  return 0;
+}
+
+int RunSubmit(const Connection& connection, const RunArguments& args,
+              double deadline_seconds, const std::string& label) {
+  std::vector<LocalFile> files;
+  // The output folder belongs to `fetch`; BuildJobSpec wants one.
+  RunArguments with_out = args;
+  if (with_out.out.empty()) with_out.out = ".";
+  absl::StatusOr<v1::UploadHeader> header =
+      PrepareUpload(with_out, deadline_seconds, label, &files);
+  if (!header.ok()) return Fail(std::string(header.status().message()));
+  auto stub = v1::InterSlice::NewStub(connection.channel());
+  grpc::ClientContext context;
+  connection.Authorize(context);
+  v1::SubmitResponse response;
+  auto writer = stub->Submit(&context, &response);
+  if (Upload(*writer, *header, files)) writer->WritesDone();
+  const grpc::Status status = writer->Finish();
+  if (!status.ok()) return Fail(DescribeRpcError(status, connection.address()));
+  std::printf("%s\n", response.job_id().c_str());
+  return 0;
+}
+
+// Watches until the job ends, reconnecting after transient failures. Fills
+// `final` with the terminal status.
+int WatchJob(const Connection& connection, const std::string& job_id,
+             bool quiet, v1::JobStatus* final) {
+  auto stub = v1::InterSlice::NewStub(connection.channel());
+  ProgressDisplay display(stderr, !quiet);
+  int64_t sequence = 0;
+  int retries = 0;
+  for (;;) {
+    grpc::ClientContext context;
+    connection.Authorize(context);
+    v1::WatchRequest request;
+    request.set_job_id(job_id);
+    request.set_after_sequence(sequence);
+    auto reader = stub->Watch(&context, request);
+    v1::JobStatus status;
+    while (reader->Read(&status)) {
+      retries = 0;
+      sequence = std::max(sequence, status.sequence());
+      if (status.state() == v1::JOB_STATE_RUNNING ||
+          status.state() == v1::JOB_STATE_QUEUED) {
+        display.Update(ToEvent(status.progress()));
+      }
+      if (IsTerminal(status.state())) *final = status;
+    }
+    const grpc::Status s = reader->Finish();
+    if (s.ok() && IsTerminal(final->state())) break;
+    if (s.error_code() == grpc::UNAVAILABLE && ++retries <= kWatchRetries) {
+      std::this_thread::sleep_for(std::chrono::seconds(1));
+      continue;  // resume after `sequence`
+    }
+    display.Finish();
+    return Fail(DescribeRpcError(s, connection.address()));
+  }
+  display.Finish();
+  return 0;
+}
+
+int RunWatch(const Connection& connection, const std::string& job_id,
+             bool quiet) {
+  v1::JobStatus final;
+  if (int rc = WatchJob(connection, job_id, quiet, &final); rc != 0) return rc;
+  if (final.state() != v1::JOB_STATE_SUCCEEDED) {
+    return Fail(absl::StrCat("job ", job_id, " ", StateName(final.state()),
+                             ": ", final.error_message()));
+  }
+  if (!quiet) {
+    std::printf(
+        "job %s succeeded: %d artifact(s); get them with "
+        "`interslice fetch %s --out DIR`\n",
+        job_id.c_str(), final.artifacts_size(), job_id.c_str());
+  }
+  return 0;
+}
+
+int RunFetch(const Connection& connection, const std::string& job_id,
+             const std::string& out, const std::string& report, bool quiet) {
+  auto stub = v1::InterSlice::NewStub(connection.channel());
+  // The job's status: the first message of a Watch.
+  v1::JobStatus status;
+  {
+    grpc::ClientContext context;
+    connection.Authorize(context);
+    SetTimeout(context, 60);
+    v1::WatchRequest request;
+    request.set_job_id(job_id);
+    auto reader = stub->Watch(&context, request);
+    const bool got = reader->Read(&status);
+    context.TryCancel();
+    const grpc::Status s = reader->Finish();
+    if (!got) return Fail(DescribeRpcError(s, connection.address()));
+  }
+  if (status.state() != v1::JOB_STATE_SUCCEEDED) {
+    return Fail(absl::StrCat("job ", job_id, " is ", StateName(status.state()),
+                             status.error_message().empty()
+                                 ? ""
+                                 : absl::StrCat(": ", status.error_message())));
+  }
+  std::error_code ec;
+  fs::create_directories(out, ec);
+  if (ec) return Fail("cannot create output folder " + out);
+  for (const v1::ArtifactInfo& info : status.artifacts()) {
+    int attempts = 0;
+    for (;;) {
+      // Resume from what an earlier, interrupted fetch left behind.
+      const std::string part = (fs::path(out) / info.name()).string() + ".part";
+      int64_t offset = fs::exists(part, ec)
+                           ? static_cast<int64_t>(fs::file_size(part, ec))
+                           : 0;
+      if (offset > info.size_bytes()) offset = 0;
+      ArtifactFile file;
+      if (absl::Status s = file.Begin(out, info, offset); !s.ok()) {
+        return Fail(std::string(s.message()));
+      }
+      grpc::ClientContext context;
+      connection.Authorize(context);
+      v1::FetchRequest request;
+      request.set_job_id(job_id);
+      request.set_artifact_name(info.name());
+      request.set_offset(offset);
+      auto reader = stub->Fetch(&context, request);
+      v1::ArtifactChunk chunk;
+      absl::Status local = absl::OkStatus();
+      while (local.ok() && reader->Read(&chunk))
+        local = file.Append(chunk.data());
+      if (!local.ok()) context.TryCancel();
+      const grpc::Status s = reader->Finish();
+      if (!local.ok()) return Fail(std::string(local.message()));
+      if (s.ok()) {
+        if (absl::Status c = file.Commit(); !c.ok()) {
+          fs::remove(part, ec);
+          return Fail(std::string(c.message()));
+        }
+        break;
+      }
+      if (s.error_code() == grpc::UNAVAILABLE && ++attempts <= kWatchRetries) {
+        std::this_thread::sleep_for(std::chrono::seconds(1));
+        continue;
+      }
+      return Fail(DescribeRpcError(s, connection.address()));
+    }
+  }
+  if (!report.empty()) {
+    if (absl::Status s = WriteReport(status.report_json(), out, report);
+        !s.ok()) {
+      return Fail(std::string(s.message()));
+    }
+  }
+  if (!quiet) {
+    std::printf("interslice: fetched %d file(s) of job %s to %s\n",
+                status.artifacts_size(), job_id.c_str(), out.c_str());
+  }
+  return 0;
+}
+
+int RunCancel(const Connection& connection, const std::string& job_id) {
+  auto stub = v1::InterSlice::NewStub(connection.channel());
+  grpc::ClientContext context;
+  connection.Authorize(context);
+  SetTimeout(context, 30);
+  v1::CancelRequest request;
+  request.set_job_id(job_id);
+  v1::JobStatus status;
+  const grpc::Status s = stub->Cancel(&context, request, &status);
+  if (!s.ok()) return Fail(DescribeRpcError(s, connection.address()));
+  std::printf("job %s: %s%s\n", job_id.c_str(), StateName(status.state()),
+              status.cancel_requested() && !IsTerminal(status.state())
+                  ? " (cancellation requested)"
+                  : "");
+  return 0;
+}
+
+int RunList(const Connection& connection, bool all) {
+  auto stub = v1::InterSlice::NewStub(connection.channel());
+  grpc::ClientContext context;
+  connection.Authorize(context);
+  SetTimeout(context, 30);
+  v1::ListRequest request;
+  request.set_include_finished(all);
+  v1::ListResponse response;
+  const grpc::Status s = stub->List(&context, request, &response);
+  if (!s.ok()) return Fail(DescribeRpcError(s, connection.address()));
+  for (const v1::JobStatus& j : response.jobs()) {
+    std::printf("%s  %-9s  %-8s %5.1f%%  %s\n", j.job_id().c_str(),
+                StateName(j.state()), j.progress().stage().c_str(),
+                j.progress().stage_percent(), j.label().c_str());
+  }
+  return 0;
+}
+
+int RunInfo(const Connection& connection) {
+  auto stub = v1::InterSlice::NewStub(connection.channel());
+  grpc::ClientContext context;
+  connection.Authorize(context);
+  SetTimeout(context, 30);
+  v1::ServerInfo info;
+  const grpc::Status s =
+      stub->GetServerInfo(&context, v1::ServerInfoRequest(), &info);
+  if (!s.ok()) return Fail(DescribeRpcError(s, connection.address()));
+  const v1::Limits& l = info.limits();
+  std::printf("interslice-server %s (%s)%s\n", info.version().c_str(),
+              info.api().c_str(), info.draining() ? ", draining" : "");
+  std::printf(
+      "  workers %d x %d threads, queue %d, upload <= %lld bytes, "
+      "output <= %lld voxels, chunk <= %d bytes\n",
+      l.workers(), l.threads_per_job(), l.max_queued_jobs(),
+      static_cast<long long>(l.max_upload_bytes()),
+      static_cast<long long>(l.max_output_voxels()), l.max_chunk_bytes());
+  std::printf("  results kept %lld s, spool quota %lld bytes, auth %s\n",
+              static_cast<long long>(l.result_retention_seconds()),
+              static_cast<long long>(l.spool_quota_bytes()),
+              info.auth_required() ? "required" : "off");
+  std::string list;
+  for (const auto& m : info.methods()) list += " " + m;
+  std::printf("  methods:%s\n", list.c_str());
+  list.clear();
+  for (const auto& m : info.volume_formats()) list += " " + m;
+  for (const auto& m : info.mesh_formats()) list += " " + m;
+  std::printf("  outputs:%s\n", list.c_str());
+  list.clear();
+  for (const auto& m : info.rpcs()) list += " " + m;
+  std::printf("  rpcs:%s\n", list.c_str());
+  std::printf("  transfer syntaxes:\n");
+  for (const auto& t : info.transfer_syntaxes()) {
+    std::printf("    %s  %s\n", t.uid().c_str(), t.name().c_str());
+  }
+  return 0;
+}
+
+int RunHealth(const Connection& connection) {
+  auto stub = grpc::health::v1::Health::NewStub(connection.channel());
+  grpc::ClientContext context;
+  SetTimeout(context, 10);
+  grpc::health::v1::HealthCheckRequest request;
+  grpc::health::v1::HealthCheckResponse response;
+  const grpc::Status s = stub->Check(&context, request, &response);
+  if (!s.ok()) return Fail(DescribeRpcError(s, connection.address()));
+  const bool serving =
+      response.status() == grpc::health::v1::HealthCheckResponse::SERVING;
+  std::printf("%s\n", grpc::health::v1::HealthCheckResponse::ServingStatus_Name(
+                          response.status())
+                          .c_str());
+  return serving ? 0 : 1;
+}
+
+}  // namespace
+
+void RemoteCommands::Register(CLI::App& app) {
+  interpolate_ = app.add_subcommand(
+      "interpolate",
+      "Run a job on a server in one call: upload, progress, artifacts");
+  AddRunOptions(*interpolate_, run_args_);
+  AddConnectionOptions(*interpolate_, connection_);
+  interpolate_->add_option("--deadline", deadline_seconds_,
+                           "Give up (and cancel the job) after this many "
+                           "seconds");
+
+  submit_ = app.add_subcommand(
+      "submit", "Upload a detached job; prints its id (then: watch, fetch)");
+  // The same job options as `run`; --out is accepted but only `fetch`
+  // writes files.
+  AddRunOptions(*submit_, run_args_);
+  AddConnectionOptions(*submit_, connection_);
+  submit_->add_option("--deadline", deadline_seconds_,
+                      "Server-side limit on the job, seconds from acceptance");
+  submit_->add_option("--label", label_, "Free text shown by `list` (no PHI)");
+  // --out is required by AddRunOptions; a detached job needs none.
+  for (CLI::Option* o : submit_->get_options()) {
+    if (o->check_name("--out")) o->required(false);
+  }
+
+  watch_ = app.add_subcommand("watch",
+                              "Follow a detached job until it ends "
+                              "(reconnects after network failures)");
+  watch_->add_option("job", job_id_, "Job id")->required();
+  watch_->add_flag("--quiet", quiet_, "No progress display");
+  AddConnectionOptions(*watch_, connection_);
+
+  fetch_ = app.add_subcommand(
+      "fetch", "Download a finished job's artifacts (resumes partial files)");
+  fetch_->add_option("job", job_id_, "Job id")->required();
+  fetch_->add_option("--out", out_, "Output folder")->required();
+  fetch_->add_option("--report", report_, "Write the JSON report here");
+  fetch_->add_flag("--quiet", quiet_, "No summary");
+  AddConnectionOptions(*fetch_, connection_);
+
+  cancel_ = app.add_subcommand("cancel", "Cancel a detached job");
+  cancel_->add_option("job", job_id_, "Job id")->required();
+  AddConnectionOptions(*cancel_, connection_);
+
+  list_ = app.add_subcommand("list", "List the server's detached jobs");
+  list_->add_flag("--all", all_, "Include finished jobs");
+  AddConnectionOptions(*list_, connection_);
+
+  info_ = app.add_subcommand("info", "Show the server's version and limits");
+  AddConnectionOptions(*info_, connection_);
+
+  health_ = app.add_subcommand(
+      "health", "Check the server's health (exit 0 only when SERVING)");
+  AddConnectionOptions(*health_, connection_);
+}
+
+int RemoteCommands::Execute() {
+  CLI::App* commands[] = {interpolate_, submit_, watch_, fetch_,
+                          cancel_,      list_,   info_,  health_};
+  bool any = false;
+  for (CLI::App* c : commands) any = any || (c != nullptr && c->parsed());
+  if (!any) return -1;
+  if (deadline_seconds_ < 0) return Fail("--deadline must be >= 0");
+  absl::StatusOr<Connection> connection = Connection::Open(connection_);
+  if (!connection.ok()) return Fail(std::string(connection.status().message()));
+  if (interpolate_->parsed()) {
+    return RunInterpolate(*connection, run_args_, deadline_seconds_);
+  }
+  if (submit_->parsed()) {
+    return RunSubmit(*connection, run_args_, deadline_seconds_, label_);
+  }
+  if (watch_->parsed()) return RunWatch(*connection, job_id_, quiet_);
+  if (fetch_->parsed()) {
+    return RunFetch(*connection, job_id_, out_, report_, quiet_);
+  }
+  if (cancel_->parsed()) return RunCancel(*connection, job_id_);
+  if (list_->parsed()) return RunList(*connection, all_);
+  if (info_->parsed()) return RunInfo(*connection);
+  return RunHealth(*connection);
+}
+
+}  // namespace interslice::client

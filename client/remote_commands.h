@@ -1,0 +1,47 @@
+// The commands that talk to an interslice-server: interpolate (one call),
+// submit / watch / fetch / cancel / list (detached jobs), info and health.
+// Errors are one line on stderr and exit code 1.
+#ifndef INTERSLICE_CLIENT_REMOTE_COMMANDS_H_
+#define INTERSLICE_CLIENT_REMOTE_COMMANDS_H_
+
+#include <string>
+
+#include "client/grpc_channel.h"
+#include "client/run_command.h"
+
+namespace CLI {
+class App;
+}  // namespace CLI
+
+namespace interslice::client {
+
+class RemoteCommands {
+ public:
+  // Adds the subcommands to `app`.
+  void Register(CLI::App& app);
+  // The exit code of the command that was parsed, or -1 if none of these.
+  int Execute();
+
+ private:
+  ConnectionOptions connection_;
+  RunArguments run_args_;
+  double deadline_seconds_ = 0;
+  std::string label_;
+  std::string job_id_;
+  std::string out_;
+  std::string report_;
+  bool all_ = false;
+  bool quiet_ = false;
+  CLI::App* interpolate_ = nullptr;
+  CLI::App* submit_ = nullptr;
+  CLI::App* watch_ = nullptr;
+  CLI::App* fetch_ = nullptr;
+  CLI::App* cancel_ = nullptr;
+  CLI::App* list_ = nullptr;
+  CLI::App* info_ = nullptr;
+  CLI::App* health_ = nullptr;
+};
+
+}  // namespace interslice::client
+
+#endif  // INTERSLICE_CLIENT_REMOTE_COMMANDS_H_

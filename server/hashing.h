@@ -1,0 +1,35 @@
+// SHA-256 (OpenSSL's EVP interface) for uploaded files and artifacts.
+#ifndef INTERSLICE_SERVER_HASHING_H_
+#define INTERSLICE_SERVER_HASHING_H_
+
+#include <memory>
+#include <string>
+#include <string_view>
+
+#include "absl/status/statusor.h"
+
+namespace interslice::server {
+
+class Sha256 {
+ public:
+  Sha256();
+  ~Sha256();
+  Sha256(const Sha256&) = delete;
+  Sha256& operator=(const Sha256&) = delete;
+  void Update(std::string_view data);
+  // The 32-byte digest; the object must not be used afterwards.
+  std::string Finish();
+
+ private:
+  struct State;
+  std::unique_ptr<State> state_;
+};
+
+// SHA-256 of a whole file (32 raw bytes).
+absl::StatusOr<std::string> Sha256OfFile(const std::string& path);
+
+std::string HexString(std::string_view bytes);
+
+}  // namespace interslice::server
+
+#endif  // INTERSLICE_SERVER_HASHING_H_

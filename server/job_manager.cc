@@ -1,0 +1,680 @@
+#include "server/job_manager.h"
+
+#include <algorithm>
+#include <filesystem>
+#include <random>
+
+#include "absl/strings/str_cat.h"
+#include "core/pipeline/pipeline.h"
+#include "server/hashing.h"
+#include "server/spec_mapping.h"
+#include "server/status_map.h"
+#include "spdlog/spdlog.h"
+
+namespace interslice::server {
+namespace fs = std::filesystem;
+namespace {
+
+constexpr int kMaxFiles = 100000;
+constexpr size_t kMaxLabelBytes = 200;
+
+std::string NewJobId() {
+  static std::mutex mu;
+  static std::mt19937_64 rng{std::random_device{}()};
+  std::lock_guard<std::mutex> lock(mu);
+  char buffer[17];
+  std::snprintf(buffer, sizeof(buffer), "%016llx",
+                static_cast<unsigned long long>(rng()));
+  return buffer;
+}
+
+bool IsTerminal(v1::JobState s) {
+  return s == v1::JOB_STATE_SUCCEEDED || s == v1::JOB_STATE_FAILED ||
+         s == v1::JOB_STATE_CANCELLED;
+}
+
+std::chrono::steady_clock::time_point SteadyFromUnixMillis(int64_t ms) {
+  const int64_t delta = ms - UnixMillisNow();
+  return std::chrono::steady_clock::now() + std::chrono::milliseconds(delta);
+}
+
+const char* OutcomeName(v1::JobState s) {
+  switch (s) {
+    case v1::JOB_STATE_SUCCEEDED:
+      return "succeeded";
+    case v1::JOB_STATE_CANCELLED:
+      return "cancelled";
+    default:
+      return "failed";
+  }
+}
+
+}  // namespace
+
+int64_t UnixMillisNow() {
+  return std::chrono::duration_cast<std::chrono::milliseconds>(
+             std::chrono::system_clock::now().time_since_epoch())
+      .count();
+}
+
+v1::JobStatus Job::Snapshot(bool with_report) const {
+  std::lock_guard<std::mutex> lock(mu_);
+  v1::JobStatus status = record_.status();
+  if (!with_report) status.clear_report_json();
+  return status;
+}
+
+void Job::Subscribe(std::shared_ptr<Subscription> subscription) {
+  std::lock_guard<std::mutex> lock(mu_);
+  subscriptions_.erase(
+      std::remove_if(subscriptions_.begin(), subscriptions_.end(),
+                     [](const auto& s) { return s->closed(); }),
+      subscriptions_.end());
+  subscriptions_.push_back(std::move(subscription));
+}
+
+void Job::Update(const std::function<void(JobRecord&)>& change) {
+  std::vector<std::shared_ptr<Subscription>> subscriptions;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    change(record_);
+    record_.mutable_status()->set_sequence(record_.status().sequence() + 1);
+    subscriptions = subscriptions_;
+  }
+  for (const auto& s : subscriptions) s->Fire();
+}
+
+JobManager::JobManager(const ManagerOptions& options, Spool* spool,
+                       Metrics* metrics)
+    : options_(options), spool_(spool), metrics_(metrics) {}
+
+JobManager::~JobManager() { Shutdown(std::chrono::milliseconds(0)); }
+
+absl::Status JobManager::Recover() {
+  absl::StatusOr<std::vector<JobRecord>> records = spool_->LoadRecords();
+  if (!records.ok()) return records.status();
+  std::sort(records->begin(), records->end(),
+            [](const JobRecord& a, const JobRecord& b) {
+              return a.status().created_unix_ms() <
+                     b.status().created_unix_ms();
+            });
+  int requeued = 0, aborted = 0, kept = 0;
+  for (JobRecord& record : *records) {
+    const std::string id = record.status().job_id();
+    if (record.ephemeral()) {
+      spool_->RemoveJob(id);
+      continue;
+    }
+    std::shared_ptr<Job> job(new Job(id, false));
+    const v1::JobState state = record.status().state();
+    if (state == v1::JOB_STATE_RUNNING || state == v1::JOB_STATE_UPLOADING) {
+      v1::JobStatus* s = record.mutable_status();
+      s->set_state(v1::JOB_STATE_FAILED);
+      s->set_error_code(static_cast<int>(absl::StatusCode::kAborted));
+      s->set_error_message(
+          "the server stopped while the job was running; submit it again");
+      s->set_finished_unix_ms(UnixMillisNow());
+      s->set_expires_unix_ms(UnixMillisNow() +
+                             options_.retention_seconds * 1000);
+      s->set_sequence(s->sequence() + 1);
+      spool_->RemoveUploads(id);
+      spool_->RemoveOutputs(id);
+      job->record_ = record;
+      if (absl::Status st = spool_->WriteRecord(record); !st.ok()) {
+        spdlog::error("job={} cannot persist recovery: {}", id,
+                      RedactPhi(st.message()));
+      }
+      ++aborted;
+    } else {
+      job->record_ = record;
+      ++kept;
+    }
+    if (record.deadline_unix_ms() > 0) {
+      job->token_.SetDeadline(SteadyFromUnixMillis(record.deadline_unix_ms()));
+    }
+    std::lock_guard<std::mutex> lock(mu_);
+    jobs_[id] = job;
+    if (state == v1::JOB_STATE_QUEUED) {
+      queue_.push_back(job);
+      ++requeued;
+      --kept;
+    }
+  }
+  spdlog::info(
+      "spool recovered: {} queued job(s) requeued, {} interrupted "
+      "job(s) marked failed, {} finished job(s) kept",
+      requeued, aborted, kept);
+  return absl::OkStatus();
+}
+
+void JobManager::Start() {
+  std::lock_guard<std::mutex> lock(mu_);
+  for (int i = 0; i < options_.workers; ++i) {
+    workers_.emplace_back([this] { WorkerLoop(); });
+  }
+  ticker_ = std::thread([this] { TickerLoop(); });
+  PublishGauges();
+}
+
+absl::StatusOr<std::shared_ptr<Job>> JobManager::Admit(
+    const v1::UploadHeader& header, bool ephemeral,
+    std::optional<std::chrono::steady_clock::time_point> deadline) {
+  auto reject = [this](absl::Status status) {
+    metrics_->JobFinished("rejected");
+    return status;
+  };
+  if (draining()) {
+    return reject(absl::UnavailableError(
+        "the server is shutting down and accepts no new jobs; retry on "
+        "another replica"));
+  }
+  if (header.file_count() < 1 || header.file_count() > kMaxFiles) {
+    return reject(absl::InvalidArgumentError(
+        absl::StrCat("header.file_count must be between 1 and ", kMaxFiles)));
+  }
+  if (header.total_bytes() < 0) {
+    return reject(
+        absl::InvalidArgumentError("header.total_bytes must be >= 0"));
+  }
+  if (header.total_bytes() > options_.max_upload_bytes) {
+    return reject(absl::ResourceExhaustedError(
+        absl::StrCat("the upload (", header.total_bytes(),
+                     " bytes) exceeds the server's limit of ",
+                     options_.max_upload_bytes, " bytes per job")));
+  }
+  if (header.options().label().size() > kMaxLabelBytes) {
+    return reject(
+        absl::InvalidArgumentError("options.label is longer than 200 bytes"));
+  }
+  if (!(header.options().deadline_seconds() >= 0)) {
+    return reject(
+        absl::InvalidArgumentError("options.deadline_seconds must be >= 0"));
+  }
+  absl::StatusOr<JobSpec> spec = JobSpecFromProto(header.spec());
+  if (!spec.ok()) return reject(spec.status());
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    const int waiting = uploading_ + static_cast<int>(queue_.size());
+    if (waiting >= options_.max_queued_jobs) {
+      metrics_->JobFinished("rejected");
+      return absl::ResourceExhaustedError(
+          absl::StrCat("the server's job queue is full (", waiting,
+                       " job(s) waiting); retry later"));
+    }
+    ++uploading_;
+    PublishGauges();
+  }
+  auto unreserve = [this] {
+    std::lock_guard<std::mutex> lock(mu_);
+    --uploading_;
+    PublishGauges();
+  };
+  if (!spool_->TryReserve(header.total_bytes())) {
+    unreserve();
+    return reject(absl::ResourceExhaustedError(
+        "the server's spool is full; retry later"));
+  }
+  const std::string id = NewJobId();
+  if (absl::Status s = spool_->CreateJob(id); !s.ok()) {
+    spool_->Release(header.total_bytes());
+    unreserve();
+    return s;
+  }
+  std::shared_ptr<Job> job(new Job(id, ephemeral));
+  JobRecord& r = job->record_;
+  r.mutable_status()->set_job_id(id);
+  r.mutable_status()->set_state(v1::JOB_STATE_UPLOADING);
+  r.mutable_status()->set_sequence(1);
+  r.mutable_status()->set_created_unix_ms(UnixMillisNow());
+  r.mutable_status()->set_label(header.options().label());
+  *r.mutable_spec() = header.spec();
+  *r.mutable_options() = header.options();
+  r.set_ephemeral(ephemeral);
+  r.set_upload_bytes(header.total_bytes());
+  if (deadline.has_value()) {
+    job->token_.SetDeadline(*deadline);
+  } else if (header.options().deadline_seconds() > 0) {
+    const auto ms =
+        static_cast<int64_t>(header.options().deadline_seconds() * 1000);
+    r.set_deadline_unix_ms(UnixMillisNow() + ms);
+    job->token_.SetDeadline(std::chrono::steady_clock::now() +
+                            std::chrono::milliseconds(ms));
+  }
+  spdlog::info("job={} admitted: {} file(s), {} bytes{}", id,
+               header.file_count(), header.total_bytes(),
+               ephemeral ? " (one call)" : "");
+  return job;
+}
+
+absl::Status JobManager::Enqueue(const std::shared_ptr<Job>& job) {
+  job->Update([](JobRecord& r) {
+    r.mutable_status()->set_state(v1::JOB_STATE_QUEUED);
+    r.mutable_status()->mutable_progress()->set_stage("queued");
+    r.mutable_status()->mutable_progress()->set_iteration(-1);
+    r.mutable_status()->mutable_progress()->set_relative_residual(-1);
+    r.mutable_status()->mutable_progress()->set_energy(-1);
+  });
+  // Only detached jobs get a record: an Interpolate job without one is
+  // deleted at start-up, since its caller is gone.
+  if (!job->ephemeral()) {
+    JobRecord record;
+    {
+      std::lock_guard<std::mutex> lock(job->mu_);
+      record = job->record_;
+    }
+    if (absl::Status s = spool_->WriteRecord(record); !s.ok()) {
+      Abandon(job);
+      return s;
+    }
+  }
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    --uploading_;
+    jobs_[job->id()] = job;
+    queue_.push_back(job);
+    PublishGauges();
+  }
+  cv_.notify_all();  // the ticker waits on cv_ too
+  spdlog::info("job={} queued", job->id());
+  return absl::OkStatus();
+}
+
+void JobManager::Abandon(const std::shared_ptr<Job>& job) {
+  spool_->RemoveJob(job->id());
+  spool_->Release(job->record_.upload_bytes());
+  std::lock_guard<std::mutex> lock(mu_);
+  --uploading_;
+  PublishGauges();
+  spdlog::info("job={} upload abandoned; its files were deleted", job->id());
+}
+
+void JobManager::Discard(const std::shared_ptr<Job>& job) {
+  bool remove_now = false;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    std::lock_guard<std::mutex> job_lock(job->mu_);
+    if (job->discard_) return;
+    job->discard_ = true;
+    job->token_.Cancel();
+    auto it = std::find(queue_.begin(), queue_.end(), job);
+    if (it != queue_.end()) queue_.erase(it);
+    if (!job->running_) {
+      remove_now = true;
+      jobs_.erase(job->id());
+    }
+    PublishGauges();
+  }
+  if (remove_now) RemoveFinished(job);
+}
+
+void JobManager::RemoveFinished(const std::shared_ptr<Job>& job) {
+  int64_t bytes = 0;
+  {
+    std::lock_guard<std::mutex> lock(job->mu_);
+    const v1::JobState s = job->record_.status().state();
+    bytes = IsTerminal(s) ? job->record_.result_bytes()
+                          : job->record_.upload_bytes();
+  }
+  spool_->RemoveJob(job->id());
+  spool_->Release(bytes);
+}
+
+std::shared_ptr<Job> JobManager::Find(const std::string& id) {
+  std::lock_guard<std::mutex> lock(mu_);
+  auto it = jobs_.find(id);
+  return it == jobs_.end() ? nullptr : it->second;
+}
+
+absl::StatusOr<v1::JobStatus> JobManager::Cancel(const std::string& id) {
+  std::shared_ptr<Job> job;
+  bool was_queued = false;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    auto it = jobs_.find(id);
+    if (it == jobs_.end()) return absl::NotFoundError("no such job");
+    job = it->second;
+    auto q = std::find(queue_.begin(), queue_.end(), job);
+    if (q != queue_.end()) {
+      queue_.erase(q);
+      was_queued = true;
+      PublishGauges();
+    }
+  }
+  job->token_.Cancel();
+  if (was_queued) {
+    job->Update([this](JobRecord& r) {
+      v1::JobStatus* s = r.mutable_status();
+      s->set_state(v1::JOB_STATE_CANCELLED);
+      s->set_error_code(static_cast<int>(absl::StatusCode::kCancelled));
+      s->set_error_message("cancelled by request");
+      s->set_finished_unix_ms(UnixMillisNow());
+      s->set_expires_unix_ms(UnixMillisNow() +
+                             options_.retention_seconds * 1000);
+      s->mutable_progress()->set_stage("done");
+    });
+    spool_->RemoveUploads(id);
+    spool_->Release(job->record_.upload_bytes());
+    Persist(job);
+    metrics_->JobFinished("cancelled");
+    spdlog::info("job={} cancelled while queued", id);
+  } else if (!IsTerminal(job->Snapshot(false).state())) {
+    job->Update(
+        [](JobRecord& r) { r.mutable_status()->set_cancel_requested(true); });
+    spdlog::info("job={} cancellation requested", id);
+  }
+  return job->Snapshot(true);
+}
+
+std::vector<v1::JobStatus> JobManager::List(bool include_finished) {
+  std::vector<std::shared_ptr<Job>> jobs;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    for (const auto& [id, job] : jobs_) {
+      if (!job->ephemeral()) jobs.push_back(job);
+    }
+  }
+  std::vector<v1::JobStatus> out;
+  for (const auto& job : jobs) {
+    v1::JobStatus s = job->Snapshot(false);
+    if (!include_finished && IsTerminal(s.state())) continue;
+    out.push_back(std::move(s));
+  }
+  std::sort(out.begin(), out.end(), [](const auto& a, const auto& b) {
+    return a.created_unix_ms() > b.created_unix_ms();
+  });
+  return out;
+}
+
+void JobManager::BeginDrain() {
+  std::lock_guard<std::mutex> lock(mu_);
+  draining_ = true;
+}
+
+bool JobManager::draining() {
+  std::lock_guard<std::mutex> lock(mu_);
+  return draining_;
+}
+
+int JobManager::queued() {
+  std::lock_guard<std::mutex> lock(mu_);
+  return static_cast<int>(queue_.size());
+}
+
+int JobManager::running() {
+  std::lock_guard<std::mutex> lock(mu_);
+  return running_;
+}
+
+void JobManager::Shutdown(std::chrono::milliseconds grace) {
+  std::unique_lock<std::mutex> lock(mu_);
+  if (stopping_) return;
+  draining_ = true;
+  if (running_ > 0) {
+    spdlog::info("draining: waiting up to {} ms for {} running job(s)",
+                 grace.count(), running_);
+  }
+  cv_.wait_for(lock, grace, [this] { return running_ == 0; });
+  stopping_ = true;
+  for (const auto& [id, job] : jobs_) {
+    std::lock_guard<std::mutex> job_lock(job->mu_);
+    if (job->running_) {
+      job->shutdown_cancelled_ = true;
+      job->token_.Cancel();
+      spdlog::info(
+          "job={} cancelled by shutdown; it will run again after a "
+          "restart",
+          id);
+    }
+  }
+  lock.unlock();
+  cv_.notify_all();
+  for (std::thread& t : workers_) t.join();
+  workers_.clear();
+  if (ticker_.joinable()) ticker_.join();
+}
+
+void JobManager::PublishGauges() {
+  metrics_->SetQueueDepth(uploading_ + static_cast<double>(queue_.size()));
+  metrics_->SetRunning(running_);
+}
+
+void JobManager::Persist(const std::shared_ptr<Job>& job) {
+  if (job->ephemeral()) return;
+  JobRecord record;
+  {
+    std::lock_guard<std::mutex> lock(job->mu_);
+    record = job->record_;
+  }
+  if (absl::Status s = spool_->WriteRecord(record); !s.ok()) {
+    spdlog::error("job={} cannot persist its record: {}", job->id(),
+                  RedactPhi(s.message()));
+  }
+}
+
+void JobManager::WorkerLoop() {
+  for (;;) {
+    std::shared_ptr<Job> job;
+    {
+      std::unique_lock<std::mutex> lock(mu_);
+      cv_.wait(lock, [this] { return stopping_ || !queue_.empty(); });
+      if (stopping_) return;
+      job = queue_.front();
+      queue_.pop_front();
+      std::lock_guard<std::mutex> job_lock(job->mu_);
+      job->running_ = true;
+      ++running_;
+      PublishGauges();
+    }
+    RunOne(job);
+    bool remove = false;
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      std::lock_guard<std::mutex> job_lock(job->mu_);
+      job->running_ = false;
+      --running_;
+      if (job->discard_) {
+        remove = true;
+        jobs_.erase(job->id());
+      }
+      if (job->shutdown_cancelled_) jobs_.erase(job->id());
+      PublishGauges();
+    }
+    if (remove) RemoveFinished(job);
+    cv_.notify_all();  // Shutdown waits for running_ == 0
+  }
+}
+
+void JobManager::RunOne(const std::shared_ptr<Job>& job) {
+  const std::string& id = job->id();
+  absl::StatusOr<JobSpec> spec_or;
+  {
+    std::lock_guard<std::mutex> lock(job->mu_);
+    spec_or = JobSpecFromProto(job->record_.spec());
+    job->started_ = std::chrono::steady_clock::now();
+  }
+  job->Update([](JobRecord& r) {
+    v1::JobStatus* s = r.mutable_status();
+    s->set_state(v1::JOB_STATE_RUNNING);
+    s->set_started_unix_ms(UnixMillisNow());
+    s->mutable_progress()->set_stage("read");
+    s->mutable_progress()->set_stage_percent(0);
+    s->mutable_progress()->set_queue_position(-1);
+  });
+  Persist(job);
+  spdlog::info("job={} started", id);
+
+  absl::StatusOr<JobReport> report =
+      spec_or.ok() ? absl::InternalError("not run") : spec_or.status();
+  if (spec_or.ok()) {
+    JobSpec spec = *spec_or;
+    spec.inputs = {spool_->UploadDir(id)};
+    spec.output_dir = spool_->OutputDir(id);
+    spec.max_output_voxels = options_.max_output_voxels;
+    ComputeContext context;
+    context.threads = options_.threads_per_job;
+    context.cancel = &job->token_;
+    const auto started = std::chrono::steady_clock::now();
+    context.progress = [job, started](const ProgressEvent& e) {
+      const std::chrono::duration<double> elapsed =
+          std::chrono::steady_clock::now() - started;
+      job->Update([&](JobRecord& r) {
+        v1::Progress* p = r.mutable_status()->mutable_progress();
+        p->set_stage(e.stage);
+        p->set_stage_percent(100.0 * e.fraction);
+        p->set_iteration(e.iteration);
+        p->set_relative_residual(e.relative_residual);
+        p->set_energy(e.energy);
+        p->set_elapsed_seconds(elapsed.count());
+      });
+    };
+    // A deadline that passed while queued fails fast, without reading.
+    absl::Status early = job->token_.Check();
+    report =
+        early.ok() ? RunJob(spec, context) : absl::StatusOr<JobReport>(early);
+  }
+
+  bool shutdown_cancelled;
+  {
+    std::lock_guard<std::mutex> lock(job->mu_);
+    shutdown_cancelled = job->shutdown_cancelled_;
+  }
+  if (!report.ok() && shutdown_cancelled && !job->ephemeral()) {
+    // Stopped by a drain, not by its owner: keep the upload and run it
+    // after the restart.
+    spool_->RemoveOutputs(id);
+    job->Update([](JobRecord& r) {
+      r.mutable_status()->set_state(v1::JOB_STATE_QUEUED);
+      r.mutable_status()->set_started_unix_ms(0);
+      r.mutable_status()->mutable_progress()->set_stage("queued");
+    });
+    Persist(job);
+    return;
+  }
+
+  const int64_t upload_bytes = job->record_.upload_bytes();
+  spool_->RemoveUploads(id);
+  spool_->Release(upload_bytes);
+  const int64_t now = UnixMillisNow();
+  const int64_t expires = now + options_.retention_seconds * 1000;
+  if (report.ok()) {
+    for (const StageTiming& s : report->stages) {
+      metrics_->StageSeconds(s.stage, s.seconds);
+    }
+    report->peak_rss_bytes = PeakRssBytes();
+    std::vector<v1::ArtifactInfo> artifacts;
+    int64_t result_bytes = 0;
+    absl::Status hashed = absl::OkStatus();
+    for (Artifact& a : report->artifacts) {
+      const std::string name = fs::path(a.path).filename().string();
+      absl::StatusOr<std::string> sha = Sha256OfFile(a.path);
+      if (!sha.ok()) {
+        hashed = sha.status();
+        break;
+      }
+      v1::ArtifactInfo info;
+      info.set_name(name);
+      info.set_kind(a.kind);
+      info.set_media_type(MediaTypeForArtifact(name));
+      info.set_size_bytes(a.size_bytes);
+      info.set_sha256(*sha);
+      artifacts.push_back(info);
+      result_bytes += a.size_bytes;
+      a.path = name;  // the report names files, not server paths
+    }
+    if (hashed.ok()) {
+      spool_->Add(result_bytes);
+      const std::string json = JobReportToJson(*report);
+      job->Update([&](JobRecord& r) {
+        v1::JobStatus* s = r.mutable_status();
+        s->set_state(v1::JOB_STATE_SUCCEEDED);
+        s->set_finished_unix_ms(now);
+        s->set_expires_unix_ms(expires);
+        s->mutable_progress()->set_stage("done");
+        s->mutable_progress()->set_stage_percent(100);
+        for (const auto& a : artifacts) *s->add_artifacts() = a;
+        s->set_report_json(json);
+        r.set_result_bytes(result_bytes);
+      });
+      Persist(job);
+      metrics_->JobFinished("succeeded");
+      spdlog::info("job={} succeeded: {} artifact(s), {} bytes", id,
+                   artifacts.size(), result_bytes);
+      return;
+    }
+    report = hashed;
+  }
+  spool_->RemoveOutputs(id);
+  const absl::Status error = report.status();
+  const bool cancelled = error.code() == absl::StatusCode::kCancelled;
+  const std::string message = RedactPhi(error.message());
+  job->Update([&](JobRecord& r) {
+    v1::JobStatus* s = r.mutable_status();
+    s->set_state(cancelled ? v1::JOB_STATE_CANCELLED : v1::JOB_STATE_FAILED);
+    s->set_error_code(static_cast<int>(error.code()));
+    s->set_error_message(message);
+    s->set_finished_unix_ms(now);
+    s->set_expires_unix_ms(expires);
+    s->mutable_progress()->set_stage("done");
+    r.set_result_bytes(0);
+  });
+  Persist(job);
+  metrics_->JobFinished(OutcomeName(job->Snapshot(false).state()));
+  spdlog::info("job={} {}: {} ({})", id, cancelled ? "cancelled" : "failed",
+               absl::StatusCodeToString(error.code()), message);
+}
+
+void JobManager::TickerLoop() {
+  int ticks = 0;
+  std::unique_lock<std::mutex> lock(mu_);
+  while (!stopping_) {
+    cv_.wait_for(lock, std::chrono::seconds(1));
+    if (stopping_) break;
+    // Heartbeat: queue positions and elapsed time, so that watchers hear
+    // from a job at least once a second.
+    std::vector<std::pair<std::shared_ptr<Job>, int>> active;
+    int position = 0;
+    for (const auto& job : queue_) active.emplace_back(job, position++);
+    for (const auto& [id, job] : jobs_) {
+      std::lock_guard<std::mutex> job_lock(job->mu_);
+      if (job->running_) active.emplace_back(job, -1);
+    }
+    std::vector<std::shared_ptr<Job>> expired;
+    if (++ticks % 10 == 0) {
+      const int64_t now = UnixMillisNow();
+      for (auto it = jobs_.begin(); it != jobs_.end();) {
+        std::shared_ptr<Job> job = it->second;
+        std::lock_guard<std::mutex> job_lock(job->mu_);
+        const v1::JobStatus& s = job->record_.status();
+        if (!job->ephemeral() && !job->running_ && IsTerminal(s.state()) &&
+            s.expires_unix_ms() > 0 && s.expires_unix_ms() < now) {
+          expired.push_back(job);
+          it = jobs_.erase(it);
+        } else {
+          ++it;
+        }
+      }
+    }
+    lock.unlock();
+    for (const auto& [job, pos] : active) {
+      Job* j = job.get();
+      const int position = pos;
+      job->Update([j, position](JobRecord& r) {  // runs under j->mu_
+        v1::Progress* p = r.mutable_status()->mutable_progress();
+        p->set_queue_position(position);
+        if (position < 0) {
+          p->set_elapsed_seconds(
+              std::chrono::duration<double>(std::chrono::steady_clock::now() -
+                                            j->started_)
+                  .count());
+        }
+      });
+    }
+    for (const auto& job : expired) {
+      spdlog::info("job={} expired; its files were deleted", job->id());
+      RemoveFinished(job);
+    }
+    lock.lock();
+  }
+}
+
+}  // namespace interslice::server

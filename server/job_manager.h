@@ -1,0 +1,176 @@
+// Jobs: admission control, a bounded queue, worker threads running RunJob,
+// status fan-out to watchers, spool persistence and retention.
+//
+// Threading: `workers` threads each run one job at a time with
+// ComputeContext{threads = threads_per_job, cancel = the job's token}. A
+// ticker thread bumps the status of queued and running jobs once a second
+// (so watchers see progress at least that often, even during stages that
+// report rarely) and deletes expired results. Methods marked "blocking" touch
+// the disk and must not be called from a gRPC reactor callback; the service
+// runs them on its I/O executor.
+//
+// Lock order: JobManager::mu_ before Job::mu_; subscriptions are fired with
+// neither held.
+#ifndef INTERSLICE_SERVER_JOB_MANAGER_H_
+#define INTERSLICE_SERVER_JOB_MANAGER_H_
+
+#include <atomic>
+#include <chrono>
+#include <condition_variable>
+#include <cstdint>
+#include <deque>
+#include <functional>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "core/common/compute.h"
+#include "interslice/v1/interslice.pb.h"
+#include "server/metrics.h"
+#include "server/spool.h"
+
+namespace interslice::server {
+
+struct ManagerOptions {
+  int workers = 1;
+  int threads_per_job = 1;
+  int max_queued_jobs = 16;
+  int64_t max_upload_bytes = int64_t{2} << 30;
+  int64_t max_output_voxels = int64_t{1} << 30;
+  int64_t retention_seconds = 24 * 3600;
+};
+
+// A callback that can be switched off: a reactor closes it before it is
+// deleted, and Close() waits for a Fire() in progress, so the callback never
+// runs on a dead reactor.
+class Subscription {
+ public:
+  explicit Subscription(std::function<void()> fn) : fn_(std::move(fn)) {}
+  void Fire() {
+    std::lock_guard<std::mutex> lock(mu_);
+    if (fn_) fn_();
+  }
+  void Close() {
+    closed_ = true;
+    std::lock_guard<std::mutex> lock(mu_);
+    fn_ = nullptr;
+  }
+  // Lock-free, so that Job may prune closed subscriptions under its own
+  // lock without ordering against Fire().
+  bool closed() const { return closed_; }
+
+ private:
+  std::atomic<bool> closed_{false};
+  std::mutex mu_;
+  std::function<void()> fn_;
+};
+
+class Job {
+ public:
+  const std::string& id() const { return id_; }
+  bool ephemeral() const { return ephemeral_; }
+  // The status now; report_json only if `with_report`.
+  v1::JobStatus Snapshot(bool with_report = true) const;
+  // Watchers: fired after every status change (from worker, ticker or
+  // service threads).
+  void Subscribe(std::shared_ptr<Subscription> subscription);
+
+ private:
+  friend class JobManager;
+  Job(std::string id, bool ephemeral)
+      : id_(std::move(id)), ephemeral_(ephemeral) {}
+  // Applies `change` to the record, bumps the sequence and fires watchers.
+  void Update(const std::function<void(JobRecord&)>& change);
+
+  const std::string id_;
+  const bool ephemeral_;
+  mutable std::mutex mu_;
+  JobRecord record_;
+  CancellationToken token_;
+  std::vector<std::shared_ptr<Subscription>> subscriptions_;
+  std::chrono::steady_clock::time_point started_;
+  bool running_ = false;
+  bool discard_ = false;             // ephemeral: delete once idle
+  bool shutdown_cancelled_ = false;  // stopped by a drain: re-queue on disk
+};
+
+class JobManager {
+ public:
+  JobManager(const ManagerOptions& options, Spool* spool, Metrics* metrics);
+  ~JobManager();  // Shutdown(0) if still running
+
+  const ManagerOptions& options() const { return options_; }
+
+  // Blocking. Reloads the spool: finished jobs stay fetchable, queued jobs
+  // are queued again, jobs that were running when the process died are
+  // marked FAILED (ABORTED) rather than retried, so that a job that crashes
+  // the server cannot crash it again in a loop.
+  absl::Status Recover();
+  void Start();
+
+  // Blocking. Checks the header (limits, queue room, spool quota, spec) and
+  // creates the job's folder. RESOURCE_EXHAUSTED, INVALID_ARGUMENT,
+  // UNIMPLEMENTED or UNAVAILABLE (draining). `deadline`: Interpolate's call
+  // deadline; detached jobs use options.deadline_seconds.
+  absl::StatusOr<std::shared_ptr<Job>> Admit(
+      const v1::UploadHeader& header, bool ephemeral,
+      std::optional<std::chrono::steady_clock::time_point> deadline);
+  // Blocking. The upload is complete and verified: persist and queue.
+  absl::Status Enqueue(const std::shared_ptr<Job>& job);
+  // Blocking. The upload failed: delete everything.
+  void Abandon(const std::shared_ptr<Job>& job);
+  // Blocking. An Interpolate call ended: cancel the job if it still runs and
+  // delete its files (now, or when its worker lets go of it).
+  void Discard(const std::shared_ptr<Job>& job);
+
+  std::shared_ptr<Job> Find(const std::string& id);
+  // Blocking (persists a cancelled queued job).
+  absl::StatusOr<v1::JobStatus> Cancel(const std::string& id);
+  // Detached jobs, newest first, without report_json.
+  std::vector<v1::JobStatus> List(bool include_finished);
+
+  // Refuse new jobs from now on.
+  void BeginDrain();
+  bool draining();
+  // Blocking: waits up to `grace` for running jobs, then cancels them
+  // (detached ones go back to QUEUED on disk and run after a restart), then
+  // stops the threads.
+  void Shutdown(std::chrono::milliseconds grace);
+
+  int queued();
+  int running();
+
+ private:
+  void WorkerLoop();
+  void TickerLoop();
+  void RunOne(const std::shared_ptr<Job>& job);
+  void Persist(const std::shared_ptr<Job>& job);
+  void PublishGauges();  // with mu_ held
+  void RemoveFinished(const std::shared_ptr<Job>& job);
+
+  const ManagerOptions options_;
+  Spool* const spool_;
+  Metrics* const metrics_;
+
+  std::mutex mu_;
+  std::condition_variable cv_;
+  std::map<std::string, std::shared_ptr<Job>> jobs_;
+  std::deque<std::shared_ptr<Job>> queue_;
+  int uploading_ = 0;
+  int running_ = 0;
+  bool draining_ = false;
+  bool stopping_ = false;
+  std::vector<std::thread> workers_;
+  std::thread ticker_;
+};
+
+int64_t UnixMillisNow();
+
+}  // namespace interslice::server
+
+#endif  // INTERSLICE_SERVER_JOB_MANAGER_H_

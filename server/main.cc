@@ -1,0 +1,79 @@
+// interslice-server: the gRPC daemon. Everything but option parsing lives in
+// server/server.cc.
+#include <cstdio>
+
+#include "CLI/CLI.hpp"
+#include "server/server.h"
+
+int main(int argc, char** argv) {
+  interslice::server::ServerOptions o;
+  CLI::App app{"interslice-server: the interslice gRPC daemon"};
+  app.set_version_flag("--version", "interslice-server 0.1.0");
+  app.add_option("--listen", o.listen,
+                 "HOST:PORT to listen on (port 0 picks one)")
+      ->capture_default_str();
+  app.add_option("--spool", o.spool,
+                 "Folder for uploads and results (created if missing)")
+      ->required();
+  app.add_option("--workers", o.workers,
+                 "Jobs run at once (0 = max(1, CPUs/4); cgroup limits count)")
+      ->capture_default_str();
+  app.add_option("--threads-per-job", o.threads_per_job,
+                 "Solver threads per job (0 = CPUs / workers)")
+      ->capture_default_str();
+  app.add_option("--max-queued", o.max_queued_jobs,
+                 "Jobs waiting (uploading or queued); beyond: "
+                 "RESOURCE_EXHAUSTED")
+      ->capture_default_str();
+  app.add_option("--max-upload-bytes", o.max_upload_bytes,
+                 "Largest upload per job, bytes")
+      ->capture_default_str();
+  app.add_option("--max-voxels", o.max_output_voxels,
+                 "Largest refined output grid per job, voxels")
+      ->capture_default_str();
+  app.add_option("--spool-quota-bytes", o.spool_quota_bytes,
+                 "Disk space for uploads and results, bytes")
+      ->capture_default_str();
+  app.add_option("--retention", o.retention_seconds,
+                 "Seconds finished detached jobs stay fetchable")
+      ->capture_default_str();
+  app.add_option("--max-chunk-bytes", o.max_chunk_bytes,
+                 "Largest upload chunk accepted, bytes")
+      ->capture_default_str();
+  app.add_option("--io-threads", o.io_threads,
+                 "Threads for spool reads and writes")
+      ->capture_default_str();
+  app.add_option("--tls-cert", o.tls_cert, "Server certificate (PEM)");
+  app.add_option("--tls-key", o.tls_key, "Server private key (PEM)");
+  app.add_option("--tls-client-ca", o.tls_client_ca,
+                 "Require client certificates signed by this CA (mutual TLS)");
+  app.add_option("--auth-token-file", o.auth_token_file,
+                 "Require 'authorization: Bearer <token>' with the token in "
+                 "this file");
+  app.add_option("--metrics-listen", o.metrics_listen,
+                 "HOST:PORT for Prometheus /metrics (off when empty)");
+  app.add_flag("--reflection", o.reflection, "Enable gRPC server reflection");
+  app.add_option("--log-format", o.log_format, "text or json (JSON lines)")
+      ->capture_default_str();
+  app.add_option("--log-level", o.log_level,
+                 "trace, debug, info, warn, error or off")
+      ->capture_default_str();
+  app.add_option("--drain-grace", o.drain_grace_seconds,
+                 "Seconds running jobs may finish after SIGTERM before they "
+                 "are cancelled")
+      ->capture_default_str();
+  app.add_option("--port-file", o.port_file,
+                 "Write the bound gRPC and metrics ports here after start-up");
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::CallForHelp& e) {
+    return app.exit(e);
+  } catch (const CLI::CallForVersion& e) {
+    return app.exit(e);
+  } catch (const CLI::ParseError& e) {
+    std::fprintf(stderr, "interslice-server: error: %s (see --help)\n",
+                 e.what());
+    return 1;
+  }
+  return interslice::server::RunServer(o);
+}

@@ -1,0 +1,76 @@
+#include "server/metrics.h"
+
+#include <exception>
+
+#include "absl/strings/str_cat.h"
+#include "prometheus/counter.h"
+#include "prometheus/exposer.h"
+#include "prometheus/gauge.h"
+#include "prometheus/histogram.h"
+#include "prometheus/registry.h"
+
+namespace interslice::server {
+
+Metrics::Metrics() : registry_(std::make_shared<prometheus::Registry>()) {
+  jobs_ = &prometheus::BuildCounter()
+               .Name("interslice_jobs_total")
+               .Help("Jobs that ended, by outcome")
+               .Register(*registry_);
+  stages_ = &prometheus::BuildHistogram()
+                 .Name("interslice_stage_duration_seconds")
+                 .Help("Duration of pipeline stages")
+                 .Register(*registry_);
+  queue_depth_ = &prometheus::BuildGauge()
+                      .Name("interslice_queue_depth")
+                      .Help("Jobs uploading or waiting for a worker")
+                      .Register(*registry_)
+                      .Add({});
+  running_ = &prometheus::BuildGauge()
+                  .Name("interslice_running_jobs")
+                  .Help("Jobs running now")
+                  .Register(*registry_)
+                  .Add({});
+  bytes_in_ = &prometheus::BuildCounter()
+                   .Name("interslice_bytes_received_total")
+                   .Help("DICOM bytes uploaded")
+                   .Register(*registry_)
+                   .Add({});
+  bytes_out_ = &prometheus::BuildCounter()
+                    .Name("interslice_bytes_sent_total")
+                    .Help("Artifact bytes sent")
+                    .Register(*registry_)
+                    .Add({});
+  for (const char* outcome : {"succeeded", "failed", "cancelled", "rejected"}) {
+    jobs_->Add({{"outcome", outcome}});
+  }
+}
+
+Metrics::~Metrics() = default;
+
+absl::Status Metrics::Serve(const std::string& listen) {
+  try {
+    exposer_ = std::make_unique<prometheus::Exposer>(listen);
+  } catch (const std::exception& e) {
+    return absl::UnavailableError(
+        absl::StrCat("cannot serve metrics on ", listen, ": ", e.what()));
+  }
+  exposer_->RegisterCollectable(registry_);
+  const auto ports = exposer_->GetListeningPorts();
+  port_ = ports.empty() ? 0 : ports.front();
+  return absl::OkStatus();
+}
+
+void Metrics::JobFinished(const std::string& outcome) {
+  jobs_->Add({{"outcome", outcome}}).Increment();
+}
+void Metrics::SetQueueDepth(double n) { queue_depth_->Set(n); }
+void Metrics::SetRunning(double n) { running_->Set(n); }
+void Metrics::StageSeconds(const std::string& stage, double seconds) {
+  static const prometheus::Histogram::BucketBoundaries kBuckets = {
+      0.01, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30, 60, 120, 300, 600};
+  stages_->Add({{"stage", stage}}, kBuckets).Observe(seconds);
+}
+void Metrics::BytesIn(double n) { bytes_in_->Increment(n); }
+void Metrics::BytesOut(double n) { bytes_out_->Increment(n); }
+
+}  // namespace interslice::server

@@ -1,0 +1,52 @@
+// Prometheus metrics (prometheus-cpp), served on --metrics-listen.
+#ifndef INTERSLICE_SERVER_METRICS_H_
+#define INTERSLICE_SERVER_METRICS_H_
+
+#include <memory>
+#include <string>
+
+#include "absl/status/statusor.h"
+
+namespace prometheus {
+class Registry;
+class Exposer;
+class Counter;
+class Gauge;
+template <typename T>
+class Family;
+class Histogram;
+}  // namespace prometheus
+
+namespace interslice::server {
+
+class Metrics {
+ public:
+  Metrics();
+  ~Metrics();
+  // Starts the HTTP endpoint (/metrics) on host:port; port 0 picks one.
+  absl::Status Serve(const std::string& listen);
+  int port() const { return port_; }
+
+  // outcome: "succeeded", "failed", "cancelled", "rejected".
+  void JobFinished(const std::string& outcome);
+  void SetQueueDepth(double n);
+  void SetRunning(double n);
+  void StageSeconds(const std::string& stage, double seconds);
+  void BytesIn(double n);
+  void BytesOut(double n);
+
+ private:
+  std::shared_ptr<prometheus::Registry> registry_;
+  std::unique_ptr<prometheus::Exposer> exposer_;
+  prometheus::Family<prometheus::Counter>* jobs_;
+  prometheus::Family<prometheus::Histogram>* stages_;
+  prometheus::Gauge* queue_depth_;
+  prometheus::Gauge* running_;
+  prometheus::Counter* bytes_in_;
+  prometheus::Counter* bytes_out_;
+  int port_ = 0;
+};
+
+}  // namespace interslice::server
+
+#endif  // INTERSLICE_SERVER_METRICS_H_

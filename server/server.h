@@ -1,0 +1,47 @@
+// The daemon: options, start-up, and the SIGTERM drain.
+#ifndef INTERSLICE_SERVER_SERVER_H_
+#define INTERSLICE_SERVER_SERVER_H_
+
+#include <cstdint>
+#include <string>
+
+namespace interslice::server {
+
+struct ServerOptions {
+  std::string listen = "0.0.0.0:50051";  // HOST:PORT; port 0 picks one
+  std::string spool;                     // required
+  // 0 = from the CPU count (cgroup limits honoured): workers = max(1,
+  // cpus / 4), threads_per_job = max(1, cpus / workers).
+  int workers = 0;
+  int threads_per_job = 0;
+  int max_queued_jobs = 16;
+  int64_t max_upload_bytes = int64_t{2} << 30;
+  int64_t max_output_voxels = int64_t{1} << 30;
+  int64_t spool_quota_bytes = int64_t{20} << 30;
+  int64_t retention_seconds = 24 * 3600;
+  int max_chunk_bytes = 1 << 20;
+  int io_threads = 2;
+  std::string tls_cert, tls_key, tls_client_ca;
+  std::string auth_token_file;
+  std::string metrics_listen;  // empty = no metrics endpoint
+  bool reflection = false;
+  std::string log_format = "text";  // text | json
+  std::string log_level = "info";
+  double drain_grace_seconds = 30;
+  // After start-up, "<grpc port>\n<metrics port>\n" is written here
+  // (atomically), for tests and scripts that listen on port 0.
+  std::string port_file;
+};
+
+// CPUs this process may use: the affinity mask, capped by a cgroup v2
+// cpu.max or v1 cfs quota when one is set.
+int AvailableCpus();
+
+// Runs until SIGTERM or SIGINT, then drains. Returns the exit code. Must be
+// called before any other thread is started (it blocks the signals so that
+// only its signal thread receives them).
+int RunServer(ServerOptions options);
+
+}  // namespace interslice::server
+
+#endif  // INTERSLICE_SERVER_SERVER_H_

@@ -1,0 +1,885 @@
+#include "server/service.h"
+
+#include <fcntl.h>
+#include <unistd.h>
+
+#include <atomic>
+#include <cerrno>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <optional>
+
+#include "absl/strings/str_cat.h"
+#include "server/hashing.h"
+#include "server/status_map.h"
+#include "spdlog/spdlog.h"
+
+namespace interslice::server {
+namespace fs = std::filesystem;
+namespace {
+
+#define INTERSLICE_SINK_RETURN_IF_ERROR(expr) \
+  do {                                        \
+    absl::Status _s = (expr);                 \
+    if (!_s.ok()) return _s;                  \
+  } while (0)
+
+constexpr int kDefaultChunkBytes = 64 * 1024;
+constexpr int kMaxFetchChunkBytes = 1 << 20;
+
+bool IsTerminal(v1::JobState s) {
+  return s == v1::JOB_STATE_SUCCEEDED || s == v1::JOB_STATE_FAILED ||
+         s == v1::JOB_STATE_CANCELLED;
+}
+
+grpc::Status StatusOfFailedJob(const v1::JobStatus& s) {
+  const int code =
+      s.error_code() == 0 ? static_cast<int>(grpc::UNKNOWN) : s.error_code();
+  return grpc::Status(static_cast<grpc::StatusCode>(code), s.error_message());
+}
+
+std::optional<std::chrono::steady_clock::time_point> CallDeadline(
+    grpc::CallbackServerContext* context) {
+  const auto deadline = context->deadline();
+  if (deadline >= std::chrono::system_clock::time_point::max() -
+                      std::chrono::hours(24 * 365)) {
+    return std::nullopt;
+  }
+  return std::chrono::steady_clock::now() +
+         std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+             deadline - std::chrono::system_clock::now());
+}
+
+// Reactors that only report an error (authentication, bad request).
+template <typename Request>
+class ErrorReadReactor : public grpc::ServerReadReactor<Request> {
+ public:
+  explicit ErrorReadReactor(const grpc::Status& status) {
+    this->Finish(status);
+  }
+  void OnDone() override { delete this; }
+};
+
+template <typename Response>
+class ErrorWriteReactor : public grpc::ServerWriteReactor<Response> {
+ public:
+  explicit ErrorWriteReactor(const grpc::Status& status) {
+    this->Finish(status);
+  }
+  void OnDone() override { delete this; }
+};
+
+template <typename Request, typename Response>
+class ErrorBidiReactor : public grpc::ServerBidiReactor<Request, Response> {
+ public:
+  explicit ErrorBidiReactor(const grpc::Status& status) {
+    this->Finish(status);
+  }
+  void OnDone() override { delete this; }
+};
+
+// Receives one upload (header, then the files' chunks) into the spool.
+// Blocking: called on the I/O executor only, one call at a time per upload.
+class UploadSink {
+ public:
+  UploadSink(JobManager* manager, Spool* spool, Metrics* metrics,
+             int max_chunk_bytes, bool ephemeral,
+             std::optional<std::chrono::steady_clock::time_point> deadline)
+      : manager_(manager),
+        spool_(spool),
+        metrics_(metrics),
+        max_chunk_bytes_(max_chunk_bytes),
+        ephemeral_(ephemeral),
+        deadline_(deadline) {}
+  ~UploadSink() { CloseFile(); }
+
+  absl::Status Consume(const v1::UploadRequest& message) {
+    if (!job_) {
+      if (!message.has_header()) {
+        return absl::InvalidArgumentError(
+            "the first message of an upload must be the header");
+      }
+      header_ = message.header();
+      absl::StatusOr<std::shared_ptr<Job>> job =
+          manager_->Admit(header_, ephemeral_, deadline_);
+      if (!job.ok()) return job.status();
+      job_ = *job;
+      return absl::OkStatus();
+    }
+    if (!message.has_chunk()) {
+      return absl::InvalidArgumentError("the header may be sent only once");
+    }
+    const v1::FileChunk& chunk = message.chunk();
+    if (chunk.data().size() > static_cast<size_t>(max_chunk_bytes_)) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("chunk larger than the server's limit of ",
+                       max_chunk_bytes_, " bytes"));
+    }
+    if (chunk.file_index() != index_) {
+      if (index_ >= 0 && written_ != size_) {
+        return absl::InvalidArgumentError(
+            absl::StrCat("file ", index_, " ended after ", written_, " of ",
+                         size_, " bytes"));
+      }
+      if (chunk.file_index() != index_ + 1 ||
+          chunk.file_index() >= header_.file_count()) {
+        return absl::InvalidArgumentError(absl::StrCat(
+            "expected file index ", index_ + 1, ", got ", chunk.file_index()));
+      }
+      if (chunk.file_size() < 0 || chunk.sha256().size() != 32) {
+        return absl::InvalidArgumentError(absl::StrCat(
+            "file ", chunk.file_index(),
+            ": its first chunk must give file_size >= 0 and a 32-byte "
+            "sha256"));
+      }
+      if (received_ + chunk.file_size() > header_.total_bytes()) {
+        return absl::InvalidArgumentError(
+            "the files are larger than header.total_bytes");
+      }
+      INTERSLICE_SINK_RETURN_IF_ERROR(OpenFile(chunk));
+    }
+    if (chunk.offset() != written_) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("file ", index_, ": expected offset ", written_,
+                       ", got ", chunk.offset()));
+    }
+    if (written_ + static_cast<int64_t>(chunk.data().size()) > size_) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("file ", index_, ": more data than its file_size"));
+    }
+    INTERSLICE_SINK_RETURN_IF_ERROR(Write(chunk.data()));
+    if (written_ == size_) return CompleteFile();
+    return absl::OkStatus();
+  }
+
+  // The client half-closed: the upload must be complete.
+  absl::Status Finish() {
+    if (!job_) return absl::InvalidArgumentError("no upload header received");
+    if (index_ != header_.file_count() - 1 || written_ != size_ ||
+        received_ != header_.total_bytes()) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "incomplete upload: ", index_ + 1, " of ", header_.file_count(),
+          " file(s), ", received_, " of ", header_.total_bytes(), " bytes"));
+    }
+    FsyncDir(spool_->UploadDir(job_->id()));
+    metrics_->BytesIn(static_cast<double>(received_));
+    absl::Status s = manager_->Enqueue(job_);
+    if (s.ok()) enqueued_ = true;
+    return s;
+  }
+
+  // Deletes whatever was received unless the job was queued.
+  void Abort() {
+    CloseFile();
+    if (job_ && !enqueued_ && !aborted_) {
+      aborted_ = true;
+      manager_->Abandon(job_);
+    }
+  }
+
+  const std::shared_ptr<Job>& job() const { return job_; }
+  bool enqueued() const { return enqueued_; }
+
+ private:
+  static void FsyncDir(const std::string& dir) {
+    const int fd = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY);
+    if (fd >= 0) {
+      ::fsync(fd);
+      ::close(fd);
+    }
+  }
+
+  absl::Status OpenFile(const v1::FileChunk& chunk) {
+    CloseFile();
+    index_ = chunk.file_index();
+    size_ = chunk.file_size();
+    written_ = 0;
+    expected_sha_ = chunk.sha256();
+    hash_ = std::make_unique<Sha256>();
+    // Index-based names: the client's names may carry patient data, and the
+    // reader's error messages quote file names.
+    char name[32];
+    std::snprintf(name, sizeof(name), "%06d.dcm", index_);
+    const std::string path =
+        (fs::path(spool_->UploadDir(job_->id())) / name).string();
+    fd_ = ::open(path.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0600);
+    if (fd_ < 0) return absl::InternalError("cannot create an upload file");
+    if (size_ == 0) return CompleteFile();
+    return absl::OkStatus();
+  }
+
+  absl::Status Write(const std::string& data) {
+    size_t done = 0;
+    while (done < data.size()) {
+      const ssize_t n = ::write(fd_, data.data() + done, data.size() - done);
+      if (n < 0) {
+        if (errno == EINTR) continue;
+        return absl::ResourceExhaustedError(
+            "cannot write the upload to the spool (disk full?)");
+      }
+      done += static_cast<size_t>(n);
+    }
+    hash_->Update(data);
+    written_ += static_cast<int64_t>(data.size());
+    received_ += static_cast<int64_t>(data.size());
+    return absl::OkStatus();
+  }
+
+  absl::Status CompleteFile() {
+    const bool synced = ::fsync(fd_) == 0;
+    CloseFile();
+    if (!synced) return absl::InternalError("cannot flush an upload file");
+    if (hash_->Finish() != expected_sha_) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("file ", index_, ": SHA-256 mismatch"));
+    }
+    return absl::OkStatus();
+  }
+
+  void CloseFile() {
+    if (fd_ >= 0) {
+      ::close(fd_);
+      fd_ = -1;
+    }
+  }
+
+  JobManager* const manager_;
+  Spool* const spool_;
+  Metrics* const metrics_;
+  const int max_chunk_bytes_;
+  const bool ephemeral_;
+  const std::optional<std::chrono::steady_clock::time_point> deadline_;
+  v1::UploadHeader header_;
+  std::shared_ptr<Job> job_;
+  int index_ = -1;
+  int64_t size_ = 0, written_ = 0, received_ = 0;
+  std::string expected_sha_;
+  std::unique_ptr<Sha256> hash_;
+  int fd_ = -1;
+  bool enqueued_ = false;
+  bool aborted_ = false;
+};
+
+// Reads one artifact chunk by chunk (on the I/O executor).
+class ArtifactReader {
+ public:
+  ArtifactReader(std::string path, v1::ArtifactInfo info, int64_t offset,
+                 int chunk_bytes)
+      : path_(std::move(path)),
+        info_(std::move(info)),
+        offset_(offset),
+        chunk_bytes_(chunk_bytes) {}
+
+  // Fills `chunk` with the next piece; false at the end. Blocking.
+  absl::StatusOr<bool> Next(v1::ArtifactChunk* chunk) {
+    if (!opened_) {
+      in_.open(path_, std::ios::binary);
+      if (!in_) return absl::DataLossError("an artifact is missing");
+      in_.seekg(offset_);
+      opened_ = true;
+    } else if (offset_ >= info_.size_bytes()) {
+      return false;
+    }
+    chunk->Clear();
+    if (first_) *chunk->mutable_info() = info_;
+    first_ = false;
+    const int64_t n =
+        std::min<int64_t>(chunk_bytes_, info_.size_bytes() - offset_);
+    std::string* data = chunk->mutable_data();
+    data->resize(static_cast<size_t>(n));
+    in_.read(data->data(), n);
+    if (in_.gcount() != n) return absl::DataLossError("an artifact is short");
+    chunk->set_offset(offset_);
+    offset_ += n;
+    return true;
+  }
+
+ private:
+  const std::string path_;
+  const v1::ArtifactInfo info_;
+  int64_t offset_;
+  const int chunk_bytes_;
+  std::ifstream in_;
+  bool opened_ = false;
+  bool first_ = true;
+};
+
+// ---------------------------------------------------------------------------
+
+class SubmitReactor : public grpc::ServerReadReactor<v1::UploadRequest> {
+ public:
+  SubmitReactor(InterSliceService* service, v1::SubmitResponse* response)
+      : service_(service),
+        response_(response),
+        sink_(std::make_shared<UploadSink>(
+            service->manager(), service->spool(), service->metrics(),
+            service->options().max_chunk_bytes, false, std::nullopt)) {
+    StartRead(&request_);
+  }
+
+  void OnReadDone(bool ok) override {
+    // Exactly one disk step follows every read, and the next read starts
+    // only after it: the reactor is alive until Finish, which only these
+    // steps call.
+    if (ok) {
+      service_->io()->Post([this] {
+        absl::Status s = sink_->Consume(request_);
+        if (!s.ok()) {
+          sink_->Abort();
+          Finish(ToGrpcStatus(s));
+          return;
+        }
+        StartRead(&request_);
+      });
+      return;
+    }
+    service_->io()->Post([this] {
+      absl::Status s = cancelled_ ? absl::CancelledError("upload cancelled")
+                                  : sink_->Finish();
+      if (!s.ok()) {
+        sink_->Abort();
+        Finish(ToGrpcStatus(s));
+        return;
+      }
+      response_->set_job_id(sink_->job()->id());
+      *response_->mutable_status() = sink_->job()->Snapshot(false);
+      Finish(grpc::Status::OK);
+    });
+  }
+  void OnCancel() override { cancelled_ = true; }
+  void OnDone() override { delete this; }
+
+ private:
+  InterSliceService* const service_;
+  v1::SubmitResponse* const response_;
+  std::shared_ptr<UploadSink> sink_;
+  v1::UploadRequest request_;
+  std::atomic<bool> cancelled_{false};
+};
+
+// One call: upload, then progress, then artifacts, then the summary.
+class InterpolateReactor
+    : public grpc::ServerBidiReactor<v1::UploadRequest,
+                                     v1::InterpolateResponse> {
+ public:
+  InterpolateReactor(InterSliceService* service,
+                     grpc::CallbackServerContext* context)
+      : service_(service),
+        sink_(std::make_shared<UploadSink>(
+            service->manager(), service->spool(), service->metrics(),
+            service->options().max_chunk_bytes, true, CallDeadline(context))) {
+    std::lock_guard<std::mutex> lock(mu_);
+    io_pending_ = false;
+    StartRead(&request_);
+  }
+
+  void OnReadDone(bool ok) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    if (finished_) return;
+    io_pending_ = true;
+    if (ok) {
+      service_->io()->Post([this] {
+        absl::Status s = sink_->Consume(request_);
+        std::lock_guard<std::mutex> lock(mu_);
+        io_pending_ = false;
+        if (!s.ok() || cancelled_) {
+          sink_->Abort();
+          FinishLocked(cancelled_ ? grpc::Status::CANCELLED : ToGrpcStatus(s));
+          return;
+        }
+        StartRead(&request_);
+      });
+      return;
+    }
+    service_->io()->Post([this] {
+      bool cancelled;
+      {
+        std::lock_guard<std::mutex> lock(mu_);
+        cancelled = cancelled_;
+      }
+      absl::Status s =
+          cancelled ? absl::CancelledError("call cancelled") : sink_->Finish();
+      if (!s.ok()) sink_->Abort();
+      std::lock_guard<std::mutex> lock(mu_);
+      io_pending_ = false;
+      if (!s.ok()) {
+        FinishLocked(ToGrpcStatus(s));
+        return;
+      }
+      job_ = sink_->job();
+      subscription_ = std::make_shared<Subscription>([this] {
+        std::lock_guard<std::mutex> lock(mu_);
+        WriteNextLocked();
+      });
+      job_->Subscribe(subscription_);
+      WriteNextLocked();
+    });
+  }
+
+  void OnWriteDone(bool ok) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    write_in_flight_ = false;
+    if (!ok) {
+      FinishLocked(grpc::Status(grpc::CANCELLED, "the client went away"));
+      return;
+    }
+    if (summary_sent_) {
+      FinishLocked(grpc::Status::OK);
+      return;
+    }
+    WriteNextLocked();
+  }
+
+  void OnCancel() override {
+    std::lock_guard<std::mutex> lock(mu_);
+    cancelled_ = true;
+    FinishLocked(grpc::Status::CANCELLED);
+  }
+
+  void OnDone() override {
+    if (subscription_) subscription_->Close();
+    // Deleting files blocks: leave it to the I/O executor. Discard cancels
+    // the job if it still runs (a broken call cancels its job).
+    std::shared_ptr<UploadSink> sink = sink_;
+    JobManager* manager = service_->manager();
+    service_->io()->Post([sink, manager] {
+      sink->Abort();
+      if (sink->enqueued()) manager->Discard(sink->job());
+    });
+    delete this;
+  }
+
+ private:
+  // Sends the next message if none is in flight. mu_ held.
+  void WriteNextLocked() {
+    if (finished_ || write_in_flight_ || io_pending_ || !job_) return;
+    if (!accepted_sent_) {
+      accepted_sent_ = true;
+      response_.Clear();
+      response_.mutable_accepted()->set_job_id(job_->id());
+      StartWriteLocked();
+      return;
+    }
+    if (reader_) {  // streaming artifacts
+      ReadArtifactLocked();
+      return;
+    }
+    const v1::JobStatus status = job_->Snapshot(true);
+    if (IsTerminal(status.state())) {
+      if (status.state() != v1::JOB_STATE_SUCCEEDED) {
+        FinishLocked(StatusOfFailedJob(status));
+        return;
+      }
+      final_ = status;
+      artifact_index_ = -1;
+      NextArtifactLocked();
+      return;
+    }
+    if (status.sequence() <= last_sequence_) return;
+    last_sequence_ = status.sequence();
+    response_.Clear();
+    *response_.mutable_progress() = status.progress();
+    StartWriteLocked();
+  }
+
+  void NextArtifactLocked() {
+    ++artifact_index_;
+    if (artifact_index_ >= final_.artifacts_size()) {
+      reader_.reset();
+      response_.Clear();
+      v1::JobSummary* summary = response_.mutable_summary();
+      summary->set_job_id(final_.job_id());
+      summary->set_report_json(final_.report_json());
+      *summary->mutable_artifacts() = final_.artifacts();
+      summary_sent_ = true;
+      StartWriteLocked();
+      return;
+    }
+    const v1::ArtifactInfo& info = final_.artifacts(artifact_index_);
+    reader_ = std::make_shared<ArtifactReader>(
+        (fs::path(service_->spool()->OutputDir(final_.job_id())) / info.name())
+            .string(),
+        info, 0, kDefaultChunkBytes);
+    ReadArtifactLocked();
+  }
+
+  void ReadArtifactLocked() {
+    io_pending_ = true;
+    service_->io()->Post([this] {
+      absl::StatusOr<bool> more = reader_->Next(&chunk_);
+      std::lock_guard<std::mutex> lock(mu_);
+      io_pending_ = false;
+      if (cancelled_ || finished_) {
+        FinishLocked(grpc::Status::CANCELLED);
+        return;
+      }
+      if (!more.ok()) {
+        FinishLocked(ToGrpcStatus(more.status()));
+        return;
+      }
+      if (!*more) {
+        NextArtifactLocked();
+        return;
+      }
+      service_->metrics()->BytesOut(static_cast<double>(chunk_.data().size()));
+      response_.Clear();
+      response_.mutable_artifact()->Swap(&chunk_);
+      StartWriteLocked();
+    });
+  }
+
+  void StartWriteLocked() {
+    write_in_flight_ = true;
+    StartWrite(&response_);
+  }
+
+  // Finish once; while a disk step runs, the step finishes instead (it
+  // still uses this reactor).
+  void FinishLocked(const grpc::Status& status) {
+    if (finished_) return;
+    if (io_pending_) {
+      cancelled_ = true;
+      return;
+    }
+    finished_ = true;
+    Finish(status);
+  }
+
+  InterSliceService* const service_;
+  std::shared_ptr<UploadSink> sink_;
+  std::mutex mu_;
+  v1::UploadRequest request_;
+  v1::InterpolateResponse response_;
+  v1::ArtifactChunk chunk_;
+  std::shared_ptr<Job> job_;
+  std::shared_ptr<Subscription> subscription_;
+  std::shared_ptr<ArtifactReader> reader_;
+  v1::JobStatus final_;
+  int artifact_index_ = -1;
+  int64_t last_sequence_ = 0;
+  bool io_pending_ = false;
+  bool write_in_flight_ = false;
+  bool accepted_sent_ = false;
+  bool summary_sent_ = false;
+  bool finished_ = false;
+  bool cancelled_ = false;
+};
+
+class WatchReactor : public grpc::ServerWriteReactor<v1::JobStatus> {
+ public:
+  WatchReactor(std::shared_ptr<Job> job, int64_t after_sequence)
+      : job_(std::move(job)), last_sequence_(after_sequence) {
+    subscription_ = std::make_shared<Subscription>([this] {
+      std::lock_guard<std::mutex> lock(mu_);
+      WriteNextLocked();
+    });
+    std::lock_guard<std::mutex> lock(mu_);
+    job_->Subscribe(subscription_);
+    first_ = true;
+    WriteNextLocked();
+  }
+
+  void OnWriteDone(bool ok) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    write_in_flight_ = false;
+    if (!ok) {
+      FinishLocked(grpc::Status(grpc::CANCELLED, "the client went away"));
+      return;
+    }
+    if (terminal_sent_) {
+      FinishLocked(grpc::Status::OK);
+      return;
+    }
+    WriteNextLocked();
+  }
+  void OnCancel() override {
+    std::lock_guard<std::mutex> lock(mu_);
+    FinishLocked(grpc::Status::CANCELLED);
+  }
+  void OnDone() override {
+    subscription_->Close();
+    delete this;
+  }
+
+ private:
+  void WriteNextLocked() {
+    if (finished_ || write_in_flight_ || terminal_sent_) return;
+    status_ = job_->Snapshot(true);
+    const bool terminal = IsTerminal(status_.state());
+    if (!terminal && status_.sequence() <= last_sequence_) return;
+    if (terminal && !first_ && status_.sequence() <= last_sequence_) return;
+    first_ = false;
+    last_sequence_ = status_.sequence();
+    terminal_sent_ = terminal;
+    write_in_flight_ = true;
+    StartWrite(&status_);
+  }
+  void FinishLocked(const grpc::Status& status) {
+    if (finished_) return;
+    finished_ = true;
+    Finish(status);
+  }
+
+  std::shared_ptr<Job> job_;
+  std::shared_ptr<Subscription> subscription_;
+  std::mutex mu_;
+  v1::JobStatus status_;
+  int64_t last_sequence_;
+  bool first_ = true;
+  bool write_in_flight_ = false;
+  bool terminal_sent_ = false;
+  bool finished_ = false;
+};
+
+class FetchReactor : public grpc::ServerWriteReactor<v1::ArtifactChunk> {
+ public:
+  FetchReactor(InterSliceService* service,
+               std::shared_ptr<ArtifactReader> reader)
+      : service_(service), reader_(std::move(reader)) {
+    std::lock_guard<std::mutex> lock(mu_);
+    ReadLocked();
+  }
+  void OnWriteDone(bool ok) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    write_in_flight_ = false;
+    if (!ok) {
+      FinishLocked(grpc::Status(grpc::CANCELLED, "the client went away"));
+      return;
+    }
+    ReadLocked();
+  }
+  void OnCancel() override {
+    std::lock_guard<std::mutex> lock(mu_);
+    FinishLocked(grpc::Status::CANCELLED);
+  }
+  void OnDone() override { delete this; }
+
+ private:
+  void ReadLocked() {
+    if (finished_) return;
+    io_pending_ = true;
+    service_->io()->Post([this] {
+      absl::StatusOr<bool> more = reader_->Next(&chunk_);
+      std::lock_guard<std::mutex> lock(mu_);
+      io_pending_ = false;
+      if (cancelled_) {
+        FinishLocked(grpc::Status::CANCELLED);
+      } else if (!more.ok()) {
+        FinishLocked(ToGrpcStatus(more.status()));
+      } else if (!*more) {
+        FinishLocked(grpc::Status::OK);
+      } else {
+        service_->metrics()->BytesOut(
+            static_cast<double>(chunk_.data().size()));
+        write_in_flight_ = true;
+        StartWrite(&chunk_);
+      }
+    });
+  }
+  void FinishLocked(const grpc::Status& status) {
+    if (finished_) return;
+    if (io_pending_) {
+      cancelled_ = true;
+      return;
+    }
+    finished_ = true;
+    Finish(status);
+  }
+
+  InterSliceService* const service_;
+  std::shared_ptr<ArtifactReader> reader_;
+  std::mutex mu_;
+  v1::ArtifactChunk chunk_;
+  bool io_pending_ = false;
+  bool write_in_flight_ = false;
+  bool cancelled_ = false;
+  bool finished_ = false;
+};
+
+}  // namespace
+
+absl::Status InterSliceService::Authenticate(
+    grpc::CallbackServerContext* context) const {
+  if (options_.auth_token.empty()) return absl::OkStatus();
+  const auto& metadata = context->client_metadata();
+  auto it = metadata.find("authorization");
+  if (it != metadata.end()) {
+    const std::string value(it->second.data(), it->second.size());
+    const std::string expected = "Bearer " + options_.auth_token;
+    // Constant-time comparison: no early exit on the first difference.
+    unsigned char diff = value.size() == expected.size() ? 0 : 1;
+    for (size_t i = 0; i < value.size() && i < expected.size(); ++i) {
+      diff |= static_cast<unsigned char>(value[i] ^ expected[i]);
+    }
+    if (diff == 0) return absl::OkStatus();
+  }
+  spdlog::warn("refused a call from {}: missing or wrong bearer token",
+               context->peer());
+  return absl::UnauthenticatedError("missing or invalid bearer token");
+}
+
+grpc::ServerBidiReactor<v1::UploadRequest, v1::InterpolateResponse>*
+InterSliceService::Interpolate(grpc::CallbackServerContext* context) {
+  if (absl::Status s = Authenticate(context); !s.ok()) {
+    return new ErrorBidiReactor<v1::UploadRequest, v1::InterpolateResponse>(
+        ToGrpcStatus(s));
+  }
+  return new InterpolateReactor(this, context);
+}
+
+grpc::ServerReadReactor<v1::UploadRequest>* InterSliceService::Submit(
+    grpc::CallbackServerContext* context, v1::SubmitResponse* response) {
+  if (absl::Status s = Authenticate(context); !s.ok()) {
+    return new ErrorReadReactor<v1::UploadRequest>(ToGrpcStatus(s));
+  }
+  return new SubmitReactor(this, response);
+}
+
+grpc::ServerWriteReactor<v1::JobStatus>* InterSliceService::Watch(
+    grpc::CallbackServerContext* context, const v1::WatchRequest* request) {
+  if (absl::Status s = Authenticate(context); !s.ok()) {
+    return new ErrorWriteReactor<v1::JobStatus>(ToGrpcStatus(s));
+  }
+  std::shared_ptr<Job> job = manager_->Find(request->job_id());
+  if (!job || job->ephemeral()) {
+    return new ErrorWriteReactor<v1::JobStatus>(
+        grpc::Status(grpc::NOT_FOUND, "no such job (it may have expired)"));
+  }
+  return new WatchReactor(std::move(job), request->after_sequence());
+}
+
+grpc::ServerWriteReactor<v1::ArtifactChunk>* InterSliceService::Fetch(
+    grpc::CallbackServerContext* context, const v1::FetchRequest* request) {
+  if (absl::Status s = Authenticate(context); !s.ok()) {
+    return new ErrorWriteReactor<v1::ArtifactChunk>(ToGrpcStatus(s));
+  }
+  std::shared_ptr<Job> job = manager_->Find(request->job_id());
+  if (!job || job->ephemeral()) {
+    return new ErrorWriteReactor<v1::ArtifactChunk>(
+        grpc::Status(grpc::NOT_FOUND, "no such job (it may have expired)"));
+  }
+  const v1::JobStatus status = job->Snapshot(false);
+  if (status.state() != v1::JOB_STATE_SUCCEEDED) {
+    return new ErrorWriteReactor<v1::ArtifactChunk>(grpc::Status(
+        grpc::FAILED_PRECONDITION,
+        absl::StrCat("the job is ", v1::JobState_Name(status.state()),
+                     "; only a SUCCEEDED job has artifacts")));
+  }
+  const v1::ArtifactInfo* info = nullptr;
+  for (const v1::ArtifactInfo& a : status.artifacts()) {
+    if (a.name() == request->artifact_name()) info = &a;
+  }
+  if (info == nullptr) {
+    return new ErrorWriteReactor<v1::ArtifactChunk>(
+        grpc::Status(grpc::NOT_FOUND, "the job has no artifact of that name"));
+  }
+  if (request->offset() < 0 || request->offset() > info->size_bytes()) {
+    return new ErrorWriteReactor<v1::ArtifactChunk>(grpc::Status(
+        grpc::OUT_OF_RANGE, "offset beyond the end of the artifact"));
+  }
+  int chunk =
+      request->chunk_size() == 0 ? kDefaultChunkBytes : request->chunk_size();
+  if (chunk < 0 || chunk > kMaxFetchChunkBytes) {
+    return new ErrorWriteReactor<v1::ArtifactChunk>(grpc::Status(
+        grpc::INVALID_ARGUMENT, "chunk_size must be in [0, 1 MiB]"));
+  }
+  auto reader = std::make_shared<ArtifactReader>(
+      (fs::path(spool_->OutputDir(job->id())) / info->name()).string(), *info,
+      request->offset(), chunk);
+  return new FetchReactor(this, std::move(reader));
+}
+
+grpc::ServerUnaryReactor* InterSliceService::Cancel(
+    grpc::CallbackServerContext* context, const v1::CancelRequest* request,
+    v1::JobStatus* response) {
+  grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
+  if (absl::Status s = Authenticate(context); !s.ok()) {
+    reactor->Finish(ToGrpcStatus(s));
+    return reactor;
+  }
+  const std::string id = request->job_id();
+  // Cancelling a queued job persists its record: off the reactor thread.
+  io_->Post([this, reactor, response, id] {
+    std::shared_ptr<Job> job = manager_->Find(id);
+    if (!job || job->ephemeral()) {
+      reactor->Finish(grpc::Status(grpc::NOT_FOUND, "no such job"));
+      return;
+    }
+    absl::StatusOr<v1::JobStatus> status = manager_->Cancel(id);
+    if (status.ok()) *response = *status;
+    reactor->Finish(ToGrpcStatus(status.status()));
+  });
+  return reactor;
+}
+
+grpc::ServerUnaryReactor* InterSliceService::List(
+    grpc::CallbackServerContext* context, const v1::ListRequest* request,
+    v1::ListResponse* response) {
+  grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
+  if (absl::Status s = Authenticate(context); !s.ok()) {
+    reactor->Finish(ToGrpcStatus(s));
+    return reactor;
+  }
+  for (v1::JobStatus& s : manager_->List(request->include_finished())) {
+    *response->add_jobs() = std::move(s);
+  }
+  reactor->Finish(grpc::Status::OK);
+  return reactor;
+}
+
+grpc::ServerUnaryReactor* InterSliceService::GetServerInfo(
+    grpc::CallbackServerContext* context, const v1::ServerInfoRequest* request,
+    v1::ServerInfo* response) {
+  grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
+  if (absl::Status s = Authenticate(context); !s.ok()) {
+    reactor->Finish(ToGrpcStatus(s));
+    return reactor;
+  }
+  response->set_version(options_.version);
+  response->set_api("interslice.v1");
+  // What DCMTK decodes with the codecs core/dicom registers (uncompressed,
+  // deflate, JPEG, JPEG-LS, RLE). The core has no query for this list yet.
+  static const std::pair<const char*, const char*> kSyntaxes[] = {
+      {"1.2.840.10008.1.2", "Implicit VR Little Endian"},
+      {"1.2.840.10008.1.2.1", "Explicit VR Little Endian"},
+      {"1.2.840.10008.1.2.1.99", "Deflated Explicit VR Little Endian"},
+      {"1.2.840.10008.1.2.2", "Explicit VR Big Endian"},
+      {"1.2.840.10008.1.2.4.50", "JPEG Baseline (Process 1)"},
+      {"1.2.840.10008.1.2.4.51", "JPEG Extended (Process 2 & 4)"},
+      {"1.2.840.10008.1.2.4.57",
+       "JPEG Lossless, Non-Hierarchical (Process 14)"},
+      {"1.2.840.10008.1.2.4.70", "JPEG Lossless, First-Order Prediction"},
+      {"1.2.840.10008.1.2.4.80", "JPEG-LS Lossless"},
+      {"1.2.840.10008.1.2.4.81", "JPEG-LS Near-Lossless"},
+      {"1.2.840.10008.1.2.5", "RLE Lossless"}};
+  for (const auto& [uid, name] : kSyntaxes) {
+    v1::TransferSyntax* t = response->add_transfer_syntaxes();
+    t->set_uid(uid);
+    t->set_name(name);
+  }
+  const ManagerOptions& m = manager_->options();
+  v1::Limits* limits = response->mutable_limits();
+  limits->set_max_upload_bytes(m.max_upload_bytes);
+  limits->set_max_output_voxels(m.max_output_voxels);
+  limits->set_max_queued_jobs(m.max_queued_jobs);
+  limits->set_workers(m.workers);
+  limits->set_threads_per_job(m.threads_per_job);
+  limits->set_max_chunk_bytes(options_.max_chunk_bytes);
+  limits->set_result_retention_seconds(m.retention_seconds);
+  limits->set_spool_quota_bytes(spool_->quota_bytes());
+  for (const char* s : {"linear", "cg", "direct"}) response->add_methods(s);
+  for (const char* s : {"nii", "nrrd"}) response->add_volume_formats(s);
+  for (const char* s : {"stl", "ply", "obj"}) response->add_mesh_formats(s);
+  const auto* descriptor =
+      v1::ServerInfo::descriptor()->file()->FindServiceByName("InterSlice");
+  for (int i = 0; i < descriptor->method_count(); ++i) {
+    response->add_rpcs(descriptor->method(i)->name());
+  }
+  response->set_auth_required(!options_.auth_token.empty());
+  response->set_draining(manager_->draining());
+  reactor->Finish(grpc::Status::OK);
+  return reactor;
+}
+
+}  // namespace interslice::server

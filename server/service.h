@@ -1,0 +1,82 @@
+// The interslice.v1.InterSlice service on gRPC's callback API.
+//
+// Threading: reactor callbacks run on gRPC's threads and never block. Every
+// step that touches the disk (admission, which creates the job folder;
+// writing and hashing upload chunks; reading artifact chunks; persisting a
+// cancellation) is posted to the I/O executor, and the reactor issues its
+// next read or write when that step completes, so each stream has at most one
+// read, one write and one disk step in flight, and uploads apply back
+// pressure to the client. Job status reaches Watch and Interpolate streams
+// through a Subscription that only wakes the reactor; the reactor sends the
+// newest status when its previous write completes (older ones are coalesced).
+#ifndef INTERSLICE_SERVER_SERVICE_H_
+#define INTERSLICE_SERVER_SERVICE_H_
+
+#include <string>
+
+#include "interslice/v1/interslice.grpc.pb.h"
+#include "server/executor.h"
+#include "server/job_manager.h"
+#include "server/metrics.h"
+#include "server/spool.h"
+
+namespace interslice::server {
+
+struct ServiceOptions {
+  // Bearer token every call must carry; empty = no authentication.
+  std::string auth_token;
+  int max_chunk_bytes = 1 << 20;
+  std::string version = "0.1.0";
+};
+
+class InterSliceService final : public v1::InterSlice::CallbackService {
+ public:
+  InterSliceService(const ServiceOptions& options, JobManager* manager,
+                    Spool* spool, Executor* io, Metrics* metrics)
+      : options_(options),
+        manager_(manager),
+        spool_(spool),
+        io_(io),
+        metrics_(metrics) {}
+
+  grpc::ServerBidiReactor<v1::UploadRequest, v1::InterpolateResponse>*
+  Interpolate(grpc::CallbackServerContext* context) override;
+  grpc::ServerReadReactor<v1::UploadRequest>* Submit(
+      grpc::CallbackServerContext* context,
+      v1::SubmitResponse* response) override;
+  grpc::ServerWriteReactor<v1::JobStatus>* Watch(
+      grpc::CallbackServerContext* context,
+      const v1::WatchRequest* request) override;
+  grpc::ServerWriteReactor<v1::ArtifactChunk>* Fetch(
+      grpc::CallbackServerContext* context,
+      const v1::FetchRequest* request) override;
+  grpc::ServerUnaryReactor* Cancel(grpc::CallbackServerContext* context,
+                                   const v1::CancelRequest* request,
+                                   v1::JobStatus* response) override;
+  grpc::ServerUnaryReactor* List(grpc::CallbackServerContext* context,
+                                 const v1::ListRequest* request,
+                                 v1::ListResponse* response) override;
+  grpc::ServerUnaryReactor* GetServerInfo(grpc::CallbackServerContext* context,
+                                          const v1::ServerInfoRequest* request,
+                                          v1::ServerInfo* response) override;
+
+  // Shared with the reactors (service.cc).
+  const ServiceOptions& options() const { return options_; }
+  JobManager* manager() const { return manager_; }
+  Spool* spool() const { return spool_; }
+  Executor* io() const { return io_; }
+  Metrics* metrics() const { return metrics_; }
+
+ private:
+  absl::Status Authenticate(grpc::CallbackServerContext* context) const;
+
+  const ServiceOptions options_;
+  JobManager* const manager_;
+  Spool* const spool_;
+  Executor* const io_;
+  Metrics* const metrics_;
+};
+
+}  // namespace interslice::server
+
+#endif  // INTERSLICE_SERVER_SERVICE_H_

@@ -1,0 +1,76 @@
+// On-disk storage of uploads and results: one folder per job under
+// <spool>/jobs/<id>/ holding job.pb (the JobRecord), upload/ (the DICOM
+// files, named by index, never by the client's names) and out/ (artifacts).
+//
+// Durability: records are written atomically (temporary file, fsync, rename,
+// fsync of the folder), so after a crash a job folder holds either the old or
+// the new record. A folder without a record is an upload that never completed
+// (the client never got a job id) and is deleted at start-up.
+//
+// Files are created with mode 0600 (the server also sets umask 077, which
+// covers the artifacts the core writes).
+//
+// Blocking: every method touches the file system; call them from worker or
+// I/O threads, never from a gRPC reactor callback.
+#ifndef INTERSLICE_SERVER_SPOOL_H_
+#define INTERSLICE_SERVER_SPOOL_H_
+
+#include <atomic>
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "interslice/spool/v1/record.pb.h"
+
+namespace interslice::server {
+
+using spool::v1::JobRecord;
+
+class Spool {
+ public:
+  // Creates <root>/jobs if needed and measures what is already there.
+  static absl::StatusOr<std::unique_ptr<Spool>> Open(const std::string& root,
+                                                     int64_t quota_bytes);
+
+  std::string JobDir(const std::string& id) const;
+  std::string UploadDir(const std::string& id) const;
+  std::string OutputDir(const std::string& id) const;
+
+  // Makes jobs/<id>/upload (and out/) for a new job.
+  absl::Status CreateJob(const std::string& id);
+  absl::Status WriteRecord(const JobRecord& record);
+  // Every folder with a readable record; folders without one are deleted.
+  absl::StatusOr<std::vector<JobRecord>> LoadRecords();
+  // Deletes the job's folder (uploads, results, record).
+  void RemoveJob(const std::string& id);
+  void RemoveUploads(const std::string& id);
+  // Deletes partial outputs of a failed run.
+  void RemoveOutputs(const std::string& id);
+
+  // Quota: bytes reserved for uploads plus bytes of stored results.
+  bool TryReserve(int64_t bytes);
+  void Release(int64_t bytes);
+  void Add(int64_t bytes) { used_ += bytes; }
+  int64_t used_bytes() const { return used_; }
+  int64_t quota_bytes() const { return quota_; }
+
+ private:
+  Spool(std::string root, int64_t quota)
+      : root_(std::move(root)), quota_(quota) {}
+  std::string root_;
+  int64_t quota_;
+  std::atomic<int64_t> used_{0};
+};
+
+// Writes `data` to `path` atomically with mode 0600.
+absl::Status WriteFileAtomically(const std::string& path,
+                                 const std::string& data);
+
+// Sum of the sizes of the regular files below `path`.
+int64_t TreeSize(const std::string& path);
+
+}  // namespace interslice::server
+
+#endif  // INTERSLICE_SERVER_SPOOL_H_

@@ -1,0 +1,50 @@
+#include "server/status_map.h"
+
+#include <cctype>
+
+namespace interslice::server {
+
+std::string RedactPhi(absl::string_view message) {
+  std::string out;
+  out.reserve(message.size());
+  size_t i = 0;
+  while (i < message.size()) {
+    if (std::isdigit(static_cast<unsigned char>(message[i])) &&
+        (i == 0 || !std::isalnum(static_cast<unsigned char>(message[i - 1])))) {
+      // Scan a run of digits and dots.
+      size_t j = i;
+      int dots = 0;
+      while (j < message.size() &&
+             (std::isdigit(static_cast<unsigned char>(message[j])) ||
+              message[j] == '.')) {
+        if (message[j] == '.') ++dots;
+        ++j;
+      }
+      // A trailing '.' ends a sentence, not the UID.
+      size_t end = j;
+      if (end > i && message[end - 1] == '.') {
+        --end;
+        --dots;
+      }
+      if (dots >= 3) {
+        out += "<uid>";
+        i = end;
+        continue;
+      }
+      out.append(message.data() + i, end - i);
+      i = end;
+      continue;
+    }
+    out.push_back(message[i]);
+    ++i;
+  }
+  return out;
+}
+
+grpc::Status ToGrpcStatus(const absl::Status& status) {
+  if (status.ok()) return grpc::Status::OK;
+  return grpc::Status(static_cast<grpc::StatusCode>(status.code()),
+                      RedactPhi(status.message()));
+}
+
+}  // namespace interslice::server

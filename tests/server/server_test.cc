@@ -1,0 +1,567 @@
+// End-to-end tests: real interslice-server processes on 127.0.0.1 (port 0,
+// read back from --port-file), driven by the real `interslice` binary.
+#include <gmock/gmock.h>
+#include <gtest/gtest.h>
+#include <signal.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <chrono>
+#include <filesystem>
+#include <fstream>
+#include <thread>
+
+#include "absl/strings/str_cat.h"
+#include "grpcpp/grpcpp.h"
+#include "interslice/v1/interslice.grpc.pb.h"
+#include "tests/server/process.h"
+
+namespace interslice::testing {
+namespace {
+namespace fs = std::filesystem;
+using ::testing::HasSubstr;
+using ::testing::Not;
+
+const std::string kCli = INTERSLICE_CLI_PATH;
+const std::string kServer = INTERSLICE_SERVER_PATH;
+const std::string kSeries = std::string(INTERSLICE_TEST_DATA_DIR) + "/ct-thick";
+// Small and fast: a 160 x 160 region of the 4 slices.
+const std::vector<std::string> kSmallJob = {kSeries, "--threshold", "300",
+                                            "--roi", "176,176,0,336,336,4"};
+// Runs until cancelled: CG with an unreachable iteration count.
+const std::vector<std::string> kLongJob = {
+    kSeries,        "--threshold", "300", "--roi", "100,100,0,400,400,4",
+    "--iterations", "100000000"};
+
+std::vector<std::string> Cat(std::vector<std::string> a,
+                             const std::vector<std::string>& b) {
+  a.insert(a.end(), b.begin(), b.end());
+  return a;
+}
+
+class TempDir {
+ public:
+  TempDir() {
+    char name[] = "/tmp/interslice-server-test-XXXXXX";
+    path_ = mkdtemp(name);
+  }
+  ~TempDir() {
+    std::error_code ec;
+    fs::remove_all(path_, ec);
+  }
+  std::string operator/(const std::string& name) const {
+    return (fs::path(path_) / name).string();
+  }
+  const std::string& path() const { return path_; }
+
+ private:
+  std::string path_;
+};
+
+class ServerProcess {
+ public:
+  ServerProcess(const std::string& spool, const std::string& log,
+                std::vector<std::string> extra = {})
+      : spool_(spool), log_(log), extra_(std::move(extra)) {
+    Start();
+  }
+  ~ServerProcess() {
+    if (pid_ > 0) {
+      kill(pid_, SIGKILL);
+      waitpid(pid_, nullptr, 0);
+    }
+  }
+  void Start() {
+    const std::string port_file = spool_ + ".port";
+    std::error_code ec;
+    fs::remove(port_file, ec);
+    std::vector<std::string> argv = {kServer,   "--listen", "127.0.0.1:0",
+                                     "--spool", spool_,     "--port-file",
+                                     port_file};
+    // One worker with two solver threads unless the test says otherwise.
+    if (std::find(extra_.begin(), extra_.end(), "--workers") == extra_.end()) {
+      argv = Cat(argv, {"--workers", "1"});
+    }
+    if (std::find(extra_.begin(), extra_.end(), "--threads-per-job") ==
+        extra_.end()) {
+      argv = Cat(argv, {"--threads-per-job", "2"});
+    }
+    pid_ = StartProcess(Cat(argv, extra_), log_);
+    for (int i = 0;
+         i < 500 && !fs::exists(port_file) && WaitProcess(pid_, 0) == -1; ++i) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    }
+    std::ifstream in(port_file);
+    int port = 0;
+    in >> port;
+    address_ = absl::StrCat("127.0.0.1:", port);
+  }
+  void Kill9() {
+    kill(pid_, SIGKILL);
+    waitpid(pid_, nullptr, 0);
+    pid_ = -1;
+  }
+  int Terminate(double timeout) {
+    kill(pid_, SIGTERM);
+    const int rc = WaitProcess(pid_, timeout);
+    if (rc != -1) pid_ = -1;
+    return rc;
+  }
+  const std::string& address() const { return address_; }
+  std::vector<std::string> Server() const { return {"--server", address_}; }
+  std::string Log() const { return ReadFileOrEmpty(log_); }
+
+ private:
+  std::string spool_, log_;
+  std::vector<std::string> extra_;
+  pid_t pid_ = -1;
+  std::string address_;
+};
+
+CommandResult Cli(const std::vector<std::string>& args, double timeout = 120) {
+  return RunCommand(Cat({kCli}, args), timeout);
+}
+
+std::string Trim(std::string s) {
+  while (!s.empty() && (s.back() == '\n' || s.back() == ' ')) s.pop_back();
+  return s;
+}
+
+void ExpectSameFiles(const std::string& expected_dir,
+                     const std::string& actual_dir) {
+  int files = 0;
+  for (const auto& entry : fs::directory_iterator(expected_dir)) {
+    const std::string name = entry.path().filename().string();
+    if (name == "report.json") continue;
+    ++files;
+    const std::string actual = (fs::path(actual_dir) / name).string();
+    ASSERT_TRUE(fs::exists(actual)) << name;
+    EXPECT_TRUE(ReadFileOrEmpty(entry.path().string()) ==
+                ReadFileOrEmpty(actual))
+        << name << " differs";
+  }
+  EXPECT_GE(files, 5);
+}
+
+// The in-process reference, on one thread.
+std::string RunLocally(const TempDir& dir, const std::vector<std::string>& job,
+                       const std::string& name) {
+  const std::string out = dir / name;
+  CommandResult r = Cli(Cat(
+      Cat({"run"}, job), {"--out", out, "--quiet", "--threads", "1", "--volume",
+                          "nii,nrrd", "--mesh", "stl,ply,obj"}));
+  EXPECT_EQ(r.exit_code, 0) << r.err;
+  return out;
+}
+
+std::unique_ptr<v1::InterSlice::Stub> Stub(const ServerProcess& server) {
+  return v1::InterSlice::NewStub(grpc::CreateChannel(
+      server.address(), grpc::InsecureChannelCredentials()));
+}
+
+// Waits until the job's status satisfies `done` (or 60 s pass).
+v1::JobStatus WaitFor(const ServerProcess& server, const std::string& id,
+                      const std::function<bool(const v1::JobStatus&)>& done) {
+  auto stub = Stub(server);
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() +
+                       std::chrono::seconds(60));
+  v1::WatchRequest request;
+  request.set_job_id(id);
+  auto reader = stub->Watch(&context, request);
+  v1::JobStatus status;
+  while (reader->Read(&status)) {
+    if (done(status)) {
+      context.TryCancel();
+      break;
+    }
+  }
+  reader->Finish();
+  return status;
+}
+
+bool Solving(const v1::JobStatus& s) {
+  return s.state() == v1::JOB_STATE_RUNNING &&
+         s.progress().stage() == "solve" && s.progress().iteration() > 0;
+}
+bool Ended(const v1::JobStatus& s) {
+  return s.state() == v1::JOB_STATE_SUCCEEDED ||
+         s.state() == v1::JOB_STATE_FAILED ||
+         s.state() == v1::JOB_STATE_CANCELLED;
+}
+
+int CountJobs(const std::string& spool) {
+  int n = 0;
+  std::error_code ec;
+  for (const auto& e : fs::directory_iterator(fs::path(spool) / "jobs", ec)) {
+    (void)e;
+    ++n;
+  }
+  return n;
+}
+
+TEST(ServerTest, OneCallGivesTheSameFilesAsRun) {
+  TempDir dir;
+  const std::string local = RunLocally(dir, kSmallJob, "local");
+  ServerProcess server(dir / "spool", dir / "server.log",
+                       {"--workers", "2", "--threads-per-job", "2"});
+  CommandResult r =
+      Cli(Cat(Cat({"interpolate"}, kSmallJob),
+              Cat(server.Server(),
+                  {"--out", dir / "remote", "--volume", "nii,nrrd", "--mesh",
+                   "stl,ply,obj", "--report", dir / "report.json"})));
+  ASSERT_EQ(r.exit_code, 0) << r.err << server.Log();
+  ExpectSameFiles(local, dir / "remote");
+  EXPECT_THAT(ReadFileOrEmpty(dir / "report.json"), HasSubstr("\"solver\""));
+  // The one-call job leaves nothing in the spool.
+  for (int i = 0; i < 100 && CountJobs(dir / "spool") > 0; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  EXPECT_EQ(CountJobs(dir / "spool"), 0);
+}
+
+TEST(ServerTest, DetachedJobGivesTheSameFilesAsRun) {
+  TempDir dir;
+  const std::string local = RunLocally(dir, kSmallJob, "local");
+  ServerProcess server(dir / "spool", dir / "server.log",
+                       {"--threads-per-job", "1"});
+  CommandResult submit =
+      Cli(Cat(Cat({"submit"}, kSmallJob),
+              Cat(server.Server(), {"--volume", "nii,nrrd", "--mesh",
+                                    "stl,ply,obj", "--label", "t"})));
+  ASSERT_EQ(submit.exit_code, 0) << submit.err;
+  const std::string id = Trim(submit.out);
+  CommandResult watch = Cli(Cat({"watch", id, "--quiet"}, server.Server()));
+  ASSERT_EQ(watch.exit_code, 0) << watch.err;
+  CommandResult list = Cli(Cat({"list", "--all"}, server.Server()));
+  EXPECT_THAT(list.out, HasSubstr(id));
+  CommandResult fetch = Cli(Cat({"fetch", id, "--out", dir / "remote",
+                                 "--report", dir / "remote/report.json"},
+                                server.Server()));
+  ASSERT_EQ(fetch.exit_code, 0) << fetch.err;
+  ExpectSameFiles(local, dir / "remote");
+  // Spool files are private.
+  for (const auto& e : fs::recursive_directory_iterator(dir / "spool/jobs")) {
+    if (e.is_regular_file()) {
+      EXPECT_EQ(fs::status(e.path()).permissions() & fs::perms::all,
+                fs::perms::owner_read | fs::perms::owner_write)
+          << e.path();
+    }
+  }
+}
+
+TEST(ServerTest, CancelStopsARunningSolve) {
+  TempDir dir;
+  ServerProcess server(dir / "spool", dir / "server.log");
+  CommandResult submit = Cli(Cat(Cat({"submit"}, kLongJob), server.Server()));
+  ASSERT_EQ(submit.exit_code, 0) << submit.err;
+  const std::string id = Trim(submit.out);
+  ASSERT_TRUE(Solving(WaitFor(server, id, Solving)));
+  CommandResult cancel = Cli(Cat({"cancel", id}, server.Server()));
+  EXPECT_EQ(cancel.exit_code, 0) << cancel.err;
+  const v1::JobStatus end = WaitFor(server, id, Ended);
+  EXPECT_EQ(end.state(), v1::JOB_STATE_CANCELLED);
+  CommandResult watch = Cli(Cat({"watch", id, "--quiet"}, server.Server()));
+  EXPECT_EQ(watch.exit_code, 1);
+  EXPECT_THAT(watch.err, HasSubstr("cancelled"));
+}
+
+TEST(ServerTest, DeadlineExpiryFailsTheCallAndCancelsTheJob) {
+  TempDir dir;
+  ServerProcess server(dir / "spool", dir / "server.log");
+  CommandResult r =
+      Cli(Cat(Cat({"interpolate"}, kLongJob),
+              Cat(server.Server(),
+                  {"--out", dir / "out", "--deadline", "3", "--quiet"})));
+  EXPECT_EQ(r.exit_code, 1);
+  EXPECT_THAT(r.err, HasSubstr("deadline expired"));
+  EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << r.err;
+  // The job stops and its files go.
+  for (int i = 0; i < 200 && CountJobs(dir / "spool") > 0; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  EXPECT_EQ(CountJobs(dir / "spool"), 0) << server.Log();
+}
+
+TEST(ServerTest, FullQueueAnswersResourceExhausted) {
+  TempDir dir;
+  ServerProcess server(dir / "spool", dir / "server.log",
+                       {"--max-queued", "1"});
+  CommandResult a = Cli(Cat(Cat({"submit"}, kLongJob), server.Server()));
+  ASSERT_EQ(a.exit_code, 0) << a.err;
+  WaitFor(server, Trim(a.out), Solving);  // the worker is busy
+  CommandResult b = Cli(Cat(Cat({"submit"}, kSmallJob), server.Server()));
+  ASSERT_EQ(b.exit_code, 0) << b.err;  // waits in the queue
+  CommandResult c = Cli(Cat(Cat({"submit"}, kSmallJob), server.Server()));
+  EXPECT_EQ(c.exit_code, 1);
+  EXPECT_THAT(c.err, HasSubstr("queue is full"));
+  CommandResult d = Cli(Cat(Cat({"interpolate"}, kSmallJob),
+                            Cat(server.Server(), {"--out", dir / "o"})));
+  EXPECT_EQ(d.exit_code, 1);
+  EXPECT_THAT(d.err, HasSubstr("queue is full"));
+  EXPECT_EQ(Cli(Cat({"cancel", Trim(a.out)}, server.Server())).exit_code, 0);
+  // The queued job then runs.
+  EXPECT_EQ(WaitFor(server, Trim(b.out), Ended).state(),
+            v1::JOB_STATE_SUCCEEDED);
+}
+
+TEST(ServerTest, OversizeJobsAreRejectedBeforeAllocation) {
+  TempDir dir;
+  ServerProcess server(
+      dir / "spool", dir / "server.log",
+      {"--max-voxels", "100000", "--max-upload-bytes", "3000000"});
+  // Output grid 160 x 160 x 34 > 100000 voxels: refused by the size check
+  // that precedes the allocation of the refined grid.
+  CommandResult r = Cli(Cat(Cat({"interpolate"}, kSmallJob),
+                            Cat(server.Server(), {"--out", dir / "o"})));
+  EXPECT_EQ(r.exit_code, 1);
+  EXPECT_THAT(r.err, HasSubstr("refused the job"));
+  // An upload above the byte limit is refused from its header alone.
+  fs::create_directories(dir / "big");
+  for (const auto& e : fs::directory_iterator(kSeries)) {
+    fs::copy_file(e.path(), fs::path(dir / "big") / e.path().filename());
+    fs::copy_file(e.path(), fs::path(dir / "big") /
+                                ("copy-" + e.path().filename().string()));
+  }
+  CommandResult big =
+      Cli(Cat({"submit", dir / "big", "--threshold", "300"}, server.Server()));
+  EXPECT_EQ(big.exit_code, 1);
+  EXPECT_THAT(big.err, HasSubstr("exceeds the server's limit"));
+  EXPECT_EQ(CountJobs(dir / "spool"), 0);
+}
+
+TEST(ServerTest, ClientDisconnectingMidUploadLeavesNothingBehind) {
+  TempDir dir;
+  ServerProcess server(dir / "spool", dir / "server.log");
+  auto stub = Stub(server);
+  grpc::ClientContext context;
+  v1::SubmitResponse response;
+  auto writer = stub->Submit(&context, &response);
+  v1::UploadRequest request;
+  v1::UploadHeader* header = request.mutable_header();
+  header->mutable_spec()->set_threshold(300);
+  header->set_file_count(2);
+  header->set_total_bytes(1 << 20);
+  ASSERT_TRUE(writer->Write(request));
+  request.Clear();
+  v1::FileChunk* chunk = request.mutable_chunk();
+  chunk->set_file_index(0);
+  chunk->set_file_size(1 << 19);
+  chunk->set_sha256(std::string(32, 'x'));
+  chunk->set_data(std::string(65536, 'a'));
+  ASSERT_TRUE(writer->Write(request));
+  // Wait until the upload is visibly on disk, then vanish.
+  for (int i = 0; i < 200 && CountJobs(dir / "spool") == 0; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  EXPECT_EQ(CountJobs(dir / "spool"), 1);
+  context.TryCancel();
+  writer->Finish();
+  for (int i = 0; i < 200 && CountJobs(dir / "spool") > 0; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  EXPECT_EQ(CountJobs(dir / "spool"), 0);
+  CommandResult list = Cli(Cat({"list", "--all"}, server.Server()));
+  EXPECT_EQ(list.out, "");
+}
+
+TEST(ServerTest, KillNineAndRestartKeepsAcceptedJobs) {
+  TempDir dir;
+  const std::string local = RunLocally(dir, kSmallJob, "local");
+  auto server =
+      std::make_unique<ServerProcess>(dir / "spool", dir / "server.log");
+  const std::vector<std::string> outputs = {"--volume", "nii,nrrd", "--mesh",
+                                            "stl,ply,obj"};
+  CommandResult done =
+      Cli(Cat(Cat(Cat({"submit"}, kSmallJob), outputs), server->Server()));
+  ASSERT_EQ(done.exit_code, 0) << done.err;
+  ASSERT_EQ(WaitFor(*server, Trim(done.out), Ended).state(),
+            v1::JOB_STATE_SUCCEEDED);
+  CommandResult running = Cli(Cat(Cat({"submit"}, kLongJob), server->Server()));
+  ASSERT_EQ(running.exit_code, 0);
+  WaitFor(*server, Trim(running.out), Solving);
+  CommandResult queued =
+      Cli(Cat(Cat(Cat({"submit"}, kSmallJob), outputs), server->Server()));
+  ASSERT_EQ(queued.exit_code, 0);
+
+  server->Kill9();
+  server->Start();
+
+  CommandResult fetch =
+      Cli(Cat({"fetch", Trim(done.out), "--out", dir / "a"}, server->Server()));
+  ASSERT_EQ(fetch.exit_code, 0) << fetch.err << server->Log();
+  ExpectSameFiles(local, dir / "a");
+  const v1::JobStatus interrupted = WaitFor(*server, Trim(running.out), Ended);
+  EXPECT_EQ(interrupted.state(), v1::JOB_STATE_FAILED);
+  EXPECT_THAT(interrupted.error_message(), HasSubstr("server stopped"));
+  EXPECT_EQ(WaitFor(*server, Trim(queued.out), Ended).state(),
+            v1::JOB_STATE_SUCCEEDED);
+  CommandResult fetch2 = Cli(
+      Cat({"fetch", Trim(queued.out), "--out", dir / "b"}, server->Server()));
+  ASSERT_EQ(fetch2.exit_code, 0) << fetch2.err;
+  ExpectSameFiles(local, dir / "b");
+}
+
+void MakeCertificates(const TempDir& dir) {
+  const std::string script = absl::StrCat(
+      "set -e; cd ", dir.path(), "; exec >openssl.log 2>&1\n",
+      "openssl req -x509 -newkey rsa:2048 -nodes -days 2 -subj /CN=test-ca "
+      "-keyout ca.key -out ca.pem\n",
+      "openssl req -newkey rsa:2048 -nodes -subj /CN=localhost "
+      "-keyout server.key -out server.csr\n",
+      "printf 'subjectAltName=IP:127.0.0.1,DNS:localhost\\n' > san.ext\n",
+      "openssl x509 -req -in server.csr -CA ca.pem -CAkey ca.key "
+      "-CAcreateserial -days 2 -extfile san.ext -out server.pem\n",
+      "openssl req -newkey rsa:2048 -nodes -subj /CN=client "
+      "-keyout client.key -out client.csr\n",
+      "openssl x509 -req -in client.csr -CA ca.pem -CAkey ca.key "
+      "-CAcreateserial -days 2 -out client.pem\n",
+      // A client certificate from a CA the server does not trust.
+      "openssl req -x509 -newkey rsa:2048 -nodes -days 2 -subj /CN=rogue "
+      "-keyout rogue.key -out rogue.pem\n");
+  ASSERT_EQ(RunCommand({"/bin/sh", "-c", script}).exit_code, 0)
+      << ReadFileOrEmpty(dir / "openssl.log");
+}
+
+TEST(ServerTest, TlsAndMutualTls) {
+  TempDir dir;
+  MakeCertificates(dir);
+  {
+    ServerProcess tls(
+        dir / "spool1", dir / "tls.log",
+        {"--tls-cert", dir / "server.pem", "--tls-key", dir / "server.key"});
+    EXPECT_EQ(
+        Cli(Cat({"info", "--tls-ca", dir / "ca.pem"}, tls.Server())).exit_code,
+        0);
+    CommandResult plain = Cli(Cat({"info"}, tls.Server()));
+    EXPECT_EQ(plain.exit_code, 1);
+    EXPECT_THAT(plain.err, HasSubstr("cannot reach the server"));
+  }
+  ServerProcess mtls(dir / "spool2", dir / "mtls.log",
+                     {"--tls-cert", dir / "server.pem", "--tls-key",
+                      dir / "server.key", "--tls-client-ca", dir / "ca.pem"});
+  EXPECT_EQ(
+      Cli(Cat({"info", "--tls-ca", dir / "ca.pem"}, mtls.Server())).exit_code,
+      1);
+  EXPECT_EQ(Cli(Cat({"info", "--tls-ca", dir / "ca.pem", "--tls-cert",
+                     dir / "rogue.pem", "--tls-key", dir / "rogue.key"},
+                    mtls.Server()))
+                .exit_code,
+            1);
+  CommandResult ok = Cli(Cat(
+      {"interpolate", "--tls-ca", dir / "ca.pem", "--tls-cert",
+       dir / "client.pem", "--tls-key", dir / "client.key", "--out", dir / "o"},
+      Cat(kSmallJob, mtls.Server())));
+  EXPECT_EQ(ok.exit_code, 0) << ok.err;
+}
+
+TEST(ServerTest, BearerTokenAuth) {
+  TempDir dir;
+  std::ofstream(dir / "token") << "s3cret-token\n";
+  std::ofstream(dir / "wrong") << "guess\n";
+  ServerProcess server(dir / "spool", dir / "server.log",
+                       {"--auth-token-file", dir / "token"});
+  CommandResult none = Cli(Cat({"list"}, server.Server()));
+  EXPECT_EQ(none.exit_code, 1);
+  EXPECT_THAT(none.err, HasSubstr("refused the credentials"));
+  CommandResult wrong =
+      Cli(Cat(Cat({"submit", "--token-file", dir / "wrong"}, kSmallJob),
+              server.Server()));
+  EXPECT_EQ(wrong.exit_code, 1);
+  EXPECT_THAT(wrong.err, HasSubstr("refused the credentials"));
+  EXPECT_EQ(CountJobs(dir / "spool"), 0);
+  CommandResult right = Cli(Cat(
+      Cat({"interpolate", "--token-file", dir / "token", "--out", dir / "o"},
+          kSmallJob),
+      server.Server()));
+  EXPECT_EQ(right.exit_code, 0) << right.err;
+  // Health checks (Kubernetes probes) need no token.
+  EXPECT_EQ(Cli(Cat({"health"}, server.Server())).exit_code, 0);
+}
+
+TEST(ServerTest, PatientDataNeverReachesLogsOrErrors) {
+  TempDir dir;
+  fs::create_directories(dir / "series");
+  for (const auto& e : fs::directory_iterator(kSeries)) {
+    fs::copy_file(e.path(), fs::path(dir / "series") / e.path().filename());
+  }
+  const std::string canary = "CANARYXQZ";
+  std::vector<std::string> modify = {"/usr/bin/dcmodify",
+                                     "-nb",
+                                     "-m",
+                                     "PatientName=" + canary + "^NAME",
+                                     "-m",
+                                     "PatientID=" + canary + "ID",
+                                     "-m",
+                                     "AccessionNumber=" + canary + "ACC",
+                                     "-m",
+                                     "PatientBirthDate=19010101"};
+  for (const auto& e : fs::directory_iterator(dir / "series")) {
+    if (e.path().extension() == ".dcm") modify.push_back(e.path().string());
+  }
+  ASSERT_EQ(RunCommand(modify).exit_code, 0);
+  // File names can carry PHI too.
+  fs::rename(dir / "series/I10.dcm", dir / ("series/" + canary + ".dcm"));
+  ServerProcess server(dir / "spool", dir / "server.log",
+                       {"--log-level", "trace", "--log-format", "json"});
+  const std::vector<std::string> job = {dir / "series", "--threshold", "300",
+                                        "--roi", "176,176,0,336,336,4"};
+  CommandResult ok =
+      Cli(Cat(Cat({"interpolate", "--out", dir / "o"}, job), server.Server()));
+  EXPECT_EQ(ok.exit_code, 0) << ok.err;
+  // Failures: a region outside the series, an unknown series UID.
+  CommandResult bad_roi =
+      Cli(Cat({"interpolate", dir / "series", "--threshold", "300", "--roi",
+               "0,0,0,9999,10,4", "--out", dir / "o2"},
+              server.Server()));
+  EXPECT_EQ(bad_roi.exit_code, 1);
+  CommandResult bad_uid = Cli(Cat(
+      Cat({"submit", "--series-uid", "1.2.3.4.5.6.7"}, job), server.Server()));
+  ASSERT_EQ(bad_uid.exit_code, 0);
+  const v1::JobStatus failed = WaitFor(server, Trim(bad_uid.out), Ended);
+  EXPECT_EQ(failed.state(), v1::JOB_STATE_FAILED);
+  const std::string log = server.Log();
+  EXPECT_THAT(log, HasSubstr("job="));
+  EXPECT_THAT(log, Not(HasSubstr(canary)));
+  EXPECT_THAT(log, Not(HasSubstr("19010101")));
+  EXPECT_THAT(bad_roi.err + failed.error_message(), Not(HasSubstr(canary)));
+  EXPECT_THAT(failed.error_message(), Not(HasSubstr("1.2.3.4.5.6.7")));
+}
+
+TEST(ServerTest, SigtermDrainsWithHealthNotServing) {
+  TempDir dir;
+  ServerProcess server(dir / "spool", dir / "server.log",
+                       {"--drain-grace", "3"});
+  EXPECT_EQ(Cli(Cat({"health"}, server.Server())).exit_code, 0);
+  CommandResult submit = Cli(Cat(Cat({"submit"}, kLongJob), server.Server()));
+  ASSERT_EQ(submit.exit_code, 0);
+  WaitFor(server, Trim(submit.out), Solving);
+  const auto start = std::chrono::steady_clock::now();
+  std::thread terminator([&] { EXPECT_EQ(server.Terminate(30), 0); });
+  std::this_thread::sleep_for(std::chrono::milliseconds(500));
+  CommandResult health = Cli(Cat({"health"}, server.Server()));
+  EXPECT_EQ(health.exit_code, 1);
+  EXPECT_THAT(health.out, HasSubstr("NOT_SERVING"));
+  CommandResult refused = Cli(Cat(Cat({"submit"}, kSmallJob), server.Server()));
+  EXPECT_EQ(refused.exit_code, 1);
+  EXPECT_THAT(refused.err, HasSubstr("shutting down"));
+  terminator.join();
+  EXPECT_GE(std::chrono::steady_clock::now() - start, std::chrono::seconds(3));
+  EXPECT_THAT(server.Log(), HasSubstr("cancelled by shutdown"));
+  // The interrupted job was not lost: it runs again after a restart.
+  server.Start();
+  const v1::JobStatus again = WaitFor(server, Trim(submit.out), Solving);
+  EXPECT_TRUE(Solving(again));
+  Cli(Cat({"cancel", Trim(submit.out)}, server.Server()));
+}
+
+TEST(ServerTest, UnreachableServerIsOneLineAndExitOne) {
+  CommandResult r = Cli({"info", "--server", "127.0.0.1:1"});
+  EXPECT_EQ(r.exit_code, 1);
+  EXPECT_THAT(r.err, HasSubstr("cannot reach the server at 127.0.0.1:1"));
+  EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << r.err;
+}
+
+}  // namespace
+}  // namespace interslice::testing

@@ -1,0 +1,56 @@
+// Unit tests of the server library's pure parts.
+#include <gtest/gtest.h>
+
+#include "server/spec_mapping.h"
+#include "server/status_map.h"
+
+namespace interslice::server {
+namespace {
+
+TEST(RedactPhiTest, ReplacesUidsButKeepsNumbers) {
+  EXPECT_EQ(RedactPhi("several series: 1.2.840.113619.2.55.3 (CT, 4 images)."),
+            "several series: <uid> (CT, 4 images).");
+  EXPECT_EQ(RedactPhi("file 3 of 12 bytes, spacing 0.45 mm, v1.2.3"),
+            "file 3 of 12 bytes, spacing 0.45 mm, v1.2.3");
+}
+
+TEST(StatusMapTest, CodesMapOneToOne) {
+  EXPECT_EQ(ToGrpcStatus(absl::ResourceExhaustedError("x")).error_code(),
+            grpc::RESOURCE_EXHAUSTED);
+  EXPECT_EQ(ToGrpcStatus(absl::DeadlineExceededError("x")).error_code(),
+            grpc::DEADLINE_EXCEEDED);
+  EXPECT_TRUE(ToGrpcStatus(absl::OkStatus()).ok());
+}
+
+TEST(SpecMappingTest, DefaultsMatchTheCli) {
+  v1::JobSpec p;
+  EXPECT_FALSE(JobSpecFromProto(p).ok());  // threshold is required
+  p.set_threshold(300);
+  absl::StatusOr<JobSpec> spec = JobSpecFromProto(p);
+  ASSERT_TRUE(spec.ok()) << spec.status();
+  EXPECT_EQ(spec->solver.method, SolverMethod::kConjugateGradient);
+  EXPECT_EQ(spec->solver.max_iterations, 15);
+  EXPECT_EQ(spec->volume_formats, std::vector<std::string>{"nii"});
+  EXPECT_EQ(spec->mesh_formats, std::vector<std::string>{"stl"});
+  p.set_tolerance(1e-3);
+  EXPECT_EQ(JobSpecFromProto(p)->solver.max_iterations, 100000);
+  p.mutable_outputs();  // present and empty: no files
+  EXPECT_TRUE(JobSpecFromProto(p)->mesh_formats.empty());
+  p.set_strict_spacing(true);
+  p.set_uid_root("1.2.3");
+  p.mutable_segmentation()->set_enabled(true);
+  p.set_multiframe_volume("stack 1");
+  auto mapped = JobSpecFromProto(p);
+  ASSERT_TRUE(mapped.ok()) << mapped.status();
+  EXPECT_TRUE(mapped->strict_spacing);
+  EXPECT_TRUE(mapped->write_seg);
+  EXPECT_EQ(mapped->uid_root, "1.2.3");
+  EXPECT_EQ(mapped->multiframe_volume, "stack 1");
+  // Derived series are folders of files: not served yet, and said so.
+  p.mutable_derived_series()->add_contents("mask");
+  EXPECT_EQ(JobSpecFromProto(p).status().code(),
+            absl::StatusCode::kUnimplemented);
+}
+
+}  // namespace
+}  // namespace interslice::server
