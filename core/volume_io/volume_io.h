@@ -18,7 +18,8 @@ namespace interslice {
 // the path and ITK's reason when writing fails. The file appears complete or
 // not at all (written to a temporary name, then renamed).
 absl::Status WriteVolume(const Volume<float>& volume, const std::string& path);
-absl::Status WriteVolume(const Volume<uint8_t>& volume, const std::string& path);
+absl::Status WriteVolume(const Volume<uint8_t>& volume,
+                         const std::string& path);
 
 // Reads a scalar volume written by WriteVolume (any scalar type, converted).
 absl::StatusOr<Volume<float>> ReadVolumeAsFloat(const std::string& path);

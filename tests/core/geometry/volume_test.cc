@@ -91,7 +91,8 @@ TEST(PhysicalBoxTest, MapsToCoveringVoxelBox) {
   ASSERT_TRUE(box.ok()) << box.status();
   EXPECT_EQ(box->begin, (Index3{2, 0, 1}));
   EXPECT_EQ(box->end, (Index3{5, 10, 5}));
-  EXPECT_FALSE(PhysicalBoxToVoxelBox({{100, 100, 100}, {101, 101, 101}}, g).ok());
+  EXPECT_FALSE(
+      PhysicalBoxToVoxelBox({{100, 100, 100}, {101, 101, 101}}, g).ok());
 }
 
 }  // namespace
