@@ -11,6 +11,7 @@
 #include <optional>
 
 #include "absl/strings/str_cat.h"
+#include "core/dicom/series_reader.h"
 #include "server/hashing.h"
 #include "server/status_map.h"
 #include "spdlog/spdlog.h"
@@ -838,25 +839,10 @@ grpc::ServerUnaryReactor* InterSliceService::GetServerInfo(
   }
   response->set_version(options_.version);
   response->set_api("interslice.v1");
-  // What DCMTK decodes with the codecs core/dicom registers (uncompressed,
-  // deflate, JPEG, JPEG-LS, RLE). The core has no query for this list yet.
-  static const std::pair<const char*, const char*> kSyntaxes[] = {
-      {"1.2.840.10008.1.2", "Implicit VR Little Endian"},
-      {"1.2.840.10008.1.2.1", "Explicit VR Little Endian"},
-      {"1.2.840.10008.1.2.1.99", "Deflated Explicit VR Little Endian"},
-      {"1.2.840.10008.1.2.2", "Explicit VR Big Endian"},
-      {"1.2.840.10008.1.2.4.50", "JPEG Baseline (Process 1)"},
-      {"1.2.840.10008.1.2.4.51", "JPEG Extended (Process 2 & 4)"},
-      {"1.2.840.10008.1.2.4.57",
-       "JPEG Lossless, Non-Hierarchical (Process 14)"},
-      {"1.2.840.10008.1.2.4.70", "JPEG Lossless, First-Order Prediction"},
-      {"1.2.840.10008.1.2.4.80", "JPEG-LS Lossless"},
-      {"1.2.840.10008.1.2.4.81", "JPEG-LS Near-Lossless"},
-      {"1.2.840.10008.1.2.5", "RLE Lossless"}};
-  for (const auto& [uid, name] : kSyntaxes) {
+  for (const TransferSyntaxInfo& syntax : DecodableTransferSyntaxes()) {
     v1::TransferSyntax* t = response->add_transfer_syntaxes();
-    t->set_uid(uid);
-    t->set_name(name);
+    t->set_uid(syntax.uid);
+    t->set_name(syntax.name);
   }
   const ManagerOptions& m = manager_->options();
   v1::Limits* limits = response->mutable_limits();

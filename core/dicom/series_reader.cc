@@ -22,6 +22,7 @@
 #include "core/dicom/gdcm_decode.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
+#include "dcmtk/dcmdata/dccodec.h"
 #include "dcmtk/dcmdata/dcdatset.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
 #include "dcmtk/dcmdata/dcfilefo.h"
@@ -655,6 +656,30 @@ void RegisterDicomDecoders() {
     DJLSDecoderRegistration::registerCodecs();
     DcmRLEDecoderRegistration::registerCodecs();
   });
+}
+
+std::vector<TransferSyntaxInfo> DecodableTransferSyntaxes() {
+  RegisterDicomDecoders();
+  static constexpr E_TransferSyntax kNative[] = {
+      EXS_LittleEndianImplicit, EXS_LittleEndianExplicit,
+      EXS_DeflatedLittleEndianExplicit, EXS_BigEndianExplicit};
+  static constexpr E_TransferSyntax kEncapsulated[] = {
+      EXS_JPEGProcess1,     EXS_JPEGProcess2_4,       EXS_JPEGProcess14,
+      EXS_JPEGProcess14SV1, EXS_JPEGLSLossless,       EXS_JPEGLSLossy,
+      EXS_RLELossless,      EXS_JPEG2000LosslessOnly, EXS_JPEG2000};
+  std::vector<TransferSyntaxInfo> out;
+  auto add = [&out](E_TransferSyntax xfer) {
+    const DcmXfer x(xfer);
+    out.push_back({x.getXferID(), x.getXferName()});
+  };
+  for (E_TransferSyntax xfer : kNative) add(xfer);
+  for (E_TransferSyntax xfer : kEncapsulated) {
+    if (DcmCodecList::canChangeCoding(xfer, EXS_LittleEndianExplicit) ||
+        dicom_internal::IsGdcmFallbackSyntax(DcmXfer(xfer).getXferID())) {
+      add(xfer);
+    }
+  }
+  return out;
 }
 
 void QuietDicomToolkitLogging() {

@@ -135,6 +135,16 @@ absl::StatusOr<DicomSeries> ReadDicomSeries(
 absl::StatusOr<std::vector<DicomSeriesSummary>> ListDicomSeries(
     const std::vector<std::string>& paths);
 
+struct TransferSyntaxInfo {
+  std::string uid;
+  std::string name;
+};
+
+// The transfer syntaxes this reader decodes: the uncompressed and deflated
+// ones, those a registered DCMTK codec can decode (JPEG, JPEG-LS, RLE), and
+// JPEG 2000 through GDCM. Computed from the codec registry, so it stays true.
+std::vector<TransferSyntaxInfo> DecodableTransferSyntaxes();
+
 // Turns DCMTK's own logger (which prints a line to stderr for every file it
 // cannot parse) down to fatal messages. Programs call it once at start-up;
 // the library never changes that process-wide setting by itself.

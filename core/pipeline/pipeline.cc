@@ -163,8 +163,8 @@ absl::Status ValidateJobSpec(const JobSpec& spec) {
   if (!(spec.solver.tolerance >= 0) || !std::isfinite(spec.solver.tolerance)) {
     return absl::InvalidArgumentError("tolerance must be >= 0");
   }
-  if (spec.max_output_voxels <= 0) {
-    return absl::InvalidArgumentError("max_output_voxels must be positive");
+  if (spec.max_output_voxels <= 0 || spec.max_input_voxels <= 0) {
+    return absl::InvalidArgumentError("voxel limits must be positive");
   }
   return absl::OkStatus();
 }
@@ -190,6 +190,7 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
     DicomReadOptions options;
     options.series_instance_uid = spec.series_instance_uid;
     options.volume = spec.multiframe_volume;
+    options.max_voxels = spec.max_input_voxels;
     INTERSLICE_ASSIGN_OR_RETURN(DicomSeries series,
                                 ReadDicomSeries(spec.inputs, options, context));
     report.input_grid = series.image.grid;

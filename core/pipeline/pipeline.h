@@ -58,6 +58,10 @@ struct JobSpec {
   std::string output_dir;
   // Upper bound on voxels of the refined grid, checked before allocation.
   int64_t max_output_voxels = int64_t{1} << 30;
+  // Upper bound on voxels of the series as read (Columns x Rows x slices),
+  // checked from the headers before any pixel data is decoded; this is what
+  // bounds a small compressed upload that claims a huge image.
+  int64_t max_input_voxels = int64_t{1} << 31;
 };
 
 struct StageTiming {

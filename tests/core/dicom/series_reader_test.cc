@@ -13,6 +13,7 @@
 #include <iterator>
 #include <memory>
 #include <random>
+#include <set>
 #include <string>
 #include <vector>
 
@@ -1224,6 +1225,21 @@ TEST(ReadDicomSeriesTest, TruncatedPixelDataIsAnErrorNamingTheFile) {
     const auto result = Read({dir.str()});
     EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
     EXPECT_THAT(result.status().message(), HasSubstr("cut.dcm"));
+  }
+}
+
+TEST(DecodableTransferSyntaxesTest, ListsWhatTheReaderDecodes) {
+  std::set<std::string> uids;
+  for (const TransferSyntaxInfo& t : DecodableTransferSyntaxes()) {
+    EXPECT_FALSE(t.name.empty()) << t.uid;
+    uids.insert(t.uid);
+  }
+  for (const char* uid : {"1.2.840.10008.1.2", "1.2.840.10008.1.2.1",
+                          "1.2.840.10008.1.2.2", "1.2.840.10008.1.2.1.99",
+                          "1.2.840.10008.1.2.4.50", "1.2.840.10008.1.2.4.70",
+                          "1.2.840.10008.1.2.4.80", "1.2.840.10008.1.2.5",
+                          "1.2.840.10008.1.2.4.90", "1.2.840.10008.1.2.4.91"}) {
+    EXPECT_TRUE(uids.count(uid)) << uid;
   }
 }
 

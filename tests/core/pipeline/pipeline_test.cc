@@ -144,6 +144,15 @@ TEST_F(PipelineTest, RejectsBadSpecsWithClearErrors) {
   spec.max_output_voxels = 1000;
   EXPECT_EQ(RunJob(spec, {}).status().code(),
             absl::StatusCode::kResourceExhausted);
+
+  // The input limit reaches the reader (512 x 512 x 4 voxels here).
+  spec = SmallJob();
+  spec.max_input_voxels = 512 * 512 * 4 - 1;
+  r = RunJob(spec, {});
+  EXPECT_FALSE(r.ok());
+  EXPECT_THAT(r.status().message(), ::testing::HasSubstr("voxels"));
+  spec.max_input_voxels = 512 * 512 * 4;
+  EXPECT_TRUE(RunJob(spec, {}).ok());
 }
 
 TEST_F(PipelineTest, SameResultWhateverTheThreadCount) {
