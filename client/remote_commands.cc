@@ -3,10 +3,12 @@
 #include <openssl/evp.h>
 
 #include <algorithm>
+#include <cctype>
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <string_view>
 #include <thread>
 #include <vector>
 
@@ -202,6 +204,35 @@ ProgressEvent ToEvent(const v1::Progress& p) {
   return e;
 }
 
+}  // namespace
+
+// Artifact names come from the server and become local paths: a file name,
+// or "<folder>/<file>" (derived DICOM series), of plain characters only, so
+// no name can climb out of the output folder or be absolute.
+bool IsSafeArtifactName(const std::string& name) {
+  const size_t slash = name.find('/');
+  if (slash != std::string::npos &&
+      name.find('/', slash + 1) != std::string::npos) {
+    return false;
+  }
+  auto safe_component = [](std::string_view c) {
+    if (c.empty() || c == "." || c == "..") return false;
+    for (char ch : c) {
+      if (!(std::isalnum(static_cast<unsigned char>(ch)) || ch == '.' ||
+            ch == '_' || ch == '-')) {
+        return false;
+      }
+    }
+    return true;
+  };
+  const std::string_view view(name);
+  if (slash == std::string::npos) return safe_component(view);
+  return safe_component(view.substr(0, slash)) &&
+         safe_component(view.substr(slash + 1));
+}
+
+namespace {
+
 // Writes one artifact to <dir>/<name>.part, then checks its size and
 // SHA-256 and renames it to <dir>/<name>.
 class ArtifactFile {
@@ -209,11 +240,14 @@ class ArtifactFile {
   absl::Status Begin(const std::string& dir, const v1::ArtifactInfo& info,
                      int64_t offset) {
     info_ = info;
-    final_ = (fs::path(dir) / info.name()).string();
-    part_ = final_ + ".part";
-    if (info.name().find('/') != std::string::npos || info.name().empty()) {
+    if (!IsSafeArtifactName(info.name())) {
       return absl::DataLossError("the server sent a bad artifact name");
     }
+    final_ = (fs::path(dir) / info.name()).string();
+    part_ = final_ + ".part";
+    std::error_code ec;
+    fs::create_directories(fs::path(final_).parent_path(), ec);
+    if (ec) return absl::PermissionDeniedError("cannot create " + final_);
     out_.open(part_, offset > 0 ? std::ios::binary | std::ios::app
                                 : std::ios::binary | std::ios::trunc);
     if (!out_) return absl::PermissionDeniedError("cannot write " + part_);

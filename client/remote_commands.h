@@ -42,6 +42,11 @@ class RemoteCommands {
   CLI::App* health_ = nullptr;
 };
 
+// Whether an artifact name sent by a server is safe to use as a local path:
+// "file" or "folder/file" (derived DICOM series), components of letters,
+// digits, '.', '_' and '-' only, never "." or "..".
+bool IsSafeArtifactName(const std::string& name);
+
 }  // namespace interslice::client
 
 #endif  // INTERSLICE_CLIENT_REMOTE_COMMANDS_H_

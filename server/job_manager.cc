@@ -565,21 +565,40 @@ void JobManager::RunOne(const std::shared_ptr<Job>& job) {
     int64_t result_bytes = 0;
     absl::Status hashed = absl::OkStatus();
     for (Artifact& a : report->artifacts) {
-      const std::string name = fs::path(a.path).filename().string();
-      absl::StatusOr<std::string> sha = Sha256OfFile(a.path);
-      if (!sha.ok()) {
-        hashed = sha.status();
-        break;
+      const fs::path top(a.path);
+      // A derived DICOM series is a folder: each of its files becomes an
+      // artifact named "<folder>/<file>" (one level, the only nesting).
+      std::vector<std::pair<std::string, fs::path>> files;
+      std::error_code ec;
+      if (fs::is_directory(top, ec)) {
+        for (const auto& entry : fs::directory_iterator(top, ec)) {
+          if (!entry.is_regular_file(ec)) continue;
+          files.push_back(
+              {top.filename().string() + "/" + entry.path().filename().string(),
+               entry.path()});
+        }
+        std::sort(files.begin(), files.end());
+      } else {
+        files.push_back({top.filename().string(), top});
       }
-      v1::ArtifactInfo info;
-      info.set_name(name);
-      info.set_kind(a.kind);
-      info.set_media_type(MediaTypeForArtifact(name));
-      info.set_size_bytes(a.size_bytes);
-      info.set_sha256(*sha);
-      artifacts.push_back(info);
-      result_bytes += a.size_bytes;
-      a.path = name;  // the report names files, not server paths
+      for (const auto& [name, path] : files) {
+        absl::StatusOr<std::string> sha = Sha256OfFile(path.string());
+        if (!sha.ok()) {
+          hashed = sha.status();
+          break;
+        }
+        const int64_t size = static_cast<int64_t>(fs::file_size(path, ec));
+        v1::ArtifactInfo info;
+        info.set_name(name);
+        info.set_kind(a.kind);
+        info.set_media_type(MediaTypeForArtifact(name));
+        info.set_size_bytes(size);
+        info.set_sha256(*sha);
+        artifacts.push_back(info);
+        result_bytes += size;
+      }
+      if (!hashed.ok()) break;
+      a.path = top.filename().string();  // the report names files, not paths
     }
     if (hashed.ok()) {
       spool_->Add(result_bytes);

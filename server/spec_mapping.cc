@@ -14,12 +14,19 @@ constexpr int kToleranceIterationCap = 100000;
 }  // namespace
 
 absl::StatusOr<JobSpec> JobSpecFromProto(const v1::JobSpec& p) {
-  if (p.derived_series().enabled() || p.derived_series().contents_size() > 0) {
-    return absl::UnimplementedError(
-        "derived DICOM series are not served yet (a series is a folder of "
-        "files); use `interslice run --output-series`, or ask for a SEG");
+  if (p.derived_series().enabled()) {
+    return absl::InvalidArgumentError(
+        "spec.derived_series.enabled is not used; list the contents");
   }
   JobSpec spec;
+  for (const std::string& content : p.derived_series().contents()) {
+    if (content != "mask" && content != "distance" && content != "intensity") {
+      return absl::InvalidArgumentError(
+          absl::StrCat("spec.derived_series.contents: unknown content '",
+                       content, "' (choose from mask, distance, intensity)"));
+    }
+    spec.output_series.push_back(content);
+  }
   spec.strict_spacing = p.strict_spacing();
   spec.write_seg = p.segmentation().enabled();
   spec.uid_root = p.uid_root();

@@ -13,6 +13,11 @@
 #include <thread>
 
 #include "absl/strings/str_cat.h"
+#include "client/remote_commands.h"
+#include "core/dicom/series_reader.h"
+#include "dcmtk/config/osconfig.h"
+#include "dcmtk/dcmdata/dcdeftag.h"
+#include "dcmtk/dcmdata/dcfilefo.h"
 #include "grpcpp/grpcpp.h"
 #include "interslice/v1/interslice.grpc.pb.h"
 #include "tests/server/process.h"
@@ -219,6 +224,69 @@ TEST(ServerTest, OneCallGivesTheSameFilesAsRun) {
     std::this_thread::sleep_for(std::chrono::milliseconds(50));
   }
   EXPECT_EQ(CountJobs(dir / "spool"), 0);
+}
+
+// DICOM outputs through the daemon: the derived series and the SEG have the
+// same pixel data and geometry as `run` (their UIDs and times differ).
+TEST(ServerTest, DicomOutputsMatchRunInPixelsAndGeometry) {
+  TempDir dir;
+  const std::vector<std::string> dicom = {
+      "--output-series", "mask,distance", "--seg", "--volume", "none",
+      "--mesh",          "none"};
+  CommandResult local = Cli(
+      Cat(Cat({"run"}, kSmallJob),
+          Cat(dicom, {"--out", dir / "local", "--quiet", "--threads", "1"})));
+  ASSERT_EQ(local.exit_code, 0) << local.err;
+  ServerProcess server(dir / "spool", dir / "server.log", {});
+  CommandResult r =
+      Cli(Cat(Cat({"interpolate"}, kSmallJob),
+              Cat(dicom, Cat(server.Server(), {"--out", dir / "remote"}))));
+  ASSERT_EQ(r.exit_code, 0) << r.err << server.Log();
+  for (const char* series : {"series-mask", "series-distance"}) {
+    const auto a =
+        ReadDicomSeries({(fs::path(dir / "local") / series).string()}, {}, {});
+    const auto b =
+        ReadDicomSeries({(fs::path(dir / "remote") / series).string()}, {}, {});
+    ASSERT_TRUE(a.ok()) << a.status();
+    ASSERT_TRUE(b.ok()) << b.status();
+    EXPECT_EQ(a->image.grid.size, b->image.grid.size) << series;
+    EXPECT_EQ(a->image.grid.spacing, b->image.grid.spacing) << series;
+    EXPECT_EQ(a->image.grid.origin, b->image.grid.origin) << series;
+    EXPECT_EQ(a->image.grid.direction, b->image.grid.direction) << series;
+    EXPECT_TRUE(a->image.data == b->image.data) << series;
+    EXPECT_NE(a->series_instance_uid, b->series_instance_uid) << series;
+  }
+  // The SEG: same frames of bits, same size (UIDs differ in length).
+  auto seg_content = [](const fs::path& path) {
+    DcmFileFormat file;
+    EXPECT_TRUE(file.loadFile(path.c_str()).good()) << path;
+    DcmDataset* ds = file.getDataset();
+    const Uint8* pixels = nullptr;
+    unsigned long count = 0;
+    ds->findAndGetUint8Array(DCM_PixelData, pixels, &count);
+    OFString frames, rows, columns;
+    ds->findAndGetOFString(DCM_NumberOfFrames, frames);
+    ds->findAndGetOFString(DCM_Rows, rows);
+    ds->findAndGetOFString(DCM_Columns, columns);
+    return std::string(frames.c_str()) + "x" + rows.c_str() + "x" +
+           columns.c_str() + ":" +
+           std::string(reinterpret_cast<const char*>(pixels), count);
+  };
+  const std::string local_seg =
+      seg_content(fs::path(dir / "local") / "seg.dcm");
+  EXPECT_GT(local_seg.size(), 100u);
+  EXPECT_TRUE(local_seg == seg_content(fs::path(dir / "remote") / "seg.dcm"));
+}
+
+TEST(ArtifactNameTest, OnlyPlainNamesWithOneFolderLevelAreSafe) {
+  for (const char* ok :
+       {"distance.nii.gz", "seg.dcm", "series-mask/IM00001.dcm"}) {
+    EXPECT_TRUE(client::IsSafeArtifactName(ok)) << ok;
+  }
+  for (const char* bad : {"", "..", "../x", "a/../b", "/etc/passwd", "a/b/c",
+                          "a//b", "x/..", "a b", "series-mask/", "~/x"}) {
+    EXPECT_FALSE(client::IsSafeArtifactName(bad)) << bad;
+  }
 }
 
 TEST(ServerTest, DetachedJobGivesTheSameFilesAsRun) {

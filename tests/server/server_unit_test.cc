@@ -46,10 +46,12 @@ TEST(SpecMappingTest, DefaultsMatchTheCli) {
   EXPECT_TRUE(mapped->write_seg);
   EXPECT_EQ(mapped->uid_root, "1.2.3");
   EXPECT_EQ(mapped->multiframe_volume, "stack 1");
-  // Derived series are folders of files: not served yet, and said so.
   p.mutable_derived_series()->add_contents("mask");
+  EXPECT_EQ(JobSpecFromProto(p)->output_series,
+            std::vector<std::string>{"mask"});
+  p.mutable_derived_series()->add_contents("bogus");
   EXPECT_EQ(JobSpecFromProto(p).status().code(),
-            absl::StatusCode::kUnimplemented);
+            absl::StatusCode::kInvalidArgument);
 }
 
 }  // namespace
