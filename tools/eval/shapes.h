@@ -1,6 +1,6 @@
-// The paper's artificial data (section 5), as in
-// tests/core/pipeline/paper_artificial_test.cc (copied: a test file cannot be
-// linked into a tool; keep the two in step). 64 x 64 voxels of 1 mm in-plane.
+// The paper's artificial data (section 5): analytic signed distances (> 0
+// inside) on 64 x 64 voxels of 1 mm in-plane. Header-only, shared by the
+// evaluation harness and tests/core/pipeline/paper_artificial_test.cc.
 #ifndef INTERSLICE_TOOLS_EVAL_SHAPES_H_
 #define INTERSLICE_TOOLS_EVAL_SHAPES_H_
 

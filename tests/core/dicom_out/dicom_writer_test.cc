@@ -19,6 +19,7 @@
 #include "core/dicom/series_reader.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "tests/testing/temp_dir.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
@@ -41,25 +42,9 @@ constexpr char kDciodvfy[] = "/usr/bin/dciodvfy";
 constexpr char kTestRoot[] = "1.2.826.0.1.3680043.10.1234";
 
 // A fresh folder per test, removed afterwards.
-class TempDir {
+class TempDir : public testing::TempDir {
  public:
-  TempDir() {
-    static std::atomic<int> counter{0};
-    const auto* info = ::testing::UnitTest::GetInstance()->current_test_info();
-    path_ = fs::temp_directory_path() /
-            (std::string("interslice_dicom_out_") + info->name() + "_" +
-             std::to_string(::getpid()) + "_" + std::to_string(counter++));
-    fs::remove_all(path_);
-    fs::create_directories(path_);
-  }
-  ~TempDir() {
-    std::error_code ec;
-    fs::remove_all(path_, ec);
-  }
-  const fs::path& path() const { return path_; }
-
- private:
-  fs::path path_;
+  TempDir() : testing::TempDir("interslice_dicom_out_") {}
 };
 
 double Dot(const Vec3& a, const Vec3& b) {

@@ -16,53 +16,20 @@
 #include "core/stack/stacking.h"
 #include "core/surface/surface.h"
 #include "gtest/gtest.h"
+#include "tools/eval/shapes.h"
 
 namespace interslice {
 namespace {
 
-constexpr int kSize = 64;      // in-plane size, voxels of 1 mm
-constexpr int kFactor = 8;     // every 8th slice is original
-constexpr int kOriginals = 9;  // (9 - 1) * 8 + 1 = 65 refined slices
+// The sphere (radius 20 mm) and the cross of two round-ended tubes (an X in
+// the xz plane, every original slice cuts both) on 64 x 64 voxels of 1 mm:
+// one definition shared with the evaluation harness.
+using eval::Sphere;
+using eval::TubeCross;
+constexpr int kSize = eval::kShapeSize;  // in-plane size, voxels of 1 mm
+constexpr int kFactor = 8;               // every 8th slice is original
+constexpr int kOriginals = 9;            // (9 - 1) * 8 + 1 = 65 refined slices
 using Implicit = std::function<double(double, double, double)>;  // >0 inside
-
-// Exact signed distance of the sphere of radius 20 mm at the centre.
-double Sphere(double x, double y, double z) {
-  const double c = (kSize - 1) / 2.0;
-  return 20.0 -
-         std::sqrt((x - c) * (x - c) + (y - c) * (y - c) + (z - c) * (z - c));
-}
-
-// Distance from p to the segment [a, b].
-double SegmentDistance(const std::array<double, 3>& p,
-                       const std::array<double, 3>& a,
-                       const std::array<double, 3>& b) {
-  double ab2 = 0, t = 0;
-  for (int n = 0; n < 3; ++n) {
-    ab2 += (b[n] - a[n]) * (b[n] - a[n]);
-    t += (p[n] - a[n]) * (b[n] - a[n]);
-  }
-  t = std::clamp(t / ab2, 0.0, 1.0);
-  double d2 = 0;
-  for (int n = 0; n < 3; ++n) {
-    const double q = a[n] + t * (b[n] - a[n]) - p[n];
-    d2 += q * q;
-  }
-  return std::sqrt(d2);
-}
-
-// A cross of two round-ended tubes of radius 6 mm running diagonally through
-// the slices (an X in the xz plane), so that every original slice cuts both
-// and their cross-sections move and merge along z. The union's signed
-// distance (max of the tubes') is exact outside the shape.
-double TubeCross(double x, double y, double z) {
-  const double c = (kSize - 1) / 2.0;
-  const std::array<double, 3> p = {x, y, z};
-  const double a =
-      6.0 - SegmentDistance(p, {c - 18, c, c - 18}, {c + 18, c, c + 18});
-  const double b =
-      6.0 - SegmentDistance(p, {c - 18, c, c + 18}, {c + 18, c, c - 18});
-  return std::max(a, b);
-}
 
 struct MethodOutcome {
   double energy = 0;
