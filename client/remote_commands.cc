@@ -102,6 +102,10 @@ v1::JobSpec SpecToProto(const JobSpec& spec) {
   p.set_mesh_adaptivity(spec.mesh_adaptivity);
   p.set_strict_spacing(spec.strict_spacing);
   p.set_uid_root(spec.uid_root);
+  p.set_random_uids(spec.random_uids);
+  if (spec.series_number_base > 0) {
+    p.mutable_derived_series()->set_series_number(spec.series_number_base);
+  }
   p.set_multiframe_volume(spec.multiframe_volume);
   p.mutable_segmentation()->set_enabled(spec.write_seg);
   // Sent as asked: the server says clearly if it cannot serve them.

@@ -66,6 +66,12 @@ void PrintSummary(const JobReport& report, const std::string& out_dir) {
       static_cast<long long>(g.size[0]), static_cast<long long>(g.size[1]),
       static_cast<long long>(g.size[2]), g.spacing[0], g.spacing[1],
       g.spacing[2], report.insertion_factor - 1);
+  if (report.gantry_tilt_degrees != 0) {
+    std::printf(
+        "  tilt      gantry tilt of %.3g degrees corrected (slices resampled "
+        "onto an orthogonal grid)\n",
+        report.gantry_tilt_degrees);
+  }
   if (report.max_snap_mm > 1e-6) {
     std::printf(
         "  spacing   non-uniform: slices moved up to %.3g mm to the nearest "
@@ -132,12 +138,23 @@ void AddRunOptions(CLI::App& app, RunArguments& args) {
                  "Target output slice spacing in mm (default: the in-plane "
                  "spacing, i.e. isotropic)");
   app.add_option("--output-series", args.output_series,
-                 "Derived DICOM series to write, any of mask,distance,"
-                 "intensity (into DIR/series-<content>/)");
+                 "DICOM objects to write, any of intensity (image series "
+                 "DIR/series-intensity/), distance (Parametric Map "
+                 "DIR/distance.dcm, mm), mask (SEG DIR/seg.dcm); a SEG or "
+                 "distance map also writes the intensity series it "
+                 "references");
   app.add_flag("--seg", args.seg,
-               "Write the mask as a binary DICOM SEG (DIR/seg.dcm)");
+               "Write the mask as a binary DICOM SEG (DIR/seg.dcm; same as "
+               "--output-series mask)");
   app.add_option("--uid-root", args.uid_root,
                  "UID root for the new DICOM UIDs (default 2.25 + UUID)");
+  app.add_flag("--random-uids", args.random_uids,
+               "New random DICOM UIDs on every run (default: derived from "
+               "the source and the job, so a rerun replaces its results)");
+  app.add_option("--series-number-base", args.series_number_base,
+                 "Series numbers of the DICOM outputs: intensity BASE+1, "
+                 "distance BASE+2, SEG BASE+3 (default 1000 x the source's "
+                 "SeriesNumber)");
   app.add_option("--multiframe-volume", args.multiframe_volume,
                  "Which volume of a multi-frame series to read, as named in "
                  "the error that lists them");
@@ -228,6 +245,14 @@ absl::StatusOr<JobSpec> BuildJobSpec(const RunArguments& args) {
   spec.output_series = *series;
   spec.write_seg = args.seg;
   spec.uid_root = args.uid_root;
+  spec.random_uids = args.random_uids;
+  if (args.series_number_base.has_value()) {
+    if (*args.series_number_base < 1 || *args.series_number_base > 2147483644) {
+      return absl::InvalidArgumentError(
+          "--series-number-base must be between 1 and 2147483644");
+    }
+    spec.series_number_base = *args.series_number_base;
+  }
   spec.multiframe_volume = args.multiframe_volume;
   if (args.band.has_value()) {
     if (!(*args.band > 0)) {

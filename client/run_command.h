@@ -32,6 +32,8 @@ struct RunArguments {
   std::string output_series;  // "mask,distance,intensity"
   bool seg = false;
   std::string uid_root;
+  bool random_uids = false;
+  std::optional<int64_t> series_number_base;
   std::string multiframe_volume;
   std::optional<double> band;
   double adaptivity = 0;

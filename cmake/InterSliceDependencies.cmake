@@ -12,6 +12,8 @@ find_package(GDCM CONFIG REQUIRED)
 find_package(nlohmann_json CONFIG REQUIRED)
 find_package(CLI11 CONFIG REQUIRED)
 find_package(spdlog CONFIG REQUIRED)
+# SHA-1 for name-based UIDs (core/dicom_out); SHA-256 of uploads (server).
+find_package(OpenSSL REQUIRED)
 
 # FFTW ships no usable CMake config for the float library: use pkg-config.
 pkg_check_modules(FFTW3F REQUIRED IMPORTED_TARGET fftw3f)
@@ -29,7 +31,9 @@ find_package(ITK REQUIRED COMPONENTS
   ITKCommon ITKPath ITKDistanceMap ITKImageGrid ITKImageIntensity
   ITKThresholding ITKIOImageBase ITKIONIFTI ITKIONRRD
   # tools/eval (quality harness): LabelOverlapMeasures, connected components
-  ITKImageStatistics ITKConnectedComponents)
+  ITKImageStatistics ITKConnectedComponents
+  # tests: ITK's GDCM series reader as an independent consumer of our DICOM
+  ITKIOGDCM)
 
 # ITK's include directories and libraries as one imported interface target,
 # so that only the modules that use ITK see its (large) include path.
@@ -50,6 +54,5 @@ endif()
 if(INTERSLICE_BUILD_SERVER)
   find_package(Protobuf REQUIRED)
   find_package(gRPC CONFIG REQUIRED)
-  find_package(OpenSSL REQUIRED)  # SHA-256 of uploaded files and artifacts
   find_package(prometheus-cpp CONFIG REQUIRED)
 endif()

@@ -13,9 +13,27 @@ packages=(
   libfftw3-dev libtbb-dev
   libopenvdb-dev libboost-iostreams-dev
   libcli11-dev prometheus-cpp-dev libabsl-dev nlohmann-json3-dev
-  zlib1g-dev libgdcm-dev
+  zlib1g-dev libgdcm-dev libssl-dev
   dicom3tools
 )
+# Node.js for the viewer test (tests/viewer: a DICOM SEG loaded as OHIF v3
+# loads it): Debian's nodejs + npm unless node and npm are already there (a
+# NodeSource nodejs bundles npm and conflicts with Debian's npm package).
+if ! command -v node >/dev/null || ! command -v npm >/dev/null; then
+  packages+=(nodejs npm)
+fi
+# The viewer test's npm packages, pinned by tests/viewer/package-lock.json;
+# installed again when the lockfile is newer than what is installed.
+viewer_npm() {
+  local dir
+  dir="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)/tests/viewer"
+  if [ -f "$dir/package-lock.json" ] &&
+     { [ ! -f "$dir/node_modules/.package-lock.json" ] ||
+       [ "$dir/package-lock.json" -nt "$dir/node_modules/.package-lock.json" ]; }; then
+    echo "install-deps: npm ci in tests/viewer"
+    npm ci --prefix "$dir" --no-audit --no-fund --ignore-scripts
+  fi
+}
 # Extra packages for the evaluation report (scripts/eval.sh): plots.
 if [ "${1:-}" = "--eval" ]; then
   packages+=(python3-matplotlib python3-numpy)
@@ -30,6 +48,7 @@ done
 
 if [ ${#missing[@]} -eq 0 ]; then
   echo "install-deps: all ${#packages[@]} packages present"
+  viewer_npm
   exit 0
 fi
 
@@ -39,3 +58,4 @@ if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
 export DEBIAN_FRONTEND=noninteractive
 $SUDO apt-get update -q
 $SUDO apt-get install -y -q --no-install-recommends "${missing[@]}"
+viewer_npm

@@ -30,6 +30,18 @@ absl::StatusOr<JobSpec> JobSpecFromProto(const v1::JobSpec& p) {
   spec.strict_spacing = p.strict_spacing();
   spec.write_seg = p.segmentation().enabled();
   spec.uid_root = p.uid_root();
+  spec.random_uids = p.random_uids();
+  if (p.derived_series().series_number() < 0 ||
+      p.derived_series().series_number() > 2147483644) {
+    return absl::InvalidArgumentError(
+        "spec.derived_series.series_number must be between 0 and 2147483644");
+  }
+  spec.series_number_base = p.derived_series().series_number();
+  if (!p.derived_series().series_description().empty()) {
+    return absl::InvalidArgumentError(
+        "spec.derived_series.series_description is not supported; each "
+        "object gets a description of what it holds");
+  }
   spec.multiframe_volume = p.multiframe_volume();
   spec.series_instance_uid = p.series_instance_uid();
   if (!p.has_threshold()) {

@@ -1,10 +1,11 @@
-// WriteDerivedSeries: one single-frame DICOM image per output slice.
+// WriteIntensitySeries: one single-frame DICOM image per output slice.
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <filesystem>
 #include <limits>
 #include <memory>
+#include <optional>
 #include <string>
 #include <system_error>
 #include <vector>
@@ -22,6 +23,8 @@
 #include "dcmtk/dcmdata/dcfilefo.h"
 #include "dcmtk/dcmdata/dcitem.h"
 #include "dcmtk/dcmdata/dcuid.h"
+#include "dcmtk/dcmdata/dcvrss.h"
+#include "dcmtk/dcmdata/dcvrus.h"
 
 namespace interslice {
 namespace {
@@ -100,75 +103,62 @@ absl::Status FitSlope(const Range& range, double base, double intercept,
                       range.min, range.max));
 }
 
-// The first value of a multi-valued DS attribute of the source, if present.
-bool FirstDouble(DcmItem& item, const DcmTagKey& tag, double& value) {
-  Float64 v = 0;
-  if (item.findAndGetFloat64(tag, v, 0).bad()) return false;
-  value = v;
-  return std::isfinite(value);
+// A pair of window values and its explanation (VOI LUT module).
+struct Window {
+  double center = 0;
+  double width = 1;
+  std::string explanation;
+};
+
+// Every WindowCenter/WindowWidth pair of the source (with its explanation),
+// or none when they are absent, unpaired or unusable.
+std::vector<Window> SourceWindows(DcmItem& source_header) {
+  std::vector<Window> windows;
+  for (unsigned long i = 0;; ++i) {
+    Float64 center = 0, width = 0;
+    if (source_header.findAndGetFloat64(DCM_WindowCenter, center, i).bad() ||
+        source_header.findAndGetFloat64(DCM_WindowWidth, width, i).bad()) {
+      break;
+    }
+    if (!std::isfinite(center) || !std::isfinite(width) || width < 1) {
+      return {};
+    }
+    Window window{center, width, ""};
+    OFString explanation;
+    if (source_header
+            .findAndGetOFString(DCM_WindowCenterWidthExplanation, explanation,
+                                i)
+            .good()) {
+      window.explanation = explanation.c_str();
+    }
+    windows.push_back(window);
+  }
+  return windows;
 }
 
 absl::StatusOr<Encoding> ChooseEncoding(const DicomSeries& source,
-                                        const Volume<float>& values,
-                                        DerivedContent content,
-                                        DcmItem& source_header) {
+                                        const Volume<float>& values) {
   INTERSLICE_ASSIGN_OR_RETURN(const Range range, FiniteRange(values.data));
   Encoding e;
-  switch (content) {
-    case DerivedContent::kMask:
-      e.slope = 1;
-      e.intercept = 0;
-      e.is_signed = false;
-      e.window_center = 0.5;
-      e.window_width = 1;
-      e.rescale_type = "US";
-      e.description = "object mask, 1 inside, 0 outside";
-      break;
-    case DerivedContent::kDistance: {
-      const double max_abs = std::max(std::abs(range.min), std::abs(range.max));
-      INTERSLICE_RETURN_IF_ERROR(FitSlope({-max_abs, max_abs}, 0.01, 0, e));
-      e.intercept = 0;
-      // Signed even when every distance has the same sign, so that a
-      // distance series always has the same pixel representation.
-      e.is_signed = true;
-      e.window_center = 0;
-      e.window_width = std::clamp(2 * max_abs, 1.0, 20.0);
-      e.rescale_type = "US";
-      e.description = absl::StrCat(
-          "signed distance to the object surface in mm (positive inside), "
-          "stored in steps of ",
-          FormatDecimalString(e.slope), " mm");
-      break;
-    }
-    case DerivedContent::kIntensity: {
-      const DicomSliceInfo& first = source.slices.front();
-      const double base = first.rescale_slope > 0 ? first.rescale_slope : 1;
-      e.intercept = first.rescale_intercept;
-      INTERSLICE_RETURN_IF_ERROR(FitSlope(range, base, e.intercept, e));
-      double center = 0, width = 0;
-      if (FirstDouble(source_header, DCM_WindowCenter, center) &&
-          FirstDouble(source_header, DCM_WindowWidth, width) && width >= 1) {
-        e.window_center = center;
-        e.window_width = width;
-      } else {
-        e.window_center = 0.5 * (range.min + range.max);
-        e.window_width = std::max(1.0, range.max - range.min);
-      }
-      e.rescale_type = source.modality == "CT" ? "HU" : "US";
-      e.description =
-          "source modality values resampled by trilinear interpolation "
-          "(ITK LinearInterpolateImageFunction)";
-      break;
-    }
-  }
+  const DicomSliceInfo& first = source.slices.front();
+  const double base = first.rescale_slope > 0 ? first.rescale_slope : 1;
+  e.intercept = first.rescale_intercept;
+  INTERSLICE_RETURN_IF_ERROR(FitSlope(range, base, e.intercept, e));
+  e.window_center = 0.5 * (range.min + range.max);
+  e.window_width = std::max(1.0, range.max - range.min);
+  e.rescale_type = source.modality == "CT" ? "HU" : "US";
+  e.description =
+      "source modality values at the output slice positions, linearly "
+      "interpolated between the two nearest source slices at their true "
+      "positions";
   return e;
 }
 
 enum class Iod { kCt, kMr, kSecondaryCapture };
 
-Iod ChooseIod(const DicomSeries& source) {
-  if (source.sop_class_uid == UID_CTImageStorage) return Iod::kCt;
-  if (source.sop_class_uid == UID_MRImageStorage) return Iod::kMr;
+Iod ChooseIod(const std::string& sop_class_uid) {
+  if (sop_class_uid == UID_CTImageStorage) return Iod::kCt;
+  if (sop_class_uid == UID_MRImageStorage) return Iod::kMr;
   return Iod::kSecondaryCapture;
 }
 
@@ -185,6 +175,20 @@ void CopyIfPresent(DcmItem& from, DcmItem& to, const DcmTagKey& tag,
     to.putAndInsertString(tag, fallback);
   } else {
     to.insertEmptyElement(tag);
+  }
+}
+
+// Copies `tag` when the source has a value for it: an empty value of an
+// optional or conditional attribute would be an error of ours.
+void CopyIfNotEmpty(DcmItem& from, DcmItem& to, const DcmTagKey& tag) {
+  DcmElement* element = nullptr;
+  if (from.findAndGetElement(tag, element, OFFalse, OFTrue).good() &&
+      element != nullptr) {
+    if (element->getLength() > 0) {
+      to.insert(element, OFTrue);
+      return;
+    }
+    delete element;
   }
 }
 
@@ -208,20 +212,11 @@ void CopyAcquisitionAttributes(Iod iod, DcmItem& from, DcmItem& to) {
     for (const DcmTagKey& tag :
          {DCM_InversionTime, DCM_SequenceName, DCM_AngioFlag,
           DCM_MagneticFieldStrength, DCM_ImagedNucleus, DCM_FlipAngle}) {
-      DcmElement* element = nullptr;
-      if (from.findAndGetElement(tag, element, OFFalse, OFTrue).good() &&
-          element != nullptr) {
-        to.insert(element, OFTrue);
-      }
+      CopyIfNotEmpty(from, to, tag);
     }
   }
-  DcmElement* element = nullptr;
   for (const DcmTagKey& tag : {DCM_PatientPosition, DCM_BodyPartExamined}) {
-    element = nullptr;
-    if (from.findAndGetElement(tag, element, OFFalse, OFTrue).good() &&
-        element != nullptr) {
-      to.insert(element, OFTrue);
-    }
+    CopyIfNotEmpty(from, to, tag);
   }
   // Patient Position is type 2C for CT and MR images (required unless a
   // Patient Orientation Code Sequence is present, which we never write).
@@ -246,18 +241,6 @@ std::string OrientationLetters(const Vec3& v) {
   return letters;
 }
 
-std::string DefaultSeriesDescription(DerivedContent content) {
-  switch (content) {
-    case DerivedContent::kMask:
-      return "interslice mask";
-    case DerivedContent::kDistance:
-      return "interslice signed distance (mm)";
-    case DerivedContent::kIntensity:
-      return "interslice resampled intensity";
-  }
-  return "interslice";
-}
-
 absl::Status CreateFolder(const std::string& dir) {
   std::error_code ec;
   fs::create_directories(dir, ec);
@@ -274,40 +257,68 @@ absl::Status CreateFolder(const std::string& dir) {
 
 }  // namespace
 
-absl::StatusOr<std::vector<std::string>> WriteDerivedSeries(
+absl::StatusOr<std::vector<std::string>> WriteIntensitySeries(
     const DicomSeries& source, const Volume<float>& values,
-    DerivedContent content, const DicomWriteOptions& options,
+    const DerivedObjectIdentity& identity, const DicomWriteOptions& options,
     const std::string& output_dir) {
   const Grid& grid = values.grid;
   INTERSLICE_RETURN_IF_ERROR(
-      ValidateOutputGrid(source, grid, values.data.size(), "derived series"));
+      ValidateOutputGrid(source, grid, values.data.size(), "intensity series"));
+  if (static_cast<int64_t>(identity.sop_instance_uids.size()) != grid.size[2]) {
+    return absl::InvalidArgumentError(
+        absl::StrFormat("intensity series: %d SOP instance UIDs for %d slices",
+                        identity.sop_instance_uids.size(), grid.size[2]));
+  }
   INTERSLICE_ASSIGN_OR_RETURN(std::unique_ptr<DcmFileFormat> source_file,
                               LoadSourceHeader(source));
   DcmDataset& src = *source_file->getDataset();
   INTERSLICE_ASSIGN_OR_RETURN(const Encoding encoding,
-                              ChooseEncoding(source, values, content, src));
-  INTERSLICE_ASSIGN_OR_RETURN(const std::string series_uid,
-                              GenerateDicomUid(options.uid_root));
+                              ChooseEncoding(source, values));
+  std::vector<Window> windows = SourceWindows(src);
+  if (windows.empty()) {
+    windows.push_back({encoding.window_center, encoding.window_width, ""});
+  }
+  // The source's padding value, in our stored units (the same as the
+  // source's whenever the slope was not raised, which linear blending of its
+  // values never needs).
+  INTERSLICE_ASSIGN_OR_RETURN(const std::optional<float> padding,
+                              SourcePixelPadding(source));
+  std::optional<double> stored_padding;
+  if (padding.has_value()) {
+    const double stored =
+        std::round((*padding - encoding.intercept) / encoding.slope);
+    if (encoding.is_signed ? (stored >= -32768 && stored <= 32767)
+                           : (stored >= 0 && stored <= 65535)) {
+      stored_padding = stored;
+    }
+  }
   INTERSLICE_RETURN_IF_ERROR(CreateFolder(output_dir));
 
-  const Iod iod = ChooseIod(source);
-  const char* sop_class = iod == Iod::kCt   ? UID_CTImageStorage
-                          : iod == Iod::kMr ? UID_MRImageStorage
-                                            : UID_SecondaryCaptureImageStorage;
+  const Iod iod = ChooseIod(identity.sop_class_uid);
+  const char* sop_class = identity.sop_class_uid.c_str();
   // MR images have no Modality LUT module: write the rescale only when it is
   // not the identity (a standard extended attribute then).
   const bool write_rescale =
       iod != Iod::kMr || encoding.slope != 1 || encoding.intercept != 0;
   const std::string date = CurrentDate();
   const std::string time = CurrentTime();
-  const std::string description = options.series_description.empty()
-                                      ? DefaultSeriesDescription(content)
-                                      : options.series_description;
+  const std::string description =
+      identity.series_description.substr(0, 64);  // LO
   std::string derivation = options.derivation_description;
   if (!derivation.empty()) derivation += "; ";
   derivation += encoding.description;
   if (derivation.size() > 1024) derivation.resize(1024);  // ST limit
-
+  std::string window_centers, window_widths, window_explanations;
+  bool any_explanation = false;
+  for (size_t w = 0; w < windows.size(); ++w) {
+    const char* separator = w == 0 ? "" : "\\";
+    absl::StrAppend(&window_centers, separator,
+                    FormatDecimalString(windows[w].center));
+    absl::StrAppend(&window_widths, separator,
+                    FormatDecimalString(windows[w].width));
+    absl::StrAppend(&window_explanations, separator, windows[w].explanation);
+    any_explanation |= !windows[w].explanation.empty();
+  }
   const Vec3 row = grid.Axis(0), col = grid.Axis(1);
   const std::string orientation = absl::StrCat(
       FormatDecimalString(row[0]), "\\", FormatDecimalString(row[1]), "\\",
@@ -335,8 +346,8 @@ absl::StatusOr<std::vector<std::string>> WriteDerivedSeries(
     CopyPatientStudyFrameOfReference(src, ds);
 
     // SOP Common, General Series, General Equipment.
-    INTERSLICE_ASSIGN_OR_RETURN(const std::string sop_uid,
-                                GenerateDicomUid(options.uid_root));
+    const std::string& sop_uid =
+        identity.sop_instance_uids[static_cast<size_t>(k)];
     ds.putAndInsertString(DCM_SOPClassUID, sop_class);
     ds.putAndInsertString(DCM_SOPInstanceUID, sop_uid.c_str());
     ds.putAndInsertString(DCM_InstanceCreationDate, date.c_str());
@@ -348,13 +359,10 @@ absl::StatusOr<std::vector<std::string>> WriteDerivedSeries(
       // SC Equipment module: the conversion type of derived data.
       ds.putAndInsertString(DCM_ConversionType, "WSD");
     }
-    ds.putAndInsertString(DCM_SeriesInstanceUID, series_uid.c_str());
-    if (options.series_number > 0) {
-      ds.putAndInsertString(DCM_SeriesNumber,
-                            std::to_string(options.series_number).c_str());
-    } else {
-      ds.insertEmptyElement(DCM_SeriesNumber);
-    }
+    ds.putAndInsertString(DCM_SeriesInstanceUID,
+                          identity.series_instance_uid.c_str());
+    ds.putAndInsertString(DCM_SeriesNumber,
+                          std::to_string(identity.series_number).c_str());
     ds.putAndInsertString(DCM_SeriesDate, date.c_str());
     ds.putAndInsertString(DCM_SeriesTime, time.c_str());
     ds.putAndInsertString(DCM_SeriesDescription, description.c_str());
@@ -424,19 +432,32 @@ absl::StatusOr<std::vector<std::string>> WriteDerivedSeries(
                             FormatDecimalString(encoding.slope).c_str());
       ds.putAndInsertString(DCM_RescaleType, encoding.rescale_type.c_str());
     }
-    ds.putAndInsertString(DCM_WindowCenter,
-                          FormatDecimalString(encoding.window_center).c_str());
-    ds.putAndInsertString(DCM_WindowWidth,
-                          FormatDecimalString(encoding.window_width).c_str());
+    ds.putAndInsertString(DCM_WindowCenter, window_centers.c_str());
+    ds.putAndInsertString(DCM_WindowWidth, window_widths.c_str());
+    if (any_explanation) {
+      ds.putAndInsertString(DCM_WindowCenterWidthExplanation,
+                            window_explanations.c_str());
+    }
+    if (stored_padding.has_value()) {
+      // The dictionary's VR is US or SS ("xs"): say which, as
+      // PixelRepresentation does.
+      if (encoding.is_signed) {
+        auto* element =
+            new DcmSignedShort(DcmTag(DCM_PixelPaddingValue, EVR_SS));
+        element->putSint16(static_cast<Sint16>(*stored_padding));
+        ds.insert(element, OFTrue);
+      } else {
+        auto* element =
+            new DcmUnsignedShort(DcmTag(DCM_PixelPaddingValue, EVR_US));
+        element->putUint16(static_cast<Uint16>(*stored_padding));
+        ds.insert(element, OFTrue);
+      }
+    }
 
     const float* slice = &values.data[static_cast<size_t>(nx * ny * k)];
     for (size_t i = 0; i < pixels.size(); ++i) {
-      double stored;
-      if (content == DerivedContent::kMask) {
-        stored = slice[i] != 0 ? 1 : 0;
-      } else {
-        stored = std::round((slice[i] - encoding.intercept) / encoding.slope);
-      }
+      const double stored =
+          std::round((slice[i] - encoding.intercept) / encoding.slope);
       pixels[i] = encoding.is_signed
                       ? static_cast<Uint16>(static_cast<int16_t>(stored))
                       : static_cast<Uint16>(stored);

@@ -10,6 +10,7 @@
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "core/dicom/series_reader.h"
+#include "core/dicom_out/dicom_writer.h"
 #include "core/geometry/volume.h"
 
 class DcmFileFormat;
@@ -44,12 +45,26 @@ absl::StatusOr<std::unique_ptr<DcmFileFormat>> LoadSourceHeader(
 
 // Copies SpecificCharacterSet and the Patient, Clinical Trial Subject,
 // General Study, Patient Study, Clinical Trial Study and Frame of Reference
-// attributes present in `from`; writes absent type 2 attributes empty.
+// attributes present in `from`, except empty ones (an empty conditional
+// attribute is an error of the source that must not pass into ours; empty
+// items of copied sequences are dropped likewise); writes absent type 2
+// attributes empty.
 void CopyPatientStudyFrameOfReference(DcmItem& from, DcmItem& to);
 
 // Adds ReferencedSeriesSequence (Common Instance Reference module) listing
 // every source instance.
 void AddReferencedSeries(const DicomSeries& source, DcmItem& to);
+
+// Adds ReferencedSeriesSequence listing every instance of `series` (a derived
+// image series this object lies on), replacing any there.
+void AddReferencedImageSeries(const DerivedObjectIdentity& series, DcmItem& to);
+
+// INVALID_ARGUMENT unless `identity` names one instance (with a series and a
+// dimension organization UID) and `referenced` names one image per slice of
+// `grid`. `what` names the object in messages.
+absl::Status CheckReferencedSeries(const DerivedObjectIdentity& identity,
+                                   const DerivedObjectIdentity& referenced,
+                                   const Grid& grid, const char* what);
 
 // DS text for `value` (at most 16 characters, as many digits as fit).
 std::string FormatDecimalString(double value);

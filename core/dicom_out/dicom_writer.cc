@@ -30,18 +30,6 @@
 
 namespace interslice {
 
-std::string_view DerivedContentName(DerivedContent content) {
-  switch (content) {
-    case DerivedContent::kMask:
-      return "mask";
-    case DerivedContent::kDistance:
-      return "distance";
-    case DerivedContent::kIntensity:
-      return "intensity";
-  }
-  return "unknown";
-}
-
 std::string MeshConventionNote(const DicomSeries& source) {
   return absl::StrCat(
       "Mesh coordinate convention (interslice)\n"
@@ -256,11 +244,29 @@ void CopyPatientStudyFrameOfReference(DcmItem& from, DcmItem& to) {
                                /*createCopy=*/OFTrue)
             .good() &&
         element != nullptr) {
+      // Empty values (and sequences without items) are dropped: for type 2
+      // attributes an empty one is written below; for type 1C/2C/3 ones an
+      // empty value is an error of the source (dciodvfy flags it).
+      if (element->isEmpty()) {
+        delete element;
+        continue;
+      }
       to.insert(element, /*replaceOld=*/OFTrue);
     }
   }
   for (const DcmTagKey& tag : kType2Tags) {
     if (!to.tagExists(tag)) to.insertEmptyElement(tag);
+  }
+  // Patient Identity Removed "YES" makes De-identification Method (or its
+  // code sequence) type 1C. An anonymiser that said YES but left the method
+  // empty would make every derived object invalid; repair it with a value
+  // that says only what is known.
+  OFString removed;
+  if (to.findAndGetOFString(DCM_PatientIdentityRemoved, removed).good() &&
+      removed == "YES" && !to.tagExists(DCM_DeidentificationMethod) &&
+      !to.tagExists(DCM_DeidentificationMethodCodeSequence)) {
+    to.putAndInsertString(DCM_DeidentificationMethod,
+                          "unknown: not stated in the source series");
   }
 }
 
@@ -279,6 +285,47 @@ void AddReferencedSeries(const DicomSeries& source, DcmItem& to) {
     instance->putAndInsertString(DCM_ReferencedSOPInstanceUID,
                                  source.slices[i].sop_instance_uid.c_str());
   }
+}
+
+void AddReferencedImageSeries(const DerivedObjectIdentity& series,
+                              DcmItem& to) {
+  to.findAndDeleteElement(DCM_ReferencedSeriesSequence);
+  DcmItem* item = nullptr;
+  to.findOrCreateSequenceItem(DCM_ReferencedSeriesSequence, item, 0);
+  item->putAndInsertString(DCM_SeriesInstanceUID,
+                           series.series_instance_uid.c_str());
+  for (const std::string& uid : series.sop_instance_uids) {
+    DcmItem* instance = nullptr;
+    item->findOrCreateSequenceItem(DCM_ReferencedInstanceSequence, instance,
+                                   -2 /* append */);
+    instance->putAndInsertString(DCM_ReferencedSOPClassUID,
+                                 series.sop_class_uid.c_str());
+    instance->putAndInsertString(DCM_ReferencedSOPInstanceUID, uid.c_str());
+  }
+}
+
+absl::Status CheckReferencedSeries(const DerivedObjectIdentity& identity,
+                                   const DerivedObjectIdentity& referenced,
+                                   const Grid& grid, const char* what) {
+  if (identity.series_instance_uid.empty() ||
+      identity.sop_instance_uids.size() != 1 ||
+      identity.sop_instance_uids.front().empty() ||
+      identity.dimension_organization_uid.empty() ||
+      identity.series_number <= 0) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        what,
+        ": its identity needs a series UID, one SOP instance UID, a "
+        "dimension organization UID and a series number"));
+  }
+  if (static_cast<int64_t>(referenced.sop_instance_uids.size()) !=
+          grid.size[2] ||
+      referenced.series_instance_uid.empty() ||
+      referenced.sop_class_uid.empty()) {
+    return absl::InvalidArgumentError(absl::StrFormat(
+        "%s: the referenced image series names %d images for %d slices", what,
+        referenced.sop_instance_uids.size(), grid.size[2]));
+  }
+  return absl::OkStatus();
 }
 
 std::string FormatDecimalString(double value) {

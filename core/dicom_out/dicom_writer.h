@@ -1,7 +1,16 @@
-// Writing interslice results back to DICOM (DCMTK): an isotropic derived
-// image series (mask, signed distance or resampled intensity), a binary DICOM
-// Segmentation of the mask, resampling of the source image onto the output
-// grid (ITK), and the coordinate convention of mesh files.
+// Writing interslice results back to DICOM (DCMTK): the objects a PACS and
+// its viewers are made for, all on the refined output grid of a job:
+// - the intensity series: the source's modality values (HU for CT) resampled
+//   from where each source slice really is (ResampleSourceSlices), as a CT or
+//   MR image series (Secondary Capture for other modalities);
+// - the mask as a binary DICOM Segmentation (SEG), and
+// - the signed distance as a Parametric Map (float pixels, real-world value
+//   mapping in millimetres).
+// The SEG and the Parametric Map derive from the intensity series: frame k
+// references image k of it (same position, same orientation, same frame of
+// reference), so a viewer that opens the intensity series overlays them
+// exactly, whether it places frames by reference or by position. See
+// docs/dicom-output.md for why these objects and how viewers open them.
 //
 // Geometry contract (shared by every writer here):
 // - `source` is what ReadDicomSeries returned; its files (slices[k].path) must
@@ -13,20 +22,30 @@
 //   Its origin, size and spacing are free (an isotropic refinement of the
 //   source, or a crop of it). Otherwise INVALID_ARGUMENT.
 // - Slice k of the output is written at ImagePositionPatient = grid origin +
-//   k * spacing[2] * n, with InstanceNumber k + 1, so instance numbers grow
-//   along n (the order our reader sorts in). ImageOrientationPatient is the
-//   first two direction columns; PixelSpacing = (spacing[1], spacing[0]) (row
-//   spacing first, as DICOM wants); SliceThickness = SpacingBetweenSlices =
-//   spacing[2]. Reading the series back with ReadDicomSeries reproduces the
-//   grid.
+//   k * spacing[2] * n, with InstanceNumber k + 1 (frame k + 1 in multi-frame
+//   objects), so numbers grow along n (the order our reader sorts in).
+//   ImageOrientationPatient is the first two direction columns; PixelSpacing
+//   = (spacing[1], spacing[0]) (row spacing first, as DICOM wants);
+//   SliceThickness = SpacingBetweenSlices = spacing[2]. Reading the series
+//   back with ReadDicomSeries (or ITK/GDCM) reproduces the grid.
 //
-// Identity:
-// - New SeriesInstanceUID and SOPInstanceUIDs under options.uid_root; by
-//   default "2.25." followed by a random (version 4) UUID as one decimal
-//   number (ITU-T X.667 / DICOM PS3.5 B.2). Every call makes a new series.
+// Identity (PlanDerivedObjects):
+// - UIDs are derived, by default, from the source instances, the job's
+//   parameters (options.derivation_key), the UID root and the object, as
+//   name-based UUIDs (RFC 4122 version 5, SHA-1) under "2.25" (ITU-T X.667,
+//   DICOM PS3.5 B.2), or the root followed by the UUID's decimal digits. So
+//   the same job on the same source names its results the same, and sending
+//   them to a PACS again replaces instead of duplicating. random_uids gives
+//   fresh random UIDs every run. A source without SOP Instance UIDs (blanked
+//   by an anonymiser) gives random UIDs: nothing identifies it.
 // - StudyInstanceUID, FrameOfReferenceUID and the Patient, General Study and
 //   Patient Study modules (and SpecificCharacterSet) are copied from the first
-//   source file; type 2 attributes absent there are written empty.
+//   source file; empty source values of conditional attributes are dropped
+//   (so a source with DICOM errors of its own does not pass them on), and
+//   type 2 attributes absent there are written empty.
+// - Series numbers: options.series_number_base, else 1000 x the source's
+//   SeriesNumber, else 9000; the intensity series gets base + 1, the distance
+//   map base + 2, the SEG base + 3.
 // - Equipment (Manufacturer etc.) describes interslice, the creator of the
 //   derived objects, not the scanner.
 //
@@ -39,6 +58,7 @@
 #define INTERSLICE_CORE_DICOM_OUT_DICOM_WRITER_H_
 
 #include <cstdint>
+#include <optional>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -53,15 +73,20 @@ namespace interslice {
 
 struct DicomWriteOptions {
   // Root for the new UIDs (digits and dots, no leading zeros in a component,
-  // at most 40 characters so that 24 random digits fit into the 64-character
+  // at most 40 characters so that 24 digits fit into the 64-character
   // limit). Empty means "2.25." + UUID.
   std::string uid_root;
-  // SeriesDescription; empty means a default naming the content ("interslice
-  // mask", "interslice signed distance (mm)", ...).
-  std::string series_description;
-  // SeriesNumber; <= 0 leaves it empty in derived series (type 2 there)
-  // and uses 9001 for a SEG (type 1 there).
-  int series_number = 0;
+  // Fresh random UIDs on every run instead of UIDs derived from the source
+  // and the job (see "Identity" above).
+  bool random_uids = false;
+  // What, besides the source instances and the root, identifies the result:
+  // the job's parameters in a canonical text (the pipeline writes threshold,
+  // method, grid and so on). Two jobs with the same key on the same source
+  // get the same UIDs.
+  std::string derivation_key;
+  // First of the series numbers of the derived objects (see "Identity");
+  // <= 0 derives it from the source's SeriesNumber.
+  int series_number_base = 0;
   // Start of DerivationDescription; the writer appends what the content is
   // (and, for intensity, the interpolator). Keep it free of patient data.
   std::string derivation_description =
@@ -70,35 +95,73 @@ struct DicomWriteOptions {
   std::string software_version = "interslice";
 };
 
-enum class DerivedContent {
-  // 0/1 object mask; stored as uint16 0/1, RescaleSlope 1, Intercept 0;
-  // window centre 0.5, width 1. A voxel is 1 where its value is nonzero.
-  kMask,
-  // Signed distance in mm (positive inside). Stored as int16 with
-  // RescaleIntercept 0 and the smallest RescaleSlope of 0.01, 0.02, 0.05,
-  // 0.1, 0.2, 0.5, 1, 2, ... mm for which max |distance| fits in 32767 steps
-  // (so 0.01 mm up to +-327 mm); values are rounded to the nearest step.
-  // Window centre 0 mm, width 2 * max|d| clamped to [1, 20] mm (the region
-  // around the surface, where the sign change is).
-  kDistance,
-  // Source modality values (e.g. HU) resampled onto the output grid (see
-  // ResampleToGrid), stored with the first source slice's RescaleSlope and
-  // RescaleIntercept (rounded to the nearest stored value; uint16 if every
-  // stored value is >= 0, else int16). If a value does not fit, the slope is
-  // raised along 1-2-5 steps. Window: the source's first WindowCenter/Width,
-  // else the data range.
-  kIntensity,
+// The identity of one derived object: series UID, SOP instance UIDs (one per
+// output slice for an image series, one for a multi-frame object), series
+// number and description.
+struct DerivedObjectIdentity {
+  std::string series_instance_uid;
+  std::vector<std::string> sop_instance_uids;
+  int series_number = 0;
+  std::string series_description;
+  // SOP Class UID of the instances.
+  std::string sop_class_uid;
+  // Dimension Organization UID (multi-frame objects only).
+  std::string dimension_organization_uid;
 };
 
-// "mask", "distance" or "intensity".
-std::string_view DerivedContentName(DerivedContent content);
+// The identities of every object one job may write.
+struct DerivedObjects {
+  DerivedObjectIdentity intensity;     // one instance per output slice
+  DerivedObjectIdentity distance_map;  // Parametric Map, one instance
+  DerivedObjectIdentity segmentation;  // SEG, one instance
+};
 
-// Writes `values` (on the output grid, see the contract above) as a derived
-// single-frame image series into `output_dir` (created if missing), one file
-// per slice named IM00001.dcm, IM00002.dcm, ... in InstanceNumber order, each
-// written to a temporary name and renamed into place. Files of the same names
-// are replaced; other files are left alone, so use a folder per series.
-// Returns the paths written, in slice order.
+// Names the derived objects of a job whose output grid has `output_slices`
+// slices (see "Identity" above). INVALID_ARGUMENT for a malformed UID root
+// or output_slices < 1; FAILED_PRECONDITION when the first source file
+// cannot be read again (for its SeriesNumber).
+absl::StatusOr<DerivedObjects> PlanDerivedObjects(
+    const DicomSeries& source, int64_t output_slices,
+    const DicomWriteOptions& options);
+
+// The source's modality values on `target`, computed from where each source
+// slice really is: `image` holds the source slices in order (after gantry
+// tilt resampling and any region-of-interest crop: its in-plane size, spacing,
+// direction and in-plane origin must equal the target's, to 1e-3 mm and
+// 1e-4), and `positions_mm[k]` is the true position of image slice k along
+// the normal n (strictly increasing; the z spacing of image.grid is ignored,
+// so uneven gaps and missing slices are placed right). Target slice k at
+// position p (along n) is the linear blend of the two source slices that
+// bracket p, the nearest source slice within half a target spacing beyond the
+// first or last, and the outside value beyond that: `pixel_padding` if given,
+// else the image's minimum (air). Linear, because it never overshoots (no
+// ringing at bone/air edges across 5 mm slices) and is exact on the source
+// slices; written here because ITK's resamplers need a regular source grid,
+// which an uneven series is not. `pixel_padding` is a value the source uses
+// to mark pixels outside the scanned field (DICOM PixelPaddingValue, in
+// modality units): a blend that involves such a pixel is padding too, so
+// padding never bleeds into the anatomy. INVALID_ARGUMENT for mismatched
+// grids or positions; CANCELLED / DEADLINE_EXCEEDED from context. Threads:
+// context.threads; the result does not depend on them.
+absl::StatusOr<Volume<float>> ResampleSourceSlices(
+    const Volume<float>& image, const std::vector<double>& positions_mm,
+    const Grid& target, std::optional<float> pixel_padding,
+    const ComputeContext& context);
+
+// The source's pixel padding, in modality units (PixelPaddingValue x
+// RescaleSlope + RescaleIntercept of the first source slice), if it has one.
+// FAILED_PRECONDITION when the first source file cannot be read again.
+absl::StatusOr<std::optional<float>> SourcePixelPadding(
+    const DicomSeries& source);
+
+// Writes `values` (modality values on the output grid, see the contract
+// above; usually from ResampleSourceSlices) as a derived single-frame image
+// series into `output_dir` (created if missing), one file per slice named
+// IM00001.dcm, IM00002.dcm, ... in InstanceNumber order, each written to a
+// temporary name and renamed into place. Files of the same names are
+// replaced; other files are left alone, so use a folder per series. Returns
+// the paths written, in slice order. `identity` is
+// PlanDerivedObjects(...).intensity.
 //
 // IOD: CT Image Storage when the source is CT Image Storage, MR Image Storage
 // when it is MR Image Storage (their type 1/2 acquisition attributes, e.g.
@@ -106,18 +169,21 @@ std::string_view DerivedContentName(DerivedContent content);
 // Capture Image Storage with the Image Plane module added (a standard
 // extended SOP class; our reader needs the plane). ImageType is
 // DERIVED\SECONDARY\AXIAL (CT), DERIVED\SECONDARY\OTHER (MR) or
-// DERIVED\SECONDARY (SC): the defined terms have no value for a mask or a
-// distance map, so SeriesDescription and DerivationDescription say what the
-// series holds. Mask and distance carry RescaleType "US" (unspecified; the
-// unit, mm, is in DerivationDescription), intensity "HU" for CT. MR images
-// get RescaleSlope/Intercept only when not the identity (standard extended:
-// the MR IOD has no Modality LUT). SourceImageSequence (per slice: the one or
-// two source slices nearest along n, purpose DCM 121322) and
-// ReferencedSeriesSequence (every source instance) point back to the source.
-// Little Endian Explicit, uncompressed.
-absl::StatusOr<std::vector<std::string>> WriteDerivedSeries(
+// DERIVED\SECONDARY (SC). Stored with the first source slice's RescaleSlope
+// and RescaleIntercept (rounded to the nearest stored value; uint16 if every
+// stored value is >= 0, else int16; the slope is raised along 1-2-5 steps
+// only if a value does not fit). RescaleType "HU" for CT. MR images get
+// RescaleSlope/Intercept only when not the identity (standard extended: the
+// MR IOD has no Modality LUT). The source's windows (every WindowCenter /
+// WindowWidth pair and their explanations) are kept, else the data range;
+// the source's PixelPaddingValue is kept (in the same stored units) when
+// present. SourceImageSequence (per slice: the one or two source slices
+// nearest along n, purpose DCM 121322) and ReferencedSeriesSequence (every
+// source instance) point back to the source. Little Endian Explicit,
+// uncompressed.
+absl::StatusOr<std::vector<std::string>> WriteIntensitySeries(
     const DicomSeries& source, const Volume<float>& values,
-    DerivedContent content, const DicomWriteOptions& options,
+    const DerivedObjectIdentity& identity, const DicomWriteOptions& options,
     const std::string& output_dir);
 
 // A coded concept (CodeValue, CodingSchemeDesignator, CodeMeaning).
@@ -138,34 +204,41 @@ struct SegmentDescription {
 
 // Writes `mask` (nonzero = inside; on the output grid, see the contract
 // above) as a binary DICOM Segmentation with one segment (SegmentAlgorithmType
-// AUTOMATIC), atomically, to `path` (its folder must exist).
+// AUTOMATIC), atomically, to `path` (its folder must exist). `identity` is
+// PlanDerivedObjects(...).segmentation and `referenced` its .intensity: the
+// intensity series on the same grid, which the SEG derives from.
 // - One frame per output slice, in slice order, empty slices included, so
 //   that the frames tile the whole output grid and a reader needs nothing but
 //   the SEG to rebuild it. Shared functional groups: PixelMeasures (as in the
-//   derived series), PlaneOrientationPatient; per frame: PlanePositionPatient,
-//   FrameContent (dimension indices: segment number, then slice k + 1 along
-//   ImagePositionPatient) and DerivationImage (the one or two source slices
-//   nearest along n, purpose "Source image for image processing operation").
-// - ReferencedSeriesSequence lists every source instance.
+//   intensity series), PlaneOrientationPatient; per frame:
+//   PlanePositionPatient, FrameContent (dimension indices: segment number,
+//   then slice k + 1 along ImagePositionPatient) and DerivationImage (image
+//   k of the intensity series, purpose "Source image for image processing
+//   operation").
+// - ReferencedSeriesSequence lists every instance of the intensity series;
+//   FrameOfReferenceUID and study are the source's (the intensity series has
+//   them too).
 absl::Status WriteSegmentation(const DicomSeries& source,
                                const Volume<uint8_t>& mask,
+                               const DerivedObjectIdentity& identity,
+                               const DerivedObjectIdentity& referenced,
                                const SegmentDescription& segment,
                                const DicomWriteOptions& options,
                                const std::string& path);
 
-// The source image (modality values) trilinearly interpolated at the voxel
-// centres of `target` (itk::ResampleImageFilter with
-// itk::LinearInterpolateImageFunction, identity transform, both in LPS mm).
-// Linear because it never overshoots the neighbouring values (no ringing at
-// bone/air edges, unlike B-splines or windowed sinc, which matters across
-// 5 mm slices) and is exact on the source slices; the intensity series is
-// context under the overlay, not a measurement. Points up to half a voxel
-// outside the source are clamped to the edge; points farther outside get the
-// source's minimum value (air). `target` may have any valid geometry.
-// Threads: context.threads (0 = all); the result does not depend on it.
-absl::StatusOr<Volume<float>> ResampleToGrid(const Volume<float>& image,
-                                             const Grid& target,
-                                             const ComputeContext& context);
+// Writes the signed distance field (mm, positive inside; on the output grid)
+// as a Parametric Map (DCMTK dcmpmap), one multi-frame instance with 32-bit
+// float pixel data, atomically, to `path` (its folder must exist). The Real
+// World Value Mapping says the values are millimetres (UCUM "mm") of a signed
+// distance; frames, functional groups, dimensions and references are
+// organised as for WriteSegmentation (frame k references image k of the
+// intensity series `referenced`). INVALID_ARGUMENT for non-finite values.
+absl::Status WriteDistanceMap(const DicomSeries& source,
+                              const Volume<float>& distance,
+                              const DerivedObjectIdentity& identity,
+                              const DerivedObjectIdentity& referenced,
+                              const DicomWriteOptions& options,
+                              const std::string& path);
 
 // A few lines of text to write beside mesh files (e.g. surface.txt): vertices
 // are DICOM patient coordinates (LPS, mm) of the source's Frame of Reference
@@ -177,6 +250,14 @@ std::string MeshConventionNote(const DicomSeries& source);
 // is malformed or too long. Exposed for callers that name other objects of
 // the same job.
 absl::StatusOr<std::string> GenerateDicomUid(const std::string& root);
+
+// The UID named by `name` under `root`: a name-based UUID (RFC 4122 version
+// 5: SHA-1 of interslice's namespace UUID and `name`) as "2.25." + its
+// decimal value when `root` is empty, else `root` + "." + as many of those
+// decimal digits as fit into 64 characters. The same name and root always
+// give the same UID. INVALID_ARGUMENT if `root` is malformed or too long.
+absl::StatusOr<std::string> DeriveDicomUid(const std::string& root,
+                                           std::string_view name);
 
 }  // namespace interslice
 

@@ -26,22 +26,14 @@
 namespace interslice {
 namespace {
 
-// SeriesNumber of a SEG when the caller gives none.
-constexpr int kDefaultSegSeriesNumber = 9001;
-
-}  // namespace
-
-namespace {
-
-using dicom_out_internal::AddReferencedSeries;
+using dicom_out_internal::AddReferencedImageSeries;
+using dicom_out_internal::CheckReferencedSeries;
 using dicom_out_internal::CopyPatientStudyFrameOfReference;
 using dicom_out_internal::CurrentDate;
 using dicom_out_internal::CurrentTime;
 using dicom_out_internal::FormatDecimalString;
 using dicom_out_internal::LoadSourceHeader;
-using dicom_out_internal::NearestSourceSlices;
 using dicom_out_internal::SaveFileAtomically;
-using dicom_out_internal::SlicePositionAlongNormal;
 using dicom_out_internal::ValidateOutputGrid;
 
 absl::Status Check(const OFCondition& cond, const char* what) {
@@ -62,12 +54,16 @@ absl::Status ValidateCode(const CodedConcept& code, const char* what) {
 
 absl::Status WriteSegmentation(const DicomSeries& source,
                                const Volume<uint8_t>& mask,
+                               const DerivedObjectIdentity& identity,
+                               const DerivedObjectIdentity& referenced,
                                const SegmentDescription& segment,
                                const DicomWriteOptions& options,
                                const std::string& path) {
   const Grid& grid = mask.grid;
   INTERSLICE_RETURN_IF_ERROR(
       ValidateOutputGrid(source, grid, mask.data.size(), "segmentation mask"));
+  INTERSLICE_RETURN_IF_ERROR(
+      CheckReferencedSeries(identity, referenced, grid, "segmentation"));
   if (segment.label.empty()) {
     return absl::InvalidArgumentError("segment label is empty");
   }
@@ -76,20 +72,15 @@ absl::Status WriteSegmentation(const DicomSeries& source,
   INTERSLICE_ASSIGN_OR_RETURN(std::unique_ptr<DcmFileFormat> source_file,
                               LoadSourceHeader(source));
   DcmDataset& src = *source_file->getDataset();
-  INTERSLICE_ASSIGN_OR_RETURN(const std::string series_uid,
-                              GenerateDicomUid(options.uid_root));
-  INTERSLICE_ASSIGN_OR_RETURN(const std::string sop_uid,
-                              GenerateDicomUid(options.uid_root));
-  INTERSLICE_ASSIGN_OR_RETURN(const std::string dimension_uid,
-                              GenerateDicomUid(options.uid_root));
+  const std::string& series_uid = identity.series_instance_uid;
+  const std::string& sop_uid = identity.sop_instance_uids.front();
+  const std::string& dimension_uid = identity.dimension_organization_uid;
 
   // The segmentation's creator is interslice (Enhanced General Equipment
   // needs all four values; a software tool has no serial number).
   const IODGeneralEquipmentModule::EquipmentInfo equipment(
       "interslice", "interslice", "0", options.software_version.c_str());
-  const std::string description = options.series_description.empty()
-                                      ? "interslice segmentation"
-                                      : options.series_description;
+  const std::string description = identity.series_description.substr(0, 64);
   ContentIdentificationMacro content("1", "INTERSLICE",
                                      description.substr(0, 64).c_str(), "");
   DcmSegmentation* raw = nullptr;
@@ -112,12 +103,9 @@ absl::Status WriteSegmentation(const DicomSeries& source,
   INTERSLICE_RETURN_IF_ERROR(
       Check(seg->getSeries().setSeriesInstanceUID(series_uid.c_str()),
             "set SeriesInstanceUID"));
-  // SeriesNumber is type 1 in the Segmentation Series module (unlike the
-  // image series, where it is type 2 and may stay empty).
-  seg->getSeries().setSeriesNumber(std::to_string(options.series_number > 0
-                                                      ? options.series_number
-                                                      : kDefaultSegSeriesNumber)
-                                       .c_str());
+  // SeriesNumber is type 1 in the Segmentation Series module.
+  seg->getSeries().setSeriesNumber(
+      std::to_string(identity.series_number).c_str());
   seg->getSeries().setSeriesDescription(description.c_str());
   seg->getSeries().setSeriesDate(CurrentDate().c_str());
   seg->getSeries().setSeriesTime(CurrentTime().c_str());
@@ -202,15 +190,12 @@ absl::Status WriteSegmentation(const DicomSeries& source,
     frame_content.setDimensionIndexValues(segment_number, 0);
     frame_content.setDimensionIndexValues(static_cast<Uint32>(k + 1), 1);
 
-    OFVector<ImageSOPInstanceReferenceMacro> references;
-    for (int64_t s :
-         NearestSourceSlices(source, SlicePositionAlongNormal(grid, k))) {
-      ImageSOPInstanceReferenceMacro reference;
-      reference.setReferencedSOPClassUID(source.sop_class_uid.c_str());
-      reference.setReferencedSOPInstanceUID(
-          source.slices[s].sop_instance_uid.c_str());
-      references.push_back(reference);
-    }
+    // Frame k lies on image k of the intensity series: that image is what
+    // it was derived from and what a viewer overlays it on.
+    OFVector<ImageSOPInstanceReferenceMacro> references(1);
+    references[0].setReferencedSOPClassUID(referenced.sop_class_uid.c_str());
+    references[0].setReferencedSOPInstanceUID(
+        referenced.sop_instance_uids[static_cast<size_t>(k)].c_str());
     std::unique_ptr<FGDerivationImage> derivation(
         DcmSegmentation::createDerivationImageFG(
             references,
@@ -231,7 +216,7 @@ absl::Status WriteSegmentation(const DicomSeries& source,
   DcmDataset& ds = *file.getDataset();
   INTERSLICE_RETURN_IF_ERROR(Check(seg->writeDataset(ds), "encode"));
   CopyPatientStudyFrameOfReference(src, ds);
-  AddReferencedSeries(source, ds);
+  AddReferencedImageSeries(referenced, ds);
   return SaveFileAtomically(file, path);
 }
 

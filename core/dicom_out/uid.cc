@@ -1,13 +1,16 @@
 // UID generation: "2.25." + UUID (ITU-T X.667 section 6.3, DICOM PS3.5 B.2)
-// or a caller's root followed by random digits.
+// or a caller's root followed by digits; random (UUID version 4) or derived
+// from a name (UUID version 5, RFC 4122 section 4.3).
 #include <cstdint>
 #include <random>
 #include <string>
+#include <string_view>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "absl/strings/str_cat.h"
 #include "core/dicom_out/dicom_writer.h"
+#include "openssl/evp.h"
 
 namespace interslice {
 namespace {
@@ -64,26 +67,66 @@ absl::Status ValidateRoot(const std::string& root) {
   return absl::OkStatus();
 }
 
-}  // namespace
+// Sets the version nibble (bits 76..79 of the 128-bit value) and the RFC 4122
+// variant (10 in bits 62..63).
+unsigned __int128 MarkUuid(unsigned __int128 uuid, unsigned version) {
+  const unsigned __int128 one = 1;
+  uuid &= ~(static_cast<unsigned __int128>(0xF) << 76);
+  uuid |= static_cast<unsigned __int128>(version & 0xF) << 76;
+  uuid &= ~(static_cast<unsigned __int128>(0x3) << 62);
+  uuid |= one << 63;
+  return uuid;
+}
 
-absl::StatusOr<std::string> GenerateDicomUid(const std::string& root) {
-  if (root.empty()) {
-    unsigned __int128 uuid = Random128();
-    // A version 4 (random) UUID: version nibble 0100 in bits 76..79, variant
-    // 10 in bits 62..63 (RFC 4122 section 4.4).
-    const unsigned __int128 one = 1;
-    uuid &= ~(static_cast<unsigned __int128>(0xF) << 76);
-    uuid |= static_cast<unsigned __int128>(0x4) << 76;
-    uuid &= ~(static_cast<unsigned __int128>(0x3) << 62);
-    uuid |= one << 63;
-    return absl::StrCat("2.25.", ToDecimal(uuid));
-  }
-  if (absl::Status status = ValidateRoot(root); !status.ok()) return status;
+// interslice's namespace for name-based UUIDs (RFC 4122 section 4.3): a
+// fixed random UUID, 3f1c9a52-7d0e-4b6a-9c41-52e8d7a0b613. Never change it:
+// every derived UID depends on it.
+constexpr unsigned char kNamespace[16] = {0x3f, 0x1c, 0x9a, 0x52, 0x7d, 0x0e,
+                                          0x4b, 0x6a, 0x9c, 0x41, 0x52, 0xe8,
+                                          0xd7, 0xa0, 0xb6, 0x13};
+
+// Root followed by the decimal digits of `value`, cut to fit 64 characters.
+std::string UnderRoot(const std::string& root, unsigned __int128 value) {
   const size_t room = kMaxUidLength - root.size() - 1;
-  std::string digits = ToDecimal(Random128());
+  std::string digits = ToDecimal(value);
   // Never a leading zero (ToDecimal gives none) and never longer than fits.
   if (digits.size() > room) digits.resize(room);
   return absl::StrCat(root, ".", digits);
+}
+
+}  // namespace
+
+absl::StatusOr<std::string> DeriveDicomUid(const std::string& root,
+                                           std::string_view name) {
+  if (!root.empty()) {
+    if (absl::Status status = ValidateRoot(root); !status.ok()) return status;
+  }
+  // UUID version 5: SHA-1 over the namespace's 16 bytes and the name; the
+  // first 16 bytes of the digest, big-endian, with version and variant set.
+  std::string message(reinterpret_cast<const char*>(kNamespace),
+                      sizeof(kNamespace));
+  message.append(name);
+  unsigned char digest[EVP_MAX_MD_SIZE];
+  unsigned int digest_length = 0;
+  if (EVP_Digest(message.data(), message.size(), digest, &digest_length,
+                 EVP_sha1(), nullptr) != 1 ||
+      digest_length < 16) {
+    return absl::InternalError("SHA-1 is not available for derived UIDs");
+  }
+  unsigned __int128 uuid = 0;
+  for (int i = 0; i < 16; ++i) uuid = (uuid << 8) | digest[i];
+  uuid = MarkUuid(uuid, 5);
+  if (root.empty()) return absl::StrCat("2.25.", ToDecimal(uuid));
+  return UnderRoot(root, uuid);
+}
+
+absl::StatusOr<std::string> GenerateDicomUid(const std::string& root) {
+  if (root.empty()) {
+    // A version 4 (random) UUID (RFC 4122 section 4.4).
+    return absl::StrCat("2.25.", ToDecimal(MarkUuid(Random128(), 4)));
+  }
+  if (absl::Status status = ValidateRoot(root); !status.ok()) return status;
+  return UnderRoot(root, Random128());
 }
 
 }  // namespace interslice

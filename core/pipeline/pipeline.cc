@@ -80,32 +80,54 @@ absl::Status WriteTextFile(const std::string& path, const std::string& text) {
   return absl::OkStatus();
 }
 
-// Writes one derived series into `folder`, replacing an older one only once
-// the new one is complete: slices go to a fresh sibling folder, which is then
-// renamed into place (a series never mixes files of two runs).
-absl::Status WriteSeriesFolder(
-    const DicomSeries& source, const std::string& content,
-    const Volume<float>& field, const Volume<float>& mask_values,
-    const Volume<float>& image, const DicomWriteOptions& options,
-    const std::filesystem::path& folder, const ComputeContext& context) {
-  DerivedContent kind = DerivedContent::kDistance;
-  const Volume<float>* values = &field;
-  Volume<float> intensity;
-  if (content == "mask") {
-    kind = DerivedContent::kMask;
-    values = &mask_values;
-  } else if (content == "intensity") {
-    kind = DerivedContent::kIntensity;
-    INTERSLICE_ASSIGN_OR_RETURN(intensity,
-                                ResampleToGrid(image, field.grid, context));
-    values = &intensity;
+bool Contains(const std::vector<std::string>& list, const std::string& item) {
+  return std::find(list.begin(), list.end(), item) != list.end();
+}
+
+// The job's parameters that shape its results, in a canonical text: with the
+// source instances and the UID root, it names the derived DICOM objects (see
+// DicomWriteOptions::derivation_key). Thread counts, output folders and file
+// formats do not change a voxel, so they are not part of it.
+std::string DerivationKey(const JobSpec& spec, const Grid& output_grid) {
+  std::string key = absl::StrFormat(
+      "lower=%.9g upper=%s band=%.9g method=%s units=%s iterations=%d "
+      "tolerance=%.9g strict=%d volume=%s",
+      spec.lower_threshold,
+      spec.upper_threshold.has_value()
+          ? absl::StrFormat("%.9g", *spec.upper_threshold)
+          : "none",
+      spec.band_radius_mm, SolverMethodName(spec.solver.method),
+      EnergyUnitsName(spec.solver.units), spec.solver.max_iterations,
+      spec.solver.tolerance, spec.strict_spacing ? 1 : 0,
+      spec.multiframe_volume);
+  if (spec.roi.has_value()) {
+    absl::StrAppend(&key, " roi=", absl::StrJoin(spec.roi->begin, ","), ",",
+                    absl::StrJoin(spec.roi->end, ","));
   }
+  absl::StrAppend(&key, " grid=", absl::StrJoin(output_grid.size, ","));
+  for (double v : output_grid.spacing) {
+    absl::StrAppend(&key, absl::StrFormat(" %.9g", v));
+  }
+  for (double v : output_grid.origin) {
+    absl::StrAppend(&key, absl::StrFormat(" %.9g", v));
+  }
+  return key;
+}
+
+// Writes the intensity series into `folder`, replacing an older one only
+// once the new one is complete: slices go to a fresh sibling folder, which is
+// then renamed into place (a series never mixes files of two runs).
+absl::Status WriteIntensityFolder(const DicomSeries& source,
+                                  const Volume<float>& intensity,
+                                  const DerivedObjectIdentity& identity,
+                                  const DicomWriteOptions& options,
+                                  const std::filesystem::path& folder) {
   const std::filesystem::path temp =
       folder.parent_path() / ("." + folder.filename().string() + ".tmp");
   std::error_code ec;
   std::filesystem::remove_all(temp, ec);
   INTERSLICE_RETURN_IF_ERROR(
-      WriteDerivedSeries(source, *values, kind, options, temp.string())
+      WriteIntensitySeries(source, intensity, identity, options, temp.string())
           .status());
   std::filesystem::remove_all(folder, ec);
   std::filesystem::rename(temp, folder, ec);
@@ -175,9 +197,12 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
   JobReport report;
   report.energy_units = spec.solver.units;
 
-  const bool wants_intensity =
-      std::find(spec.output_series.begin(), spec.output_series.end(),
-                "intensity") != spec.output_series.end();
+  // A SEG and a distance map reference the intensity series on their grid,
+  // so either one brings it along (see JobSpec::output_series).
+  const bool wants_seg = spec.write_seg || Contains(spec.output_series, "mask");
+  const bool wants_distance_map = Contains(spec.output_series, "distance");
+  const bool wants_intensity = Contains(spec.output_series, "intensity") ||
+                               wants_seg || wants_distance_map;
 
   // read
   Volume<float> image;
@@ -195,6 +220,9 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
                                 ReadDicomSeries(spec.inputs, options, context));
     report.input_grid = series.image.grid;
     report.skipped_files = series.skipped_files;
+    report.gantry_tilt_degrees = series.gantry_tilt_degrees;
+    report.min_gap_mm = series.min_gap_mm;
+    report.max_gap_mm = series.max_gap_mm;
     int64_t first_slice = 0;
     if (spec.roi.has_value()) {
       INTERSLICE_RETURN_IF_ERROR(
@@ -298,23 +326,30 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
     }
     const std::filesystem::path dir(spec.output_dir);
     Volume<uint8_t> mask;
-    if (!spec.volume_formats.empty() || spec.write_seg) {
+    if (!spec.volume_formats.empty() || wants_seg) {
       mask.grid = field.grid;
       mask.data.resize(field.data.size());
       std::transform(field.data.begin(), field.data.end(), mask.data.begin(),
                      [](float v) -> uint8_t { return v >= 0 ? 1 : 0; });
     }
-    Volume<float> mask_values;  // the mask as values for a derived series
-    if (std::find(spec.output_series.begin(), spec.output_series.end(),
-                  "mask") != spec.output_series.end()) {
-      mask_values.grid = field.grid;
-      mask_values.data.resize(field.data.size());
-      std::transform(field.data.begin(), field.data.end(),
-                     mask_values.data.begin(),
-                     [](float v) { return v >= 0 ? 1.0f : 0.0f; });
-    }
     DicomWriteOptions dicom_options;
     dicom_options.uid_root = spec.uid_root;
+    dicom_options.random_uids = spec.random_uids;
+    dicom_options.series_number_base = spec.series_number_base;
+    dicom_options.derivation_key = DerivationKey(spec, field.grid);
+    DerivedObjects objects;
+    Volume<float> intensity;
+    if (wants_intensity) {
+      INTERSLICE_ASSIGN_OR_RETURN(
+          objects,
+          PlanDerivedObjects(source, field.grid.size[2], dicom_options));
+      INTERSLICE_ASSIGN_OR_RETURN(const std::optional<float> padding,
+                                  SourcePixelPadding(source));
+      INTERSLICE_ASSIGN_OR_RETURN(
+          intensity,
+          ResampleSourceSlices(image, positions, field.grid, padding, context));
+      image = Volume<float>();
+    }
 
     // Each task writes one artifact and records its kind, path and status.
     struct Task {
@@ -347,20 +382,29 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
                                               MeshConventionNote(source));
                        }});
     }
-    for (const std::string& content : spec.output_series) {
-      const auto path = dir / ("series-" + content);
-      tasks.push_back({"series-" + content, path, [&, content, path] {
-                         return WriteSeriesFolder(source, content, field,
-                                                  mask_values, image,
-                                                  dicom_options, path, context);
+    if (wants_intensity) {
+      const auto path = dir / "series-intensity";
+      tasks.push_back({"series-intensity", path, [&, path] {
+                         return WriteIntensityFolder(source, intensity,
+                                                     objects.intensity,
+                                                     dicom_options, path);
                        }});
     }
-    if (spec.write_seg) {
+    if (wants_distance_map) {
+      const auto path = dir / "distance.dcm";
+      tasks.push_back({"distance-map", path, [&, path] {
+                         return WriteDistanceMap(
+                             source, field, objects.distance_map,
+                             objects.intensity, dicom_options, path.string());
+                       }});
+    }
+    if (wants_seg) {
       const auto path = dir / "seg.dcm";
       tasks.push_back({"seg", path, [&, path] {
-                         return WriteSegmentation(source, mask,
-                                                  SegmentDescription{},
-                                                  dicom_options, path.string());
+                         return WriteSegmentation(
+                             source, mask, objects.segmentation,
+                             objects.intensity, SegmentDescription{},
+                             dicom_options, path.string());
                        }});
     }
     tbb::task_arena arena(context.threads > 0 ? context.threads
@@ -404,6 +448,9 @@ std::string JobReportToJson(const JobReport& report) {
   j["input"] = grid_json(report.input_grid);
   j["input"]["slices_used"] = report.input_slices;
   j["input"]["skipped_files"] = report.skipped_files;
+  j["input"]["gantry_tilt_degrees"] = report.gantry_tilt_degrees;
+  j["input"]["min_gap_mm"] = report.min_gap_mm;
+  j["input"]["max_gap_mm"] = report.max_gap_mm;
   j["mesh"] = {{"vertices", report.mesh_vertices},
                {"triangles", report.mesh_triangles}};
   ordered_json artifacts = ordered_json::array();

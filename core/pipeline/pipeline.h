@@ -45,13 +45,29 @@ struct JobSpec {
   //   mesh formats "stl", "ply", "obj" -> surface.<ext>.
   std::vector<std::string> volume_formats = {"nii"};
   std::vector<std::string> mesh_formats = {"stl"};
-  //   derived DICOM series "mask", "distance", "intensity" ->
-  //                  series-<content>/IM00001.dcm ... (one file per slice);
-  //   write_seg -> seg.dcm (binary DICOM SEG of the mask).
+  //   DICOM objects (see core/dicom_out/dicom_writer.h and
+  //   docs/dicom-output.md), by output_series name:
+  //     "intensity" -> series-intensity/IM00001.dcm ... (a CT/MR image
+  //                    series of the source values on the output grid);
+  //     "distance"  -> distance.dcm (Parametric Map of the signed distance,
+  //                    float mm);
+  //     "mask"      -> seg.dcm (binary DICOM SEG of the mask; the same as
+  //                    write_seg).
+  //   A SEG or a distance map is always written with the intensity series
+  //   it references frame by frame (a viewer opens that series and overlays
+  //   them), so either one also writes series-intensity/.
   std::vector<std::string> output_series;
   bool write_seg = false;
   // UID root for new series/instance UIDs; empty = 2.25 + UUID.
   std::string uid_root;
+  // UIDs are derived from the source instances, the job's parameters and the
+  // root (a rerun replaces its results on a PACS instead of duplicating
+  // them); random_uids makes new ones on every run.
+  bool random_uids = false;
+  // Series numbers of the derived objects: intensity base + 1, distance map
+  // base + 2, SEG base + 3; <= 0 = 1000 x the source's SeriesNumber (9000
+  // when it has none).
+  int series_number_base = 0;
   // Multi-frame series holding several volumes: which one (as named in the
   // error listing them); empty = the only one.
   std::string multiframe_volume;
@@ -88,6 +104,10 @@ struct JobReport {
   double max_snap_mm = 0;
   int64_t input_slices = 0;
   int64_t skipped_files = 0;
+  // The series as read: gantry tilt corrected (degrees; 0 = none), and the
+  // smallest and largest gap between consecutive slices (mm).
+  double gantry_tilt_degrees = 0;
+  double min_gap_mm = 0, max_gap_mm = 0;
   int64_t mesh_vertices = 0;
   int64_t mesh_triangles = 0;
   std::vector<Artifact> artifacts;

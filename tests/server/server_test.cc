@@ -226,13 +226,18 @@ TEST(ServerTest, OneCallGivesTheSameFilesAsRun) {
   EXPECT_EQ(CountJobs(dir / "spool"), 0);
 }
 
-// DICOM outputs through the daemon: the derived series and the SEG have the
-// same pixel data and geometry as `run` (their UIDs and times differ).
-TEST(ServerTest, DicomOutputsMatchRunInPixelsAndGeometry) {
+// DICOM outputs through the daemon are the objects `run` writes: the same
+// pixel data, geometry and (derived, not random) UIDs; only creation dates
+// and times may differ.
+TEST(ServerTest, DicomOutputsMatchRunInPixelsGeometryAndUids) {
   TempDir dir;
-  const std::vector<std::string> dicom = {
-      "--output-series", "mask,distance", "--seg", "--volume", "none",
-      "--mesh",          "none"};
+  const std::vector<std::string> dicom = {"--output-series",
+                                          "intensity,distance",
+                                          "--seg",
+                                          "--volume",
+                                          "none",
+                                          "--mesh",
+                                          "none"};
   CommandResult local = Cli(
       Cat(Cat({"run"}, kSmallJob),
           Cat(dicom, {"--out", dir / "local", "--quiet", "--threads", "1"})));
@@ -242,45 +247,57 @@ TEST(ServerTest, DicomOutputsMatchRunInPixelsAndGeometry) {
       Cli(Cat(Cat({"interpolate"}, kSmallJob),
               Cat(dicom, Cat(server.Server(), {"--out", dir / "remote"}))));
   ASSERT_EQ(r.exit_code, 0) << r.err << server.Log();
-  for (const char* series : {"series-mask", "series-distance"}) {
-    const auto a =
-        ReadDicomSeries({(fs::path(dir / "local") / series).string()}, {}, {});
-    const auto b =
-        ReadDicomSeries({(fs::path(dir / "remote") / series).string()}, {}, {});
-    ASSERT_TRUE(a.ok()) << a.status();
-    ASSERT_TRUE(b.ok()) << b.status();
-    EXPECT_EQ(a->image.grid.size, b->image.grid.size) << series;
-    EXPECT_EQ(a->image.grid.spacing, b->image.grid.spacing) << series;
-    EXPECT_EQ(a->image.grid.origin, b->image.grid.origin) << series;
-    EXPECT_EQ(a->image.grid.direction, b->image.grid.direction) << series;
-    EXPECT_TRUE(a->image.data == b->image.data) << series;
-    EXPECT_NE(a->series_instance_uid, b->series_instance_uid) << series;
+  const auto a = ReadDicomSeries(
+      {(fs::path(dir / "local") / "series-intensity").string()}, {}, {});
+  const auto b = ReadDicomSeries(
+      {(fs::path(dir / "remote") / "series-intensity").string()}, {}, {});
+  ASSERT_TRUE(a.ok()) << a.status();
+  ASSERT_TRUE(b.ok()) << b.status();
+  EXPECT_EQ(a->image.grid.size, b->image.grid.size);
+  EXPECT_EQ(a->image.grid.spacing, b->image.grid.spacing);
+  EXPECT_EQ(a->image.grid.origin, b->image.grid.origin);
+  EXPECT_EQ(a->image.grid.direction, b->image.grid.direction);
+  EXPECT_TRUE(a->image.data == b->image.data);
+  EXPECT_EQ(a->series_instance_uid, b->series_instance_uid);
+  ASSERT_EQ(a->slices.size(), b->slices.size());
+  for (size_t k = 0; k < a->slices.size(); ++k) {
+    EXPECT_EQ(a->slices[k].sop_instance_uid, b->slices[k].sop_instance_uid);
   }
-  // The SEG: same frames of bits, same size (UIDs differ in length).
-  auto seg_content = [](const fs::path& path) {
+  // The SEG and the distance map: same UIDs, same frames, same pixel data.
+  auto content = [](const fs::path& path) {
     DcmFileFormat file;
     EXPECT_TRUE(file.loadFile(path.c_str()).good()) << path;
     DcmDataset* ds = file.getDataset();
     const Uint8* pixels = nullptr;
     unsigned long count = 0;
-    ds->findAndGetUint8Array(DCM_PixelData, pixels, &count);
-    OFString frames, rows, columns;
+    if (ds->findAndGetUint8Array(DCM_PixelData, pixels, &count).bad()) {
+      const Float32* floats = nullptr;
+      ds->findAndGetFloat32Array(DCM_FloatPixelData, floats, &count);
+      pixels = reinterpret_cast<const Uint8*>(floats);
+      count *= sizeof(Float32);
+    }
+    OFString frames, rows, columns, sop, series;
     ds->findAndGetOFString(DCM_NumberOfFrames, frames);
     ds->findAndGetOFString(DCM_Rows, rows);
     ds->findAndGetOFString(DCM_Columns, columns);
-    return std::string(frames.c_str()) + "x" + rows.c_str() + "x" +
-           columns.c_str() + ":" +
-           std::string(reinterpret_cast<const char*>(pixels), count);
+    ds->findAndGetOFString(DCM_SOPInstanceUID, sop);
+    ds->findAndGetOFString(DCM_SeriesInstanceUID, series);
+    return std::string(sop.c_str()) + "/" + series.c_str() + "/" +
+           frames.c_str() + "x" + rows.c_str() + "x" + columns.c_str() + ":" +
+           std::string(reinterpret_cast<const char*>(pixels),
+                       pixels == nullptr ? 0 : count);
   };
-  const std::string local_seg =
-      seg_content(fs::path(dir / "local") / "seg.dcm");
-  EXPECT_GT(local_seg.size(), 100u);
-  EXPECT_TRUE(local_seg == seg_content(fs::path(dir / "remote") / "seg.dcm"));
+  for (const char* name : {"seg.dcm", "distance.dcm"}) {
+    SCOPED_TRACE(name);
+    const std::string local_content = content(fs::path(dir / "local") / name);
+    EXPECT_GT(local_content.size(), 1000u);
+    EXPECT_TRUE(local_content == content(fs::path(dir / "remote") / name));
+  }
 }
 
 TEST(ArtifactNameTest, OnlyPlainNamesWithOneFolderLevelAreSafe) {
   for (const char* ok :
-       {"distance.nii.gz", "seg.dcm", "series-mask/IM00001.dcm"}) {
+       {"distance.nii.gz", "seg.dcm", "series-intensity/IM00001.dcm"}) {
     EXPECT_TRUE(client::IsSafeArtifactName(ok)) << ok;
   }
   for (const char* bad : {"", "..", "../x", "a/../b", "/etc/passwd", "a/b/c",

@@ -19,11 +19,14 @@
 #include "core/dicom/series_reader.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "tests/core/dicom_out/dicom_test_util.h"
 #include "tests/testing/temp_dir.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
 #include "dcmtk/dcmdata/dcfilefo.h"
+#include "dcmtk/dcmdata/dcvrus.h"
+#include "dcmtk/dcmfg/fgderimg.h"
 #include "dcmtk/dcmfg/fginterface.h"
 #include "dcmtk/dcmfg/fgplanpo.h"
 #include "dcmtk/dcmseg/segdoc.h"
@@ -38,7 +41,6 @@ using ::testing::HasSubstr;
 using ::testing::StartsWith;
 
 const fs::path kThick = fs::path(INTERSLICE_TEST_DATA_DIR) / "ct-thick";
-constexpr char kDciodvfy[] = "/usr/bin/dciodvfy";
 constexpr char kTestRoot[] = "1.2.826.0.1.3680043.10.1234";
 
 // A fresh folder per test, removed afterwards.
@@ -114,8 +116,27 @@ class DicomWriterTest : public ::testing::Test {
   static DicomWriteOptions Options() {
     DicomWriteOptions options;
     options.uid_root = kTestRoot;
-    options.series_number = 901;
+    options.series_number_base = 900;
+    options.derivation_key = "test job";
     return options;
+  }
+  static DerivedObjects Plan(const DicomWriteOptions& options = Options()) {
+    auto objects = PlanDerivedObjects(*source_, grid_->size[2], options);
+    EXPECT_TRUE(objects.ok()) << objects.status();
+    return objects.ok() ? *objects : DerivedObjects{};
+  }
+  // The source CT on the output grid (cropped in-plane like grid_).
+  static Volume<float> Intensity() {
+    Volume<float> cropped =
+        CropVolume(source_->image, VoxelBox{{224, 200, 0}, {288, 264, 4}});
+    std::vector<double> positions;
+    for (const DicomSliceInfo& s : source_->slices) {
+      positions.push_back(s.position_along_normal);
+    }
+    auto intensity =
+        ResampleSourceSlices(cropped, positions, *grid_, std::nullopt, {});
+    EXPECT_TRUE(intensity.ok()) << intensity.status();
+    return intensity.ok() ? *intensity : Volume<float>{};
   }
 
   static DicomSeries* source_;
@@ -125,54 +146,11 @@ class DicomWriterTest : public ::testing::Test {
 DicomSeries* DicomWriterTest::source_ = nullptr;
 Grid* DicomWriterTest::grid_ = nullptr;
 
-// dciodvfy's output lines for `path` (it writes to stderr).
-std::vector<std::string> Dciodvfy(const std::string& path) {
-  std::vector<std::string> lines;
-  const std::string command = std::string(kDciodvfy) + " '" + path + "' 2>&1";
-  FILE* pipe = ::popen(command.c_str(), "r");
-  if (pipe == nullptr) return {"Error - cannot run dciodvfy"};
-  char buffer[4096];
-  while (std::fgets(buffer, sizeof(buffer), pipe) != nullptr) {
-    std::string line(buffer);
-    while (!line.empty() && (line.back() == '\n' || line.back() == '\r')) {
-      line.pop_back();
-    }
-    lines.push_back(line);
-  }
-  ::pclose(pipe);
-  return lines;
-}
-
-// Runs dciodvfy on every file; fails on any "Error" line, prints each
-// distinct warning once.
-void ExpectValidIod(const std::vector<std::string>& paths) {
-  ASSERT_TRUE(fs::exists(kDciodvfy))
-      << "dciodvfy (dicom3tools) missing; run scripts/install-deps.sh";
-  std::set<std::string> warnings;
-  for (const std::string& path : paths) {
-    for (const std::string& line : Dciodvfy(path)) {
-      EXPECT_THAT(line, ::testing::Not(HasSubstr("Error")))
-          << fs::path(path).filename();
-      if (line.find("Warning") != std::string::npos) warnings.insert(line);
-    }
-  }
-  for (const std::string& w : warnings) {
-    std::printf("dciodvfy %s: %s\n",
-                paths.empty() ? "" : fs::path(paths[0]).filename().c_str(),
-                w.c_str());
-  }
-}
-
-std::string GetString(DcmItem& item, const DcmTagKey& tag) {
-  OFString value;
-  item.findAndGetOFStringArray(tag, value);
-  return std::string(value.c_str());
-}
-
+using testing::DciodvfyErrors;
+using testing::ExpectValidIod;
+using testing::GetString;
 std::unique_ptr<DcmFileFormat> Load(const std::string& path) {
-  auto file = std::make_unique<DcmFileFormat>();
-  EXPECT_TRUE(file->loadFile(OFFilename(path.c_str())).good()) << path;
-  return file;
+  return testing::LoadDicom(path);
 }
 
 void ExpectSameGrid(const Grid& a, const Grid& b) {
@@ -184,104 +162,114 @@ void ExpectSameGrid(const Grid& a, const Grid& b) {
   for (int i = 0; i < 9; ++i) EXPECT_NEAR(a.direction[i], b.direction[i], 1e-4);
 }
 
-TEST_F(DicomWriterTest, EveryOutputPassesDciodvfy) {
+TEST_F(DicomWriterTest, IntensitySeriesAndSegPassDciodvfy) {
   TempDir dir;
-  const Volume<float> distance = Distance();
-  const Volume<uint8_t> mask = Mask(distance);
-  auto intensity = ResampleToGrid(source_->image, *grid_, {});
-  ASSERT_TRUE(intensity.ok()) << intensity.status();
-  const struct {
-    DerivedContent content;
-    const Volume<float>* values;
-  } cases[] = {{DerivedContent::kMask, nullptr},
-               {DerivedContent::kDistance, &distance},
-               {DerivedContent::kIntensity, &*intensity}};
-  const Volume<float> mask_values = ToFloat(mask);
-  for (const auto& c : cases) {
-    const std::string out =
-        (dir.path() / std::string(DerivedContentName(c.content))).string();
-    auto paths =
-        WriteDerivedSeries(*source_, c.values ? *c.values : mask_values,
-                           c.content, Options(), out);
-    ASSERT_TRUE(paths.ok()) << paths.status();
-    ASSERT_EQ(paths->size(), static_cast<size_t>(grid_->size[2]));
-    SCOPED_TRACE(DerivedContentName(c.content));
+  const DerivedObjects objects = Plan();
+  const std::string out = (dir.path() / "intensity").string();
+  auto paths = WriteIntensitySeries(*source_, Intensity(), objects.intensity,
+                                    Options(), out);
+  ASSERT_TRUE(paths.ok()) << paths.status();
+  ASSERT_EQ(paths->size(), static_cast<size_t>(grid_->size[2]));
+  {
+    SCOPED_TRACE("intensity");
     ExpectValidIod(*paths);
   }
   const std::string seg = (dir.path() / "seg.dcm").string();
-  ASSERT_TRUE(
-      WriteSegmentation(*source_, mask, SegmentDescription(), Options(), seg)
-          .ok());
+  const absl::Status written = WriteSegmentation(
+      *source_, Mask(Distance()), objects.segmentation, objects.intensity,
+      SegmentDescription(), Options(), seg);
+  ASSERT_TRUE(written.ok()) << written;
   SCOPED_TRACE("seg");
   ExpectValidIod({seg});
-  // Keeps the outputs for inspection when asked to.
-  if (const char* keep = std::getenv("INTERSLICE_KEEP_DICOM_OUT")) {
-    fs::copy(dir.path(), keep, fs::copy_options::recursive);
-  }
 }
 
-TEST_F(DicomWriterTest, DerivedSeriesRoundTripsThroughOurReader) {
+TEST_F(DicomWriterTest, IntensitySeriesRoundTripsThroughOurReader) {
   TempDir dir;
-  const Volume<float> distance = Distance();
-  const Volume<float> mask = ToFloat(Mask(distance));
-  auto intensity = ResampleToGrid(source_->image, *grid_, {});
-  ASSERT_TRUE(intensity.ok()) << intensity.status();
-
-  struct Case {
-    DerivedContent content;
-    const Volume<float>* values;
-    double tolerance;
-  };
-  // Distance: half the 0.01 mm step (plus float rounding); intensity: half
-  // of the source's rescale slope (1 HU).
-  const Case cases[] = {{DerivedContent::kMask, &mask, 0.0},
-                        {DerivedContent::kDistance, &distance, 0.005 + 1e-5},
-                        {DerivedContent::kIntensity, &*intensity, 0.5 + 1e-3}};
-  for (const Case& c : cases) {
-    SCOPED_TRACE(DerivedContentName(c.content));
-    const std::string out =
-        (dir.path() / std::string(DerivedContentName(c.content))).string();
-    auto paths =
-        WriteDerivedSeries(*source_, *c.values, c.content, Options(), out);
-    ASSERT_TRUE(paths.ok()) << paths.status();
-    auto back = ReadDicomSeries({out}, {}, {});
-    ASSERT_TRUE(back.ok()) << back.status();
-    ExpectSameGrid(back->image.grid, *grid_);
-    ASSERT_EQ(back->image.data.size(), c.values->data.size());
-    double worst = 0;
-    for (size_t i = 0; i < c.values->data.size(); ++i) {
-      worst = std::max(worst, std::abs(double(back->image.data[i]) -
-                                       double(c.values->data[i])));
-    }
-    EXPECT_LE(worst, c.tolerance);
-    EXPECT_EQ(back->study_instance_uid, source_->study_instance_uid);
-    EXPECT_EQ(back->frame_of_reference_uid, source_->frame_of_reference_uid);
-    EXPECT_EQ(back->modality, "CT");
+  const Volume<float> intensity = Intensity();
+  const std::string out = (dir.path() / "intensity").string();
+  const DerivedObjects objects = Plan();
+  auto paths = WriteIntensitySeries(*source_, intensity, objects.intensity,
+                                    Options(), out);
+  ASSERT_TRUE(paths.ok()) << paths.status();
+  auto back = ReadDicomSeries({out}, {}, {});
+  ASSERT_TRUE(back.ok()) << back.status();
+  ExpectSameGrid(back->image.grid, *grid_);
+  ASSERT_EQ(back->image.data.size(), intensity.data.size());
+  double worst = 0;
+  for (size_t i = 0; i < intensity.data.size(); ++i) {
+    worst = std::max(worst, std::abs(double(back->image.data[i]) -
+                                     double(intensity.data[i])));
+  }
+  // Half of the source's rescale slope (1 HU), plus float rounding.
+  EXPECT_LE(worst, 0.5 + 1e-3);
+  EXPECT_EQ(back->study_instance_uid, source_->study_instance_uid);
+  EXPECT_EQ(back->frame_of_reference_uid, source_->frame_of_reference_uid);
+  EXPECT_EQ(back->series_instance_uid, objects.intensity.series_instance_uid);
+  EXPECT_EQ(back->modality, "CT");
+  for (size_t k = 0; k < back->slices.size(); ++k) {
+    EXPECT_EQ(back->slices[k].sop_instance_uid,
+              objects.intensity.sop_instance_uids[k]);
   }
 }
 
-TEST_F(DicomWriterTest, IntensityOnSourceSlicesEqualsSource) {
-  // Output slices 0, 5, 10, 15 lie on the source slices; linear
-  // interpolation must reproduce them exactly there.
-  auto intensity = ResampleToGrid(source_->image, *grid_, {});
-  ASSERT_TRUE(intensity.ok()) << intensity.status();
-  for (int64_t s = 0; s < source_->image.grid.size[2]; ++s) {
-    for (int64_t j = 0; j < grid_->size[1]; j += 7) {
-      for (int64_t i = 0; i < grid_->size[0]; i += 5) {
-        ASSERT_NEAR(intensity->at(i, j, 5 * s),
-                    source_->image.at(224 + i, 200 + j, s), 1e-3);
-      }
-    }
+TEST_F(DicomWriterTest, IntensitySeriesKeepsWindowsAndPixelPadding) {
+  TempDir dir;
+  // A source whose first slice has two windows with explanations and a
+  // PixelPaddingValue, as scanners write them.
+  const fs::path copy = dir.path() / "source";
+  fs::create_directories(copy);
+  DicomSeries source = *source_;
+  for (size_t s = 0; s < source.slices.size(); ++s) {
+    const fs::path to = copy / fs::path(source.slices[s].path).filename();
+    fs::copy_file(source.slices[s].path, to);
+    source.slices[s].path = to.string();
   }
+  {
+    auto file = Load(source.slices[0].path);
+    DcmDataset& ds = *file->getDataset();
+    ds.putAndInsertString(DCM_WindowCenter, "40\\400");
+    ds.putAndInsertString(DCM_WindowWidth, "80\\2000");
+    ds.putAndInsertString(DCM_WindowCenterWidthExplanation, "BRAIN\\BONE");
+    auto* padding = new DcmUnsignedShort(DcmTag(DCM_PixelPaddingValue, EVR_US));
+    padding->putUint16(0);  // stored 0 = -1024 HU with intercept -1024
+    ds.insert(padding, OFTrue);
+    // Saving over the file it was loaded from: read the pixel data first.
+    ASSERT_TRUE(file->loadAllDataIntoMemory().good());
+    ASSERT_TRUE(file->saveFile(source.slices[0].path.c_str()).good());
+  }
+  auto padding_value = SourcePixelPadding(source);
+  ASSERT_TRUE(padding_value.ok()) << padding_value.status();
+  ASSERT_TRUE(padding_value->has_value());
+  EXPECT_FLOAT_EQ(**padding_value,
+                  static_cast<float>(source.slices[0].rescale_intercept));
+
+  const DerivedObjects objects = Plan();
+  const std::string out = (dir.path() / "intensity").string();
+  auto paths = WriteIntensitySeries(source, Intensity(), objects.intensity,
+                                    Options(), out);
+  ASSERT_TRUE(paths.ok()) << paths.status();
+  auto file = Load(paths->front());
+  DcmDataset& ds = *file->getDataset();
+  EXPECT_EQ(GetString(ds, DCM_WindowCenter), "40\\400");
+  EXPECT_EQ(GetString(ds, DCM_WindowWidth), "80\\2000");
+  EXPECT_EQ(GetString(ds, DCM_WindowCenterWidthExplanation), "BRAIN\\BONE");
+  Uint16 stored_padding = 1;
+  ASSERT_TRUE(
+      ds.findAndGetUint16(DCM_PixelPaddingValue, stored_padding).good());
+  EXPECT_EQ(stored_padding, 0);
+  ExpectValidIod({paths->front()});
 }
 
-TEST_F(DicomWriterTest, SegmentationRoundTripsThroughDcmtk) {
+TEST_F(DicomWriterTest, SegFramesReferenceTheIntensitySeriesImageByImage) {
   TempDir dir;
   const Volume<uint8_t> mask = Mask(Distance());
   const std::string path = (dir.path() / "seg.dcm").string();
   SegmentDescription segment;
   segment.label = "Sphere";
-  ASSERT_TRUE(WriteSegmentation(*source_, mask, segment, Options(), path).ok());
+  const DerivedObjects objects = Plan();
+  ASSERT_TRUE(WriteSegmentation(*source_, mask, objects.segmentation,
+                                objects.intensity, segment, Options(), path)
+                  .ok());
 
   DcmSegmentation* raw = nullptr;
   ASSERT_TRUE(DcmSegmentation::loadFile(path.c_str(), raw).good());
@@ -312,6 +300,22 @@ TEST_F(DicomWriterTest, SegmentationRoundTripsThroughDcmtk) {
     EXPECT_NEAR(y, expected[1], 1e-4);
     EXPECT_NEAR(z, expected[2], 1e-4);
 
+    // Frame f derives from image f of the intensity series, and only it.
+    FGDerivationImage* derivation = OFstatic_cast(
+        FGDerivationImage*,
+        seg->getFunctionalGroups().get(static_cast<Uint32>(f),
+                                       DcmFGTypes::EFG_DERIVATIONIMAGE));
+    ASSERT_NE(derivation, nullptr);
+    ASSERT_EQ(derivation->getDerivationImageItems().size(), 1u);
+    OFVector<SourceImageItem*>& sources =
+        derivation->getDerivationImageItems()[0]->getSourceImageItems();
+    ASSERT_EQ(sources.size(), 1u);
+    OFString referenced;
+    sources[0]->getImageSOPInstanceReference().getReferencedSOPInstanceUID(
+        referenced);
+    EXPECT_EQ(std::string(referenced.c_str()),
+              objects.intensity.sop_instance_uids[f]);
+
     std::unique_ptr<DcmIODTypes::Frame> frame(
         DcmSegUtils::unpackBinaryFrame(seg->getFrame(f), rows, cols));
     ASSERT_NE(frame, nullptr);
@@ -324,127 +328,271 @@ TEST_F(DicomWriterTest, SegmentationRoundTripsThroughDcmtk) {
     EXPECT_EQ(mismatches, 0);
   }
 
-  // Patient/study copied, references to the source series.
+  // Patient/study copied; the referenced series is the intensity series.
   auto file = Load(path);
   DcmDataset& ds = *file->getDataset();
   EXPECT_EQ(GetString(ds, DCM_StudyInstanceUID), source_->study_instance_uid);
   EXPECT_EQ(GetString(ds, DCM_FrameOfReferenceUID),
             source_->frame_of_reference_uid);
-  EXPECT_THAT(GetString(ds, DCM_SeriesInstanceUID), StartsWith(kTestRoot));
-  EXPECT_THAT(GetString(ds, DCM_SOPInstanceUID), StartsWith(kTestRoot));
+  EXPECT_EQ(GetString(ds, DCM_SeriesInstanceUID),
+            objects.segmentation.series_instance_uid);
+  EXPECT_EQ(GetString(ds, DCM_SOPInstanceUID),
+            objects.segmentation.sop_instance_uids[0]);
+  EXPECT_EQ(GetString(ds, DCM_SeriesNumber), "903");
   DcmItem* series = nullptr;
   ASSERT_TRUE(ds.findAndGetSequenceItem(DCM_ReferencedSeriesSequence, series, 0)
                   .good());
   EXPECT_EQ(GetString(*series, DCM_SeriesInstanceUID),
-            source_->series_instance_uid);
+            objects.intensity.series_instance_uid);
   DcmSequenceOfItems* instances = nullptr;
   ASSERT_TRUE(
       series->findAndGetSequence(DCM_ReferencedInstanceSequence, instances)
           .good());
-  EXPECT_EQ(instances->card(), source_->slices.size());
-}
-
-// Regression: with default options (no series number) the SEG failed to
-// encode, because SeriesNumber is type 1 in the Segmentation Series module.
-TEST_F(DicomWriterTest, SegmentationWithDefaultOptionsHasASeriesNumber) {
-  TempDir dir;
-  const std::string path = (dir.path() / "seg.dcm").string();
-  const absl::Status status =
-      WriteSegmentation(*source_, Mask(Distance()), SegmentDescription(),
-                        DicomWriteOptions(), path);
-  ASSERT_TRUE(status.ok()) << status;
-  DcmFileFormat file;
-  ASSERT_TRUE(file.loadFile(path.c_str()).good());
-  OFString number;
+  EXPECT_EQ(instances->card(), static_cast<unsigned long>(grid_->size[2]));
+  DcmItem* dimension = nullptr;
   ASSERT_TRUE(
-      file.getDataset()->findAndGetOFString(DCM_SeriesNumber, number).good());
-  EXPECT_EQ(number, "9001");
+      ds.findAndGetSequenceItem(DCM_DimensionOrganizationSequence, dimension, 0)
+          .good());
+  EXPECT_EQ(GetString(*dimension, DCM_DimensionOrganizationUID),
+            objects.segmentation.dimension_organization_uid);
 }
 
-TEST_F(DicomWriterTest, UidsPositionsAndInstanceNumbers) {
+TEST_F(DicomWriterTest, IntensityUidsPositionsAndInstanceNumbers) {
   TempDir dir;
-  const Volume<float> mask = ToFloat(Mask(Distance()));
   auto source_file = Load(source_->slices[0].path);
   DcmDataset& src = *source_file->getDataset();
+  const DerivedObjects objects = Plan();
+  const std::string out = (dir.path() / "intensity").string();
+  auto paths = WriteIntensitySeries(*source_, Intensity(), objects.intensity,
+                                    Options(), out);
+  ASSERT_TRUE(paths.ok()) << paths.status();
 
-  for (const bool default_root : {false, true}) {
-    SCOPED_TRACE(default_root ? "default root" : "given root");
-    DicomWriteOptions options = Options();
-    if (default_root) options.uid_root.clear();
-    const std::string prefix = default_root ? "2.25." : kTestRoot;
-    const std::string out =
-        (dir.path() / (default_root ? "default" : "given")).string();
-    auto paths =
-        WriteDerivedSeries(*source_, mask, DerivedContent::kMask, options, out);
-    ASSERT_TRUE(paths.ok()) << paths.status();
+  const Vec3 n = grid_->Axis(2);
+  double previous_position = -1e30;
+  for (size_t k = 0; k < paths->size(); ++k) {
+    auto file = Load((*paths)[k]);
+    DcmDataset& ds = *file->getDataset();
+    const std::string sop = GetString(ds, DCM_SOPInstanceUID);
+    EXPECT_EQ(sop, objects.intensity.sop_instance_uids[k]);
+    EXPECT_THAT(sop, StartsWith(kTestRoot));
+    EXPECT_EQ(GetString(*file->getMetaInfo(), DCM_MediaStorageSOPInstanceUID),
+              sop);
+    EXPECT_EQ(GetString(ds, DCM_SeriesInstanceUID),
+              objects.intensity.series_instance_uid);
+    EXPECT_EQ(GetString(ds, DCM_StudyInstanceUID), source_->study_instance_uid);
+    EXPECT_EQ(GetString(ds, DCM_FrameOfReferenceUID),
+              source_->frame_of_reference_uid);
+    // Patient and study modules copied, not invented.
+    EXPECT_EQ(GetString(ds, DCM_PatientName), GetString(src, DCM_PatientName));
+    EXPECT_EQ(GetString(ds, DCM_PatientID), GetString(src, DCM_PatientID));
+    EXPECT_EQ(GetString(ds, DCM_StudyDescription),
+              GetString(src, DCM_StudyDescription));
+    EXPECT_EQ(GetString(ds, DCM_ImageType), "DERIVED\\SECONDARY\\AXIAL");
+    EXPECT_EQ(GetString(ds, DCM_SeriesNumber), "901");
+    EXPECT_EQ(GetString(ds, DCM_SeriesDescription),
+              "interslice resampled intensity");
+    EXPECT_EQ(GetString(ds, DCM_RescaleType), "HU");
 
-    std::set<std::string> sop_uids;
-    std::string series_uid;
-    const Vec3 n = grid_->Axis(2);
-    double previous_position = -1e30;
-    long previous_number = 0;
-    for (size_t k = 0; k < paths->size(); ++k) {
-      auto file = Load((*paths)[k]);
-      DcmDataset& ds = *file->getDataset();
-      const std::string sop = GetString(ds, DCM_SOPInstanceUID);
-      EXPECT_THAT(sop, StartsWith(prefix));
-      EXPECT_LE(sop.size(), 64u);
-      sop_uids.insert(sop);
-      EXPECT_EQ(GetString(*file->getMetaInfo(), DCM_MediaStorageSOPInstanceUID),
-                sop);
-      if (k == 0) series_uid = GetString(ds, DCM_SeriesInstanceUID);
-      EXPECT_EQ(GetString(ds, DCM_SeriesInstanceUID), series_uid);
-      EXPECT_NE(series_uid, source_->series_instance_uid);
-      EXPECT_EQ(GetString(ds, DCM_StudyInstanceUID),
-                source_->study_instance_uid);
-      EXPECT_EQ(GetString(ds, DCM_FrameOfReferenceUID),
-                source_->frame_of_reference_uid);
-      // Patient and study modules copied, not invented.
-      EXPECT_EQ(GetString(ds, DCM_PatientName),
-                GetString(src, DCM_PatientName));
-      EXPECT_EQ(GetString(ds, DCM_PatientID), GetString(src, DCM_PatientID));
-      EXPECT_EQ(GetString(ds, DCM_StudyDescription),
-                GetString(src, DCM_StudyDescription));
-      EXPECT_EQ(GetString(ds, DCM_ImageType), "DERIVED\\SECONDARY\\AXIAL");
-      EXPECT_EQ(GetString(ds, DCM_SeriesNumber), "901");
-
-      long number = 0;
-      ASSERT_TRUE(ds.findAndGetLongInt(DCM_InstanceNumber, number).good());
-      EXPECT_EQ(number, static_cast<long>(k + 1));
-      EXPECT_GT(number, previous_number);
-      previous_number = number;
-
-      Vec3 ipp;
-      for (int c = 0; c < 3; ++c) {
-        Float64 v = 0;
-        ASSERT_TRUE(
-            ds.findAndGetFloat64(DCM_ImagePositionPatient, v, c).good());
-        ipp[c] = v;
-      }
-      const Vec3 expected =
-          grid_->IndexToPhysical({0, 0, static_cast<double>(k)});
-      for (int c = 0; c < 3; ++c) EXPECT_NEAR(ipp[c], expected[c], 1e-4);
-      Float64 between = 0, thickness = 0;
-      ASSERT_TRUE(
-          ds.findAndGetFloat64(DCM_SpacingBetweenSlices, between).good());
-      ASSERT_TRUE(ds.findAndGetFloat64(DCM_SliceThickness, thickness).good());
-      EXPECT_DOUBLE_EQ(between, grid_->spacing[2]);
-      EXPECT_DOUBLE_EQ(thickness, grid_->spacing[2]);
-      const double position = Dot(ipp, n);
-      if (k > 0) {
-        EXPECT_NEAR(position - previous_position, between, 1e-4);
-      }
-      previous_position = position;
-
-      // Each slice names the source slices it lies on or between.
-      DcmSequenceOfItems* sources = nullptr;
-      ASSERT_TRUE(
-          ds.findAndGetSequence(DCM_SourceImageSequence, sources).good());
-      EXPECT_EQ(sources->card(), k % 5 == 0 ? 1u : 2u);
+    long number = 0;
+    ASSERT_TRUE(ds.findAndGetLongInt(DCM_InstanceNumber, number).good());
+    EXPECT_EQ(number, static_cast<long>(k + 1));
+    Vec3 ipp;
+    for (int c = 0; c < 3; ++c) {
+      Float64 v = 0;
+      ASSERT_TRUE(ds.findAndGetFloat64(DCM_ImagePositionPatient, v, c).good());
+      ipp[c] = v;
     }
-    EXPECT_EQ(sop_uids.size(), paths->size());
-    EXPECT_THAT(series_uid, StartsWith(prefix));
+    const Vec3 expected =
+        grid_->IndexToPhysical({0, 0, static_cast<double>(k)});
+    for (int c = 0; c < 3; ++c) EXPECT_NEAR(ipp[c], expected[c], 1e-4);
+    Float64 between = 0, thickness = 0;
+    ASSERT_TRUE(ds.findAndGetFloat64(DCM_SpacingBetweenSlices, between).good());
+    ASSERT_TRUE(ds.findAndGetFloat64(DCM_SliceThickness, thickness).good());
+    EXPECT_DOUBLE_EQ(between, grid_->spacing[2]);
+    EXPECT_DOUBLE_EQ(thickness, grid_->spacing[2]);
+    const double position = Dot(ipp, n);
+    if (k > 0) EXPECT_NEAR(position - previous_position, between, 1e-4);
+    previous_position = position;
+    // Each slice names the source slices it lies on or between.
+    DcmSequenceOfItems* sources = nullptr;
+    ASSERT_TRUE(ds.findAndGetSequence(DCM_SourceImageSequence, sources).good());
+    EXPECT_EQ(sources->card(), k % 5 == 0 ? 1u : 2u);
   }
+}
+
+// ResampleSourceSlices places values by the true slice positions: a field
+// that is linear along the normal is reproduced exactly however uneven the
+// gaps (the old resampling used the median gap and squeezed the anatomy).
+TEST(ResampleSourceSlicesTest, UnevenGapsArePlacedByTruePosition) {
+  const std::vector<double> positions = {10.0, 14.2, 15.3, 22.7};
+  Volume<float> image;
+  image.grid.size = {3, 2, 4};
+  image.grid.spacing = {0.5, 0.5, 4.0};  // z spacing: deliberately wrong
+  image.grid.origin = {-20, 30, 10};
+  image.data.resize(24);
+  for (int64_t k = 0; k < 4; ++k) {
+    for (int64_t i = 0; i < 6; ++i) {
+      image.data[k * 6 + i] = static_cast<float>(3 * positions[k] + i);
+    }
+  }
+  Grid target = image.grid;
+  target.spacing[2] = 0.5;
+  target.size[2] = 28;  // up to 23.5: beyond half a spacing of 22.7
+  auto out = ResampleSourceSlices(image, positions, target, std::nullopt, {});
+  ASSERT_TRUE(out.ok()) << out.status();
+  for (int64_t k = 0; k < target.size[2]; ++k) {
+    const double p = 10.0 + 0.5 * k;
+    for (int64_t i = 0; i < 6; ++i) {
+      SCOPED_TRACE(::testing::Message() << "k=" << k << " i=" << i);
+      const float got = out->data[k * 6 + i];
+      if (p <= 22.7) {
+        EXPECT_NEAR(got, 3 * p + i, 1e-3);
+      } else if (p - 22.7 <= 0.25 + 1e-9) {
+        EXPECT_NEAR(got, 3 * 22.7 + i, 1e-3);  // the last slice, held
+      } else {
+        EXPECT_EQ(got, 30.0f);  // outside: the minimum (3 * 10 + 0)
+      }
+    }
+  }
+}
+
+TEST(ResampleSourceSlicesTest, PaddingNeverBleedsIntoTheAnatomy) {
+  const std::vector<double> positions = {0.0, 5.0};
+  Volume<float> image;
+  image.grid.size = {2, 1, 2};
+  image.grid.spacing = {1, 1, 5};
+  image.data = {-3024.0f, 100.0f,  // slice 0: padding, tissue
+                50.0f, 200.0f};    // slice 1: tissue, tissue
+  Grid target = image.grid;
+  target.spacing[2] = 1;
+  target.size[2] = 7;  // 0..6 mm: node 6 is beyond the last slice's reach
+  auto out = ResampleSourceSlices(image, positions, target, -3024.0f, {});
+  ASSERT_TRUE(out.ok()) << out.status();
+  EXPECT_EQ(out->data[0], -3024.0f);  // on slice 0
+  EXPECT_EQ(out->data[2], -3024.0f);  // blended with a padding pixel
+  EXPECT_NEAR(out->data[3], 0.8f * 100 + 0.2f * 200, 1e-3);
+  EXPECT_EQ(out->data[10], 50.0f);     // on slice 1
+  EXPECT_EQ(out->data[12], -3024.0f);  // outside: padding, not the minimum
+  EXPECT_EQ(out->data[13], -3024.0f);
+}
+
+TEST(ResampleSourceSlicesTest, MismatchedGridsAndPositionsAreInvalid) {
+  Volume<float> image;
+  image.grid.size = {2, 2, 2};
+  image.data.assign(8, 0.0f);
+  Grid target = image.grid;
+  EXPECT_EQ(ResampleSourceSlices(image, {0, 1, 2}, target, std::nullopt, {})
+                .status()
+                .code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(ResampleSourceSlices(image, {1, 0}, target, std::nullopt, {})
+                .status()
+                .code(),
+            absl::StatusCode::kInvalidArgument);
+  Grid shifted = target;
+  shifted.origin[0] += 0.5;  // off the in-plane lattice
+  EXPECT_EQ(ResampleSourceSlices(image, {0, 1}, shifted, std::nullopt, {})
+                .status()
+                .code(),
+            absl::StatusCode::kInvalidArgument);
+  Grid wider = target;
+  wider.size[0] = 3;
+  EXPECT_EQ(ResampleSourceSlices(image, {0, 1}, wider, std::nullopt, {})
+                .status()
+                .code(),
+            absl::StatusCode::kInvalidArgument);
+}
+
+TEST_F(DicomWriterTest, UidsAreDerivedFromSourceAndJob) {
+  const DerivedObjects a = Plan();
+  const DerivedObjects b = Plan();
+  EXPECT_EQ(a.intensity.series_instance_uid, b.intensity.series_instance_uid);
+  EXPECT_EQ(a.intensity.sop_instance_uids, b.intensity.sop_instance_uids);
+  EXPECT_EQ(a.segmentation.sop_instance_uids, b.segmentation.sop_instance_uids);
+  EXPECT_EQ(a.distance_map.sop_instance_uids, b.distance_map.sop_instance_uids);
+
+  // All distinct, all under the root, all at most 64 characters.
+  std::set<std::string> all;
+  for (const DerivedObjectIdentity* o :
+       {&a.intensity, &a.distance_map, &a.segmentation}) {
+    all.insert(o->series_instance_uid);
+    for (const std::string& uid : o->sop_instance_uids) all.insert(uid);
+    if (!o->dimension_organization_uid.empty()) {
+      all.insert(o->dimension_organization_uid);
+    }
+  }
+  EXPECT_EQ(all.size(), 3u + grid_->size[2] + 2 + 2);
+  for (const std::string& uid : all) {
+    EXPECT_THAT(uid, StartsWith(std::string(kTestRoot) + "."));
+    EXPECT_LE(uid.size(), 64u);
+  }
+
+  DicomWriteOptions other_job = Options();
+  other_job.derivation_key = "another threshold";
+  EXPECT_NE(Plan(other_job).intensity.series_instance_uid,
+            a.intensity.series_instance_uid);
+  DicomWriteOptions other_root = Options();
+  other_root.uid_root.clear();
+  const DerivedObjects c = Plan(other_root);
+  EXPECT_THAT(c.intensity.series_instance_uid, StartsWith("2.25."));
+  EXPECT_EQ(c.intensity.series_instance_uid,
+            Plan(other_root).intensity.series_instance_uid);
+  DicomSeries other_source = *source_;
+  other_source.slices[2].sop_instance_uid += "1";
+  EXPECT_NE(PlanDerivedObjects(other_source, grid_->size[2], Options())
+                ->intensity.series_instance_uid,
+            a.intensity.series_instance_uid);
+
+  DicomWriteOptions random = Options();
+  random.random_uids = true;
+  const DerivedObjects r1 = Plan(random), r2 = Plan(random);
+  EXPECT_NE(r1.intensity.series_instance_uid, r2.intensity.series_instance_uid);
+  EXPECT_NE(r1.intensity.sop_instance_uids[0],
+            r2.intensity.sop_instance_uids[0]);
+  EXPECT_THAT(r1.intensity.series_instance_uid, StartsWith(kTestRoot));
+
+  // A source whose SOP Instance UIDs were blanked cannot be identified:
+  // random UIDs rather than the same UIDs for every such series.
+  DicomSeries anonymous = *source_;
+  for (DicomSliceInfo& s : anonymous.slices) s.sop_instance_uid.clear();
+  EXPECT_NE(PlanDerivedObjects(anonymous, grid_->size[2], Options())
+                ->intensity.series_instance_uid,
+            PlanDerivedObjects(anonymous, grid_->size[2], Options())
+                ->intensity.series_instance_uid);
+}
+
+TEST_F(DicomWriterTest, SeriesNumbersFollowTheSource) {
+  DicomWriteOptions options = Options();
+  options.series_number_base = 0;
+  const DerivedObjects objects = Plan(options);
+  // tests/data/ct-thick has SeriesNumber 201.
+  EXPECT_EQ(objects.intensity.series_number, 201001);
+  EXPECT_EQ(objects.distance_map.series_number, 201002);
+  EXPECT_EQ(objects.segmentation.series_number, 201003);
+  EXPECT_EQ(Plan().intensity.series_number, 901);
+}
+
+TEST(DeriveDicomUidTest, IsAStableVersion5Uuid) {
+  auto uid = DeriveDicomUid("", "interslice test name");
+  ASSERT_TRUE(uid.ok()) << uid.status();
+  ASSERT_THAT(*uid, StartsWith("2.25."));
+  unsigned __int128 value = 0;
+  for (char c : uid->substr(5)) value = value * 10 + (c - '0');
+  EXPECT_EQ(static_cast<int>((value >> 76) & 0xF), 5);  // version
+  EXPECT_EQ(static_cast<int>((value >> 62) & 0x3), 2);  // RFC 4122 variant
+  // Pinned: every derived UID depends on this function, so a change would
+  // make reruns duplicate earlier results on a PACS instead of replacing them.
+  EXPECT_EQ(*uid, *DeriveDicomUid("", "interslice test name"));
+  // The value Python's uuid.uuid5(UUID("3f1c9a52-7d0e-4b6a-9c41-52e8d7a0b613"),
+  // "interslice test name").int gives: an independent check of the RFC 4122
+  // construction.
+  EXPECT_EQ(*uid, "2.25.225100569045220189285300786265432999039");
+  EXPECT_NE(*uid, *DeriveDicomUid("", "interslice test name."));
+  auto rooted = DeriveDicomUid("1.2.3", "interslice test name");
+  ASSERT_TRUE(rooted.ok());
+  EXPECT_THAT(*rooted, StartsWith("1.2.3."));
+  EXPECT_EQ(DeriveDicomUid("1.02", "x").status().code(),
+            absl::StatusCode::kInvalidArgument);
 }
 
 TEST(GenerateDicomUidTest, DefaultIsUuidUnder225) {
@@ -473,20 +621,67 @@ TEST(GenerateDicomUidTest, RejectsMalformedRoots) {
   EXPECT_LE(uid->size(), 64u);
 }
 
+// A source with DICOM errors of its own (empty type 1C attributes, an empty
+// sequence) must not pass them into the derived objects.
+TEST_F(DicomWriterTest, EmptyConditionalSourceAttributesAreDropped) {
+  TempDir dir;
+  const fs::path copy = dir.path() / "source";
+  fs::create_directories(copy);
+  DicomSeries source = *source_;
+  for (size_t s = 0; s < source.slices.size(); ++s) {
+    const fs::path to = copy / fs::path(source.slices[s].path).filename();
+    fs::copy_file(source.slices[s].path, to);
+    source.slices[s].path = to.string();
+  }
+  {
+    auto file = Load(source.slices[0].path);
+    DcmDataset& ds = *file->getDataset();
+    // Patient Identity Removed YES makes De-identification Method type 1C.
+    ds.putAndInsertString(DCM_PatientIdentityRemoved, "YES");
+    ds.insertEmptyElement(DCM_DeidentificationMethod);
+    ds.insertEmptyElement(DCM_PatientSpeciesDescription);
+    ds.insertEmptyElement(DCM_ResponsiblePersonRole);
+    ds.insertEmptyElement(DCM_ReferencedStudySequence);
+    // Saving over the file it was loaded from: read the pixel data first.
+    ASSERT_TRUE(file->loadAllDataIntoMemory().good());
+    ASSERT_TRUE(file->saveFile(source.slices[0].path.c_str()).good());
+  }
+  // The doctored source is invalid (else this test could not fail).
+  ASSERT_GT(DciodvfyErrors({source.slices[0].path}), 0);
+
+  const DerivedObjects objects = Plan();
+  auto paths = WriteIntensitySeries(source, Intensity(), objects.intensity,
+                                    Options(), (dir.path() / "i").string());
+  ASSERT_TRUE(paths.ok()) << paths.status();
+  const std::string seg = (dir.path() / "seg.dcm").string();
+  ASSERT_TRUE(WriteSegmentation(source, Mask(Distance()), objects.segmentation,
+                                objects.intensity, SegmentDescription(),
+                                Options(), seg)
+                  .ok());
+  EXPECT_EQ(DciodvfyErrors({paths->front(), seg}), 0);
+  auto file = Load(paths->front());
+  EXPECT_FALSE(file->getDataset()->tagExists(DCM_ReferencedStudySequence));
+  EXPECT_FALSE(file->getDataset()->tagExists(DCM_PatientSpeciesDescription));
+  // Repaired, saying only what is known.
+  EXPECT_THAT(GetString(*file->getDataset(), DCM_DeidentificationMethod),
+              HasSubstr("unknown"));
+  EXPECT_EQ(GetString(*file->getDataset(), DCM_PatientIdentityRemoved), "YES");
+}
+
 TEST_F(DicomWriterTest, UnwritableFolderIsAClearError) {
   TempDir dir;
   const fs::path blocker = dir.path() / "a_file";
   std::ofstream(blocker) << "x";
-  const Volume<float> mask = ToFloat(Mask(Distance()));
-  auto paths = WriteDerivedSeries(*source_, mask, DerivedContent::kMask,
-                                  Options(), (blocker / "out").string());
+  const DerivedObjects objects = Plan();
+  auto paths = WriteIntensitySeries(*source_, Intensity(), objects.intensity,
+                                    Options(), (blocker / "out").string());
   ASSERT_FALSE(paths.ok());
   EXPECT_EQ(paths.status().code(), absl::StatusCode::kInternal);
   EXPECT_THAT(paths.status().message(), HasSubstr("output folder"));
 
-  const absl::Status seg =
-      WriteSegmentation(*source_, Mask(Distance()), SegmentDescription(),
-                        Options(), (blocker / "seg.dcm").string());
+  const absl::Status seg = WriteSegmentation(
+      *source_, Mask(Distance()), objects.segmentation, objects.intensity,
+      SegmentDescription(), Options(), (blocker / "seg.dcm").string());
   EXPECT_EQ(seg.code(), absl::StatusCode::kInternal);
   EXPECT_THAT(seg.message(), HasSubstr("seg.dcm"));
   // No temporary files left behind.
@@ -497,61 +692,51 @@ TEST_F(DicomWriterTest, UnwritableFolderIsAClearError) {
 
 TEST_F(DicomWriterTest, GridMismatchIsInvalidArgument) {
   TempDir dir;
+  const DerivedObjects objects = Plan();
   Volume<uint8_t> mask = Mask(Distance());
   // A rotated grid (direction differs from the source's).
   Volume<uint8_t> rotated = mask;
   rotated.grid.direction = {0, 1, 0, 1, 0, 0, 0, 0, -1};
-  EXPECT_EQ(WriteSegmentation(*source_, rotated, SegmentDescription(),
-                              Options(), (dir.path() / "s.dcm").string())
-                .code(),
+  auto write_seg = [&](const Volume<uint8_t>& m,
+                       const DerivedObjectIdentity& referenced) {
+    return WriteSegmentation(*source_, m, objects.segmentation, referenced,
+                             SegmentDescription(), Options(),
+                             (dir.path() / "s.dcm").string())
+        .code();
+  };
+  EXPECT_EQ(write_seg(rotated, objects.intensity),
             absl::StatusCode::kInvalidArgument);
   // Voxel count that does not match the grid.
   Volume<uint8_t> short_mask = mask;
   short_mask.data.pop_back();
-  EXPECT_EQ(WriteSegmentation(*source_, short_mask, SegmentDescription(),
-                              Options(), (dir.path() / "s.dcm").string())
-                .code(),
+  EXPECT_EQ(write_seg(short_mask, objects.intensity),
             absl::StatusCode::kInvalidArgument);
-  Volume<float> values = ToFloat(mask);
+  // A referenced series with too few images.
+  DerivedObjectIdentity few = objects.intensity;
+  few.sop_instance_uids.pop_back();
+  EXPECT_EQ(write_seg(mask, few), absl::StatusCode::kInvalidArgument);
+  Volume<float> values = Intensity();
   values.grid.direction = rotated.grid.direction;
-  EXPECT_EQ(WriteDerivedSeries(*source_, values, DerivedContent::kMask,
-                               Options(), (dir.path() / "d").string())
+  EXPECT_EQ(WriteIntensitySeries(*source_, values, objects.intensity, Options(),
+                                 (dir.path() / "d").string())
                 .status()
                 .code(),
             absl::StatusCode::kInvalidArgument);
   // Non-finite values.
-  Volume<float> nan = Distance();
+  Volume<float> nan = Intensity();
   nan.data[5] = std::nanf("");
-  EXPECT_EQ(WriteDerivedSeries(*source_, nan, DerivedContent::kDistance,
-                               Options(), (dir.path() / "n").string())
+  EXPECT_EQ(WriteIntensitySeries(*source_, nan, objects.intensity, Options(),
+                                 (dir.path() / "n").string())
                 .status()
                 .code(),
             absl::StatusCode::kInvalidArgument);
   // A malformed UID root.
   DicomWriteOptions bad = Options();
   bad.uid_root = "1.2.x";
-  EXPECT_EQ(WriteDerivedSeries(*source_, values, DerivedContent::kMask, bad,
-                               (dir.path() / "u").string())
-                .status()
-                .code(),
+  EXPECT_EQ(PlanDerivedObjects(*source_, grid_->size[2], bad).status().code(),
             absl::StatusCode::kInvalidArgument);
   // Nothing was written.
   EXPECT_TRUE(fs::is_empty(dir.path()));
-}
-
-TEST_F(DicomWriterTest, DistanceSlopeGrowsWithRange) {
-  TempDir dir;
-  Volume<float> distance = Distance();
-  distance.data[0] = -500.0f;  // beyond 327.67 mm: the slope must grow
-  auto paths = WriteDerivedSeries(*source_, distance, DerivedContent::kDistance,
-                                  Options(), dir.path().string());
-  ASSERT_TRUE(paths.ok()) << paths.status();
-  auto file = Load(paths->front());
-  EXPECT_EQ(GetString(*file->getDataset(), DCM_RescaleSlope), "0.02");
-  EXPECT_EQ(GetString(*file->getDataset(), DCM_RescaleIntercept), "0");
-  auto back = ReadDicomSeries({dir.path().string()}, {}, {});
-  ASSERT_TRUE(back.ok()) << back.status();
-  EXPECT_NEAR(back->image.data[0], -500.0f, 0.01 + 1e-4);
 }
 
 TEST_F(DicomWriterTest, MeshConventionNoteNamesFrameAndAxes) {
@@ -561,18 +746,10 @@ TEST_F(DicomWriterTest, MeshConventionNoteNamesFrameAndAxes) {
   EXPECT_THAT(note, HasSubstr(source_->frame_of_reference_uid));
 }
 
-}  // namespace
-}  // namespace interslice
-
-namespace interslice {
-namespace {
-
 // The same data presented as an MR series and as a series of another image
 // class (PET here), which take the MR Image and Secondary Capture paths.
 TEST_F(DicomWriterTest, MrAndOtherSourcesPassDciodvfy) {
   TempDir dir;
-  const Volume<float> distance = Distance();
-  const Volume<float> mask = ToFloat(Mask(distance));
   struct Case {
     const char* name;
     const char* sop_class;
@@ -588,23 +765,20 @@ TEST_F(DicomWriterTest, MrAndOtherSourcesPassDciodvfy) {
     DicomSeries source = *source_;
     source.sop_class_uid = c.sop_class;
     source.modality = c.modality;
-    for (const DerivedContent content :
-         {DerivedContent::kMask, DerivedContent::kDistance}) {
-      const std::string out =
-          (dir.path() / c.name / std::string(DerivedContentName(content)))
-              .string();
-      auto paths = WriteDerivedSeries(
-          source, content == DerivedContent::kMask ? mask : distance, content,
-          Options(), out);
-      ASSERT_TRUE(paths.ok()) << paths.status();
-      ExpectValidIod({paths->front()});
-      auto file = Load(paths->front());
-      EXPECT_EQ(GetString(*file->getDataset(), DCM_SOPClassUID),
-                c.expected_sop_class);
-      auto back = ReadDicomSeries({out}, {}, {});
-      ASSERT_TRUE(back.ok()) << back.status();
-      ExpectSameGrid(back->image.grid, *grid_);
-    }
+    auto objects = PlanDerivedObjects(source, grid_->size[2], Options());
+    ASSERT_TRUE(objects.ok()) << objects.status();
+    EXPECT_EQ(objects->intensity.sop_class_uid, c.expected_sop_class);
+    const std::string out = (dir.path() / c.name).string();
+    auto paths = WriteIntensitySeries(source, Intensity(), objects->intensity,
+                                      Options(), out);
+    ASSERT_TRUE(paths.ok()) << paths.status();
+    ExpectValidIod({paths->front()});
+    auto file = Load(paths->front());
+    EXPECT_EQ(GetString(*file->getDataset(), DCM_SOPClassUID),
+              c.expected_sop_class);
+    auto back = ReadDicomSeries({out}, {}, {});
+    ASSERT_TRUE(back.ok()) << back.status();
+    ExpectSameGrid(back->image.grid, *grid_);
   }
 }
 

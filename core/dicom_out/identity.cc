@@ -1,0 +1,163 @@
+// PlanDerivedObjects: the UIDs, series numbers and descriptions of the
+// objects one job writes, decided before any of them is written, so that the
+// SEG and the Parametric Map can reference the intensity series' instances
+// while all three are written in parallel.
+#include <cstdint>
+#include <limits>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "core/common/status_macros.h"
+#include "core/dicom_out/dicom_out_internal.h"
+#include "core/dicom_out/dicom_writer.h"
+// osconfig.h must precede every other DCMTK header.
+#include "dcmtk/config/osconfig.h"
+#include "dcmtk/dcmdata/dcdeftag.h"
+#include "dcmtk/dcmdata/dcfilefo.h"
+#include "dcmtk/dcmdata/dcuid.h"
+
+namespace interslice {
+namespace {
+
+// Series numbers when the source has none (the SEG's was 9001 before).
+constexpr int kFallbackSeriesNumberBase = 9000;
+
+// Names UIDs within one job: deterministic (a name-based UUID of the job's
+// own UID and the object's name) or random.
+class UidNamer {
+ public:
+  static absl::StatusOr<UidNamer> Create(const DicomSeries& source,
+                                         const DicomWriteOptions& options) {
+    UidNamer namer;
+    namer.root_ = options.uid_root;
+    bool identified = !source.slices.empty();
+    for (const DicomSliceInfo& slice : source.slices) {
+      if (slice.sop_instance_uid.empty()) identified = false;
+    }
+    if (options.random_uids || !identified) {
+      // Validates the root as a side effect.
+      INTERSLICE_RETURN_IF_ERROR(GenerateDicomUid(options.uid_root).status());
+      namer.random_ = true;
+      return namer;
+    }
+    // The job's identity: every source instance (and frame, for multi-frame
+    // sources), in volume order, the study and series they belong to, the
+    // root and the job's parameters. Hashed once into a UID that names the
+    // job; each object's UID is then named from it.
+    std::string name = "interslice derived objects v1\n";
+    absl::StrAppend(&name, "study ", source.study_instance_uid, "\nseries ",
+                    source.series_instance_uid, "\nvolume ", source.volume,
+                    "\n");
+    for (const DicomSliceInfo& slice : source.slices) {
+      absl::StrAppend(&name, "instance ", slice.sop_instance_uid, " frame ",
+                      slice.frame, "\n");
+    }
+    absl::StrAppend(&name, "root ", options.uid_root, "\nkey ",
+                    options.derivation_key, "\n");
+    INTERSLICE_ASSIGN_OR_RETURN(namer.job_, DeriveDicomUid("", name));
+    // Validates the root.
+    INTERSLICE_RETURN_IF_ERROR(
+        DeriveDicomUid(options.uid_root, namer.job_).status());
+    return namer;
+  }
+
+  absl::StatusOr<std::string> Uid(std::string_view object) const {
+    if (random_) return GenerateDicomUid(root_);
+    return DeriveDicomUid(root_, absl::StrCat(job_, "/", std::string(object)));
+  }
+
+ private:
+  std::string root_;
+  std::string job_;
+  bool random_ = false;
+};
+
+// The source's SeriesNumber, if it has a usable one.
+std::optional<int64_t> SourceSeriesNumber(DcmItem& header) {
+  Sint32 number = 0;
+  if (header.findAndGetSint32(DCM_SeriesNumber, number).good() && number >= 0) {
+    return number;
+  }
+  return std::nullopt;
+}
+
+std::string ImageSopClass(const DicomSeries& source) {
+  if (source.sop_class_uid == UID_CTImageStorage) return UID_CTImageStorage;
+  if (source.sop_class_uid == UID_MRImageStorage) return UID_MRImageStorage;
+  return UID_SecondaryCaptureImageStorage;
+}
+
+}  // namespace
+
+absl::StatusOr<DerivedObjects> PlanDerivedObjects(
+    const DicomSeries& source, int64_t output_slices,
+    const DicomWriteOptions& options) {
+  if (output_slices < 1) {
+    return absl::InvalidArgumentError("the output grid has no slices");
+  }
+  INTERSLICE_ASSIGN_OR_RETURN(const UidNamer namer,
+                              UidNamer::Create(source, options));
+  INTERSLICE_ASSIGN_OR_RETURN(std::unique_ptr<DcmFileFormat> header,
+                              dicom_out_internal::LoadSourceHeader(source));
+
+  int64_t base = options.series_number_base;
+  if (base <= 0) {
+    const std::optional<int64_t> number =
+        SourceSeriesNumber(*header->getDataset());
+    base = kFallbackSeriesNumberBase;
+    // IS holds a signed 32-bit value; 1000 x a huge source number would not.
+    if (number.has_value() && *number > 0 &&
+        *number * 1000 + 3 <= std::numeric_limits<int32_t>::max()) {
+      base = *number * 1000;
+    }
+  }
+  if (base + 3 > std::numeric_limits<int32_t>::max()) {
+    return absl::InvalidArgumentError(absl::StrFormat(
+        "series number base %d leaves no room for the derived series", base));
+  }
+
+  DerivedObjects objects;
+  DerivedObjectIdentity& intensity = objects.intensity;
+  INTERSLICE_ASSIGN_OR_RETURN(intensity.series_instance_uid,
+                              namer.Uid("intensity/series"));
+  intensity.sop_instance_uids.reserve(static_cast<size_t>(output_slices));
+  for (int64_t k = 0; k < output_slices; ++k) {
+    INTERSLICE_ASSIGN_OR_RETURN(std::string uid,
+                                namer.Uid(absl::StrCat("intensity/", k)));
+    intensity.sop_instance_uids.push_back(std::move(uid));
+  }
+  intensity.series_number = static_cast<int>(base + 1);
+  intensity.sop_class_uid = ImageSopClass(source);
+  intensity.series_description = "interslice resampled intensity";
+
+  DerivedObjectIdentity& distance = objects.distance_map;
+  INTERSLICE_ASSIGN_OR_RETURN(distance.series_instance_uid,
+                              namer.Uid("distance/series"));
+  INTERSLICE_ASSIGN_OR_RETURN(std::string distance_uid,
+                              namer.Uid("distance/instance"));
+  distance.sop_instance_uids = {distance_uid};
+  INTERSLICE_ASSIGN_OR_RETURN(distance.dimension_organization_uid,
+                              namer.Uid("distance/dimensions"));
+  distance.series_number = static_cast<int>(base + 2);
+  distance.sop_class_uid = UID_ParametricMapStorage;
+  distance.series_description = "interslice signed distance (mm)";
+
+  DerivedObjectIdentity& seg = objects.segmentation;
+  INTERSLICE_ASSIGN_OR_RETURN(seg.series_instance_uid, namer.Uid("seg/series"));
+  INTERSLICE_ASSIGN_OR_RETURN(std::string seg_uid, namer.Uid("seg/instance"));
+  seg.sop_instance_uids = {seg_uid};
+  INTERSLICE_ASSIGN_OR_RETURN(seg.dimension_organization_uid,
+                              namer.Uid("seg/dimensions"));
+  seg.series_number = static_cast<int>(base + 3);
+  seg.sop_class_uid = UID_SegmentationStorage;
+  seg.series_description = "interslice segmentation";
+  return objects;
+}
+
+}  // namespace interslice

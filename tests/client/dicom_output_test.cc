@@ -1,0 +1,427 @@
+// End-to-end tests of the DICOM objects `interslice run` writes, on series a
+// hospital sends: the shipped phantom, the phantom with uneven gaps and with
+// a missing slice (made here from the shipped files with DCMTK), and a
+// tilted head CT. Real processes; consumers other than our own reader (ITK's
+// GDCM series reader, dciodvfy) check what a viewer or PACS would see.
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <string>
+#include <vector>
+
+#include "core/dicom/series_reader.h"
+#include "core/volume_io/volume_io.h"
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "itkGDCMImageIO.h"
+#include "itkGDCMSeriesFileNames.h"
+#include "itkImage.h"
+#include "itkImageSeriesReader.h"
+#include "nlohmann/json.hpp"
+// osconfig.h must precede every other DCMTK header.
+#include "dcmtk/config/osconfig.h"
+#include "dcmtk/dcmdata/dcdeftag.h"
+#include "dcmtk/dcmdata/dcfilefo.h"
+
+namespace interslice {
+namespace {
+
+namespace fs = std::filesystem;
+using ::testing::HasSubstr;
+
+struct CommandResult {
+  int exit_code = -1;
+  std::string output;  // stdout and stderr
+};
+
+CommandResult RunCommand(const std::string& command_line) {
+  const std::string command = command_line + " 2>&1";
+  CommandResult result;
+  FILE* pipe = popen(command.c_str(), "r");
+  if (pipe == nullptr) return result;
+  std::array<char, 4096> buffer;
+  size_t n;
+  while ((n = fread(buffer.data(), 1, buffer.size(), pipe)) > 0) {
+    result.output.append(buffer.data(), n);
+  }
+  const int status = pclose(pipe);
+  result.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  return result;
+}
+
+CommandResult RunCli(const std::string& arguments) {
+  return RunCommand(std::string(INTERSLICE_CLI_PATH) + " " + arguments);
+}
+
+const fs::path kPhantom =
+    fs::path(INTERSLICE_SOURCE_DIR) / "data/ct-head-phantom-thick";
+const fs::path kTilt = fs::path(INTERSLICE_TEST_DATA_DIR) / "ct-tilt";
+
+class DicomOutputTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    dir_ = fs::temp_directory_path() /
+           ("interslice_dicom_output_test_" + std::to_string(getpid()) + "_" +
+            ::testing::UnitTest::GetInstance()->current_test_info()->name());
+    fs::remove_all(dir_);
+    fs::create_directories(dir_);
+  }
+  void TearDown() override { fs::remove_all(dir_); }
+  fs::path dir_;
+};
+
+std::vector<fs::path> SortedFiles(const fs::path& folder) {
+  std::vector<fs::path> files;
+  for (const auto& entry : fs::directory_iterator(folder)) {
+    files.push_back(entry.path());
+  }
+  std::sort(files.begin(), files.end());
+  return files;
+}
+
+int DciodvfyErrors(const fs::path& file, std::string* errors) {
+  const CommandResult v = RunCommand("dciodvfy '" + file.string() + "'");
+  int count = 0;
+  size_t start = 0;
+  while (start < v.output.size()) {
+    size_t end = v.output.find('\n', start);
+    if (end == std::string::npos) end = v.output.size();
+    const std::string line = v.output.substr(start, end - start);
+    if (line.find("Error") != std::string::npos) {
+      ++count;
+      *errors += file.filename().string() + ": " + line + "\n";
+    }
+    start = end + 1;
+  }
+  return count;
+}
+
+std::string GetString(DcmItem& item, const DcmTagKey& tag) {
+  OFString value;
+  item.findAndGetOFStringArray(tag, value);
+  return std::string(value.c_str());
+}
+
+nlohmann::json ReadJson(const fs::path& path) {
+  std::ifstream in(path);
+  return nlohmann::json::parse(in);
+}
+
+double Dot(const Vec3& a, const Vec3& b) {
+  return a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+}
+
+// Copies `slices` (indices into the sorted source files) of `source` to
+// `to`, moving slice i to `positions[i]` mm along the normal from the first
+// one's original position: the anatomy of each file stays its own, only
+// where it lies changes, as in a series with uneven gaps.
+void MakeSeries(const fs::path& source, const std::vector<int>& slices,
+                const std::vector<double>& positions, const fs::path& to) {
+  fs::create_directories(to);
+  const std::vector<fs::path> files = SortedFiles(source);
+  auto series = ReadDicomSeries({source.string()}, {}, {});
+  ASSERT_TRUE(series.ok()) << series.status();
+  const Vec3 n = series->image.grid.Axis(2);
+  const Vec3 base = series->slices[slices.front()].image_position;
+  for (size_t i = 0; i < slices.size(); ++i) {
+    const DicomSliceInfo& info = series->slices[slices[i]];
+    DcmFileFormat file;
+    ASSERT_TRUE(file.loadFile(OFFilename(info.path.c_str())).good());
+    ASSERT_TRUE(file.loadAllDataIntoMemory().good());
+    char ipp[200];
+    std::snprintf(ipp, sizeof(ipp), "%.6f\\%.6f\\%.6f",
+                  base[0] + positions[i] * n[0], base[1] + positions[i] * n[1],
+                  base[2] + positions[i] * n[2]);
+    file.getDataset()->putAndInsertString(DCM_ImagePositionPatient, ipp);
+    // Scanners write SliceLocation too; keep it consistent.
+    file.getDataset()->putAndInsertString(
+        DCM_SliceLocation, std::to_string(Dot(base, n) + positions[i]).c_str());
+    const fs::path out = to / ("S" + std::to_string(1000 + i) + ".dcm");
+    ASSERT_TRUE(file.saveFile(OFFilename(out.c_str())).good());
+  }
+}
+
+// The intensity series against the source: at the output slice nearest each
+// source slice, the values equal the source's linearly interpolated at that
+// slice's position (at most half an output spacing from the source slice),
+// within the 1 HU storage step; the first and last output slices hold the
+// anatomy of the first and last source slices.
+// (x0, y0): the region of interest's first column and row in the source.
+void ExpectIntensityPlacedByTruePositions(const fs::path& source_dir,
+                                          const fs::path& intensity_dir,
+                                          const nlohmann::json& report,
+                                          int64_t x0 = 0, int64_t y0 = 0) {
+  auto source = ReadDicomSeries({source_dir.string()}, {}, {});
+  ASSERT_TRUE(source.ok()) << source.status();
+  auto out = ReadDicomSeries({intensity_dir.string()}, {}, {});
+  ASSERT_TRUE(out.ok()) << out.status();
+  const Grid& g = out->image.grid;
+  // The intensity series lies on the report's grid.
+  for (int a = 0; a < 3; ++a) {
+    EXPECT_EQ(g.size[a], report["grid"]["size"][a].get<int64_t>());
+    EXPECT_NEAR(g.spacing[a], report["grid"]["spacing"][a].get<double>(), 1e-4);
+    EXPECT_NEAR(g.origin[a], report["grid"]["origin"][a].get<double>(), 1e-3);
+  }
+  const int64_t plane = g.size[0] * g.size[1];
+  const int64_t source_plane =
+      source->image.grid.size[0] * source->image.grid.size[1];
+  // Index of output pixel i within a source slice.
+  auto at = [&](int64_t i) {
+    return (y0 + i / g.size[0]) * source->image.grid.size[0] + x0 +
+           i % g.size[0];
+  };
+  const auto& q = source->slices;
+  double worst = 0;
+  for (size_t s = 0; s < q.size(); ++s) {
+    // The output slice nearest source slice s.
+    int64_t k = 0;
+    for (int64_t j = 1; j < g.size[2]; ++j) {
+      if (std::abs(out->slices[j].position_along_normal -
+                   q[s].position_along_normal) <
+          std::abs(out->slices[k].position_along_normal -
+                   q[s].position_along_normal)) {
+        k = j;
+      }
+    }
+    const double p = out->slices[k].position_along_normal;
+    ASSERT_LE(std::abs(p - q[s].position_along_normal),
+              0.5 * g.spacing[2] + 1e-3)
+        << "source slice " << s;
+    // Bracketing source slices of p and the weight.
+    size_t a = s, b = s;
+    if (p < q[s].position_along_normal - 1e-4 && s > 0) a = s - 1;
+    if (p > q[s].position_along_normal + 1e-4 && s + 1 < q.size()) b = s + 1;
+    const double t =
+        a == b ? 0
+               : (p - q[a].position_along_normal) /
+                     (q[b].position_along_normal - q[a].position_along_normal);
+    for (int64_t i = 0; i < plane; i += 37) {
+      const double expected =
+          (1 - t) * source->image.data[a * source_plane + at(i)] +
+          t * source->image.data[b * source_plane + at(i)];
+      worst =
+          std::max(worst, std::abs(out->image.data[k * plane + i] - expected));
+    }
+  }
+  EXPECT_LE(worst, 0.5 + 1e-3) << "HU off where the source slices are";
+  // Top and bottom: the output spans the source, its first slice on the
+  // first source slice and its last within half a spacing of the last; the
+  // anatomy there is the source's (not padding, not another slice's: a few
+  // HU of blending with the neighbour at most).
+  EXPECT_NEAR(out->slices.front().position_along_normal,
+              q.front().position_along_normal, 1e-3);
+  EXPECT_LE(std::abs(out->slices.back().position_along_normal -
+                     q.back().position_along_normal),
+            0.5 * g.spacing[2] + 1e-3);
+  for (const auto& [source_slice, out_slice] :
+       {std::pair<int64_t, int64_t>{0, 0},
+        {static_cast<int64_t>(q.size()) - 1, g.size[2] - 1}}) {
+    double difference = 0;
+    for (int64_t i = 0; i < plane; ++i) {
+      difference +=
+          std::abs(out->image.data[out_slice * plane + i] -
+                   source->image.data[source_slice * source_plane + at(i)]);
+    }
+    EXPECT_LE(difference / plane, 5.0)
+        << "output slice " << out_slice << " vs source slice " << source_slice;
+  }
+}
+
+// ITK's GDCM series reader (what ITK-based tools and many pipelines use)
+// sees the grid of the report.
+void ExpectItkSeesReportGrid(const fs::path& intensity_dir,
+                             const nlohmann::json& report) {
+  using Image = itk::Image<float, 3>;
+  auto names = itk::GDCMSeriesFileNames::New();
+  names->SetDirectory(intensity_dir.string());
+  const std::vector<std::string> files = names->GetInputFileNames();
+  auto reader = itk::ImageSeriesReader<Image>::New();
+  reader->SetImageIO(itk::GDCMImageIO::New());
+  reader->SetFileNames(files);
+  ASSERT_NO_THROW(reader->Update());
+  const Image* image = reader->GetOutput();
+  const auto size = image->GetLargestPossibleRegion().GetSize();
+  for (int a = 0; a < 3; ++a) {
+    EXPECT_EQ(static_cast<int64_t>(size[a]),
+              report["grid"]["size"][a].get<int64_t>());
+    EXPECT_NEAR(image->GetSpacing()[a],
+                report["grid"]["spacing"][a].get<double>(), 1e-4);
+    EXPECT_NEAR(image->GetOrigin()[a],
+                report["grid"]["origin"][a].get<double>(), 1e-3);
+    for (int c = 0; c < 3; ++c) {
+      // ITK's direction matrix has the index axes as columns, as ours.
+      EXPECT_NEAR(image->GetDirection()(a, c),
+                  report["grid"]["direction"][3 * a + c].get<double>(), 1e-5);
+    }
+  }
+}
+
+// The shipped phantom (a 100 x 100 region to keep it quick): intensity
+// series, distance map and SEG pass dciodvfy and are placed on the report's
+// grid by our reader and by ITK/GDCM; the distance map holds the field.
+TEST_F(DicomOutputTest, ShippedPhantomObjectsValidateAndLieOnTheReportGrid) {
+  const fs::path out = dir_ / "out";
+  const fs::path report_path = dir_ / "report.json";
+  const CommandResult r = RunCli(
+      "run " + kPhantom.string() +
+      " --threshold 300 --roi 200,60,0,300,160,28 --method direct --quiet "
+      "--volume nrrd --mesh none --output-series intensity,distance --seg "
+      "--out " +
+      out.string() + " --report " + report_path.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  const nlohmann::json report = ReadJson(report_path);
+  EXPECT_FALSE(fs::exists(out / "series-mask"));
+  EXPECT_FALSE(fs::exists(out / "series-distance"));
+
+  const std::vector<fs::path> files = SortedFiles(out / "series-intensity");
+  ASSERT_EQ(files.size(), 298u);
+  std::string errors;
+  int count = 0;
+  for (const fs::path& f :
+       {files.front(), files[files.size() / 2], files.back(), out / "seg.dcm",
+        out / "distance.dcm"}) {
+    count += DciodvfyErrors(f, &errors);
+  }
+  EXPECT_EQ(count, 0) << errors;
+
+  ExpectIntensityPlacedByTruePositions(kPhantom, out / "series-intensity",
+                                       report, 200, 60);
+  ExpectItkSeesReportGrid(out / "series-intensity", report);
+
+  // The distance map's frames are the field (float32, bit for bit).
+  const auto distance = ReadVolumeAsFloat((out / "distance.nrrd").string());
+  ASSERT_TRUE(distance.ok()) << distance.status();
+  DcmFileFormat pmap;
+  ASSERT_TRUE(pmap.loadFile(OFFilename((out / "distance.dcm").c_str())).good());
+  const Float32* floats = nullptr;
+  unsigned long count_floats = 0;
+  ASSERT_TRUE(
+      pmap.getDataset()
+          ->findAndGetFloat32Array(DCM_FloatPixelData, floats, &count_floats)
+          .good());
+  ASSERT_EQ(count_floats, distance->data.size());
+  EXPECT_TRUE(std::equal(distance->data.begin(), distance->data.end(), floats));
+
+  // Series numbers from the source's (201) and descriptions that say what
+  // each object holds.
+  DcmFileFormat first;
+  ASSERT_TRUE(first.loadFile(OFFilename(files.front().c_str())).good());
+  EXPECT_EQ(GetString(*first.getDataset(), DCM_SeriesNumber), "201001");
+  EXPECT_EQ(GetString(*pmap.getDataset(), DCM_SeriesNumber), "201002");
+  EXPECT_THAT(GetString(*pmap.getDataset(), DCM_SeriesDescription),
+              HasSubstr("distance"));
+  DcmFileFormat seg;
+  ASSERT_TRUE(seg.loadFile(OFFilename((out / "seg.dcm").c_str())).good());
+  EXPECT_EQ(GetString(*seg.getDataset(), DCM_SeriesNumber), "201003");
+  EXPECT_EQ(GetString(*seg.getDataset(), DCM_SOPClassUID),
+            "1.2.840.10008.5.1.4.1.1.66.4");
+  EXPECT_EQ(GetString(*pmap.getDataset(), DCM_SOPClassUID),
+            "1.2.840.10008.5.1.4.1.1.30");
+}
+
+// Gaps of 4.2 / 1.1 / 7.4 / ... mm (the defect: the intensity used the median
+// gap and squeezed the anatomy), and a regular series with a missing slice.
+TEST_F(DicomOutputTest, UnevenGapsAndMissingSlicesArePlacedByTruePositions) {
+  struct Case {
+    const char* name;
+    std::vector<int> slices;
+    std::vector<double> positions;
+  };
+  const Case cases[] = {
+      {"uneven",
+       {8, 9, 10, 11, 12, 13, 14, 15},
+       {0, 4.2, 5.3, 12.7, 17.7, 20.7, 26.9, 31.9}},
+      {"missing", {8, 9, 10, 12, 13, 14, 15}, {0, 5, 10, 20, 25, 30, 35}},
+  };
+  for (const Case& c : cases) {
+    SCOPED_TRACE(c.name);
+    const fs::path source = dir_ / c.name / "source";
+    MakeSeries(kPhantom, c.slices, c.positions, source);
+    const fs::path out = dir_ / c.name / "out";
+    const fs::path report_path = dir_ / c.name / "report.json";
+    const CommandResult r = RunCli(
+        "run " + source.string() + " --threshold 300 --roi 150,100,0,350,300," +
+        std::to_string(c.slices.size()) +
+        " --method direct --quiet --volume none --mesh none --seg "
+        "--out " +
+        out.string() + " --report " + report_path.string());
+    ASSERT_EQ(r.exit_code, 0) << r.output;
+    const nlohmann::json report = ReadJson(report_path);
+    double max_gap = 0;
+    for (size_t i = 1; i < c.positions.size(); ++i) {
+      max_gap = std::max(max_gap, c.positions[i] - c.positions[i - 1]);
+    }
+    EXPECT_NEAR(report["input"]["max_gap_mm"].get<double>(), max_gap, 1e-3);
+    ExpectIntensityPlacedByTruePositions(source, out / "series-intensity",
+                                         report, 150, 100);
+    ExpectItkSeesReportGrid(out / "series-intensity", report);
+    std::string errors;
+    EXPECT_EQ(DciodvfyErrors(out / "seg.dcm", &errors), 0) << errors;
+  }
+}
+
+// A tilted head CT: the tilt is corrected, reported and summarised, and the
+// intensity series equals the tilt-resampled source on its slices.
+TEST_F(DicomOutputTest, TiltedSeriesIsCorrectedAndReported) {
+  const fs::path out = dir_ / "out";
+  const fs::path report_path = dir_ / "report.json";
+  const CommandResult r =
+      RunCli("run " + kTilt.string() +
+             " --threshold 300 --method direct --volume none --mesh none "
+             "--output-series intensity --out " +
+             out.string() + " --report " + report_path.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_THAT(r.output, HasSubstr("gantry tilt of 18.5 degrees"));
+  const nlohmann::json report = ReadJson(report_path);
+  EXPECT_NEAR(std::abs(report["input"]["gantry_tilt_degrees"].get<double>()),
+              18.5, 0.1);
+  ExpectIntensityPlacedByTruePositions(kTilt, out / "series-intensity", report);
+  ExpectItkSeesReportGrid(out / "series-intensity", report);
+}
+
+// The same job twice gives the same UIDs (a PACS replaces instead of
+// duplicating); --random-uids gives new ones.
+TEST_F(DicomOutputTest, RerunKeepsUidsAndRandomUidsDoNot) {
+  auto run = [&](const std::string& name, const std::string& extra) {
+    const fs::path out = dir_ / name;
+    const CommandResult r =
+        RunCli("run " + kPhantom.string() +
+               " --roi 200,60,0,260,120,28 --method linear "
+               "--quiet --volume none --mesh none --seg --out " +
+               out.string() + " " + extra);
+    EXPECT_EQ(r.exit_code, 0) << r.output;
+    std::vector<std::string> uids;
+    for (const fs::path& f :
+         {out / "seg.dcm", out / "series-intensity" / "IM00001.dcm",
+          out / "series-intensity" / "IM00100.dcm"}) {
+      DcmFileFormat file;
+      EXPECT_TRUE(file.loadFile(OFFilename(f.c_str())).good()) << f;
+      uids.push_back(GetString(*file.getDataset(), DCM_SOPInstanceUID));
+      uids.push_back(GetString(*file.getDataset(), DCM_SeriesInstanceUID));
+    }
+    return uids;
+  };
+  const std::vector<std::string> first = run("first", "--threshold 300");
+  const std::vector<std::string> again = run("again", "--threshold 300");
+  ASSERT_EQ(first.size(), 6u);
+  EXPECT_EQ(first, again);
+  const std::vector<std::string> other_job = run("other", "--threshold 400");
+  EXPECT_NE(first[0], other_job[0]);
+  const std::vector<std::string> random1 =
+      run("random1", "--threshold 300 --random-uids");
+  const std::vector<std::string> random2 =
+      run("random2", "--threshold 300 --random-uids");
+  for (size_t i = 0; i < first.size(); ++i) {
+    EXPECT_NE(random1[i], first[i]);
+    EXPECT_NE(random1[i], random2[i]);
+  }
+}
+
+}  // namespace
+}  // namespace interslice

@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# Writes a DICOM SEG and the intensity series it overlays with the interslice CLI, then loads them the
+# way OHIF v3 does (seg_overlay_test.mjs) and checks the overlay against the mask NIfTI.
+#   bash tests/viewer/run_seg_overlay_test.sh BIN_DIR    (BIN_DIR holds the interslice executable)
+# Needs node (>= 18.19) and, when node_modules is missing or older than the lockfile, npm.
+set -euo pipefail
+
+here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
+repo="$(cd "$here/../.." && pwd)"
+bin_dir="${1:?usage: run_seg_overlay_test.sh BIN_DIR}"
+interslice="$bin_dir/interslice"
+node="${NODE:-node}"
+[ -x "$interslice" ] || { echo "FAIL: no interslice executable in $bin_dir"; exit 1; }
+command -v "$node" >/dev/null || { echo "FAIL: node not found"; exit 1; }
+
+# npm records what it installed in node_modules/.package-lock.json; reinstall when that is missing
+# or older than the committed lockfile.
+if [ ! -f "$here/node_modules/.package-lock.json" ] ||
+   [ "$here/package-lock.json" -nt "$here/node_modules/.package-lock.json" ]; then
+  npm ci --prefix "$here" --no-audit --no-fund --ignore-scripts
+fi
+
+tmp="$(mktemp -d "${TMPDIR:-/tmp}/seg-overlay.XXXXXX")"
+trap 'rm -rf "$tmp"' EXIT
+
+"$interslice" run "$repo/data/ct-head-phantom-thick" --threshold 300 --method direct \
+  --roi 200,150,0,300,250,28 --seg --output-series intensity --volume nii --mesh none \
+  --out "$tmp/out" --quiet
+
+"$node" "$here/seg_overlay_test.mjs" --seg "$tmp/out/seg.dcm" \
+  --series "$tmp/out/series-intensity" --mask "$tmp/out/mask.nii.gz"
