@@ -1,10 +1,13 @@
 #include "server/job_manager.h"
 
+#include <unistd.h>
+
 #include <algorithm>
 #include <filesystem>
 #include <random>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "core/pipeline/pipeline.h"
 #include "server/hashing.h"
 #include "server/spec_mapping.h"
@@ -107,12 +110,40 @@ absl::Status JobManager::Recover() {
     }
     std::shared_ptr<Job> job(new Job(id, false));
     const v1::JobState state = record.status().state();
-    if (state == v1::JOB_STATE_RUNNING || state == v1::JOB_STATE_UPLOADING) {
+    const bool interrupted = state == v1::JOB_STATE_RUNNING;
+    if (interrupted && record.attempts() < options_.max_attempts) {
+      // Killed mid-job (kill -9, power cut, OOM killer): the upload is
+      // still in the spool, so run it again; the attempts already counted
+      // bound how often.
+      v1::JobStatus* s = record.mutable_status();
+      s->set_state(v1::JOB_STATE_QUEUED);
+      s->set_started_unix_ms(0);
+      s->mutable_progress()->set_stage("queued");
+      s->set_sequence(s->sequence() + 1);
+      spool_->RemoveOutputs(id);
+      job->record_ = record;
+      if (absl::Status st = spool_->WriteRecord(record); !st.ok()) {
+        spdlog::error("job={} cannot persist recovery: {}", id,
+                      RedactPhi(st.message()));
+      }
+      spdlog::warn(
+          "job={} was running when the server stopped; running it again "
+          "(start {} of at most {})",
+          id, record.attempts() + 1, options_.max_attempts);
+      ++kept;
+    } else if (interrupted || state == v1::JOB_STATE_UPLOADING) {
       v1::JobStatus* s = record.mutable_status();
       s->set_state(v1::JOB_STATE_FAILED);
       s->set_error_code(static_cast<int>(absl::StatusCode::kAborted));
       s->set_error_message(
-          "the server stopped while the job was running; submit it again");
+          interrupted
+              ? absl::StrFormat(
+                    "the server stopped while the job was running, %d "
+                    "time(s); it is not run again (it may be what stops the "
+                    "server)",
+                    record.attempts())
+              : "the server stopped while the job was being uploaded; "
+                "submit it again");
       s->set_finished_unix_ms(UnixMillisNow());
       s->set_expires_unix_ms(UnixMillisNow() +
                              options_.retention_seconds * 1000);
@@ -134,7 +165,7 @@ absl::Status JobManager::Recover() {
     }
     std::lock_guard<std::mutex> lock(mu_);
     jobs_[id] = job;
-    if (state == v1::JOB_STATE_QUEUED) {
+    if (job->record_.status().state() == v1::JOB_STATE_QUEUED) {
       queue_.push_back(job);
       ++requeued;
       --kept;
@@ -493,6 +524,9 @@ void JobManager::RunOne(const std::shared_ptr<Job>& job) {
     job->started_ = std::chrono::steady_clock::now();
   }
   job->Update([](JobRecord& r) {
+    // Counted (and persisted below) before the job starts: if it takes the
+    // server down, the restart sees this start.
+    r.set_attempts(r.attempts() + 1);
     v1::JobStatus* s = r.mutable_status();
     s->set_state(v1::JOB_STATE_RUNNING);
     s->set_started_unix_ms(UnixMillisNow());
@@ -514,7 +548,10 @@ void JobManager::RunOne(const std::shared_ptr<Job>& job) {
     context.threads = options_.threads_per_job;
     context.cancel = &job->token_;
     const auto started = std::chrono::steady_clock::now();
-    context.progress = [job, started](const ProgressEvent& e) {
+    const bool in_process = !options_.isolate_jobs;
+    const float threshold = spec.lower_threshold;
+    context.progress = [job, started, in_process,
+                        threshold](const ProgressEvent& e) {
       const std::chrono::duration<double> elapsed =
           std::chrono::steady_clock::now() - started;
       job->Update([&](JobRecord& r) {
@@ -526,11 +563,38 @@ void JobManager::RunOne(const std::shared_ptr<Job>& job) {
         p->set_energy(e.energy);
         p->set_elapsed_seconds(elapsed.count());
       });
+      if (in_process) InjectTestFault(e.stage, threshold);
     };
     // A deadline that passed while queued fails fast, without reading.
     absl::Status early = job->token_.Check();
-    report =
-        early.ok() ? RunJob(spec, context) : absl::StatusOr<JobReport>(early);
+    if (!early.ok()) {
+      report = early;
+    } else if (options_.isolate_jobs) {
+      spool::v1::WorkerRequest request;
+      {
+        std::lock_guard<std::mutex> lock(job->mu_);
+        *request.mutable_spec() = job->record_.spec();
+        request.set_deadline_unix_ms(job->record_.deadline_unix_ms());
+      }
+      request.set_input_dir(spec.inputs.front());
+      request.set_output_dir(spec.output_dir);
+      request.set_max_output_voxels(spec.max_output_voxels);
+      request.set_threads(options_.threads_per_job);
+      request.set_server_pid(::getpid());
+      WorkerOutcome outcome;
+      report =
+          RunJobInWorkerProcess(request, context, options_.worker, &outcome);
+      if (outcome.crashed) {
+        spdlog::error(
+            "job={} worker process crashed (signal {}) during stage {}; the "
+            "job failed, the server carries on",
+            id, outcome.signal,
+            outcome.last_stage.empty() ? "start" : outcome.last_stage);
+      }
+    } else {
+      report = RunJob(spec, context);
+      if (report.ok()) report->peak_rss_bytes = PeakRssBytes();
+    }
   }
 
   bool shutdown_cancelled;
@@ -543,6 +607,8 @@ void JobManager::RunOne(const std::shared_ptr<Job>& job) {
     // after the restart.
     spool_->RemoveOutputs(id);
     job->Update([](JobRecord& r) {
+      // A drain is not a crash: this start does not count.
+      r.set_attempts(std::max(0, r.attempts() - 1));
       r.mutable_status()->set_state(v1::JOB_STATE_QUEUED);
       r.mutable_status()->set_started_unix_ms(0);
       r.mutable_status()->mutable_progress()->set_stage("queued");
@@ -560,7 +626,6 @@ void JobManager::RunOne(const std::shared_ptr<Job>& job) {
     for (const StageTiming& s : report->stages) {
       metrics_->StageSeconds(s.stage, s.seconds);
     }
-    report->peak_rss_bytes = PeakRssBytes();
     std::vector<v1::ArtifactInfo> artifacts;
     int64_t result_bytes = 0;
     absl::Status hashed = absl::OkStatus();

@@ -31,12 +31,23 @@
 #include "absl/status/statusor.h"
 #include "core/common/compute.h"
 #include "interslice/v1/interslice.pb.h"
+#include "server/job_worker.h"
 #include "server/metrics.h"
 #include "server/spool.h"
 
 namespace interslice::server {
 
 struct ManagerOptions {
+  // Run each job's compute in a supervised worker process (see
+  // server/job_worker.h), so that a crash inside a decoder fails that job
+  // only. false runs jobs on the worker threads of this process.
+  bool isolate_jobs = true;
+  WorkerOptions worker;
+  // A detached job that was running when the server stopped (killed, power
+  // cut) runs again after the restart, up to this many starts in all; then
+  // it fails with the reason (a job that takes the server down must not
+  // crash-loop it).
+  int max_attempts = 3;
   int workers = 1;
   int threads_per_job = 1;
   int max_queued_jobs = 16;

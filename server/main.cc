@@ -1,11 +1,18 @@
 // interslice-server: the gRPC daemon. Everything but option parsing lives in
 // server/server.cc.
 #include <cstdio>
+#include <string>
 
 #include "CLI/CLI.hpp"
+#include "server/job_worker.h"
 #include "server/server.h"
 
 int main(int argc, char** argv) {
+  // A job's worker process (server/job_worker.h): the server starts this
+  // executable again with this one argument.
+  if (argc == 2 && std::string(argv[1]) == "--job-worker") {
+    return interslice::server::RunJobWorker(0, 1);
+  }
   interslice::server::ServerOptions o;
   CLI::App app{"interslice-server: the interslice gRPC daemon"};
   app.set_version_flag("--version", "interslice-server 0.1.0");
@@ -61,6 +68,17 @@ int main(int argc, char** argv) {
   app.add_option("--drain-grace", o.drain_grace_seconds,
                  "Seconds running jobs may finish after SIGTERM before they "
                  "are cancelled")
+      ->capture_default_str();
+  app.add_option("--isolation", o.isolation,
+                 "process: each job computes in a supervised worker process "
+                 "(a crash fails that job only); thread: in the server "
+                 "process")
+      ->check(CLI::IsMember({"process", "thread"}))
+      ->capture_default_str();
+  app.add_option("--max-attempts", o.max_attempts,
+                 "Starts of a detached job interrupted by a server stop "
+                 "(kill, power cut) before it fails for good")
+      ->check(CLI::Range(1, 100))
       ->capture_default_str();
   app.add_option("--port-file", o.port_file,
                  "Write the bound gRPC and metrics ports here after start-up");

@@ -216,6 +216,8 @@ int RunServer(ServerOptions options) {
   manager_options.max_upload_bytes = options.max_upload_bytes;
   manager_options.max_output_voxels = options.max_output_voxels;
   manager_options.retention_seconds = options.retention_seconds;
+  manager_options.isolate_jobs = options.isolation == "process";
+  manager_options.max_attempts = options.max_attempts;
   JobManager manager(manager_options, spool->get(), &metrics);
   if (absl::Status s = manager.Recover(); !s.ok()) return fail(s);
   manager.Start();

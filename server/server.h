@@ -28,6 +28,12 @@ struct ServerOptions {
   std::string log_format = "text";  // text | json
   std::string log_level = "info";
   double drain_grace_seconds = 30;
+  // "process" (default): each job's compute runs in a supervised worker
+  // process, so a crash inside a decoder fails that job only; "thread": in
+  // this process (one crash takes every job down).
+  std::string isolation = "process";
+  // Starts of a detached job interrupted by a server stop, in all.
+  int max_attempts = 3;
   // After start-up, "<grpc port>\n<metrics port>\n" is written here
   // (atomically), for tests and scripts that listen on port 0.
   std::string port_file;

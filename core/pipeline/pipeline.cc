@@ -463,6 +463,75 @@ std::string JobReportToJson(const JobReport& report) {
   return j.dump(2);
 }
 
+absl::StatusOr<JobReport> JobReportFromJson(const std::string& text) {
+  using nlohmann::json;
+  const json j = json::parse(text, nullptr, /*allow_exceptions=*/false);
+  if (j.is_discarded() || !j.is_object()) {
+    return absl::InvalidArgumentError("job report: not a JSON object");
+  }
+  JobReport report;
+  try {
+    for (const auto& [stage, seconds] : j.at("stages").items()) {
+      report.stages.push_back({stage, seconds.get<double>()});
+    }
+    const json& solver = j.at("solver");
+    const std::string method = solver.at("method").get<std::string>();
+    bool known_method = false;
+    for (SolverMethod m :
+         {SolverMethod::kLinear, SolverMethod::kConjugateGradient,
+          SolverMethod::kDirect}) {
+      if (SolverMethodName(m) == method) {
+        report.solver.method = m;
+        known_method = true;
+      }
+    }
+    if (!known_method) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("job report: unknown solver method ", method));
+    }
+    report.solver.iterations = solver.at("iterations").get<int>();
+    report.solver.relative_residual =
+        solver.at("relative_residual").get<double>();
+    report.solver.initial_residual =
+        solver.at("initial_residual").get<double>();
+    report.solver.energy = solver.at("energy").get<double>();
+    report.solver.initial_energy = solver.at("initial_energy").get<double>();
+    report.solver.converged = solver.at("converged").get<bool>();
+    report.energy_units = solver.at("energy_units").get<std::string>() ==
+                                  EnergyUnitsName(EnergyUnits::kMillimetre)
+                              ? EnergyUnits::kMillimetre
+                              : EnergyUnits::kVoxel;
+    auto read_grid = [](const json& g, Grid& grid) {
+      grid.size = g.at("size").get<Index3>();
+      grid.spacing = g.at("spacing").get<Vec3>();
+      grid.origin = g.at("origin").get<Vec3>();
+      grid.direction = g.at("direction").get<Mat3>();
+    };
+    const json& grid = j.at("grid");
+    read_grid(grid, report.output_grid);
+    report.insertion_factor = grid.at("insertion_factor").get<int>();
+    report.max_snap_mm = grid.at("max_snap_mm").get<double>();
+    const json& input = j.at("input");
+    read_grid(input, report.input_grid);
+    report.input_slices = input.at("slices_used").get<int64_t>();
+    report.skipped_files = input.at("skipped_files").get<int64_t>();
+    report.gantry_tilt_degrees = input.at("gantry_tilt_degrees").get<double>();
+    report.min_gap_mm = input.at("min_gap_mm").get<double>();
+    report.max_gap_mm = input.at("max_gap_mm").get<double>();
+    report.mesh_vertices = j.at("mesh").at("vertices").get<int64_t>();
+    report.mesh_triangles = j.at("mesh").at("triangles").get<int64_t>();
+    for (const json& a : j.at("artifacts")) {
+      report.artifacts.push_back({a.at("kind").get<std::string>(),
+                                  a.at("path").get<std::string>(),
+                                  a.at("size_bytes").get<int64_t>()});
+    }
+    report.peak_rss_bytes = j.at("peak_rss_bytes").get<int64_t>();
+  } catch (const json::exception& e) {
+    return absl::InvalidArgumentError(absl::StrCat("job report: ", e.what()));
+  }
+  return report;
+}
+
 int64_t PeakRssBytes() {
   struct rusage usage {};
   if (getrusage(RUSAGE_SELF, &usage) != 0) return -1;

@@ -132,6 +132,11 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
 // "artifacts": [...], "peak_rss_bytes": n}.
 std::string JobReportToJson(const JobReport& report);
 
+// Reads what JobReportToJson wrote (the server reads a job's report from its
+// worker process this way); JobReportToJson(*JobReportFromJson(j)) == j.
+// INVALID_ARGUMENT naming the field for malformed or incomplete JSON.
+absl::StatusOr<JobReport> JobReportFromJson(const std::string& json);
+
 // Peak resident set size of this process, bytes (getrusage).
 int64_t PeakRssBytes();
 

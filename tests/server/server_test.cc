@@ -477,15 +477,82 @@ TEST(ServerTest, KillNineAndRestartKeepsAcceptedJobs) {
       Cli(Cat({"fetch", Trim(done.out), "--out", dir / "a"}, server->Server()));
   ASSERT_EQ(fetch.exit_code, 0) << fetch.err << server->Log();
   ExpectSameFiles(local, dir / "a");
-  const v1::JobStatus interrupted = WaitFor(*server, Trim(running.out), Ended);
-  EXPECT_EQ(interrupted.state(), v1::JOB_STATE_FAILED);
-  EXPECT_THAT(interrupted.error_message(), HasSubstr("server stopped"));
+  // The job that was running when the server died runs again first (the
+  // detached API promises jobs survive restarts); it never ends by itself,
+  // so cancel it once it is solving again; then the queued one runs.
+  ASSERT_TRUE(Solving(WaitFor(*server, Trim(running.out), Solving)))
+      << server->Log();
+  EXPECT_EQ(Cli(Cat({"cancel", Trim(running.out)}, server->Server())).exit_code,
+            0);
+  EXPECT_EQ(WaitFor(*server, Trim(running.out), Ended).state(),
+            v1::JOB_STATE_CANCELLED);
   EXPECT_EQ(WaitFor(*server, Trim(queued.out), Ended).state(),
             v1::JOB_STATE_SUCCEEDED);
   CommandResult fetch2 = Cli(
       Cat({"fetch", Trim(queued.out), "--out", dir / "b"}, server->Server()));
   ASSERT_EQ(fetch2.exit_code, 0) << fetch2.err;
   ExpectSameFiles(local, dir / "b");
+}
+
+// A job that was running through --max-attempts server stops is not started
+// again: it may be what takes the server down.
+TEST(ServerTest, InterruptedJobStopsAfterMaxAttempts) {
+  TempDir dir;
+  auto server = std::make_unique<ServerProcess>(
+      dir / "spool", dir / "server.log",
+      std::vector<std::string>{"--max-attempts", "2"});
+  CommandResult running = Cli(Cat(Cat({"submit"}, kLongJob), server->Server()));
+  ASSERT_EQ(running.exit_code, 0) << running.err;
+  const std::string id = Trim(running.out);
+  for (int start = 1; start <= 2; ++start) {
+    SCOPED_TRACE(start);
+    ASSERT_TRUE(Solving(WaitFor(*server, id, Solving))) << server->Log();
+    server->Kill9();
+    server->Start();
+  }
+  const v1::JobStatus end = WaitFor(*server, id, Ended);
+  EXPECT_EQ(end.state(), v1::JOB_STATE_FAILED);
+  EXPECT_THAT(end.error_message(), HasSubstr("2 time(s)"));
+  EXPECT_THAT(end.error_message(), HasSubstr("not run again"));
+}
+
+// A crash inside one job's compute (standing in for a decoder's assert on a
+// hostile file, through the worker's fault hook) fails that job only: the
+// server keeps serving, another running job carries on, and the error says
+// which stage crashed.
+TEST(ServerTest, CrashInsideOneJobFailsThatJobOnly) {
+  TempDir dir;
+  // Jobs with threshold 777 abort in the contour stage.
+  setenv("INTERSLICE_WORKER_FAULT", "abort:contour:777", 1);
+  ServerProcess server(dir / "spool", dir / "server.log",
+                       {"--workers", "2", "--threads-per-job", "1"});
+  unsetenv("INTERSLICE_WORKER_FAULT");
+  CommandResult running = Cli(Cat(Cat({"submit"}, kLongJob), server.Server()));
+  ASSERT_EQ(running.exit_code, 0) << running.err;
+  const std::string long_id = Trim(running.out);
+  ASSERT_TRUE(Solving(WaitFor(server, long_id, Solving))) << server.Log();
+
+  CommandResult crash = Cli(
+      Cat(Cat({"interpolate", "--out", dir / "crash"},
+              {kSeries, "--threshold", "777", "--roi", "176,176,0,336,336,4"}),
+          server.Server()));
+  EXPECT_EQ(crash.exit_code, 1);
+  EXPECT_THAT(crash.err, HasSubstr("worker process crashed (SIGABRT)"));
+  EXPECT_THAT(crash.err, HasSubstr("stage 'contour'"));
+
+  // The server and the other job are fine.
+  EXPECT_EQ(Cli(Cat({"health"}, server.Server())).exit_code, 0);
+  const v1::JobStatus still = WaitFor(server, long_id, Solving);
+  EXPECT_EQ(still.state(), v1::JOB_STATE_RUNNING);
+  const std::string local = RunLocally(dir, kSmallJob, "local");
+  CommandResult ok =
+      Cli(Cat(Cat(Cat({"interpolate", "--out", dir / "ok"}, kSmallJob),
+                  {"--volume", "nii,nrrd", "--mesh", "stl,ply,obj"}),
+              server.Server()));
+  EXPECT_EQ(ok.exit_code, 0) << ok.err << server.Log();
+  ExpectSameFiles(local, dir / "ok");
+  EXPECT_EQ(Cli(Cat({"cancel", long_id}, server.Server())).exit_code, 0);
+  EXPECT_THAT(server.Log(), HasSubstr("worker process crashed"));
 }
 
 void MakeCertificates(const TempDir& dir) {
