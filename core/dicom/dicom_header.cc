@@ -36,7 +36,8 @@ namespace interslice {
 namespace dicom_internal {
 namespace {
 
-enum class AttrState { kAbsent, kOk, kInvalid };
+// kEmpty: present without a value (type 2 attributes may be).
+enum class AttrState { kAbsent, kEmpty, kOk, kInvalid };
 
 std::string GetString(DcmItem& item, const DcmTagKey& tag) {
   OFString value;
@@ -51,14 +52,13 @@ std::string GetAllStrings(DcmItem& item, const DcmTagKey& tag) {
   return std::string(absl::StripAsciiWhitespace(value.c_str()));
 }
 
-// Reads exactly `n` finite numbers of a DS/FD attribute. An empty element
-// counts as absent (type 2 attributes may be present without a value).
+// Reads exactly `n` finite numbers of a DS/FD attribute.
 AttrState GetDoubles(DcmItem& item, const DcmTagKey& tag, double* out, int n) {
   DcmElement* element = nullptr;
-  if (item.findAndGetElement(tag, element).bad() || element == nullptr ||
-      element->getLength() == 0) {
+  if (item.findAndGetElement(tag, element).bad() || element == nullptr) {
     return AttrState::kAbsent;
   }
+  if (element->getLength() == 0) return AttrState::kEmpty;
   if (element->getVM() != static_cast<unsigned long>(n)) {
     return AttrState::kInvalid;
   }
@@ -70,6 +70,45 @@ AttrState GetDoubles(DcmItem& item, const DcmTagKey& tag, double* out, int n) {
     out[i] = value;
   }
   return AttrState::kOk;
+}
+
+// RescaleSlope and RescaleIntercept of `item`, when present (absent: 1 and
+// 0). Every stored value goes through them, so a value that is present but
+// empty, not a number, not finite, or a slope of 0 (which would map the
+// whole image to one value) makes the slice unusable. GDCM, which decodes
+// JPEG 2000, would even abort the process on an empty RescaleSlope
+// (gdcmImageHelper.cxx, GetRescaleInterceptSlopeValue); refusing it here
+// keeps such a file away from every decoder. `what` names the slice.
+absl::Status ReadRescale(DcmItem& item, const std::string& what, double* slope,
+                         double* intercept) {
+  struct Attr {
+    const DcmTagKey& tag;
+    const char* name;
+    double* value;
+  };
+  for (const Attr& a :
+       {Attr{DCM_RescaleSlope, "RescaleSlope (0028,1053)", slope},
+        Attr{DCM_RescaleIntercept, "RescaleIntercept (0028,1052)",
+             intercept}}) {
+    switch (GetDoubles(item, a.tag, a.value, 1)) {
+      case AttrState::kAbsent:
+      case AttrState::kOk:
+        break;
+      case AttrState::kEmpty:
+        return absl::InvalidArgumentError(
+            absl::StrCat(what, ": ", a.name, " is present but empty"));
+      case AttrState::kInvalid:
+        return absl::InvalidArgumentError(
+            absl::StrCat(what, ": ", a.name, " is not one finite number"));
+    }
+  }
+  if (*slope == 0) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        what,
+        ": RescaleSlope (0028,1053) is 0, which would map every stored "
+        "value to the intercept"));
+  }
+  return absl::OkStatus();
 }
 
 // Checks that `frames` frames of pixel data are present. Native pixel data
@@ -197,13 +236,8 @@ absl::Status ReadMultiFrameAttributes(DcmDataset& ds, const std::string& name,
     DcmItem* transform =
         FunctionalGroup(own, shared, DCM_PixelValueTransformationSequence);
     DcmItem& rescale = transform != nullptr ? *transform : ds;
-    if (GetDoubles(rescale, DCM_RescaleSlope, &g.rescale_slope, 1) ==
-            AttrState::kInvalid ||
-        GetDoubles(rescale, DCM_RescaleIntercept, &g.rescale_intercept, 1) ==
-            AttrState::kInvalid) {
-      return absl::InvalidArgumentError(
-          absl::StrCat(frame, ": invalid RescaleSlope or RescaleIntercept"));
-    }
+    INTERSLICE_RETURN_IF_ERROR(
+        ReadRescale(rescale, frame, &g.rescale_slope, &g.rescale_intercept));
     std::vector<std::string> volume;
     if (DcmItem* content =
             FunctionalGroup(own, shared, DCM_FrameContentSequence)) {
@@ -269,7 +303,8 @@ absl::Status ReadImageAttributes(DcmDataset& ds, const std::string& name,
       GetDoubles(ds, DCM_ImagePositionPatient, h.position.data(), 3);
   const AttrState orientation =
       GetDoubles(ds, DCM_ImageOrientationPatient, h.orientation.data(), 6);
-  if (position == AttrState::kAbsent || orientation == AttrState::kAbsent) {
+  if (position == AttrState::kAbsent || position == AttrState::kEmpty ||
+      orientation == AttrState::kAbsent || orientation == AttrState::kEmpty) {
     // Projection images, secondary captures, ...: not part of a stack.
     h.kind = FileKind::kNotImage;
     return absl::OkStatus();
@@ -288,16 +323,8 @@ absl::Status ReadImageAttributes(DcmDataset& ds, const std::string& name,
     return absl::InvalidArgumentError(
         absl::StrCat(name, ": missing or invalid PixelSpacing"));
   }
-  if (GetDoubles(ds, DCM_RescaleSlope, &h.rescale_slope, 1) ==
-      AttrState::kInvalid) {
-    return absl::InvalidArgumentError(
-        absl::StrCat(name, ": invalid RescaleSlope"));
-  }
-  if (GetDoubles(ds, DCM_RescaleIntercept, &h.rescale_intercept, 1) ==
-      AttrState::kInvalid) {
-    return absl::InvalidArgumentError(
-        absl::StrCat(name, ": invalid RescaleIntercept"));
-  }
+  INTERSLICE_RETURN_IF_ERROR(
+      ReadRescale(ds, name, &h.rescale_slope, &h.rescale_intercept));
   // Only used for a single slice; an invalid value falls back like a
   // missing one.
   if (GetDoubles(ds, DCM_SliceThickness, &h.slice_thickness, 1) !=

@@ -26,6 +26,9 @@
 #include "dcmtk/dcmdata/dcdatset.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
 #include "dcmtk/dcmdata/dcfilefo.h"
+#include "dcmtk/dcmdata/dcpixel.h"
+#include "dcmtk/dcmdata/dcpixseq.h"
+#include "dcmtk/dcmdata/dcpxitem.h"
 #include "dcmtk/dcmdata/dcrledrg.h"
 #include "dcmtk/dcmdata/dcuid.h"
 #include "dcmtk/dcmdata/dcxfer.h"
@@ -504,6 +507,112 @@ struct FileTarget {
   std::vector<std::pair<int, size_t>> frames;
 };
 
+void ConvertFrame(const Uint8* src, int64_t samples, const PixelLayout& layout,
+                  const SliceRef& s, float* out) {
+  switch (layout.bits_allocated) {
+    case 8:
+      ConvertPixels<1>(src, samples, layout, s.rescale_slope,
+                       s.rescale_intercept, out);
+      break;
+    case 16:
+      ConvertPixels<2>(src, samples, layout, s.rescale_slope,
+                       s.rescale_intercept, out);
+      break;
+    default:
+      ConvertPixels<4>(src, samples, layout, s.rescale_slope,
+                       s.rescale_intercept, out);
+      break;
+  }
+}
+
+// The JPEG 2000 codestream of frame `frame` (0-based) of `frames`: with one
+// frame, all fragments together; with several, one fragment per frame (as
+// GDCM requires, and as writers do; frames split over fragments are refused
+// rather than guessed from the offset table).
+absl::Status Jpeg2000FrameBytes(DcmDataset& ds, const std::string& name,
+                                int64_t frames, int frame,
+                                std::vector<uint8_t>& out) {
+  out.clear();
+  DcmElement* element = nullptr;
+  ds.findAndGetElement(DCM_PixelData, element);
+  DcmPixelData* pixels = dynamic_cast<DcmPixelData*>(element);
+  DcmPixelSequence* sequence = nullptr;
+  if (pixels != nullptr) {
+    E_TransferSyntax xfer = EXS_Unknown;
+    const DcmRepresentationParameter* param = nullptr;
+    pixels->getOriginalRepresentationKey(xfer, param);
+    pixels->getEncapsulatedRepresentation(xfer, param, sequence);
+  }
+  if (sequence == nullptr || sequence->card() < 2) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(name, ": no encapsulated JPEG 2000 pixel data"));
+  }
+  // The first item is the basic offset table.
+  const unsigned long fragments = sequence->card() - 1;
+  if (frames > 1 && fragments != static_cast<unsigned long>(frames)) {
+    return absl::InvalidArgumentError(absl::StrFormat(
+        "%s: %d JPEG 2000 fragments for %d frames; frames split over several "
+        "fragments are not supported",
+        name, fragments, frames));
+  }
+  auto append = [&](unsigned long index) -> absl::Status {
+    DcmPixelItem* item = nullptr;
+    if (sequence->getItem(item, index).bad() || item == nullptr) {
+      return absl::InvalidArgumentError(
+          absl::StrCat(name, ": missing pixel data fragment"));
+    }
+    const Uint32 length = item->getLength();
+    if (length == 0) return absl::OkStatus();
+    Uint8* bytes = nullptr;
+    if (item->getUint8Array(bytes).bad() || bytes == nullptr) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          name, ": cannot read a pixel data fragment; truncated file?"));
+    }
+    out.insert(out.end(), bytes, bytes + length);
+    return absl::OkStatus();
+  };
+  if (frames > 1) return append(static_cast<unsigned long>(frame) + 1);
+  for (unsigned long i = 1; i <= fragments; ++i) {
+    INTERSLICE_RETURN_IF_ERROR(append(i));
+  }
+  return absl::OkStatus();
+}
+
+// Decodes the used frames of a JPEG 2000 file (GDCM, one frame at a time, so
+// that memory stays bounded by one frame whatever NumberOfFrames says).
+absl::Status LoadJpeg2000Frames(DcmDataset& ds, const FileHeader& h,
+                                const FileTarget& target,
+                                const std::vector<SliceRef>& order,
+                                const PixelLayout& layout,
+                                Volume<float>& volume) {
+  const std::string name = BaseName(h.path);
+  const int64_t frames = h.frames.empty() ? 1 : h.frames.size();
+  const int64_t frame_samples = int64_t{h.rows} * h.columns;
+  // Decoded samples are plain values: HighBit plays no part.
+  PixelLayout decoded_layout = layout;
+  decoded_layout.high_bit = layout.bits_stored - 1;
+  const dicom_internal::Jpeg2000Target j2k = {
+      .rows = h.rows,
+      .columns = h.columns,
+      .bits_allocated = layout.bits_allocated,
+      .bits_stored = layout.bits_stored,
+      .is_signed = layout.is_signed};
+  std::vector<uint8_t> codestream;
+  for (const auto& [frame, k] : target.frames) {
+    const std::string frame_name =
+        frames > 1 ? absl::StrCat(name, " frame ", frame + 1) : name;
+    INTERSLICE_RETURN_IF_ERROR(
+        Jpeg2000FrameBytes(ds, frame_name, frames, frame, codestream));
+    INTERSLICE_ASSIGN_OR_RETURN(
+        const std::vector<uint8_t> decoded,
+        dicom_internal::DecodeJpeg2000Frame(
+            codestream.data(), codestream.size(), frame_name, j2k));
+    ConvertFrame(decoded.data(), frame_samples, decoded_layout, order[k],
+                 volume.data.data() + k * frame_samples);
+  }
+  return absl::OkStatus();
+}
+
 // Decodes the frames of one file into their slices of `volume`.
 absl::Status LoadFile(const FileHeader& h, const FileTarget& target,
                       const std::vector<SliceRef>& order,
@@ -535,9 +644,6 @@ absl::Status LoadFile(const FileHeader& h, const FileTarget& target,
                               dicom_internal::ReadPixelLayout(ds, name));
   const int64_t needed = frames * frame_samples * (layout.bits_allocated / 8);
 
-  const Uint8* bytes = nullptr;
-  int64_t length = 0;
-  std::vector<uint8_t> fallback;  // pixels decoded by GDCM
   const E_TransferSyntax xfer = ds.getOriginalXfer();
   if (DcmXfer(xfer).isEncapsulated()) {
     cond = ds.chooseRepresentation(EXS_LittleEndianExplicit, nullptr);
@@ -548,30 +654,23 @@ absl::Status LoadFile(const FileHeader& h, const FileTarget& target,
             DcmXfer(xfer).getXferName(), "' (", h.transfer_syntax_uid, ")",
             cond.bad() ? absl::StrCat(": ", cond.text()) : ""));
       }
-      INTERSLICE_ASSIGN_OR_RETURN(fallback, dicom_internal::DecodeWithGdcm(
-                                                h.path, name, h.rows, h.columns,
-                                                frames, layout.bits_allocated));
-      bytes = fallback.data();
-      length = static_cast<int64_t>(fallback.size());
+      return LoadJpeg2000Frames(ds, h, target, order, layout, volume);
     }
   }
-  if (bytes == nullptr) {
-    DcmElement* pixels = nullptr;
-    if (ds.findAndGetElement(DCM_PixelData, pixels).bad() ||
-        pixels == nullptr) {
-      return absl::InvalidArgumentError(absl::StrCat(name, ": no pixel data"));
-    }
-    Uint8* data = nullptr;
-    cond = pixels->getUint8Array(data);
-    if (cond.bad() || data == nullptr) {
-      return absl::InvalidArgumentError(absl::StrCat(
-          name, ": cannot read pixel data (",
-          cond.bad() ? cond.text() : "no value", "); truncated file?"));
-    }
-    bytes = data;
-    const Uint32 element_length = pixels->getLength();
-    length = element_length == DCM_UndefinedLength ? 0 : element_length;
+  DcmElement* pixels = nullptr;
+  if (ds.findAndGetElement(DCM_PixelData, pixels).bad() || pixels == nullptr) {
+    return absl::InvalidArgumentError(absl::StrCat(name, ": no pixel data"));
   }
+  Uint8* bytes = nullptr;
+  cond = pixels->getUint8Array(bytes);
+  if (cond.bad() || bytes == nullptr) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        name, ": cannot read pixel data (",
+        cond.bad() ? cond.text() : "no value", "); truncated file?"));
+  }
+  const Uint32 element_length = pixels->getLength();
+  const int64_t length =
+      element_length == DCM_UndefinedLength ? 0 : element_length;
   if (length < needed) {
     return absl::InvalidArgumentError(absl::StrFormat(
         "%s: pixel data is too short: %d bytes, but %d frame(s) of %d x %d "
@@ -582,22 +681,8 @@ absl::Status LoadFile(const FileHeader& h, const FileTarget& target,
   const int64_t frame_bytes = frame_samples * (layout.bits_allocated / 8);
   for (const auto& [frame, k] : target.frames) {
     const SliceRef& s = order[k];
-    const Uint8* src = bytes + frame * frame_bytes;
-    float* out = volume.data.data() + k * frame_samples;
-    switch (layout.bits_allocated) {
-      case 8:
-        ConvertPixels<1>(src, frame_samples, layout, s.rescale_slope,
-                         s.rescale_intercept, out);
-        break;
-      case 16:
-        ConvertPixels<2>(src, frame_samples, layout, s.rescale_slope,
-                         s.rescale_intercept, out);
-        break;
-      default:
-        ConvertPixels<4>(src, frame_samples, layout, s.rescale_slope,
-                         s.rescale_intercept, out);
-        break;
-    }
+    ConvertFrame(bytes + frame * frame_bytes, frame_samples, layout, s,
+                 volume.data.data() + k * frame_samples);
   }
   return absl::OkStatus();
 }
@@ -769,6 +854,20 @@ absl::StatusOr<DicomSeries> ReadDicomSeries(
       auto [it, inserted] = target_of.emplace(s.header, targets.size());
       if (inserted) targets.push_back({s.header, {}});
       targets[it->second].frames.emplace_back(s.frame, k);
+    }
+  }
+  // Decoders (DCMTK's) decode every frame of a file, including those of
+  // other volumes: the limit bounds each file's decoded size too.
+  for (const FileTarget& t : targets) {
+    const FileHeader& h = headers[t.header];
+    const int64_t file_voxels =
+        int64_t{h.rows} * h.columns * std::max<int64_t>(1, h.frames.size());
+    if (file_voxels > options.max_voxels) {
+      return absl::InvalidArgumentError(absl::StrFormat(
+          "%s holds %d x %d x %d = %d voxels in all its frames, more than the "
+          "limit of %d (max_voxels)",
+          BaseName(h.path), h.columns, h.rows, h.frames.size(), file_voxels,
+          options.max_voxels));
     }
   }
 

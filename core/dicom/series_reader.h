@@ -52,18 +52,27 @@
 //   a tilt about one axis; offsets larger than the image are an error.
 //
 // Errors (INVALID_ARGUMENT unless noted; messages name the problem and the
-// file's base name (and frame), never patient data):
+// file's base name (and frame), never patient data or UIDs of the files):
 // - NOT_FOUND: no readable DICOM image in the input.
 // - FAILED_PRECONDITION: several series and none chosen; chosen UID absent;
 //   several volumes and none chosen; chosen volume absent.
 // - Inconsistent Rows/Columns, PixelSpacing or ImageOrientationPatient
 //   between slices; two slices at the same position.
+// - RescaleSlope or RescaleIntercept present but empty, not one finite
+//   number, or a RescaleSlope of 0 (checked while scanning headers, before
+//   any pixel data is decoded).
 // - Undecodable pixel data (UNIMPLEMENTED, transfer syntax named), truncated
 //   or short pixel data, fewer encapsulated fragments than frames,
 //   SamplesPerPixel != 1, BitsAllocated not 8/16/32 (UNIMPLEMENTED).
 //   Native pixel data is checked against Rows x Columns x frames from its
-//   length field before it is loaded, and the volume size against
-//   options.max_voxels before it is allocated.
+//   length field before it is loaded, and the volume size (and each file's
+//   decoded size, all frames) against options.max_voxels before it is
+//   allocated.
+// - JPEG 2000: GDCM decodes one frame's codestream at a time and never sees
+//   the file; the codestream must be a bare J2K codestream (no JP2 wrapper)
+//   of one component with exactly Columns x Rows samples, a precision that
+//   fits BitsAllocated and at most 4096 tiles, or the file is refused before
+//   decoding. Several frames need one fragment per frame.
 #ifndef INTERSLICE_CORE_DICOM_SERIES_READER_H_
 #define INTERSLICE_CORE_DICOM_SERIES_READER_H_
 

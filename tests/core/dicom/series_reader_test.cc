@@ -6,6 +6,7 @@
 #include <atomic>
 #include <cmath>
 #include <cstdint>
+#include <cstdio>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
@@ -26,6 +27,7 @@
 #include "dcmtk/dcmdata/dcddirif.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
 #include "dcmtk/dcmdata/dcfilefo.h"
+#include "dcmtk/dcmdata/dcmetinf.h"
 #include "dcmtk/dcmdata/dcrleerg.h"
 #include "dcmtk/dcmdata/dcuid.h"
 #include "dcmtk/dcmjpeg/djencode.h"
@@ -1224,6 +1226,201 @@ TEST(DecodableTransferSyntaxesTest, ListsWhatTheReaderDecodes) {
                           "1.2.840.10008.1.2.4.80", "1.2.840.10008.1.2.5",
                           "1.2.840.10008.1.2.4.90", "1.2.840.10008.1.2.4.91"}) {
     EXPECT_TRUE(uids.count(uid)) << uid;
+  }
+}
+
+// ---- Hardening: attributes validated before decoding, consistency, and
+// anonymised exports ------------------------------------------------------
+
+// Copies `src` to `dst` after `edit` changed the file (data set and meta
+// header), keeping the transfer syntax and, with EWM_dontUpdateMeta, the
+// meta header as edited.
+void EditFile(const fs::path& src, const fs::path& dst,
+              const std::function<void(DcmFileFormat&)>& edit,
+              E_FileWriteMode mode = EWM_fileformat) {
+  auto file = Load(src);
+  edit(*file);
+  const OFCondition cond =
+      file->saveFile(OFFilename(dst.c_str()), EXS_Unknown, EET_UndefinedLength,
+                     EGL_recalcGL, EPD_noChange, 0, 0, mode);
+  ASSERT_TRUE(cond.good()) << cond.text();
+}
+
+void EditDataset(const fs::path& src, const fs::path& dst,
+                 const std::function<void(DcmDataset&)>& edit) {
+  EditFile(src, dst, [&](DcmFileFormat& f) { edit(*f.getDataset()); });
+}
+
+const fs::path kJpeg2000Ct =
+    fs::path(INTERSLICE_TEST_DATA_DIR) / "codecs" / "jpeg_2000.dcm";
+// An MR slice in JPEG 2000 (GDCM takes another rescale path for MR).
+const fs::path kJpeg2000Mr =
+    fs::path(INTERSLICE_TEST_DATA_DIR) / "transfer-syntaxes" / "9.dcm";
+
+// Two slices of a JPEG 2000 file, 5 mm apart along the normal, after `edit`.
+void WriteJpeg2000Pair(const fs::path& src, const fs::path& dir,
+                       const std::function<void(DcmDataset&)>& edit) {
+  for (int k = 0; k < 2; ++k) {
+    EditDataset(
+        src, dir / ("j" + std::to_string(k) + ".dcm"), [&](DcmDataset& ds) {
+          double ipp[3], iop[6];
+          for (int c = 0; c < 3; ++c) {
+            ds.findAndGetFloat64(DCM_ImagePositionPatient, ipp[c], c);
+          }
+          for (int c = 0; c < 6; ++c) {
+            ds.findAndGetFloat64(DCM_ImageOrientationPatient, iop[c], c);
+          }
+          const double n[3] = {iop[1] * iop[5] - iop[2] * iop[4],
+                               iop[2] * iop[3] - iop[0] * iop[5],
+                               iop[0] * iop[4] - iop[1] * iop[3]};
+          char text[200];
+          std::snprintf(text, sizeof(text), "%.6f\\%.6f\\%.6f",
+                        ipp[0] + 5 * k * n[0], ipp[1] + 5 * k * n[1],
+                        ipp[2] + 5 * k * n[2]);
+          ds.putAndInsertString(DCM_ImagePositionPatient, text);
+          ds.putAndInsertString(DCM_SOPInstanceUID, NewUid().c_str());
+          edit(ds);
+        });
+  }
+}
+
+// GDCM aborted the whole process (gdcmImageHelper.cxx:1214, assertion
+// 'interceptslope[1] != 0.') on an MR JPEG 2000 slice with an empty
+// RescaleSlope; for CT it silently used 1.
+TEST(HardeningTest, EmptyRescaleSlopeOnJpeg2000IsRefusedBeforeDecoding) {
+  for (const fs::path& src : {kJpeg2000Mr, kJpeg2000Ct}) {
+    TempDir dir;
+    WriteJpeg2000Pair(src, dir.path(), [](DcmDataset& ds) {
+      ds.putAndInsertString(DCM_RescaleSlope, "");
+    });
+    const auto result = Read({dir.str()});
+    EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument)
+        << src;
+    EXPECT_THAT(result.status().message(),
+                AllOf(HasSubstr("j0.dcm"), HasSubstr("RescaleSlope"),
+                      HasSubstr("empty")));
+  }
+}
+
+TEST(HardeningTest, RescaleValuesMustBeOneFiniteNumberAndSlopeNotZero) {
+  struct Case {
+    DcmTagKey tag;
+    const char* value;
+    const char* attribute;
+    const char* why;
+  };
+  const Case cases[] = {
+      {DCM_RescaleSlope, "", "RescaleSlope", "empty"},
+      {DCM_RescaleSlope, "abc", "RescaleSlope", "not one finite number"},
+      {DCM_RescaleSlope, "0", "RescaleSlope", "is 0"},
+      {DCM_RescaleSlope, "-0.0", "RescaleSlope", "is 0"},
+      {DCM_RescaleSlope, "1e999", "RescaleSlope", "not one finite number"},
+      {DCM_RescaleSlope, "1\\2", "RescaleSlope", "not one finite number"},
+      {DCM_RescaleIntercept, "", "RescaleIntercept", "empty"},
+      {DCM_RescaleIntercept, "x", "RescaleIntercept", "not one finite number"},
+  };
+  for (const Case& c : cases) {
+    TempDir dir;
+    CopyThick(dir.path(), {"I10.dcm", "I20.dcm", "I40.dcm"});
+    CopyEdited("I30.dcm", dir.path() / "I30.dcm",
+               [&](DcmDataset& ds) { ds.putAndInsertString(c.tag, c.value); });
+    const auto result = Read({dir.str()});
+    EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument)
+        << c.attribute << " '" << c.value << "'";
+    EXPECT_THAT(
+        result.status().message(),
+        AllOf(HasSubstr("I30.dcm"), HasSubstr(c.attribute), HasSubstr(c.why)))
+        << c.value;
+  }
+}
+
+// Task: a slice with RescaleSlope 0 was read (every voxel = intercept).
+TEST(HardeningTest, SliceWithRescaleSlopeZeroIsAnError) {
+  TempDir dir;
+  CopyThick(dir.path(), {"I10.dcm", "I20.dcm", "I40.dcm"});
+  CopyEdited("I30.dcm", dir.path() / "I30.dcm", [](DcmDataset& ds) {
+    ds.putAndInsertString(DCM_RescaleSlope, "0");
+  });
+  const auto result = Read({dir.str()});
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(result.status().message(),
+              AllOf(HasSubstr("I30.dcm"), HasSubstr("RescaleSlope")));
+}
+
+TEST(HardeningTest, FrameWithRescaleSlopeZeroIsNamedWithItsFrame) {
+  TempDir dir;
+  const fs::path src = fs::path(INTERSLICE_TEST_DATA_DIR) / "multiframe" /
+                       "philips-enhanced-mr-64frames.dcm";
+  EditDataset(src, dir.path() / "enhanced.dcm", [](DcmDataset& ds) {
+    DcmItem* frame = nullptr;
+    ASSERT_TRUE(ds.findAndGetSequenceItem(DCM_PerFrameFunctionalGroupsSequence,
+                                          frame, 4)
+                    .good());
+    DcmItem* transform = nullptr;
+    ASSERT_TRUE(frame
+                    ->findAndGetSequenceItem(
+                        DCM_PixelValueTransformationSequence, transform, 0)
+                    .good());
+    transform->putAndInsertString(DCM_RescaleSlope, "0");
+  });
+  DicomReadOptions options;
+  options.volume = "anything";
+  const auto result = Read({dir.str()}, options);
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(result.status().message(),
+              AllOf(HasSubstr("enhanced.dcm frame 5"),
+                    HasSubstr("RescaleSlope (0028,1053) is 0")));
+}
+
+// GDCM sized its output buffer from Rows/Columns and wrote the codestream's
+// samples into it (heap overflow when the codestream is larger, an assert
+// abort when it is smaller); the codestream is now checked first.
+TEST(HardeningTest, Jpeg2000CodestreamOfAnotherSizeIsRefused) {
+  for (int size : {256, 1024}) {
+    TempDir dir;
+    WriteJpeg2000Pair(kJpeg2000Ct, dir.path(), [&](DcmDataset& ds) {
+      ds.putAndInsertUint16(DCM_Rows, size);
+      ds.putAndInsertUint16(DCM_Columns, size);
+    });
+    const auto result = Read({dir.str()});
+    EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument)
+        << size;
+    EXPECT_THAT(result.status().message(),
+                AllOf(HasSubstr("j0.dcm"), HasSubstr("512 x 512"),
+                      HasSubstr("Columns x Rows")));
+  }
+}
+
+// The codestream holds 16-bit samples; GDCM wrote them as such into a
+// buffer sized for 8 bits per sample.
+TEST(HardeningTest, Jpeg2000PrecisionMustFitBitsAllocated) {
+  TempDir dir;
+  WriteJpeg2000Pair(kJpeg2000Ct, dir.path(), [](DcmDataset& ds) {
+    ds.putAndInsertUint16(DCM_BitsAllocated, 8);
+    ds.putAndInsertUint16(DCM_BitsStored, 8);
+    ds.putAndInsertUint16(DCM_HighBit, 7);
+    delete ds.remove(DCM_PixelPaddingValue);
+  });
+  const auto result = Read({dir.str()});
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(result.status().message(),
+              AllOf(HasSubstr("j0.dcm"), HasSubstr("16-bit samples"),
+                    HasSubstr("BitsAllocated 8")));
+}
+
+TEST(HardeningTest, Jpeg2000PairStillDecodes) {
+  TempDir dir;
+  WriteJpeg2000Pair(kJpeg2000Ct, dir.path(), [](DcmDataset&) {});
+  const auto series = Read({dir.str()});
+  ASSERT_TRUE(series.ok()) << series.status();
+  const auto single = Read({kJpeg2000Ct.string()});
+  ASSERT_TRUE(single.ok()) << single.status();
+  ASSERT_EQ(series->image.grid.size, (Index3{512, 512, 2}));
+  EXPECT_NEAR(series->image.grid.spacing[2], 5, 1e-4);
+  const size_t plane = 512 * 512;
+  for (size_t i = 0; i < plane; ++i) {
+    ASSERT_EQ(series->image.data[i], single->image.data[i]) << i;
+    ASSERT_EQ(series->image.data[plane + i], single->image.data[i]) << i;
   }
 }
 
