@@ -6,6 +6,7 @@
 #include <cmath>
 #include <cstddef>
 #include <filesystem>
+#include <functional>
 #include <map>
 #include <mutex>
 #include <string>
@@ -346,6 +347,88 @@ absl::Status CheckConsistent(const std::vector<FileHeader>& headers,
           SliceName(headers, ref), ref.pixel_spacing[0], ref.pixel_spacing[1]));
     }
   }
+  return absl::OkStatus();
+}
+
+// INVALID_ARGUMENT when `value` (of a slice's file) is not the same for
+// every slice: names the first slice, in path order, that differs from the
+// value most slices have, and one that has it. `show` prints a value for the
+// message; null when values must not appear (UIDs).
+absl::Status CheckSameForAll(
+    const std::vector<FileHeader>& headers, const std::vector<SliceRef>& slices,
+    const std::string& attribute,
+    const std::function<std::string(const FileHeader&)>& value,
+    const std::function<std::string(const std::string&)>& show) {
+  std::map<std::string, int64_t> counts;
+  for (const SliceRef& s : slices) ++counts[value(headers[s.header])];
+  if (counts.size() <= 1) return absl::OkStatus();
+  std::string majority;
+  int64_t most = 0;
+  for (const auto& [v, count] : counts) {
+    if (count > most) {
+      most = count;
+      majority = v;
+    }
+  }
+  const SliceRef* odd = nullptr;
+  const SliceRef* typical = nullptr;
+  for (const SliceRef& s : slices) {
+    const bool is_majority = value(headers[s.header]) == majority;
+    if (!is_majority && odd == nullptr) odd = &s;
+    if (is_majority && typical == nullptr) typical = &s;
+  }
+  const std::string odd_value = value(headers[odd->header]);
+  const std::string others =
+      absl::StrFormat("%d of the %d slices (e.g. %s)", most, slices.size(),
+                      SliceName(headers, *typical));
+  std::string difference;
+  if (show) {
+    auto text = [&show](const std::string& v) {
+      return v.empty() ? std::string("none") : show(v);
+    };
+    difference = absl::StrCat("has ", text(odd_value), ", but ", others,
+                              " have ", text(majority));
+  } else if (odd_value.empty()) {
+    difference = absl::StrCat("has none, but ", others, " have one");
+  } else if (majority.empty()) {
+    difference = absl::StrCat("has one, but ", others, " have none");
+  } else {
+    difference = absl::StrCat("has a different one from ", others);
+  }
+  return absl::InvalidArgumentError(
+      absl::StrCat("inconsistent ", attribute, ": ", SliceName(headers, *odd),
+                   " ", difference, "; the files do not form one series"));
+}
+
+// Attributes the stack relies on that must not change from slice to slice.
+// Each would otherwise be accepted silently: a slice of another frame of
+// reference or modality is not part of this volume, and another pixel
+// layout means another acquisition or a broken export.
+absl::Status CheckSeriesConsistent(const std::vector<FileHeader>& headers,
+                                   const std::vector<SliceRef>& slices) {
+  auto as_is = [](const std::string& v) { return v; };
+  INTERSLICE_RETURN_IF_ERROR(CheckSameForAll(
+      headers, slices, "FrameOfReferenceUID",
+      [](const FileHeader& h) { return h.frame_of_reference_uid; }, nullptr));
+  INTERSLICE_RETURN_IF_ERROR(CheckSameForAll(
+      headers, slices, "Modality",
+      [](const FileHeader& h) { return h.modality; }, as_is));
+  INTERSLICE_RETURN_IF_ERROR(CheckSameForAll(
+      headers, slices, "BitsAllocated",
+      [](const FileHeader& h) { return absl::StrCat(h.layout.bits_allocated); },
+      as_is));
+  INTERSLICE_RETURN_IF_ERROR(CheckSameForAll(
+      headers, slices, "BitsStored",
+      [](const FileHeader& h) { return absl::StrCat(h.layout.bits_stored); },
+      as_is));
+  INTERSLICE_RETURN_IF_ERROR(CheckSameForAll(
+      headers, slices, "PixelRepresentation",
+      [](const FileHeader& h) {
+        return std::string(h.layout.is_signed ? "1" : "0");
+      },
+      [](const std::string& v) {
+        return std::string(v == "1" ? "1 (signed)" : "0 (unsigned)");
+      }));
   return absl::OkStatus();
 }
 
@@ -833,6 +916,7 @@ absl::StatusOr<DicomSeries> ReadDicomSeries(
   INTERSLICE_ASSIGN_OR_RETURN(
       std::vector<SliceRef> slices,
       ChooseVolume(SlicesOf(headers, chosen->members), options));
+  INTERSLICE_RETURN_IF_ERROR(CheckSeriesConsistent(headers, slices));
   INTERSLICE_ASSIGN_OR_RETURN(StackLayout stack,
                               LayOutStack(headers, std::move(slices)));
 

@@ -58,6 +58,10 @@
 //   several volumes and none chosen; chosen volume absent.
 // - Inconsistent Rows/Columns, PixelSpacing or ImageOrientationPatient
 //   between slices; two slices at the same position.
+// - FrameOfReferenceUID (its value never shown), Modality, BitsAllocated,
+//   BitsStored or PixelRepresentation not the same on every slice: the
+//   message names the first slice that differs from most and says what
+//   differs.
 // - RescaleSlope or RescaleIntercept present but empty, not one finite
 //   number, or a RescaleSlope of 0 (checked while scanning headers, before
 //   any pixel data is decoded).

@@ -830,25 +830,42 @@ TEST(ReadDicomSeriesTest, HighBitBelowTheTopShiftsTheStoredBits) {
 }
 
 TEST(ReadDicomSeriesTest, EightAndThirtyTwoBitsAndPerSliceRescale) {
-  Synthetic a;  // 8-bit unsigned, MONOCHROME1 (no inversion), no rescale
+  // 8-bit unsigned, MONOCHROME1 (no inversion); one slice without rescale,
+  // one with its own.
+  Synthetic a;
   a.bits_allocated = a.bits_stored = 8;
   a.high_bit = 7;
   a.photometric = "MONOCHROME1";
   a.x = 10;
   for (int n = 0; n < 12; ++n) a.raw.push_back(n * 20);
+  Synthetic a2 = a;
+  a2.x = 13;  // position -13 along the normal: before a (-10)
+  a2.slope = "3";
+  a2.intercept = "-1";
+  const std::vector<float> eight = ReadSynthetic({a, a2});
+  ASSERT_EQ(eight.size(), 24u);
+  for (int n = 0; n < 12; ++n) {
+    EXPECT_EQ(eight[n], n * 20.0f * 3 - 1) << n;
+    EXPECT_EQ(eight[12 + n], n * 20.0f) << n;
+  }
+
   Synthetic b;  // 32-bit signed with its own slope and intercept
   b.bits_allocated = b.bits_stored = 32;
   b.high_bit = 31;
   b.pixel_representation = 1;
   b.slope = "0.5";
   b.intercept = "100";
-  b.x = 13;  // position -13 along the normal: before a (-10)
+  b.x = 13;
   for (int n = 0; n < 12; ++n) {
     b.raw.push_back(static_cast<uint32_t>((n - 6) * 100000));
   }
+  Synthetic b2 = b;
+  b2.x = 10;
+  b2.slope = "1";
+  b2.intercept = "0";
   TempDir dir;
   const std::string uid = NewUid();
-  WriteSynthetic(a, uid, dir.path() / "a.dcm");
+  WriteSynthetic(b2, uid, dir.path() / "a.dcm");
   WriteSynthetic(b, uid, dir.path() / "b.dcm");
   const auto series = Read({dir.str()});
   ASSERT_TRUE(series.ok()) << series.status();
@@ -867,7 +884,7 @@ TEST(ReadDicomSeriesTest, EightAndThirtyTwoBitsAndPerSliceRescale) {
   }
   for (int n = 0; n < 12; ++n) {
     EXPECT_EQ(series->image.data[n], (n - 6) * 100000 * 0.5f + 100) << n;
-    EXPECT_EQ(series->image.data[12 + n], n * 20.0f) << n;
+    EXPECT_EQ(series->image.data[12 + n], (n - 6) * 100000.0f) << n;
   }
 }
 
@@ -1370,6 +1387,85 @@ TEST(HardeningTest, FrameWithRescaleSlopeZeroIsNamedWithItsFrame) {
   EXPECT_THAT(result.status().message(),
               AllOf(HasSubstr("enhanced.dcm frame 5"),
                     HasSubstr("RescaleSlope (0028,1053) is 0")));
+}
+
+TEST(HardeningTest, SliceOfAnotherFrameOfReferenceIsAnError) {
+  TempDir dir;
+  CopyThick(dir.path(), {"I10.dcm", "I20.dcm", "I40.dcm"});
+  const std::string other = NewUid();
+  CopyEdited("I30.dcm", dir.path() / "I30.dcm", [&](DcmDataset& ds) {
+    ds.putAndInsertString(DCM_FrameOfReferenceUID, other.c_str());
+  });
+  const auto result = Read({dir.str()});
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(result.status().message(),
+              AllOf(HasSubstr("FrameOfReferenceUID"), HasSubstr("I30.dcm"),
+                    HasSubstr("3 of the 4 slices"), Not(HasSubstr(other)),
+                    Not(HasSubstr("1.3.46.670589"))));
+}
+
+TEST(HardeningTest, SliceWithoutTheFrameOfReferenceOfTheOthersIsAnError) {
+  TempDir dir;
+  CopyThick(dir.path(), {"I10.dcm", "I20.dcm", "I40.dcm"});
+  CopyEdited("I30.dcm", dir.path() / "I30.dcm",
+             [](DcmDataset& ds) { delete ds.remove(DCM_FrameOfReferenceUID); });
+  const auto result = Read({dir.str()});
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(result.status().message(), AllOf(HasSubstr("FrameOfReferenceUID"),
+                                               HasSubstr("I30.dcm has none")));
+}
+
+TEST(HardeningTest, SliceOfAnotherModalityIsAnError) {
+  TempDir dir;
+  CopyThick(dir.path(), {"I10.dcm", "I20.dcm", "I40.dcm"});
+  CopyEdited("I30.dcm", dir.path() / "I30.dcm",
+             [](DcmDataset& ds) { ds.putAndInsertString(DCM_Modality, "MR"); });
+  const auto result = Read({dir.str()});
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(result.status().message(),
+              AllOf(HasSubstr("Modality"), HasSubstr("I30.dcm has MR"),
+                    HasSubstr("have CT")));
+}
+
+TEST(HardeningTest, SliceWithOtherBitsStoredIsAnError) {
+  // The three first slices with BitsStored 16, the last with 8.
+  std::vector<Synthetic> slices(4);
+  for (int k = 0; k < 4; ++k) {
+    slices[k].x = 10 + k;
+    slices[k].raw.assign(12, 100);
+  }
+  slices[3].bits_stored = 8;
+  slices[3].high_bit = 7;
+  TempDir dir;
+  const std::string uid = NewUid();
+  for (int k = 0; k < 4; ++k) {
+    WriteSynthetic(slices[k], uid,
+                   dir.path() / ("s" + std::to_string(k) + ".dcm"));
+  }
+  const auto result = Read({dir.str()});
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(result.status().message(),
+              AllOf(HasSubstr("BitsStored"), HasSubstr("s3.dcm has 8"),
+                    HasSubstr("3 of the 4 slices"), HasSubstr("have 16")));
+}
+
+TEST(HardeningTest, SliceWithOtherPixelRepresentationIsAnError) {
+  std::vector<Synthetic> slices(3);
+  TempDir dir;
+  const std::string uid = NewUid();
+  for (int k = 0; k < 3; ++k) {
+    slices[k].x = 10 + k;
+    slices[k].raw.assign(12, 100);
+    slices[k].pixel_representation = k == 0 ? 1 : 0;
+    WriteSynthetic(slices[k], uid,
+                   dir.path() / ("s" + std::to_string(k) + ".dcm"));
+  }
+  const auto result = Read({dir.str()});
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(result.status().message(),
+              AllOf(HasSubstr("PixelRepresentation"),
+                    HasSubstr("s0.dcm has 1 (signed)"),
+                    HasSubstr("have 0 (unsigned)")));
 }
 
 // GDCM sized its output buffer from Rows/Columns and wrote the codestream's
