@@ -13,9 +13,11 @@
 #include <vector>
 
 #include "absl/strings/ascii.h"
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
+#include "absl/strings/str_split.h"
 #include "core/common/status_macros.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
@@ -341,6 +343,56 @@ absl::Status ReadImageAttributes(DcmDataset& ds, const std::string& name,
   return absl::OkStatus();
 }
 
+// The numbers of a multi-valued DS attribute rounded to 1e-4 (so that
+// 1\0\0 and 1.000000\0.0\-0.0 agree), or its text when it is not
+// numeric; "" when absent.
+std::string CanonicalNumbers(DcmItem& item, const DcmTagKey& tag) {
+  const std::string text = GetAllStrings(item, tag);
+  if (text.empty()) return "";
+  std::vector<std::string> parts;
+  for (absl::string_view value : absl::StrSplit(text, '\\')) {
+    double number = 0;
+    if (!absl::SimpleAtod(value, &number) || !std::isfinite(number) ||
+        std::abs(number) > 1e12) {
+      return absl::StrCat("text ", text);
+    }
+    parts.push_back(absl::StrCat(std::llround(number * 1e4)));
+  }
+  return absl::StrJoin(parts, ",");
+}
+
+std::string CanonicalNumbers(const double* values, int n) {
+  std::vector<std::string> parts;
+  for (int i = 0; i < n; ++i) {
+    parts.push_back(absl::StrCat(std::llround(values[i] * 1e4)));
+  }
+  return absl::StrJoin(parts, ",");
+}
+
+// FileHeader::series_key. Without a SeriesInstanceUID (anonymisers blank
+// it), the files of one series are those that share what a series keeps
+// constant and that is still there: FrameOfReferenceUID and Modality and
+// SeriesNumber when present, ImageOrientationPatient, Rows and Columns, and
+// PixelSpacing (enhanced multi-frame files: those of their first frame).
+// Different series of one study differ in at least one of these in practice
+// (another reconstruction has another size, spacing or orientation, or
+// another series number); slices of one series never do. The key starts
+// with a character no UID starts with, so inferred series never meet real
+// ones.
+std::string SeriesKey(DcmDataset& ds, const FileHeader& h) {
+  if (!h.series_uid.empty()) return h.series_uid;
+  const bool multiframe = !h.frames.empty();
+  return absl::StrCat(
+      "~for=", h.frame_of_reference_uid, "|modality=", h.modality,
+      "|series=", h.series_number, "|orientation=",
+      multiframe ? CanonicalNumbers(h.orientation.data(), 6)
+                 : CanonicalNumbers(ds, DCM_ImageOrientationPatient),
+      "|size=", GetString(ds, DCM_Columns), "x", GetString(ds, DCM_Rows),
+      "|spacing=",
+      multiframe ? CanonicalNumbers(h.pixel_spacing.data(), 2)
+                 : CanonicalNumbers(ds, DCM_PixelSpacing));
+}
+
 // ---- Nesting depth pre-check -------------------------------------------
 
 constexpr uint32_t kUndefinedLength = 0xffffffffu;
@@ -642,31 +694,38 @@ FileHeader ScanFile(const std::string& path) {
   h.study_uid = GetString(ds, DCM_StudyInstanceUID);
   h.frame_of_reference_uid = GetString(ds, DCM_FrameOfReferenceUID);
   h.modality = GetString(ds, DCM_Modality);
+  h.series_number = GetString(ds, DCM_SeriesNumber);
   h.sop_class_uid = GetString(ds, DCM_SOPClassUID);
+  if (h.sop_class_uid.empty()) {
+    // Some anonymisers blank the data set's UIDs but keep the meta header
+    // (dcm2niix and GDCM fall back to it too).
+    h.sop_class_uid = GetString(meta, DCM_MediaStorageSOPClassUID);
+    h.sop_class_from_meta = !h.sop_class_uid.empty();
+  }
   h.sop_instance_uid = GetString(ds, DCM_SOPInstanceUID);
   h.transfer_syntax_uid = GetString(meta, DCM_TransferSyntaxUID);
 
   if (loaded.bad()) {
     // DCMTK keeps what it parsed before the error. A file that got as far as
-    // a SeriesInstanceUID is a broken member of that series (typically a
-    // truncated copy); dropping it silently could leave a gap at the end of
-    // the stack that no spacing check would notice.
-    if (h.series_uid.empty()) {
+    // a SeriesInstanceUID (or, without one, as far as the image geometry
+    // its series is inferred from) is a broken member of that series
+    // (typically a truncated copy); dropping it silently could leave a gap
+    // at the end of the stack that no spacing check would notice.
+    if (h.series_uid.empty() &&
+        !(ds.tagExists(DCM_Rows) && ds.tagExists(DCM_ImagePositionPatient) &&
+          ds.tagExists(DCM_ImageOrientationPatient))) {
       h.kind = FileKind::kNotDicom;
     } else {
       h.kind = FileKind::kImage;
       h.problem = absl::InvalidArgumentError(absl::StrCat(
           name, ": truncated or unreadable DICOM file (", loaded.text(), ")"));
+      h.series_key = SeriesKey(ds, h);
     }
-    return h;
-  }
-  if (h.series_uid.empty()) {
-    // Without a series it cannot be grouped; real images always have one.
-    h.kind = FileKind::kNotImage;
     return h;
   }
   h.kind = FileKind::kImage;
   h.problem = ReadImageAttributes(ds, name, h);
+  h.series_key = SeriesKey(ds, h);
   return h;
 }
 

@@ -160,7 +160,10 @@ absl::StatusOr<std::vector<FileHeader>> ScanHeaders(
 
 struct Series {
   std::vector<size_t> members;  // indices into the headers, in path order
+  // summary.series_instance_uid is the UID, or for series grouped without
+  // one the name that selects it ("no-uid-1", ...).
   DicomSeriesSummary summary;
+  bool inferred = false;  // grouped without a SeriesInstanceUID
 };
 
 bool IsSecondaryCapture(const std::string& sop_class_uid) {
@@ -169,42 +172,61 @@ bool IsSecondaryCapture(const std::string& sop_class_uid) {
   return sop_class_uid.compare(0, root.size(), root) == 0;
 }
 
-// Image series by SeriesInstanceUID (ordered by UID for stable messages).
-// Secondary captures that share a series with acquired images (screenshots,
-// dose reports, ...) are not slices of its stack and are left out.
+// Image series by FileHeader::series_key: the SeriesInstanceUID, or the
+// inferred key of files without one (ordered by key for stable messages and
+// names). Secondary captures that share a series with acquired images
+// (screenshots, dose reports, ...) are not slices of its stack and are left
+// out.
 std::map<std::string, Series> GroupSeries(
     const std::vector<FileHeader>& headers) {
   std::map<std::string, Series> series;
   std::map<std::string, bool> has_acquired;
   for (const FileHeader& h : headers) {
     if (h.kind == FileKind::kImage && !IsSecondaryCapture(h.sop_class_uid)) {
-      has_acquired[h.series_uid] = true;
+      has_acquired[h.series_key] = true;
     }
   }
   for (size_t i = 0; i < headers.size(); ++i) {
     const FileHeader& h = headers[i];
     if (h.kind != FileKind::kImage) continue;
-    if (IsSecondaryCapture(h.sop_class_uid) && has_acquired[h.series_uid]) {
+    if (IsSecondaryCapture(h.sop_class_uid) && has_acquired[h.series_key]) {
       continue;
     }
-    Series& s = series[h.series_uid];
+    Series& s = series[h.series_key];
     if (s.members.empty()) {
       s.summary.series_instance_uid = h.series_uid;
       s.summary.modality = h.modality;
+      s.inferred = h.series_uid.empty();
     }
     s.members.push_back(i);
     ++s.summary.image_count;
   }
+  int unnamed = 0;
+  for (auto& [key, s] : series) {
+    if (s.inferred) {
+      s.summary.series_instance_uid = absl::StrCat("no-uid-", ++unnamed);
+    }
+  }
   return series;
 }
 
-std::string DescribeSeries(const std::map<std::string, Series>& series) {
+std::string DescribeSeries(const std::map<std::string, Series>& series,
+                           const std::vector<FileHeader>& headers) {
   std::vector<std::string> parts;
-  for (const auto& [uid, s] : series) {
-    parts.push_back(absl::StrFormat(
-        "%s (%s, %d image%s)", uid,
+  for (const auto& [key, s] : series) {
+    std::string described = absl::StrFormat(
+        "%s (%s, %d image%s", s.summary.series_instance_uid,
         s.summary.modality.empty() ? "no modality" : s.summary.modality,
-        s.summary.image_count, s.summary.image_count == 1 ? "" : "s"));
+        s.summary.image_count, s.summary.image_count == 1 ? "" : "s");
+    if (s.inferred) {
+      // Without a UID, a file name and the size tell the series apart.
+      const FileHeader& h = headers[s.members.front()];
+      absl::StrAppend(
+          &described,
+          absl::StrFormat(", no SeriesInstanceUID, %d x %d, e.g. %s", h.columns,
+                          h.rows, BaseName(h.path)));
+    }
+    parts.push_back(absl::StrCat(described, ")"));
   }
   return absl::StrJoin(parts, ", ");
 }
@@ -226,6 +248,68 @@ std::string DescribeSkipped(const std::vector<FileHeader>& headers) {
       "%d file(s) skipped: %d not DICOM or unreadable, %d DICOMDIR, %d DICOM "
       "objects that are not image slices with position and orientation%s",
       headers.size(), not_dicom, dicomdir, not_image, refused);
+}
+
+// What the reader inferred about the chosen series' files (see
+// DicomSeries::notes). Never UIDs or other patient data.
+std::vector<std::string> InputNotes(const std::vector<FileHeader>& headers,
+                                    const std::vector<size_t>& members) {
+  int64_t no_series = 0, class_from_meta = 0, no_class = 0, no_instance = 0,
+          no_study = 0, no_frame = 0;
+  std::vector<std::string> grouped_by;
+  for (size_t m : members) {
+    const FileHeader& h = headers[m];
+    if (h.series_uid.empty()) {
+      if (no_series++ == 0) {
+        if (!h.frame_of_reference_uid.empty()) {
+          grouped_by.push_back("frame of reference");
+        }
+        if (!h.modality.empty()) grouped_by.push_back("modality");
+        if (!h.series_number.empty()) grouped_by.push_back("series number");
+        grouped_by.push_back("orientation");
+        grouped_by.push_back("size");
+      }
+    }
+    if (h.sop_class_from_meta) ++class_from_meta;
+    if (h.sop_class_uid.empty()) ++no_class;
+    if (h.sop_instance_uid.empty()) ++no_instance;
+    if (h.study_uid.empty()) ++no_study;
+    if (h.frame_of_reference_uid.empty()) ++no_frame;
+  }
+  std::vector<std::string> notes;
+  auto files = [](int64_t n) {
+    return absl::StrCat(n, n == 1 ? " file" : " files");
+  };
+  if (no_series > 0) {
+    notes.push_back(absl::StrCat("SeriesInstanceUID missing on ",
+                                 files(no_series), ": series grouped by ",
+                                 absl::StrJoin(grouped_by, ", "),
+                                 " and pixel spacing"));
+  }
+  if (class_from_meta > 0) {
+    notes.push_back(absl::StrCat(
+        "SOPClassUID missing on ", files(class_from_meta),
+        ": taken from the file meta header (MediaStorageSOPClassUID)"));
+  }
+  if (no_class > 0) {
+    notes.push_back(absl::StrCat(
+        "SOPClassUID missing on ", files(no_class),
+        ", also in the file meta header: read as image slices by their "
+        "geometry"));
+  }
+  if (no_instance > 0) {
+    notes.push_back(
+        absl::StrCat("SOPInstanceUID missing on ", files(no_instance)));
+  }
+  if (no_study > 0) {
+    notes.push_back(
+        absl::StrCat("StudyInstanceUID missing on ", files(no_study)));
+  }
+  if (no_frame > 0) {
+    notes.push_back(
+        absl::StrCat("FrameOfReferenceUID missing on ", files(no_frame)));
+  }
+  return notes;
 }
 
 // One original slice: a single-frame file or one frame of an enhanced
@@ -895,18 +979,21 @@ absl::StatusOr<DicomSeries> ReadDicomSeries(
           absl::StrCat("the input holds ", all_series.size(),
                        " image series; choose one by its SeriesInstanceUID "
                        "(--series-uid): ",
-                       DescribeSeries(all_series)));
+                       DescribeSeries(all_series, headers)));
     }
     chosen = &all_series.begin()->second;
   } else {
-    auto it = all_series.find(options.series_instance_uid);
-    if (it == all_series.end()) {
+    for (const auto& [key, s] : all_series) {
+      if (s.summary.series_instance_uid == options.series_instance_uid) {
+        chosen = &s;
+      }
+    }
+    if (chosen == nullptr) {
       return absl::FailedPreconditionError(
           absl::StrCat("SeriesInstanceUID ", options.series_instance_uid,
                        " is not in the input; image series present: ",
-                       DescribeSeries(all_series)));
+                       DescribeSeries(all_series, headers)));
     }
-    chosen = &it->second;
   }
 
   // Broken files of the chosen series fail the read, in path order.
@@ -1026,6 +1113,7 @@ absl::StatusOr<DicomSeries> ReadDicomSeries(
   result.modality = first.modality;
   result.sop_class_uid = first.sop_class_uid;
   result.volume = stack.order.front().volume;
+  result.notes = InputNotes(headers, chosen->members);
   result.uniform_spacing = stack.uniform;
   result.min_gap_mm = stack.min_gap;
   result.max_gap_mm = stack.max_gap;

@@ -1520,5 +1520,156 @@ TEST(HardeningTest, Jpeg2000PairStillDecodes) {
   }
 }
 
+// ---- Anonymised exports ---------------------------------------------------
+
+// Copies of the thick slices with the UIDs an anonymiser blanks: removed on
+// odd slices, emptied on even ones; the meta header keeps its
+// MediaStorageSOPClassUID unless `keep_meta_class` is false.
+void WriteAnonymised(const fs::path& dir, bool keep_meta_class,
+                     const std::function<void(DcmDataset&)>& edit = {}) {
+  for (size_t k = 0; k < kThickNames.size(); ++k) {
+    EditFile(
+        kThick / kThickNames[k], dir / kThickNames[k],
+        [&](DcmFileFormat& f) {
+          DcmDataset& ds = *f.getDataset();
+          for (const DcmTagKey& tag :
+               {DCM_SOPClassUID, DCM_SOPInstanceUID, DCM_SeriesInstanceUID,
+                DCM_StudyInstanceUID}) {
+            if (k % 2 == 1) {
+              delete ds.remove(tag);
+            } else {
+              ds.putAndInsertString(tag, "");
+            }
+          }
+          DcmMetaInfo& meta = *f.getMetaInfo();
+          meta.putAndInsertString(DCM_MediaStorageSOPInstanceUID, "");
+          if (!keep_meta_class) {
+            delete meta.remove(DCM_MediaStorageSOPClassUID);
+          }
+          if (edit) edit(ds);
+        },
+        EWM_dontUpdateMeta);
+  }
+}
+
+void ExpectSameVolume(const DicomSeries& a, const DicomSeries& b) {
+  EXPECT_EQ(a.image.grid.size, b.image.grid.size);
+  EXPECT_EQ(a.image.grid.spacing, b.image.grid.spacing);
+  EXPECT_EQ(a.image.grid.origin, b.image.grid.origin);
+  EXPECT_EQ(a.image.grid.direction, b.image.grid.direction);
+  EXPECT_TRUE(a.image.data == b.image.data);
+  ASSERT_EQ(a.slices.size(), b.slices.size());
+  for (size_t k = 0; k < a.slices.size(); ++k) {
+    EXPECT_EQ(fs::path(a.slices[k].path).filename(),
+              fs::path(b.slices[k].path).filename());
+  }
+}
+
+TEST(AnonymisedTest, SeriesWithoutUidsIsReadFromTheMetaHeaderAndGeometry) {
+  TempDir dir;
+  WriteAnonymised(dir.path(), /*keep_meta_class=*/true);
+  const auto original = Read({kThick.string()});
+  ASSERT_TRUE(original.ok()) << original.status();
+  const auto series = Read({dir.str()});
+  ASSERT_TRUE(series.ok()) << series.status();
+  ExpectSameVolume(*series, *original);
+  EXPECT_EQ(series->sop_class_uid, UID_CTImageStorage);
+  EXPECT_EQ(series->series_instance_uid, "");
+  EXPECT_EQ(series->study_instance_uid, "");
+  EXPECT_EQ(series->frame_of_reference_uid, original->frame_of_reference_uid);
+  EXPECT_THAT(
+      series->notes,
+      ::testing::UnorderedElementsAre(
+          "SeriesInstanceUID missing on 4 files: series grouped by frame of "
+          "reference, modality, series number, orientation, size and pixel "
+          "spacing",
+          "SOPClassUID missing on 4 files: taken from the file meta header "
+          "(MediaStorageSOPClassUID)",
+          "SOPInstanceUID missing on 4 files",
+          "StudyInstanceUID missing on 4 files"));
+  for (const std::string& note : series->notes) {
+    EXPECT_THAT(note, Not(HasSubstr("1.")));  // no UID in a note
+  }
+  EXPECT_TRUE(original->notes.empty());
+}
+
+TEST(AnonymisedTest, FilesWithoutAnySopClassAreReadByTheirGeometry) {
+  TempDir dir;
+  WriteAnonymised(dir.path(), /*keep_meta_class=*/false, [](DcmDataset& ds) {
+    delete ds.remove(DCM_FrameOfReferenceUID);
+    delete ds.remove(DCM_SeriesNumber);
+  });
+  const auto original = Read({kThick.string()});
+  ASSERT_TRUE(original.ok()) << original.status();
+  const auto series = Read({dir.str()});
+  ASSERT_TRUE(series.ok()) << series.status();
+  ExpectSameVolume(*series, *original);
+  EXPECT_EQ(series->sop_class_uid, "");
+  EXPECT_THAT(series->notes,
+              ::testing::IsSupersetOf(
+                  {"SeriesInstanceUID missing on 4 files: series grouped by "
+                   "modality, orientation, size and pixel spacing",
+                   "SOPClassUID missing on 4 files, also in the file meta "
+                   "header: read as image slices by their geometry",
+                   "FrameOfReferenceUID missing on 4 files"}));
+}
+
+TEST(AnonymisedTest, TwoSeriesWithoutUidsStayTwoAndCanBeChosen) {
+  TempDir dir;
+  fs::create_directories(dir.path() / "axial");
+  fs::create_directories(dir.path() / "coronal");
+  WriteAnonymised(dir.path() / "axial", true);
+  // The same slices as a coronal series (another orientation), as another
+  // reconstruction of the same acquisition would be.
+  WriteAnonymised(dir.path() / "coronal", true, [](DcmDataset& ds) {
+    ds.putAndInsertString(DCM_ImageOrientationPatient, "1\\0\\0\\0\\0\\-1");
+    // Slices along the coronal normal (0, 1, 0).
+    Float64 z = 0;
+    ds.findAndGetFloat64(DCM_ImagePositionPatient, z, 2);
+    const std::string position = "-115.5\\" + std::to_string(z) + "\\100";
+    ds.putAndInsertString(DCM_ImagePositionPatient, position.c_str());
+  });
+  const auto both = Read({dir.str()});
+  EXPECT_EQ(both.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_THAT(both.status().message(),
+              AllOf(HasSubstr("2 image series"), HasSubstr("no-uid-1"),
+                    HasSubstr("no-uid-2"), HasSubstr("4 images")));
+  const auto listed = ListDicomSeries({dir.str()});
+  ASSERT_TRUE(listed.ok()) << listed.status();
+  ASSERT_EQ(listed->size(), 2u);
+  std::set<std::string> orientations;
+  for (const DicomSeriesSummary& summary : *listed) {
+    DicomReadOptions options;
+    options.series_instance_uid = summary.series_instance_uid;
+    const auto series = Read({dir.str()}, options);
+    ASSERT_TRUE(series.ok()) << series.status();
+    EXPECT_EQ(series->slices.size(), 4u);
+    const fs::path folder = fs::path(series->slices[0].path).parent_path();
+    orientations.insert(folder.filename().string());
+    for (const DicomSliceInfo& slice : series->slices) {
+      EXPECT_EQ(fs::path(slice.path).parent_path(), folder);
+    }
+  }
+  EXPECT_EQ(orientations, (std::set<std::string>{"axial", "coronal"}));
+}
+
+TEST(AnonymisedTest, SameSeriesWithDifferentlyFormattedNumbersStaysOne) {
+  TempDir dir;
+  WriteAnonymised(dir.path(), true, [](DcmDataset& ds) {
+    OFString position;
+    ds.findAndGetOFStringArray(DCM_ImagePositionPatient, position);
+    // I10 and I30 write orientation and spacing with other digits.
+    if (position.find("696.21") != OFString_npos ||
+        position.find("706.21") != OFString_npos) {
+      ds.putAndInsertString(DCM_ImageOrientationPatient,
+                            "1.000000\\0.0\\-0.0\\0\\1.0\\0.000000");
+      ds.putAndInsertString(DCM_PixelSpacing, "0.451171875000\\0.4511718750");
+    }
+  });
+  const auto series = Read({dir.str()});
+  ASSERT_TRUE(series.ok()) << series.status();
+  EXPECT_EQ(series->slices.size(), 4u);
+}
+
 }  // namespace
 }  // namespace interslice
