@@ -39,6 +39,11 @@ find_package(ITK REQUIRED COMPONENTS
 # so that only the modules that use ITK see its (large) include path.
 add_library(interslice_itk INTERFACE)
 target_include_directories(interslice_itk SYSTEM INTERFACE ${ITK_INCLUDE_DIRS})
+if(CMAKE_CXX_COMPILER_ID STREQUAL "Clang")
+  # Debian's ITK headers know only GCC (see the header).
+  target_compile_options(interslice_itk INTERFACE
+    "SHELL:-include ${CMAKE_CURRENT_LIST_DIR}/clang-itk/itk_compiler_detection_clang.h")
+endif()
 target_link_libraries(interslice_itk INTERFACE ${ITK_LIBRARIES})
 
 if(INTERSLICE_BUILD_TESTS)

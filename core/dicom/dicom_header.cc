@@ -13,9 +13,11 @@
 #include <vector>
 
 #include "absl/strings/ascii.h"
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
+#include "absl/strings/str_split.h"
 #include "core/common/status_macros.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
@@ -36,7 +38,8 @@ namespace interslice {
 namespace dicom_internal {
 namespace {
 
-enum class AttrState { kAbsent, kOk, kInvalid };
+// kEmpty: present without a value (type 2 attributes may be).
+enum class AttrState { kAbsent, kEmpty, kOk, kInvalid };
 
 std::string GetString(DcmItem& item, const DcmTagKey& tag) {
   OFString value;
@@ -51,14 +54,13 @@ std::string GetAllStrings(DcmItem& item, const DcmTagKey& tag) {
   return std::string(absl::StripAsciiWhitespace(value.c_str()));
 }
 
-// Reads exactly `n` finite numbers of a DS/FD attribute. An empty element
-// counts as absent (type 2 attributes may be present without a value).
+// Reads exactly `n` finite numbers of a DS/FD attribute.
 AttrState GetDoubles(DcmItem& item, const DcmTagKey& tag, double* out, int n) {
   DcmElement* element = nullptr;
-  if (item.findAndGetElement(tag, element).bad() || element == nullptr ||
-      element->getLength() == 0) {
+  if (item.findAndGetElement(tag, element).bad() || element == nullptr) {
     return AttrState::kAbsent;
   }
+  if (element->getLength() == 0) return AttrState::kEmpty;
   if (element->getVM() != static_cast<unsigned long>(n)) {
     return AttrState::kInvalid;
   }
@@ -70,6 +72,45 @@ AttrState GetDoubles(DcmItem& item, const DcmTagKey& tag, double* out, int n) {
     out[i] = value;
   }
   return AttrState::kOk;
+}
+
+// RescaleSlope and RescaleIntercept of `item`, when present (absent: 1 and
+// 0). Every stored value goes through them, so a value that is present but
+// empty, not a number, not finite, or a slope of 0 (which would map the
+// whole image to one value) makes the slice unusable. GDCM, which decodes
+// JPEG 2000, would even abort the process on an empty RescaleSlope
+// (gdcmImageHelper.cxx, GetRescaleInterceptSlopeValue); refusing it here
+// keeps such a file away from every decoder. `what` names the slice.
+absl::Status ReadRescale(DcmItem& item, const std::string& what, double* slope,
+                         double* intercept) {
+  struct Attr {
+    const DcmTagKey& tag;
+    const char* name;
+    double* value;
+  };
+  for (const Attr& a :
+       {Attr{DCM_RescaleSlope, "RescaleSlope (0028,1053)", slope},
+        Attr{DCM_RescaleIntercept, "RescaleIntercept (0028,1052)",
+             intercept}}) {
+    switch (GetDoubles(item, a.tag, a.value, 1)) {
+      case AttrState::kAbsent:
+      case AttrState::kOk:
+        break;
+      case AttrState::kEmpty:
+        return absl::InvalidArgumentError(
+            absl::StrCat(what, ": ", a.name, " is present but empty"));
+      case AttrState::kInvalid:
+        return absl::InvalidArgumentError(
+            absl::StrCat(what, ": ", a.name, " is not one finite number"));
+    }
+  }
+  if (*slope == 0) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        what,
+        ": RescaleSlope (0028,1053) is 0, which would map every stored "
+        "value to the intercept"));
+  }
+  return absl::OkStatus();
 }
 
 // Checks that `frames` frames of pixel data are present. Native pixel data
@@ -197,13 +238,8 @@ absl::Status ReadMultiFrameAttributes(DcmDataset& ds, const std::string& name,
     DcmItem* transform =
         FunctionalGroup(own, shared, DCM_PixelValueTransformationSequence);
     DcmItem& rescale = transform != nullptr ? *transform : ds;
-    if (GetDoubles(rescale, DCM_RescaleSlope, &g.rescale_slope, 1) ==
-            AttrState::kInvalid ||
-        GetDoubles(rescale, DCM_RescaleIntercept, &g.rescale_intercept, 1) ==
-            AttrState::kInvalid) {
-      return absl::InvalidArgumentError(
-          absl::StrCat(frame, ": invalid RescaleSlope or RescaleIntercept"));
-    }
+    INTERSLICE_RETURN_IF_ERROR(
+        ReadRescale(rescale, frame, &g.rescale_slope, &g.rescale_intercept));
     std::vector<std::string> volume;
     if (DcmItem* content =
             FunctionalGroup(own, shared, DCM_FrameContentSequence)) {
@@ -269,7 +305,8 @@ absl::Status ReadImageAttributes(DcmDataset& ds, const std::string& name,
       GetDoubles(ds, DCM_ImagePositionPatient, h.position.data(), 3);
   const AttrState orientation =
       GetDoubles(ds, DCM_ImageOrientationPatient, h.orientation.data(), 6);
-  if (position == AttrState::kAbsent || orientation == AttrState::kAbsent) {
+  if (position == AttrState::kAbsent || position == AttrState::kEmpty ||
+      orientation == AttrState::kAbsent || orientation == AttrState::kEmpty) {
     // Projection images, secondary captures, ...: not part of a stack.
     h.kind = FileKind::kNotImage;
     return absl::OkStatus();
@@ -288,16 +325,8 @@ absl::Status ReadImageAttributes(DcmDataset& ds, const std::string& name,
     return absl::InvalidArgumentError(
         absl::StrCat(name, ": missing or invalid PixelSpacing"));
   }
-  if (GetDoubles(ds, DCM_RescaleSlope, &h.rescale_slope, 1) ==
-      AttrState::kInvalid) {
-    return absl::InvalidArgumentError(
-        absl::StrCat(name, ": invalid RescaleSlope"));
-  }
-  if (GetDoubles(ds, DCM_RescaleIntercept, &h.rescale_intercept, 1) ==
-      AttrState::kInvalid) {
-    return absl::InvalidArgumentError(
-        absl::StrCat(name, ": invalid RescaleIntercept"));
-  }
+  INTERSLICE_RETURN_IF_ERROR(
+      ReadRescale(ds, name, &h.rescale_slope, &h.rescale_intercept));
   // Only used for a single slice; an invalid value falls back like a
   // missing one.
   if (GetDoubles(ds, DCM_SliceThickness, &h.slice_thickness, 1) !=
@@ -312,6 +341,56 @@ absl::Status ReadImageAttributes(DcmDataset& ds, const std::string& name,
 
   return CheckPixelLength(ds, name, h, 1);
   return absl::OkStatus();
+}
+
+// The numbers of a multi-valued DS attribute rounded to 1e-4 (so that
+// 1\0\0 and 1.000000\0.0\-0.0 agree), or its text when it is not
+// numeric; "" when absent.
+std::string CanonicalNumbers(DcmItem& item, const DcmTagKey& tag) {
+  const std::string text = GetAllStrings(item, tag);
+  if (text.empty()) return "";
+  std::vector<std::string> parts;
+  for (absl::string_view value : absl::StrSplit(text, '\\')) {
+    double number = 0;
+    if (!absl::SimpleAtod(value, &number) || !std::isfinite(number) ||
+        std::abs(number) > 1e12) {
+      return absl::StrCat("text ", text);
+    }
+    parts.push_back(absl::StrCat(std::llround(number * 1e4)));
+  }
+  return absl::StrJoin(parts, ",");
+}
+
+std::string CanonicalNumbers(const double* values, int n) {
+  std::vector<std::string> parts;
+  for (int i = 0; i < n; ++i) {
+    parts.push_back(absl::StrCat(std::llround(values[i] * 1e4)));
+  }
+  return absl::StrJoin(parts, ",");
+}
+
+// FileHeader::series_key. Without a SeriesInstanceUID (anonymisers blank
+// it), the files of one series are those that share what a series keeps
+// constant and that is still there: FrameOfReferenceUID and Modality and
+// SeriesNumber when present, ImageOrientationPatient, Rows and Columns, and
+// PixelSpacing (enhanced multi-frame files: those of their first frame).
+// Different series of one study differ in at least one of these in practice
+// (another reconstruction has another size, spacing or orientation, or
+// another series number); slices of one series never do. The key starts
+// with a character no UID starts with, so inferred series never meet real
+// ones.
+std::string SeriesKey(DcmDataset& ds, const FileHeader& h) {
+  if (!h.series_uid.empty()) return h.series_uid;
+  const bool multiframe = !h.frames.empty();
+  return absl::StrCat(
+      "~for=", h.frame_of_reference_uid, "|modality=", h.modality,
+      "|series=", h.series_number, "|orientation=",
+      multiframe ? CanonicalNumbers(h.orientation.data(), 6)
+                 : CanonicalNumbers(ds, DCM_ImageOrientationPatient),
+      "|size=", GetString(ds, DCM_Columns), "x", GetString(ds, DCM_Rows),
+      "|spacing=",
+      multiframe ? CanonicalNumbers(h.pixel_spacing.data(), 2)
+                 : CanonicalNumbers(ds, DCM_PixelSpacing));
 }
 
 // ---- Nesting depth pre-check -------------------------------------------
@@ -615,31 +694,38 @@ FileHeader ScanFile(const std::string& path) {
   h.study_uid = GetString(ds, DCM_StudyInstanceUID);
   h.frame_of_reference_uid = GetString(ds, DCM_FrameOfReferenceUID);
   h.modality = GetString(ds, DCM_Modality);
+  h.series_number = GetString(ds, DCM_SeriesNumber);
   h.sop_class_uid = GetString(ds, DCM_SOPClassUID);
+  if (h.sop_class_uid.empty()) {
+    // Some anonymisers blank the data set's UIDs but keep the meta header
+    // (dcm2niix and GDCM fall back to it too).
+    h.sop_class_uid = GetString(meta, DCM_MediaStorageSOPClassUID);
+    h.sop_class_from_meta = !h.sop_class_uid.empty();
+  }
   h.sop_instance_uid = GetString(ds, DCM_SOPInstanceUID);
   h.transfer_syntax_uid = GetString(meta, DCM_TransferSyntaxUID);
 
   if (loaded.bad()) {
     // DCMTK keeps what it parsed before the error. A file that got as far as
-    // a SeriesInstanceUID is a broken member of that series (typically a
-    // truncated copy); dropping it silently could leave a gap at the end of
-    // the stack that no spacing check would notice.
-    if (h.series_uid.empty()) {
+    // a SeriesInstanceUID (or, without one, as far as the image geometry
+    // its series is inferred from) is a broken member of that series
+    // (typically a truncated copy); dropping it silently could leave a gap
+    // at the end of the stack that no spacing check would notice.
+    if (h.series_uid.empty() &&
+        !(ds.tagExists(DCM_Rows) && ds.tagExists(DCM_ImagePositionPatient) &&
+          ds.tagExists(DCM_ImageOrientationPatient))) {
       h.kind = FileKind::kNotDicom;
     } else {
       h.kind = FileKind::kImage;
       h.problem = absl::InvalidArgumentError(absl::StrCat(
           name, ": truncated or unreadable DICOM file (", loaded.text(), ")"));
+      h.series_key = SeriesKey(ds, h);
     }
-    return h;
-  }
-  if (h.series_uid.empty()) {
-    // Without a series it cannot be grouped; real images always have one.
-    h.kind = FileKind::kNotImage;
     return h;
   }
   h.kind = FileKind::kImage;
   h.problem = ReadImageAttributes(ds, name, h);
+  h.series_key = SeriesKey(ds, h);
   return h;
 }
 

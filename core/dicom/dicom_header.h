@@ -78,8 +78,15 @@ struct FileHeader {
   std::string study_uid;
   std::string frame_of_reference_uid;
   std::string modality;
+  std::string series_number;  // as stored (IS), may be empty
+  // SOPClassUID, or when it is missing or empty the file meta header's
+  // MediaStorageSOPClassUID (then sop_class_from_meta).
   std::string sop_class_uid;
+  bool sop_class_from_meta = false;
   std::string sop_instance_uid;
+  // What the file's series is grouped by: series_uid when present, else a
+  // key of what identifies a series without it (see InferredSeriesKey).
+  std::string series_key;
 
   // Valid only for kImage files with an OK problem.
   int rows = 0;

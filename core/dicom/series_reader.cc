@@ -6,6 +6,7 @@
 #include <cmath>
 #include <cstddef>
 #include <filesystem>
+#include <functional>
 #include <map>
 #include <mutex>
 #include <string>
@@ -26,6 +27,9 @@
 #include "dcmtk/dcmdata/dcdatset.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
 #include "dcmtk/dcmdata/dcfilefo.h"
+#include "dcmtk/dcmdata/dcpixel.h"
+#include "dcmtk/dcmdata/dcpixseq.h"
+#include "dcmtk/dcmdata/dcpxitem.h"
 #include "dcmtk/dcmdata/dcrledrg.h"
 #include "dcmtk/dcmdata/dcuid.h"
 #include "dcmtk/dcmdata/dcxfer.h"
@@ -156,7 +160,10 @@ absl::StatusOr<std::vector<FileHeader>> ScanHeaders(
 
 struct Series {
   std::vector<size_t> members;  // indices into the headers, in path order
+  // summary.series_instance_uid is the UID, or for series grouped without
+  // one the name that selects it ("no-uid-1", ...).
   DicomSeriesSummary summary;
+  bool inferred = false;  // grouped without a SeriesInstanceUID
 };
 
 bool IsSecondaryCapture(const std::string& sop_class_uid) {
@@ -165,42 +172,61 @@ bool IsSecondaryCapture(const std::string& sop_class_uid) {
   return sop_class_uid.compare(0, root.size(), root) == 0;
 }
 
-// Image series by SeriesInstanceUID (ordered by UID for stable messages).
-// Secondary captures that share a series with acquired images (screenshots,
-// dose reports, ...) are not slices of its stack and are left out.
+// Image series by FileHeader::series_key: the SeriesInstanceUID, or the
+// inferred key of files without one (ordered by key for stable messages and
+// names). Secondary captures that share a series with acquired images
+// (screenshots, dose reports, ...) are not slices of its stack and are left
+// out.
 std::map<std::string, Series> GroupSeries(
     const std::vector<FileHeader>& headers) {
   std::map<std::string, Series> series;
   std::map<std::string, bool> has_acquired;
   for (const FileHeader& h : headers) {
     if (h.kind == FileKind::kImage && !IsSecondaryCapture(h.sop_class_uid)) {
-      has_acquired[h.series_uid] = true;
+      has_acquired[h.series_key] = true;
     }
   }
   for (size_t i = 0; i < headers.size(); ++i) {
     const FileHeader& h = headers[i];
     if (h.kind != FileKind::kImage) continue;
-    if (IsSecondaryCapture(h.sop_class_uid) && has_acquired[h.series_uid]) {
+    if (IsSecondaryCapture(h.sop_class_uid) && has_acquired[h.series_key]) {
       continue;
     }
-    Series& s = series[h.series_uid];
+    Series& s = series[h.series_key];
     if (s.members.empty()) {
       s.summary.series_instance_uid = h.series_uid;
       s.summary.modality = h.modality;
+      s.inferred = h.series_uid.empty();
     }
     s.members.push_back(i);
     ++s.summary.image_count;
   }
+  int unnamed = 0;
+  for (auto& [key, s] : series) {
+    if (s.inferred) {
+      s.summary.series_instance_uid = absl::StrCat("no-uid-", ++unnamed);
+    }
+  }
   return series;
 }
 
-std::string DescribeSeries(const std::map<std::string, Series>& series) {
+std::string DescribeSeries(const std::map<std::string, Series>& series,
+                           const std::vector<FileHeader>& headers) {
   std::vector<std::string> parts;
-  for (const auto& [uid, s] : series) {
-    parts.push_back(absl::StrFormat(
-        "%s (%s, %d image%s)", uid,
+  for (const auto& [key, s] : series) {
+    std::string described = absl::StrFormat(
+        "%s (%s, %d image%s", s.summary.series_instance_uid,
         s.summary.modality.empty() ? "no modality" : s.summary.modality,
-        s.summary.image_count, s.summary.image_count == 1 ? "" : "s"));
+        s.summary.image_count, s.summary.image_count == 1 ? "" : "s");
+    if (s.inferred) {
+      // Without a UID, a file name and the size tell the series apart.
+      const FileHeader& h = headers[s.members.front()];
+      absl::StrAppend(
+          &described,
+          absl::StrFormat(", no SeriesInstanceUID, %d x %d, e.g. %s", h.columns,
+                          h.rows, BaseName(h.path)));
+    }
+    parts.push_back(absl::StrCat(described, ")"));
   }
   return absl::StrJoin(parts, ", ");
 }
@@ -222,6 +248,68 @@ std::string DescribeSkipped(const std::vector<FileHeader>& headers) {
       "%d file(s) skipped: %d not DICOM or unreadable, %d DICOMDIR, %d DICOM "
       "objects that are not image slices with position and orientation%s",
       headers.size(), not_dicom, dicomdir, not_image, refused);
+}
+
+// What the reader inferred about the chosen series' files (see
+// DicomSeries::notes). Never UIDs or other patient data.
+std::vector<std::string> InputNotes(const std::vector<FileHeader>& headers,
+                                    const std::vector<size_t>& members) {
+  int64_t no_series = 0, class_from_meta = 0, no_class = 0, no_instance = 0,
+          no_study = 0, no_frame = 0;
+  std::vector<std::string> grouped_by;
+  for (size_t m : members) {
+    const FileHeader& h = headers[m];
+    if (h.series_uid.empty()) {
+      if (no_series++ == 0) {
+        if (!h.frame_of_reference_uid.empty()) {
+          grouped_by.push_back("frame of reference");
+        }
+        if (!h.modality.empty()) grouped_by.push_back("modality");
+        if (!h.series_number.empty()) grouped_by.push_back("series number");
+        grouped_by.push_back("orientation");
+        grouped_by.push_back("size");
+      }
+    }
+    if (h.sop_class_from_meta) ++class_from_meta;
+    if (h.sop_class_uid.empty()) ++no_class;
+    if (h.sop_instance_uid.empty()) ++no_instance;
+    if (h.study_uid.empty()) ++no_study;
+    if (h.frame_of_reference_uid.empty()) ++no_frame;
+  }
+  std::vector<std::string> notes;
+  auto files = [](int64_t n) {
+    return absl::StrCat(n, n == 1 ? " file" : " files");
+  };
+  if (no_series > 0) {
+    notes.push_back(absl::StrCat("SeriesInstanceUID missing on ",
+                                 files(no_series), ": series grouped by ",
+                                 absl::StrJoin(grouped_by, ", "),
+                                 " and pixel spacing"));
+  }
+  if (class_from_meta > 0) {
+    notes.push_back(absl::StrCat(
+        "SOPClassUID missing on ", files(class_from_meta),
+        ": taken from the file meta header (MediaStorageSOPClassUID)"));
+  }
+  if (no_class > 0) {
+    notes.push_back(absl::StrCat(
+        "SOPClassUID missing on ", files(no_class),
+        ", also in the file meta header: read as image slices by their "
+        "geometry"));
+  }
+  if (no_instance > 0) {
+    notes.push_back(
+        absl::StrCat("SOPInstanceUID missing on ", files(no_instance)));
+  }
+  if (no_study > 0) {
+    notes.push_back(
+        absl::StrCat("StudyInstanceUID missing on ", files(no_study)));
+  }
+  if (no_frame > 0) {
+    notes.push_back(
+        absl::StrCat("FrameOfReferenceUID missing on ", files(no_frame)));
+  }
+  return notes;
 }
 
 // One original slice: a single-frame file or one frame of an enhanced
@@ -343,6 +431,88 @@ absl::Status CheckConsistent(const std::vector<FileHeader>& headers,
           SliceName(headers, ref), ref.pixel_spacing[0], ref.pixel_spacing[1]));
     }
   }
+  return absl::OkStatus();
+}
+
+// INVALID_ARGUMENT when `value` (of a slice's file) is not the same for
+// every slice: names the first slice, in path order, that differs from the
+// value most slices have, and one that has it. `show` prints a value for the
+// message; null when values must not appear (UIDs).
+absl::Status CheckSameForAll(
+    const std::vector<FileHeader>& headers, const std::vector<SliceRef>& slices,
+    const std::string& attribute,
+    const std::function<std::string(const FileHeader&)>& value,
+    const std::function<std::string(const std::string&)>& show) {
+  std::map<std::string, int64_t> counts;
+  for (const SliceRef& s : slices) ++counts[value(headers[s.header])];
+  if (counts.size() <= 1) return absl::OkStatus();
+  std::string majority;
+  int64_t most = 0;
+  for (const auto& [v, count] : counts) {
+    if (count > most) {
+      most = count;
+      majority = v;
+    }
+  }
+  const SliceRef* odd = nullptr;
+  const SliceRef* typical = nullptr;
+  for (const SliceRef& s : slices) {
+    const bool is_majority = value(headers[s.header]) == majority;
+    if (!is_majority && odd == nullptr) odd = &s;
+    if (is_majority && typical == nullptr) typical = &s;
+  }
+  const std::string odd_value = value(headers[odd->header]);
+  const std::string others =
+      absl::StrFormat("%d of the %d slices (e.g. %s)", most, slices.size(),
+                      SliceName(headers, *typical));
+  std::string difference;
+  if (show) {
+    auto text = [&show](const std::string& v) {
+      return v.empty() ? std::string("none") : show(v);
+    };
+    difference = absl::StrCat("has ", text(odd_value), ", but ", others,
+                              " have ", text(majority));
+  } else if (odd_value.empty()) {
+    difference = absl::StrCat("has none, but ", others, " have one");
+  } else if (majority.empty()) {
+    difference = absl::StrCat("has one, but ", others, " have none");
+  } else {
+    difference = absl::StrCat("has a different one from ", others);
+  }
+  return absl::InvalidArgumentError(
+      absl::StrCat("inconsistent ", attribute, ": ", SliceName(headers, *odd),
+                   " ", difference, "; the files do not form one series"));
+}
+
+// Attributes the stack relies on that must not change from slice to slice.
+// Each would otherwise be accepted silently: a slice of another frame of
+// reference or modality is not part of this volume, and another pixel
+// layout means another acquisition or a broken export.
+absl::Status CheckSeriesConsistent(const std::vector<FileHeader>& headers,
+                                   const std::vector<SliceRef>& slices) {
+  auto as_is = [](const std::string& v) { return v; };
+  INTERSLICE_RETURN_IF_ERROR(CheckSameForAll(
+      headers, slices, "FrameOfReferenceUID",
+      [](const FileHeader& h) { return h.frame_of_reference_uid; }, nullptr));
+  INTERSLICE_RETURN_IF_ERROR(CheckSameForAll(
+      headers, slices, "Modality",
+      [](const FileHeader& h) { return h.modality; }, as_is));
+  INTERSLICE_RETURN_IF_ERROR(CheckSameForAll(
+      headers, slices, "BitsAllocated",
+      [](const FileHeader& h) { return absl::StrCat(h.layout.bits_allocated); },
+      as_is));
+  INTERSLICE_RETURN_IF_ERROR(CheckSameForAll(
+      headers, slices, "BitsStored",
+      [](const FileHeader& h) { return absl::StrCat(h.layout.bits_stored); },
+      as_is));
+  INTERSLICE_RETURN_IF_ERROR(CheckSameForAll(
+      headers, slices, "PixelRepresentation",
+      [](const FileHeader& h) {
+        return std::string(h.layout.is_signed ? "1" : "0");
+      },
+      [](const std::string& v) {
+        return std::string(v == "1" ? "1 (signed)" : "0 (unsigned)");
+      }));
   return absl::OkStatus();
 }
 
@@ -504,6 +674,112 @@ struct FileTarget {
   std::vector<std::pair<int, size_t>> frames;
 };
 
+void ConvertFrame(const Uint8* src, int64_t samples, const PixelLayout& layout,
+                  const SliceRef& s, float* out) {
+  switch (layout.bits_allocated) {
+    case 8:
+      ConvertPixels<1>(src, samples, layout, s.rescale_slope,
+                       s.rescale_intercept, out);
+      break;
+    case 16:
+      ConvertPixels<2>(src, samples, layout, s.rescale_slope,
+                       s.rescale_intercept, out);
+      break;
+    default:
+      ConvertPixels<4>(src, samples, layout, s.rescale_slope,
+                       s.rescale_intercept, out);
+      break;
+  }
+}
+
+// The JPEG 2000 codestream of frame `frame` (0-based) of `frames`: with one
+// frame, all fragments together; with several, one fragment per frame (as
+// GDCM requires, and as writers do; frames split over fragments are refused
+// rather than guessed from the offset table).
+absl::Status Jpeg2000FrameBytes(DcmDataset& ds, const std::string& name,
+                                int64_t frames, int frame,
+                                std::vector<uint8_t>& out) {
+  out.clear();
+  DcmElement* element = nullptr;
+  ds.findAndGetElement(DCM_PixelData, element);
+  DcmPixelData* pixels = dynamic_cast<DcmPixelData*>(element);
+  DcmPixelSequence* sequence = nullptr;
+  if (pixels != nullptr) {
+    E_TransferSyntax xfer = EXS_Unknown;
+    const DcmRepresentationParameter* param = nullptr;
+    pixels->getOriginalRepresentationKey(xfer, param);
+    pixels->getEncapsulatedRepresentation(xfer, param, sequence);
+  }
+  if (sequence == nullptr || sequence->card() < 2) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(name, ": no encapsulated JPEG 2000 pixel data"));
+  }
+  // The first item is the basic offset table.
+  const unsigned long fragments = sequence->card() - 1;
+  if (frames > 1 && fragments != static_cast<unsigned long>(frames)) {
+    return absl::InvalidArgumentError(absl::StrFormat(
+        "%s: %d JPEG 2000 fragments for %d frames; frames split over several "
+        "fragments are not supported",
+        name, fragments, frames));
+  }
+  auto append = [&](unsigned long index) -> absl::Status {
+    DcmPixelItem* item = nullptr;
+    if (sequence->getItem(item, index).bad() || item == nullptr) {
+      return absl::InvalidArgumentError(
+          absl::StrCat(name, ": missing pixel data fragment"));
+    }
+    const Uint32 length = item->getLength();
+    if (length == 0) return absl::OkStatus();
+    Uint8* bytes = nullptr;
+    if (item->getUint8Array(bytes).bad() || bytes == nullptr) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          name, ": cannot read a pixel data fragment; truncated file?"));
+    }
+    out.insert(out.end(), bytes, bytes + length);
+    return absl::OkStatus();
+  };
+  if (frames > 1) return append(static_cast<unsigned long>(frame) + 1);
+  for (unsigned long i = 1; i <= fragments; ++i) {
+    INTERSLICE_RETURN_IF_ERROR(append(i));
+  }
+  return absl::OkStatus();
+}
+
+// Decodes the used frames of a JPEG 2000 file (GDCM, one frame at a time, so
+// that memory stays bounded by one frame whatever NumberOfFrames says).
+absl::Status LoadJpeg2000Frames(DcmDataset& ds, const FileHeader& h,
+                                const FileTarget& target,
+                                const std::vector<SliceRef>& order,
+                                const PixelLayout& layout,
+                                Volume<float>& volume) {
+  const std::string name = BaseName(h.path);
+  const int64_t frames = h.frames.empty() ? 1 : h.frames.size();
+  const int64_t frame_samples = int64_t{h.rows} * h.columns;
+  // Decoded samples are plain values: HighBit plays no part.
+  PixelLayout decoded_layout = layout;
+  decoded_layout.high_bit = layout.bits_stored - 1;
+  const dicom_internal::Jpeg2000Target j2k = {
+      .rows = h.rows,
+      .columns = h.columns,
+      .bits_allocated = layout.bits_allocated,
+      .bits_stored = layout.bits_stored,
+      .is_signed = layout.is_signed};
+  std::vector<uint8_t> codestream;
+  for (const auto& [frame, k] : target.frames) {
+    const std::string frame_name =
+        frames > 1 ? absl::StrCat(name, " frame ", frame + 1) : name;
+    INTERSLICE_RETURN_IF_ERROR(
+        Jpeg2000FrameBytes(ds, frame_name, frames, frame, codestream));
+    INTERSLICE_ASSIGN_OR_RETURN(
+        const std::vector<uint8_t> decoded,
+        dicom_internal::DecodeJpeg2000Frame(
+            codestream.data(), codestream.size(), frame_name, j2k));
+    ConvertFrame(decoded.data(), frame_samples, decoded_layout, order[k],
+                 volume.data.data() + k * frame_samples);
+  }
+  return absl::OkStatus();
+}
+
 // Decodes the frames of one file into their slices of `volume`.
 absl::Status LoadFile(const FileHeader& h, const FileTarget& target,
                       const std::vector<SliceRef>& order,
@@ -535,9 +811,6 @@ absl::Status LoadFile(const FileHeader& h, const FileTarget& target,
                               dicom_internal::ReadPixelLayout(ds, name));
   const int64_t needed = frames * frame_samples * (layout.bits_allocated / 8);
 
-  const Uint8* bytes = nullptr;
-  int64_t length = 0;
-  std::vector<uint8_t> fallback;  // pixels decoded by GDCM
   const E_TransferSyntax xfer = ds.getOriginalXfer();
   if (DcmXfer(xfer).isEncapsulated()) {
     cond = ds.chooseRepresentation(EXS_LittleEndianExplicit, nullptr);
@@ -548,30 +821,23 @@ absl::Status LoadFile(const FileHeader& h, const FileTarget& target,
             DcmXfer(xfer).getXferName(), "' (", h.transfer_syntax_uid, ")",
             cond.bad() ? absl::StrCat(": ", cond.text()) : ""));
       }
-      INTERSLICE_ASSIGN_OR_RETURN(fallback, dicom_internal::DecodeWithGdcm(
-                                                h.path, name, h.rows, h.columns,
-                                                frames, layout.bits_allocated));
-      bytes = fallback.data();
-      length = static_cast<int64_t>(fallback.size());
+      return LoadJpeg2000Frames(ds, h, target, order, layout, volume);
     }
   }
-  if (bytes == nullptr) {
-    DcmElement* pixels = nullptr;
-    if (ds.findAndGetElement(DCM_PixelData, pixels).bad() ||
-        pixels == nullptr) {
-      return absl::InvalidArgumentError(absl::StrCat(name, ": no pixel data"));
-    }
-    Uint8* data = nullptr;
-    cond = pixels->getUint8Array(data);
-    if (cond.bad() || data == nullptr) {
-      return absl::InvalidArgumentError(absl::StrCat(
-          name, ": cannot read pixel data (",
-          cond.bad() ? cond.text() : "no value", "); truncated file?"));
-    }
-    bytes = data;
-    const Uint32 element_length = pixels->getLength();
-    length = element_length == DCM_UndefinedLength ? 0 : element_length;
+  DcmElement* pixels = nullptr;
+  if (ds.findAndGetElement(DCM_PixelData, pixels).bad() || pixels == nullptr) {
+    return absl::InvalidArgumentError(absl::StrCat(name, ": no pixel data"));
   }
+  Uint8* bytes = nullptr;
+  cond = pixels->getUint8Array(bytes);
+  if (cond.bad() || bytes == nullptr) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        name, ": cannot read pixel data (",
+        cond.bad() ? cond.text() : "no value", "); truncated file?"));
+  }
+  const Uint32 element_length = pixels->getLength();
+  const int64_t length =
+      element_length == DCM_UndefinedLength ? 0 : element_length;
   if (length < needed) {
     return absl::InvalidArgumentError(absl::StrFormat(
         "%s: pixel data is too short: %d bytes, but %d frame(s) of %d x %d "
@@ -582,22 +848,8 @@ absl::Status LoadFile(const FileHeader& h, const FileTarget& target,
   const int64_t frame_bytes = frame_samples * (layout.bits_allocated / 8);
   for (const auto& [frame, k] : target.frames) {
     const SliceRef& s = order[k];
-    const Uint8* src = bytes + frame * frame_bytes;
-    float* out = volume.data.data() + k * frame_samples;
-    switch (layout.bits_allocated) {
-      case 8:
-        ConvertPixels<1>(src, frame_samples, layout, s.rescale_slope,
-                         s.rescale_intercept, out);
-        break;
-      case 16:
-        ConvertPixels<2>(src, frame_samples, layout, s.rescale_slope,
-                         s.rescale_intercept, out);
-        break;
-      default:
-        ConvertPixels<4>(src, frame_samples, layout, s.rescale_slope,
-                         s.rescale_intercept, out);
-        break;
-    }
+    ConvertFrame(bytes + frame * frame_bytes, frame_samples, layout, s,
+                 volume.data.data() + k * frame_samples);
   }
   return absl::OkStatus();
 }
@@ -727,18 +979,21 @@ absl::StatusOr<DicomSeries> ReadDicomSeries(
           absl::StrCat("the input holds ", all_series.size(),
                        " image series; choose one by its SeriesInstanceUID "
                        "(--series-uid): ",
-                       DescribeSeries(all_series)));
+                       DescribeSeries(all_series, headers)));
     }
     chosen = &all_series.begin()->second;
   } else {
-    auto it = all_series.find(options.series_instance_uid);
-    if (it == all_series.end()) {
+    for (const auto& [key, s] : all_series) {
+      if (s.summary.series_instance_uid == options.series_instance_uid) {
+        chosen = &s;
+      }
+    }
+    if (chosen == nullptr) {
       return absl::FailedPreconditionError(
           absl::StrCat("SeriesInstanceUID ", options.series_instance_uid,
                        " is not in the input; image series present: ",
-                       DescribeSeries(all_series)));
+                       DescribeSeries(all_series, headers)));
     }
-    chosen = &it->second;
   }
 
   // Broken files of the chosen series fail the read, in path order.
@@ -748,6 +1003,7 @@ absl::StatusOr<DicomSeries> ReadDicomSeries(
   INTERSLICE_ASSIGN_OR_RETURN(
       std::vector<SliceRef> slices,
       ChooseVolume(SlicesOf(headers, chosen->members), options));
+  INTERSLICE_RETURN_IF_ERROR(CheckSeriesConsistent(headers, slices));
   INTERSLICE_ASSIGN_OR_RETURN(StackLayout stack,
                               LayOutStack(headers, std::move(slices)));
 
@@ -769,6 +1025,20 @@ absl::StatusOr<DicomSeries> ReadDicomSeries(
       auto [it, inserted] = target_of.emplace(s.header, targets.size());
       if (inserted) targets.push_back({s.header, {}});
       targets[it->second].frames.emplace_back(s.frame, k);
+    }
+  }
+  // Decoders (DCMTK's) decode every frame of a file, including those of
+  // other volumes: the limit bounds each file's decoded size too.
+  for (const FileTarget& t : targets) {
+    const FileHeader& h = headers[t.header];
+    const int64_t file_voxels =
+        int64_t{h.rows} * h.columns * std::max<int64_t>(1, h.frames.size());
+    if (file_voxels > options.max_voxels) {
+      return absl::InvalidArgumentError(absl::StrFormat(
+          "%s holds %d x %d x %d = %d voxels in all its frames, more than the "
+          "limit of %d (max_voxels)",
+          BaseName(h.path), h.columns, h.rows, h.frames.size(), file_voxels,
+          options.max_voxels));
     }
   }
 
@@ -843,6 +1113,7 @@ absl::StatusOr<DicomSeries> ReadDicomSeries(
   result.modality = first.modality;
   result.sop_class_uid = first.sop_class_uid;
   result.volume = stack.order.front().volume;
+  result.notes = InputNotes(headers, chosen->members);
   result.uniform_spacing = stack.uniform;
   result.min_gap_mm = stack.min_gap;
   result.max_gap_mm = stack.max_gap;

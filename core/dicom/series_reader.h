@@ -3,13 +3,24 @@
 // Input: files and/or directories (directories are searched recursively).
 // Files that are not DICOM, DICOMDIR files, DICOM objects that are not
 // images with a position and orientation (reports, presentation states,
-// secondary captures without geometry, objects without SeriesInstanceUID)
-// and secondary captures that share a series with acquired images are
-// skipped and counted, never fatal on their own. SOP Class/Instance UIDs are
-// not required. Files whose sequences nest more than 128 levels deep are
-// refused (skipped, and named in the NOT_FOUND message if nothing else is
-// left) before DCMTK parses them, because DCMTK's parser recurses once per
-// level and would overflow the stack.
+// secondary captures without geometry) and secondary captures that share a
+// series with acquired images are skipped and counted, never fatal on their
+// own. Files whose sequences nest more than 128 levels deep are refused
+// (skipped, and named in the NOT_FOUND message if nothing else is left)
+// before DCMTK parses them, because DCMTK's parser recurses once per level
+// and would overflow the stack.
+//
+// Anonymised exports: no UID is required. SOPClassUID missing or empty: the
+// file meta header's MediaStorageSOPClassUID is used (as dcm2niix and GDCM
+// do); absent there too, the file is still read as a slice by its geometry
+// (as dcm2niix does). SeriesInstanceUID missing or empty: the series is
+// inferred from what a series keeps constant and is still present:
+// FrameOfReferenceUID, Modality and SeriesNumber (each when present),
+// ImageOrientationPatient, Rows/Columns and PixelSpacing (orientation and
+// spacing compared to 1e-4). Such a series is named "no-uid-1", "no-uid-2",
+// ... (in a stable order) in listings and messages, and that name selects it
+// like a UID. The slices are sorted by geometry as always. What was inferred
+// is listed in DicomSeries::notes.
 //
 // Transfer syntaxes: implicit/explicit little endian, explicit big endian,
 // deflated, JPEG (baseline, extended, lossless), JPEG-LS and RLE through
@@ -26,10 +37,10 @@
 // FAILED_PRECONDITION naming each one, unless options.volume picks one.
 //
 // The image stack:
-// - Grouped by SeriesInstanceUID. When several image series are present and
-//   options.series_instance_uid is empty, the call fails with
-//   FAILED_PRECONDITION naming each series (UID, modality, image count) so the
-//   user can choose one.
+// - Grouped by SeriesInstanceUID (or, without one, as above). When several
+//   image series are present and options.series_instance_uid is empty, the
+//   call fails with FAILED_PRECONDITION naming each series (UID or name,
+//   modality, image count) so the user can choose one.
 // - Sorted along the slice normal n = row x column (ImageOrientationPatient);
 //   the position of a slice is ImagePositionPatient . n.
 // - Voxel values are modality values (HU for CT): stored value * RescaleSlope
@@ -52,18 +63,31 @@
 //   a tilt about one axis; offsets larger than the image are an error.
 //
 // Errors (INVALID_ARGUMENT unless noted; messages name the problem and the
-// file's base name (and frame), never patient data):
+// file's base name (and frame), never patient data or UIDs of the files):
 // - NOT_FOUND: no readable DICOM image in the input.
 // - FAILED_PRECONDITION: several series and none chosen; chosen UID absent;
 //   several volumes and none chosen; chosen volume absent.
 // - Inconsistent Rows/Columns, PixelSpacing or ImageOrientationPatient
 //   between slices; two slices at the same position.
+// - FrameOfReferenceUID (its value never shown), Modality, BitsAllocated,
+//   BitsStored or PixelRepresentation not the same on every slice: the
+//   message names the first slice that differs from most and says what
+//   differs.
+// - RescaleSlope or RescaleIntercept present but empty, not one finite
+//   number, or a RescaleSlope of 0 (checked while scanning headers, before
+//   any pixel data is decoded).
 // - Undecodable pixel data (UNIMPLEMENTED, transfer syntax named), truncated
 //   or short pixel data, fewer encapsulated fragments than frames,
 //   SamplesPerPixel != 1, BitsAllocated not 8/16/32 (UNIMPLEMENTED).
 //   Native pixel data is checked against Rows x Columns x frames from its
-//   length field before it is loaded, and the volume size against
-//   options.max_voxels before it is allocated.
+//   length field before it is loaded, and the volume size (and each file's
+//   decoded size, all frames) against options.max_voxels before it is
+//   allocated.
+// - JPEG 2000: GDCM decodes one frame's codestream at a time and never sees
+//   the file; the codestream must be a bare J2K codestream (no JP2 wrapper)
+//   of one component with exactly Columns x Rows samples, a precision that
+//   fits BitsAllocated and at most 4096 tiles, or the file is refused before
+//   decoding. Several frames need one fragment per frame.
 #ifndef INTERSLICE_CORE_DICOM_SERIES_READER_H_
 #define INTERSLICE_CORE_DICOM_SERIES_READER_H_
 
@@ -78,7 +102,8 @@
 namespace interslice {
 
 struct DicomReadOptions {
-  // SeriesInstanceUID to read; empty means "the only image series present".
+  // SeriesInstanceUID to read (or the name of a series without one, see
+  // above); empty means "the only image series present".
   std::string series_instance_uid;
   // Upper bound on Columns * Rows * slices, checked before allocation.
   int64_t max_voxels = int64_t{1} << 31;
@@ -102,6 +127,7 @@ struct DicomSliceInfo {
 
 // One series found in the input (for listings and error messages).
 struct DicomSeriesSummary {
+  // The UID, or for a series without one its name ("no-uid-1", ...).
   std::string series_instance_uid;
   std::string modality;
   int64_t image_count = 0;
@@ -124,6 +150,13 @@ struct DicomSeries {
   double gantry_tilt_degrees = 0;
   // Files not used: non-DICOM, DICOMDIR, non-image, other series or volumes.
   int64_t skipped_files = 0;
+  // What the reader inferred or found missing in the series' files, one
+  // sentence each, e.g. "SeriesInstanceUID missing on 4 files: series
+  // grouped by modality, orientation, size and pixel spacing" or
+  // "SOPClassUID missing on 4 files: taken from the file meta header
+  // (MediaStorageSOPClassUID)". Empty for complete files. Never UIDs or
+  // patient data: fit for reports and logs.
+  std::vector<std::string> notes;
 };
 
 // Reads the series. `paths` are files or directories.

@@ -223,6 +223,7 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
     report.gantry_tilt_degrees = series.gantry_tilt_degrees;
     report.min_gap_mm = series.min_gap_mm;
     report.max_gap_mm = series.max_gap_mm;
+    report.input_notes = series.notes;
     int64_t first_slice = 0;
     if (spec.roi.has_value()) {
       INTERSLICE_RETURN_IF_ERROR(
@@ -451,6 +452,7 @@ std::string JobReportToJson(const JobReport& report) {
   j["input"]["gantry_tilt_degrees"] = report.gantry_tilt_degrees;
   j["input"]["min_gap_mm"] = report.min_gap_mm;
   j["input"]["max_gap_mm"] = report.max_gap_mm;
+  j["input"]["notes"] = report.input_notes;
   j["mesh"] = {{"vertices", report.mesh_vertices},
                {"triangles", report.mesh_triangles}};
   ordered_json artifacts = ordered_json::array();
@@ -518,6 +520,10 @@ absl::StatusOr<JobReport> JobReportFromJson(const std::string& text) {
     report.gantry_tilt_degrees = input.at("gantry_tilt_degrees").get<double>();
     report.min_gap_mm = input.at("min_gap_mm").get<double>();
     report.max_gap_mm = input.at("max_gap_mm").get<double>();
+    // Absent in reports written before the reader had notes.
+    if (input.contains("notes")) {
+      report.input_notes = input.at("notes").get<std::vector<std::string>>();
+    }
     report.mesh_vertices = j.at("mesh").at("vertices").get<int64_t>();
     report.mesh_triangles = j.at("mesh").at("triangles").get<int64_t>();
     for (const json& a : j.at("artifacts")) {

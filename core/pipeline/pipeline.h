@@ -108,6 +108,9 @@ struct JobReport {
   // smallest and largest gap between consecutive slices (mm).
   double gantry_tilt_degrees = 0;
   double min_gap_mm = 0, max_gap_mm = 0;
+  // What the reader inferred about the input (DicomSeries::notes): no UIDs,
+  // no patient data.
+  std::vector<std::string> input_notes;
   int64_t mesh_vertices = 0;
   int64_t mesh_triangles = 0;
   std::vector<Artifact> artifacts;
@@ -128,7 +131,7 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
 // "iterations", "relative_residual", "energy", "initial_energy",
 // "energy_units", "converged"}, "grid": {"size": [x,y,z], "spacing": [...],
 // "origin": [...], "direction": [...], "insertion_factor": n, "max_snap_mm":
-// mm}, "input": {...}, "mesh": {...},
+// mm}, "input": {..., "notes": [...]}, "mesh": {...},
 // "artifacts": [...], "peak_rss_bytes": n}.
 std::string JobReportToJson(const JobReport& report);
 

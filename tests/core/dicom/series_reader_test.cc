@@ -6,6 +6,7 @@
 #include <atomic>
 #include <cmath>
 #include <cstdint>
+#include <cstdio>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
@@ -26,6 +27,7 @@
 #include "dcmtk/dcmdata/dcddirif.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
 #include "dcmtk/dcmdata/dcfilefo.h"
+#include "dcmtk/dcmdata/dcmetinf.h"
 #include "dcmtk/dcmdata/dcrleerg.h"
 #include "dcmtk/dcmdata/dcuid.h"
 #include "dcmtk/dcmjpeg/djencode.h"
@@ -828,25 +830,42 @@ TEST(ReadDicomSeriesTest, HighBitBelowTheTopShiftsTheStoredBits) {
 }
 
 TEST(ReadDicomSeriesTest, EightAndThirtyTwoBitsAndPerSliceRescale) {
-  Synthetic a;  // 8-bit unsigned, MONOCHROME1 (no inversion), no rescale
+  // 8-bit unsigned, MONOCHROME1 (no inversion); one slice without rescale,
+  // one with its own.
+  Synthetic a;
   a.bits_allocated = a.bits_stored = 8;
   a.high_bit = 7;
   a.photometric = "MONOCHROME1";
   a.x = 10;
   for (int n = 0; n < 12; ++n) a.raw.push_back(n * 20);
+  Synthetic a2 = a;
+  a2.x = 13;  // position -13 along the normal: before a (-10)
+  a2.slope = "3";
+  a2.intercept = "-1";
+  const std::vector<float> eight = ReadSynthetic({a, a2});
+  ASSERT_EQ(eight.size(), 24u);
+  for (int n = 0; n < 12; ++n) {
+    EXPECT_EQ(eight[n], n * 20.0f * 3 - 1) << n;
+    EXPECT_EQ(eight[12 + n], n * 20.0f) << n;
+  }
+
   Synthetic b;  // 32-bit signed with its own slope and intercept
   b.bits_allocated = b.bits_stored = 32;
   b.high_bit = 31;
   b.pixel_representation = 1;
   b.slope = "0.5";
   b.intercept = "100";
-  b.x = 13;  // position -13 along the normal: before a (-10)
+  b.x = 13;
   for (int n = 0; n < 12; ++n) {
     b.raw.push_back(static_cast<uint32_t>((n - 6) * 100000));
   }
+  Synthetic b2 = b;
+  b2.x = 10;
+  b2.slope = "1";
+  b2.intercept = "0";
   TempDir dir;
   const std::string uid = NewUid();
-  WriteSynthetic(a, uid, dir.path() / "a.dcm");
+  WriteSynthetic(b2, uid, dir.path() / "a.dcm");
   WriteSynthetic(b, uid, dir.path() / "b.dcm");
   const auto series = Read({dir.str()});
   ASSERT_TRUE(series.ok()) << series.status();
@@ -865,7 +884,7 @@ TEST(ReadDicomSeriesTest, EightAndThirtyTwoBitsAndPerSliceRescale) {
   }
   for (int n = 0; n < 12; ++n) {
     EXPECT_EQ(series->image.data[n], (n - 6) * 100000 * 0.5f + 100) << n;
-    EXPECT_EQ(series->image.data[12 + n], n * 20.0f) << n;
+    EXPECT_EQ(series->image.data[12 + n], (n - 6) * 100000.0f) << n;
   }
 }
 
@@ -1225,6 +1244,431 @@ TEST(DecodableTransferSyntaxesTest, ListsWhatTheReaderDecodes) {
                           "1.2.840.10008.1.2.4.90", "1.2.840.10008.1.2.4.91"}) {
     EXPECT_TRUE(uids.count(uid)) << uid;
   }
+}
+
+// ---- Hardening: attributes validated before decoding, consistency, and
+// anonymised exports ------------------------------------------------------
+
+// Copies `src` to `dst` after `edit` changed the file (data set and meta
+// header), keeping the transfer syntax and, with EWM_dontUpdateMeta, the
+// meta header as edited.
+void EditFile(const fs::path& src, const fs::path& dst,
+              const std::function<void(DcmFileFormat&)>& edit,
+              E_FileWriteMode mode = EWM_fileformat) {
+  auto file = Load(src);
+  edit(*file);
+  const OFCondition cond =
+      file->saveFile(OFFilename(dst.c_str()), EXS_Unknown, EET_UndefinedLength,
+                     EGL_recalcGL, EPD_noChange, 0, 0, mode);
+  ASSERT_TRUE(cond.good()) << cond.text();
+}
+
+void EditDataset(const fs::path& src, const fs::path& dst,
+                 const std::function<void(DcmDataset&)>& edit) {
+  EditFile(src, dst, [&](DcmFileFormat& f) { edit(*f.getDataset()); });
+}
+
+const fs::path kJpeg2000Ct =
+    fs::path(INTERSLICE_TEST_DATA_DIR) / "codecs" / "jpeg_2000.dcm";
+// An MR slice in JPEG 2000 (GDCM takes another rescale path for MR).
+const fs::path kJpeg2000Mr =
+    fs::path(INTERSLICE_TEST_DATA_DIR) / "transfer-syntaxes" / "9.dcm";
+
+// Two slices of a JPEG 2000 file, 5 mm apart along the normal, after `edit`.
+void WriteJpeg2000Pair(const fs::path& src, const fs::path& dir,
+                       const std::function<void(DcmDataset&)>& edit) {
+  for (int k = 0; k < 2; ++k) {
+    EditDataset(
+        src, dir / ("j" + std::to_string(k) + ".dcm"), [&](DcmDataset& ds) {
+          double ipp[3], iop[6];
+          for (int c = 0; c < 3; ++c) {
+            ds.findAndGetFloat64(DCM_ImagePositionPatient, ipp[c], c);
+          }
+          for (int c = 0; c < 6; ++c) {
+            ds.findAndGetFloat64(DCM_ImageOrientationPatient, iop[c], c);
+          }
+          const double n[3] = {iop[1] * iop[5] - iop[2] * iop[4],
+                               iop[2] * iop[3] - iop[0] * iop[5],
+                               iop[0] * iop[4] - iop[1] * iop[3]};
+          char text[200];
+          std::snprintf(text, sizeof(text), "%.6f\\%.6f\\%.6f",
+                        ipp[0] + 5 * k * n[0], ipp[1] + 5 * k * n[1],
+                        ipp[2] + 5 * k * n[2]);
+          ds.putAndInsertString(DCM_ImagePositionPatient, text);
+          ds.putAndInsertString(DCM_SOPInstanceUID, NewUid().c_str());
+          edit(ds);
+        });
+  }
+}
+
+// GDCM aborted the whole process (gdcmImageHelper.cxx:1214, assertion
+// 'interceptslope[1] != 0.') on an MR JPEG 2000 slice with an empty
+// RescaleSlope; for CT it silently used 1.
+TEST(HardeningTest, EmptyRescaleSlopeOnJpeg2000IsRefusedBeforeDecoding) {
+  for (const fs::path& src : {kJpeg2000Mr, kJpeg2000Ct}) {
+    TempDir dir;
+    WriteJpeg2000Pair(src, dir.path(), [](DcmDataset& ds) {
+      ds.putAndInsertString(DCM_RescaleSlope, "");
+    });
+    const auto result = Read({dir.str()});
+    EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument)
+        << src;
+    EXPECT_THAT(result.status().message(),
+                AllOf(HasSubstr("j0.dcm"), HasSubstr("RescaleSlope"),
+                      HasSubstr("empty")));
+  }
+}
+
+TEST(HardeningTest, RescaleValuesMustBeOneFiniteNumberAndSlopeNotZero) {
+  struct Case {
+    DcmTagKey tag;
+    const char* value;
+    const char* attribute;
+    const char* why;
+  };
+  const Case cases[] = {
+      {DCM_RescaleSlope, "", "RescaleSlope", "empty"},
+      {DCM_RescaleSlope, "abc", "RescaleSlope", "not one finite number"},
+      {DCM_RescaleSlope, "0", "RescaleSlope", "is 0"},
+      {DCM_RescaleSlope, "-0.0", "RescaleSlope", "is 0"},
+      {DCM_RescaleSlope, "1e999", "RescaleSlope", "not one finite number"},
+      {DCM_RescaleSlope, "1\\2", "RescaleSlope", "not one finite number"},
+      {DCM_RescaleIntercept, "", "RescaleIntercept", "empty"},
+      {DCM_RescaleIntercept, "x", "RescaleIntercept", "not one finite number"},
+  };
+  for (const Case& c : cases) {
+    TempDir dir;
+    CopyThick(dir.path(), {"I10.dcm", "I20.dcm", "I40.dcm"});
+    CopyEdited("I30.dcm", dir.path() / "I30.dcm",
+               [&](DcmDataset& ds) { ds.putAndInsertString(c.tag, c.value); });
+    const auto result = Read({dir.str()});
+    EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument)
+        << c.attribute << " '" << c.value << "'";
+    EXPECT_THAT(
+        result.status().message(),
+        AllOf(HasSubstr("I30.dcm"), HasSubstr(c.attribute), HasSubstr(c.why)))
+        << c.value;
+  }
+}
+
+// Task: a slice with RescaleSlope 0 was read (every voxel = intercept).
+TEST(HardeningTest, SliceWithRescaleSlopeZeroIsAnError) {
+  TempDir dir;
+  CopyThick(dir.path(), {"I10.dcm", "I20.dcm", "I40.dcm"});
+  CopyEdited("I30.dcm", dir.path() / "I30.dcm", [](DcmDataset& ds) {
+    ds.putAndInsertString(DCM_RescaleSlope, "0");
+  });
+  const auto result = Read({dir.str()});
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(result.status().message(),
+              AllOf(HasSubstr("I30.dcm"), HasSubstr("RescaleSlope")));
+}
+
+TEST(HardeningTest, FrameWithRescaleSlopeZeroIsNamedWithItsFrame) {
+  TempDir dir;
+  const fs::path src = fs::path(INTERSLICE_TEST_DATA_DIR) / "multiframe" /
+                       "philips-enhanced-mr-64frames.dcm";
+  EditDataset(src, dir.path() / "enhanced.dcm", [](DcmDataset& ds) {
+    DcmItem* frame = nullptr;
+    ASSERT_TRUE(ds.findAndGetSequenceItem(DCM_PerFrameFunctionalGroupsSequence,
+                                          frame, 4)
+                    .good());
+    DcmItem* transform = nullptr;
+    ASSERT_TRUE(frame
+                    ->findAndGetSequenceItem(
+                        DCM_PixelValueTransformationSequence, transform, 0)
+                    .good());
+    transform->putAndInsertString(DCM_RescaleSlope, "0");
+  });
+  DicomReadOptions options;
+  options.volume = "anything";
+  const auto result = Read({dir.str()}, options);
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(result.status().message(),
+              AllOf(HasSubstr("enhanced.dcm frame 5"),
+                    HasSubstr("RescaleSlope (0028,1053) is 0")));
+}
+
+TEST(HardeningTest, SliceOfAnotherFrameOfReferenceIsAnError) {
+  TempDir dir;
+  CopyThick(dir.path(), {"I10.dcm", "I20.dcm", "I40.dcm"});
+  const std::string other = NewUid();
+  CopyEdited("I30.dcm", dir.path() / "I30.dcm", [&](DcmDataset& ds) {
+    ds.putAndInsertString(DCM_FrameOfReferenceUID, other.c_str());
+  });
+  const auto result = Read({dir.str()});
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(result.status().message(),
+              AllOf(HasSubstr("FrameOfReferenceUID"), HasSubstr("I30.dcm"),
+                    HasSubstr("3 of the 4 slices"), Not(HasSubstr(other)),
+                    Not(HasSubstr("1.3.46.670589"))));
+}
+
+TEST(HardeningTest, SliceWithoutTheFrameOfReferenceOfTheOthersIsAnError) {
+  TempDir dir;
+  CopyThick(dir.path(), {"I10.dcm", "I20.dcm", "I40.dcm"});
+  CopyEdited("I30.dcm", dir.path() / "I30.dcm",
+             [](DcmDataset& ds) { delete ds.remove(DCM_FrameOfReferenceUID); });
+  const auto result = Read({dir.str()});
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(result.status().message(), AllOf(HasSubstr("FrameOfReferenceUID"),
+                                               HasSubstr("I30.dcm has none")));
+}
+
+TEST(HardeningTest, SliceOfAnotherModalityIsAnError) {
+  TempDir dir;
+  CopyThick(dir.path(), {"I10.dcm", "I20.dcm", "I40.dcm"});
+  CopyEdited("I30.dcm", dir.path() / "I30.dcm",
+             [](DcmDataset& ds) { ds.putAndInsertString(DCM_Modality, "MR"); });
+  const auto result = Read({dir.str()});
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(result.status().message(),
+              AllOf(HasSubstr("Modality"), HasSubstr("I30.dcm has MR"),
+                    HasSubstr("have CT")));
+}
+
+TEST(HardeningTest, SliceWithOtherBitsStoredIsAnError) {
+  // The three first slices with BitsStored 16, the last with 8.
+  std::vector<Synthetic> slices(4);
+  for (int k = 0; k < 4; ++k) {
+    slices[k].x = 10 + k;
+    slices[k].raw.assign(12, 100);
+  }
+  slices[3].bits_stored = 8;
+  slices[3].high_bit = 7;
+  TempDir dir;
+  const std::string uid = NewUid();
+  for (int k = 0; k < 4; ++k) {
+    WriteSynthetic(slices[k], uid,
+                   dir.path() / ("s" + std::to_string(k) + ".dcm"));
+  }
+  const auto result = Read({dir.str()});
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(result.status().message(),
+              AllOf(HasSubstr("BitsStored"), HasSubstr("s3.dcm has 8"),
+                    HasSubstr("3 of the 4 slices"), HasSubstr("have 16")));
+}
+
+TEST(HardeningTest, SliceWithOtherPixelRepresentationIsAnError) {
+  std::vector<Synthetic> slices(3);
+  TempDir dir;
+  const std::string uid = NewUid();
+  for (int k = 0; k < 3; ++k) {
+    slices[k].x = 10 + k;
+    slices[k].raw.assign(12, 100);
+    slices[k].pixel_representation = k == 0 ? 1 : 0;
+    WriteSynthetic(slices[k], uid,
+                   dir.path() / ("s" + std::to_string(k) + ".dcm"));
+  }
+  const auto result = Read({dir.str()});
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(result.status().message(),
+              AllOf(HasSubstr("PixelRepresentation"),
+                    HasSubstr("s0.dcm has 1 (signed)"),
+                    HasSubstr("have 0 (unsigned)")));
+}
+
+// GDCM sized its output buffer from Rows/Columns and wrote the codestream's
+// samples into it (heap overflow when the codestream is larger, an assert
+// abort when it is smaller); the codestream is now checked first.
+TEST(HardeningTest, Jpeg2000CodestreamOfAnotherSizeIsRefused) {
+  for (int size : {256, 1024}) {
+    TempDir dir;
+    WriteJpeg2000Pair(kJpeg2000Ct, dir.path(), [&](DcmDataset& ds) {
+      ds.putAndInsertUint16(DCM_Rows, size);
+      ds.putAndInsertUint16(DCM_Columns, size);
+    });
+    const auto result = Read({dir.str()});
+    EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument)
+        << size;
+    EXPECT_THAT(result.status().message(),
+                AllOf(HasSubstr("j0.dcm"), HasSubstr("512 x 512"),
+                      HasSubstr("Columns x Rows")));
+  }
+}
+
+// The codestream holds 16-bit samples; GDCM wrote them as such into a
+// buffer sized for 8 bits per sample.
+TEST(HardeningTest, Jpeg2000PrecisionMustFitBitsAllocated) {
+  TempDir dir;
+  WriteJpeg2000Pair(kJpeg2000Ct, dir.path(), [](DcmDataset& ds) {
+    ds.putAndInsertUint16(DCM_BitsAllocated, 8);
+    ds.putAndInsertUint16(DCM_BitsStored, 8);
+    ds.putAndInsertUint16(DCM_HighBit, 7);
+    delete ds.remove(DCM_PixelPaddingValue);
+  });
+  const auto result = Read({dir.str()});
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(result.status().message(),
+              AllOf(HasSubstr("j0.dcm"), HasSubstr("16-bit samples"),
+                    HasSubstr("BitsAllocated 8")));
+}
+
+TEST(HardeningTest, Jpeg2000PairStillDecodes) {
+  TempDir dir;
+  WriteJpeg2000Pair(kJpeg2000Ct, dir.path(), [](DcmDataset&) {});
+  const auto series = Read({dir.str()});
+  ASSERT_TRUE(series.ok()) << series.status();
+  const auto single = Read({kJpeg2000Ct.string()});
+  ASSERT_TRUE(single.ok()) << single.status();
+  ASSERT_EQ(series->image.grid.size, (Index3{512, 512, 2}));
+  EXPECT_NEAR(series->image.grid.spacing[2], 5, 1e-4);
+  const size_t plane = 512 * 512;
+  for (size_t i = 0; i < plane; ++i) {
+    ASSERT_EQ(series->image.data[i], single->image.data[i]) << i;
+    ASSERT_EQ(series->image.data[plane + i], single->image.data[i]) << i;
+  }
+}
+
+// ---- Anonymised exports ---------------------------------------------------
+
+// Copies of the thick slices with the UIDs an anonymiser blanks: removed on
+// odd slices, emptied on even ones; the meta header keeps its
+// MediaStorageSOPClassUID unless `keep_meta_class` is false.
+void WriteAnonymised(const fs::path& dir, bool keep_meta_class,
+                     const std::function<void(DcmDataset&)>& edit = {}) {
+  for (size_t k = 0; k < kThickNames.size(); ++k) {
+    EditFile(
+        kThick / kThickNames[k], dir / kThickNames[k],
+        [&](DcmFileFormat& f) {
+          DcmDataset& ds = *f.getDataset();
+          for (const DcmTagKey& tag :
+               {DCM_SOPClassUID, DCM_SOPInstanceUID, DCM_SeriesInstanceUID,
+                DCM_StudyInstanceUID}) {
+            if (k % 2 == 1) {
+              delete ds.remove(tag);
+            } else {
+              ds.putAndInsertString(tag, "");
+            }
+          }
+          DcmMetaInfo& meta = *f.getMetaInfo();
+          meta.putAndInsertString(DCM_MediaStorageSOPInstanceUID, "");
+          if (!keep_meta_class) {
+            delete meta.remove(DCM_MediaStorageSOPClassUID);
+          }
+          if (edit) edit(ds);
+        },
+        EWM_dontUpdateMeta);
+  }
+}
+
+void ExpectSameVolume(const DicomSeries& a, const DicomSeries& b) {
+  EXPECT_EQ(a.image.grid.size, b.image.grid.size);
+  EXPECT_EQ(a.image.grid.spacing, b.image.grid.spacing);
+  EXPECT_EQ(a.image.grid.origin, b.image.grid.origin);
+  EXPECT_EQ(a.image.grid.direction, b.image.grid.direction);
+  EXPECT_TRUE(a.image.data == b.image.data);
+  ASSERT_EQ(a.slices.size(), b.slices.size());
+  for (size_t k = 0; k < a.slices.size(); ++k) {
+    EXPECT_EQ(fs::path(a.slices[k].path).filename(),
+              fs::path(b.slices[k].path).filename());
+  }
+}
+
+TEST(AnonymisedTest, SeriesWithoutUidsIsReadFromTheMetaHeaderAndGeometry) {
+  TempDir dir;
+  WriteAnonymised(dir.path(), /*keep_meta_class=*/true);
+  const auto original = Read({kThick.string()});
+  ASSERT_TRUE(original.ok()) << original.status();
+  const auto series = Read({dir.str()});
+  ASSERT_TRUE(series.ok()) << series.status();
+  ExpectSameVolume(*series, *original);
+  EXPECT_EQ(series->sop_class_uid, UID_CTImageStorage);
+  EXPECT_EQ(series->series_instance_uid, "");
+  EXPECT_EQ(series->study_instance_uid, "");
+  EXPECT_EQ(series->frame_of_reference_uid, original->frame_of_reference_uid);
+  EXPECT_THAT(
+      series->notes,
+      ::testing::UnorderedElementsAre(
+          "SeriesInstanceUID missing on 4 files: series grouped by frame of "
+          "reference, modality, series number, orientation, size and pixel "
+          "spacing",
+          "SOPClassUID missing on 4 files: taken from the file meta header "
+          "(MediaStorageSOPClassUID)",
+          "SOPInstanceUID missing on 4 files",
+          "StudyInstanceUID missing on 4 files"));
+  for (const std::string& note : series->notes) {
+    EXPECT_THAT(note, Not(HasSubstr("1.")));  // no UID in a note
+  }
+  EXPECT_TRUE(original->notes.empty());
+}
+
+TEST(AnonymisedTest, FilesWithoutAnySopClassAreReadByTheirGeometry) {
+  TempDir dir;
+  WriteAnonymised(dir.path(), /*keep_meta_class=*/false, [](DcmDataset& ds) {
+    delete ds.remove(DCM_FrameOfReferenceUID);
+    delete ds.remove(DCM_SeriesNumber);
+  });
+  const auto original = Read({kThick.string()});
+  ASSERT_TRUE(original.ok()) << original.status();
+  const auto series = Read({dir.str()});
+  ASSERT_TRUE(series.ok()) << series.status();
+  ExpectSameVolume(*series, *original);
+  EXPECT_EQ(series->sop_class_uid, "");
+  EXPECT_THAT(series->notes,
+              ::testing::IsSupersetOf(
+                  {"SeriesInstanceUID missing on 4 files: series grouped by "
+                   "modality, orientation, size and pixel spacing",
+                   "SOPClassUID missing on 4 files, also in the file meta "
+                   "header: read as image slices by their geometry",
+                   "FrameOfReferenceUID missing on 4 files"}));
+}
+
+TEST(AnonymisedTest, TwoSeriesWithoutUidsStayTwoAndCanBeChosen) {
+  TempDir dir;
+  fs::create_directories(dir.path() / "axial");
+  fs::create_directories(dir.path() / "coronal");
+  WriteAnonymised(dir.path() / "axial", true);
+  // The same slices as a coronal series (another orientation), as another
+  // reconstruction of the same acquisition would be.
+  WriteAnonymised(dir.path() / "coronal", true, [](DcmDataset& ds) {
+    ds.putAndInsertString(DCM_ImageOrientationPatient, "1\\0\\0\\0\\0\\-1");
+    // Slices along the coronal normal (0, 1, 0).
+    Float64 z = 0;
+    ds.findAndGetFloat64(DCM_ImagePositionPatient, z, 2);
+    const std::string position = "-115.5\\" + std::to_string(z) + "\\100";
+    ds.putAndInsertString(DCM_ImagePositionPatient, position.c_str());
+  });
+  const auto both = Read({dir.str()});
+  EXPECT_EQ(both.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_THAT(both.status().message(),
+              AllOf(HasSubstr("2 image series"), HasSubstr("no-uid-1"),
+                    HasSubstr("no-uid-2"), HasSubstr("4 images")));
+  const auto listed = ListDicomSeries({dir.str()});
+  ASSERT_TRUE(listed.ok()) << listed.status();
+  ASSERT_EQ(listed->size(), 2u);
+  std::set<std::string> orientations;
+  for (const DicomSeriesSummary& summary : *listed) {
+    DicomReadOptions options;
+    options.series_instance_uid = summary.series_instance_uid;
+    const auto series = Read({dir.str()}, options);
+    ASSERT_TRUE(series.ok()) << series.status();
+    EXPECT_EQ(series->slices.size(), 4u);
+    const fs::path folder = fs::path(series->slices[0].path).parent_path();
+    orientations.insert(folder.filename().string());
+    for (const DicomSliceInfo& slice : series->slices) {
+      EXPECT_EQ(fs::path(slice.path).parent_path(), folder);
+    }
+  }
+  EXPECT_EQ(orientations, (std::set<std::string>{"axial", "coronal"}));
+}
+
+TEST(AnonymisedTest, SameSeriesWithDifferentlyFormattedNumbersStaysOne) {
+  TempDir dir;
+  WriteAnonymised(dir.path(), true, [](DcmDataset& ds) {
+    OFString position;
+    ds.findAndGetOFStringArray(DCM_ImagePositionPatient, position);
+    // I10 and I30 write orientation and spacing with other digits.
+    if (position.find("696.21") != OFString_npos ||
+        position.find("706.21") != OFString_npos) {
+      ds.putAndInsertString(DCM_ImageOrientationPatient,
+                            "1.000000\\0.0\\-0.0\\0\\1.0\\0.000000");
+      ds.putAndInsertString(DCM_PixelSpacing, "0.451171875000\\0.4511718750");
+    }
+  });
+  const auto series = Read({dir.str()});
+  ASSERT_TRUE(series.ok()) << series.status();
+  EXPECT_EQ(series->slices.size(), 4u);
 }
 
 }  // namespace

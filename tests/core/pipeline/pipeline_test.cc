@@ -101,6 +101,24 @@ TEST_F(PipelineTest, ReportJsonHasTheDocumentedFields) {
   EXPECT_EQ(j["solver"]["energy_units"], "voxel");
   EXPECT_EQ(j["grid"]["size"][2], 13);
   EXPECT_GT(j["peak_rss_bytes"].get<int64_t>(), 1 << 20);
+  // Complete input files: nothing inferred.
+  ASSERT_TRUE(j["input"]["notes"].is_array());
+  EXPECT_TRUE(j["input"]["notes"].empty());
+}
+
+TEST(JobReportJsonTest, InputNotesAreListed) {
+  JobReport report;
+  report.input_notes = {
+      "SeriesInstanceUID missing on 4 files: series grouped "
+      "by modality, orientation, size and pixel spacing",
+      "StudyInstanceUID missing on 4 files"};
+  const nlohmann::json j = nlohmann::json::parse(JobReportToJson(report));
+  EXPECT_EQ(j["input"]["notes"],
+            nlohmann::json(std::vector<std::string>(report.input_notes)));
+  // The server's worker process hands reports over as JSON.
+  const auto back = JobReportFromJson(JobReportToJson(report));
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_EQ(back->input_notes, report.input_notes);
 }
 
 TEST_F(PipelineTest, CancellationStopsTheJobAndWritesNothing) {

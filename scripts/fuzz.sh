@@ -1,0 +1,138 @@
+#!/usr/bin/env bash
+# Builds the libFuzzer targets (tests/fuzz) with clang, ASan and UBSan in
+# build-fuzz/, makes their seed corpora and runs each one.
+#
+#   bash scripts/fuzz.sh [SECONDS_PER_TARGET]    (default 30)
+#
+# A short run (the default) is a smoke test; the documented longer run is
+# `bash scripts/fuzz.sh 600` (ten minutes per target). Installs nothing: clang
+# and libFuzzer come from scripts/install-deps.sh. Exits non-zero when a
+# target crashes, leaks, times out (-timeout=10 s per input) or exceeds
+# -rss_limit_mb=2048; the input that did it is kept in
+# build-fuzz/fuzz/<target>/crashes/ (reproduce: build-fuzz/tests/fuzz/<target>
+# <file>). What each target found stays in build-fuzz/fuzz/<target>/corpus/
+# and seeds the next run.
+#
+# Environment: INTERSLICE_FUZZ_JOBS (compile jobs, default nproc),
+# INTERSLICE_FUZZ_TARGETS (default "dicom_ingest_fuzzer job_spec_fuzzer"),
+# INTERSLICE_FUZZ_ARGS (more libFuzzer flags for every target, e.g.
+# "-max_len=65536": about twice the executions per second for
+# dicom_ingest_fuzzer, at the price of truncating the 512 x 512 seeds).
+set -euo pipefail
+root="$(cd "$(dirname "$0")/.." && pwd)"
+cd "$root"
+
+seconds="${1:-30}"
+if ! [[ "$seconds" =~ ^[0-9]+$ ]] || [ "$seconds" -lt 1 ]; then
+  echo "usage: $0 [SECONDS_PER_TARGET]" >&2
+  exit 2
+fi
+jobs="${INTERSLICE_FUZZ_JOBS:-$(nproc)}"
+targets=(${INTERSLICE_FUZZ_TARGETS:-dicom_ingest_fuzzer job_spec_fuzzer})
+build="$root/build-fuzz"
+work="$build/fuzz"
+
+# clang with the libFuzzer runtime (Debian: clang and libclang-rt-14-dev).
+probe="$(mktemp -d)"
+trap 'rm -rf "$probe"' EXIT
+printf 'extern "C" int LLVMFuzzerTestOneInput(const unsigned char*, unsigned long) { return 0; }\n' \
+  >"$probe/probe.cc"
+if ! command -v clang++ >/dev/null ||
+   ! clang++ -fsanitize=fuzzer,address,undefined "$probe/probe.cc" -o "$probe/probe" 2>"$probe/err"; then
+  cat "$probe/err" >&2 || true
+  echo "fuzz: clang++ cannot link -fsanitize=fuzzer; install the Debian packages clang and" \
+       "libclang-rt-14-dev (scripts/install-deps.sh)" >&2
+  exit 1
+fi
+
+start=$(date +%s)
+CC=clang CXX=clang++ cmake -S . -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
+  -DINTERSLICE_BUILD_FUZZERS=ON -DINTERSLICE_BUILD_TESTS=OFF \
+  -DINTERSLICE_BUILD_BENCHMARKS=OFF -DINTERSLICE_BUILD_TOOLS=OFF >/dev/null
+cmake --build "$build" -j"$jobs" --target "${targets[@]}"
+echo "fuzz: built in $(($(date +%s) - start)) s"
+
+# ---- Seed corpora (made afresh each run; nothing of it is committed) ------
+separator=$'\xffIS-NEXT'  # dicom_ingest_fuzzer: between the files of one input
+seeds_dicom() {
+  local dir="$1" small="$probe/small"
+  mkdir -p "$dir" "$small"
+  # Every DICOM file of tests/data as it is.
+  find tests/data -name '*.dcm' -print0 | while IFS= read -r -d '' f; do
+    cp "$f" "$dir/$(echo "$f" | tr '/' '_')"
+  done
+  # Small series (64 x 64), one input holding several files, in several
+  # transfer syntaxes: fast to execute and they reach the stack checks.
+  local series name
+  for series in ct-thick ct-tilt; do
+    for f in tests/data/$series/*.dcm; do
+      name="$(basename "$f" .dcm)"
+      dcmscale --quiet --scale-x-size 64 "$f" "$small/$series-$name.dcm"
+      dcmcrle --quiet "$small/$series-$name.dcm" "$small/$series-$name-rle.dcm"
+      dcmcjpeg --quiet --encode-lossless-sv1 "$small/$series-$name.dcm" "$small/$series-$name-jpeg.dcm"
+      dcmcjpls --quiet "$small/$series-$name.dcm" "$small/$series-$name-jpls.dcm"
+    done
+    local variant
+    for variant in "" -rle -jpeg -jpls; do
+      : >"$dir/$series$variant-series"
+      local first=1
+      for f in tests/data/$series/*.dcm; do
+        name="$(basename "$f" .dcm)"
+        [ $first = 1 ] || printf '%s' "$separator" >>"$dir/$series$variant-series"
+        first=0
+        cat "$small/$series-$name$variant.dcm" >>"$dir/$series$variant-series"
+      done
+    done
+    cp "$small/$series-"*.dcm "$dir/"
+  done
+}
+seeds_job_spec() {
+  local dir="$1" proto=proto/interslice/v1/interslice.proto i=0 spec
+  mkdir -p "$dir"
+  for spec in \
+    'threshold: 300' \
+    'threshold: 300 method: SOLVER_METHOD_DIRECT outputs { volume_formats: VOLUME_FORMAT_NIFTI mesh_formats: MESH_FORMAT_STL }' \
+    'threshold: 300 upper_threshold: 2000 insertion_factor: 4 method: SOLVER_METHOD_CONJUGATE_GRADIENT max_iterations: 15 tolerance: 0.001' \
+    'threshold: -500 slice_spacing_mm: 0.5 energy_units: ENERGY_UNITS_MILLIMETRE mesh_adaptivity: 0.5 band_radius_mm: 3' \
+    'threshold: 300 roi { x0: 10 y0: 10 z0: 0 x1: 200 y1: 200 z1: 4 } series_instance_uid: "1.2.3"' \
+    'threshold: 300 strict_spacing: true derived_series { contents: "mask" contents: "distance" series_number: 9 } segmentation { enabled: true segment_label: "bone" } uid_root: "1.2.826.0.1" multiframe_volume: "stack 1"' \
+    ; do
+    printf '%s\n' "$spec" | protoc -I proto --encode=interslice.v1.JobSpec "$proto" >"$dir/spec-$i"
+    i=$((i + 1))
+  done
+}
+
+status=0
+summary=()
+for target in "${targets[@]}"; do
+  dir="$work/$target"
+  rm -rf "$dir/seeds"
+  mkdir -p "$dir/corpus" "$dir/crashes"
+  case "$target" in
+    dicom_ingest_fuzzer) seeds_dicom "$dir/seeds" ;;
+    job_spec_fuzzer) seeds_job_spec "$dir/seeds" ;;
+  esac
+  log="$dir/last-run.log"
+  echo "fuzz: $target for $seconds s (log: ${log#$root/})"
+  set +e
+  UBSAN_OPTIONS="print_stacktrace=1:halt_on_error=1${UBSAN_OPTIONS:+:$UBSAN_OPTIONS}" \
+    "$build/tests/fuzz/$target" -max_total_time="$seconds" -rss_limit_mb=2048 -timeout=10 \
+      -print_final_stats=1 -artifact_prefix="$dir/crashes/" ${INTERSLICE_FUZZ_ARGS:-} \
+      "$dir/corpus" "$dir/seeds" \
+      >"$log" 2>&1
+  rc=$?
+  set -e
+  runs="$(sed -n 's/^stat::number_of_executed_units: *//p' "$log" | tail -1)"
+  rate="$(sed -n 's/^stat::average_exec_per_sec: *//p' "$log" | tail -1)"
+  line="$target: ${runs:-?} executions in $seconds s (${rate:-?} exec/s), exit $rc"
+  if [ $rc -ne 0 ]; then
+    status=1
+    line="$line: FAILED, input kept in ${dir#$root/}/crashes/"
+    grep -E '^(==[0-9]+==ERROR|SUMMARY|.*runtime error)' "$log" | head -5 >&2 || true
+  fi
+  echo "fuzz: $line"
+  summary+=("$line")
+done
+echo "fuzz: summary (total $(($(date +%s) - start)) s)"
+printf '  %s\n' "${summary[@]}"
+exit $status
