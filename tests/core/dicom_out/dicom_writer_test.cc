@@ -411,7 +411,9 @@ TEST_F(DicomWriterTest, IntensityUidsPositionsAndInstanceNumbers) {
     EXPECT_DOUBLE_EQ(between, grid_->spacing[2]);
     EXPECT_DOUBLE_EQ(thickness, grid_->spacing[2]);
     const double position = Dot(ipp, n);
-    if (k > 0) EXPECT_NEAR(position - previous_position, between, 1e-4);
+    if (k > 0) {
+      EXPECT_NEAR(position - previous_position, between, 1e-4);
+    }
     previous_position = position;
     // Each slice names the source slices it lies on or between.
     DcmSequenceOfItems* sources = nullptr;
