@@ -1,5 +1,6 @@
 #include "core/volume_io/volume_io.h"
 
+#include <fcntl.h>
 #include <itkImage.h>
 #include <itkImageFileReader.h>
 #include <itkImageFileWriter.h>
@@ -7,9 +8,11 @@
 #include <itkImportImageContainer.h>
 #include <itkNiftiImageIO.h>
 #include <itkNrrdImageIO.h>
+#include <unistd.h>
 #include <zlib.h>
 
 #include <algorithm>
+#include <cerrno>
 #include <cmath>
 #include <cstdio>
 #include <cstring>
@@ -72,6 +75,22 @@ std::string TemporaryPath(const std::string& path, const FormatInfo& info) {
   return (target.parent_path() /
           absl::StrCat(".", name, ".tmp-", RandomSuffix(), info.extension))
       .string();
+}
+
+// Creates `path` as a new empty file (failing if it exists), so that a
+// missing or unwritable directory is reported before ITK sees the path: ITK
+// 5.2's NRRD writer throws on a failed nrrdSave without freeing its Nrrd,
+// NrrdIoState and error string (about 3.5 KB per call), and NIfTI prints its
+// own error to stderr.
+absl::Status CreateEmptyFile(const std::string& path) {
+  const int fd =
+      open(path.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0666);
+  if (fd < 0) {
+    return absl::InternalError(
+        std::error_code(errno, std::generic_category()).message());
+  }
+  close(fd);
+  return absl::OkStatus();
 }
 
 // Compresses `from` into the gzip file `to` with zlib at level 1.
@@ -148,6 +167,10 @@ absl::Status WriteVolumeImpl(const Volume<T>& volume, const std::string& path) {
   if (gzip_nifti) itk_info.extension = ".nii";
   const std::string temp = TemporaryPath(
       gzip_nifti ? path.substr(0, path.size() - 3) : path, itk_info);
+  if (absl::Status created = CreateEmptyFile(temp); !created.ok()) {
+    return absl::InternalError(
+        absl::StrCat("cannot write ", path, ": ", created.message()));
+  }
   std::error_code ec;
   try {
     auto writer = itk::ImageFileWriter<ImageType>::New();

@@ -191,6 +191,23 @@ TEST_F(VolumeIoTest, UnwritablePathIsInternalAndNamesIt) {
   EXPECT_TRUE(DirectoryEntries().empty());
 }
 
+// A missing directory is found before ITK is handed the path: ITK's NRRD
+// writer leaks its state when nrrdSave fails (LeakSanitizer reported it in
+// the test above) and NIfTI prints "** ERROR" to stderr.
+TEST_F(VolumeIoTest, UnwritablePathNeverReachesItk) {
+  const Volume<float> volume = TestVolume();
+  for (const char* name :
+       {"missing/vol.nii.gz", "missing/vol.nii", "missing/vol.nrrd"}) {
+    ::testing::internal::CaptureStderr();
+    const absl::Status status = WriteVolume(volume, Path(name));
+    const std::string err = ::testing::internal::GetCapturedStderr();
+    EXPECT_EQ(status.code(), absl::StatusCode::kInternal) << name;
+    EXPECT_THAT(status.message(), HasSubstr("No such file or directory"));
+    EXPECT_EQ(err, "") << name;
+  }
+  EXPECT_TRUE(DirectoryEntries().empty());
+}
+
 TEST_F(VolumeIoTest, RenameFailureLeavesNoTemporary) {
   // The target is a non-empty directory, so the final rename fails.
   std::filesystem::create_directories(Path("vol.nrrd/sub"));
