@@ -15,6 +15,8 @@ packages=(
   libcli11-dev prometheus-cpp-dev libabsl-dev nlohmann-json3-dev
   zlib1g-dev libgdcm-dev libssl-dev
   dicom3tools
+  # libFuzzer targets (scripts/fuzz.sh): clang with its sanitizer runtimes
+  clang libclang-rt-14-dev
 )
 # Node.js for the viewer test (tests/viewer: a DICOM SEG loaded as OHIF v3
 # loads it): Debian's nodejs + npm unless node and npm are already there (a
