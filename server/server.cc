@@ -20,6 +20,7 @@
 #include "grpcpp/health_check_service_interface.h"
 #include "server/executor.h"
 #include "server/job_manager.h"
+#include "server/log_safe.h"
 #include "server/metrics.h"
 #include "server/service.h"
 #include "server/spool.h"
@@ -30,13 +31,29 @@
 namespace interslice::server {
 namespace {
 
-// %* in a pattern: the message, escaped for a JSON string.
+// %* in a pattern: the message, LogSafe (the call sites escape client text;
+// this is the backstop), so that one entry is always one line.
+class SafeMessageFlag : public spdlog::custom_flag_formatter {
+ public:
+  void format(const spdlog::details::log_msg& msg, const std::tm&,
+              spdlog::memory_buf_t& dest) override {
+    const std::string safe =
+        LogSafe(absl::string_view(msg.payload.data(), msg.payload.size()));
+    dest.append(safe.data(), safe.data() + safe.size());
+  }
+  std::unique_ptr<custom_flag_formatter> clone() const override {
+    return std::make_unique<SafeMessageFlag>();
+  }
+};
+
+// %* in a pattern: the message, LogSafe and escaped for a JSON string.
 class JsonMessageFlag : public spdlog::custom_flag_formatter {
  public:
   void format(const spdlog::details::log_msg& msg, const std::tm&,
               spdlog::memory_buf_t& dest) override {
     static constexpr char kHex[] = "0123456789abcdef";
-    for (char c : msg.payload) {
+    for (char c :
+         LogSafe(absl::string_view(msg.payload.data(), msg.payload.size()))) {
       switch (c) {
         case '"':
           dest.append(std::string_view("\\\""));
@@ -71,7 +88,10 @@ absl::Status SetUpLogging(const ServerOptions& options) {
         R"({"time":"%Y-%m-%dT%H:%M:%S.%e%z","level":"%l","msg":"%*"})");
     logger->set_formatter(std::move(formatter));
   } else if (options.log_format == "text") {
-    logger->set_pattern("%Y-%m-%dT%H:%M:%S.%e%z %l %v");
+    auto formatter = std::make_unique<spdlog::pattern_formatter>();
+    formatter->add_flag<SafeMessageFlag>('*').set_pattern(
+        "%Y-%m-%dT%H:%M:%S.%e%z %l %*");
+    logger->set_formatter(std::move(formatter));
   } else {
     return absl::InvalidArgumentError("--log-format must be text or json");
   }

@@ -13,6 +13,7 @@
 #include "absl/strings/str_cat.h"
 #include "core/dicom/series_reader.h"
 #include "server/hashing.h"
+#include "server/log_safe.h"
 #include "server/status_map.h"
 #include "spdlog/spdlog.h"
 
@@ -716,7 +717,7 @@ absl::Status InterSliceService::Authenticate(
     if (diff == 0) return absl::OkStatus();
   }
   spdlog::warn("refused a call from {}: missing or wrong bearer token",
-               context->peer());
+               LogSafe(context->peer()));
   return absl::UnauthenticatedError("missing or invalid bearer token");
 }
 

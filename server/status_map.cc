@@ -2,6 +2,8 @@
 
 #include <cctype>
 
+#include "server/log_safe.h"
+
 namespace interslice::server {
 
 std::string RedactPhi(absl::string_view message) {
@@ -38,7 +40,7 @@ std::string RedactPhi(absl::string_view message) {
     out.push_back(message[i]);
     ++i;
   }
-  return out;
+  return LogSafe(out);
 }
 
 grpc::Status ToGrpcStatus(const absl::Status& status) {

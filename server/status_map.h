@@ -20,7 +20,8 @@ grpc::Status ToGrpcStatus(const absl::Status& status);
 // SeriesInstanceUID listed by the reader's "several series" error) with
 // "<uid>". Core messages otherwise carry no patient data by contract, and the
 // server stores uploads under index-based names, so file names cannot leak
-// either.
+// either. The result is also LogSafe (one line, no control characters): a
+// message may quote client text, such as JobSpec.multiframe_volume.
 std::string RedactPhi(absl::string_view message);
 
 }  // namespace interslice::server

@@ -215,6 +215,71 @@ int CountJobs(const std::string& spool) {
   return n;
 }
 
+// An upload opened with a stub: the header (announcing `files` files of
+// `total_bytes`), then whatever the test sends, or nothing.
+class RawUpload {
+ public:
+  RawUpload(const ServerProcess& server, int files, int64_t total_bytes,
+            const std::string& token = "", bool interpolate = false)
+      : stub_(Stub(server)) {
+    context_.set_deadline(std::chrono::system_clock::now() +
+                          std::chrono::seconds(60));
+    if (!token.empty()) {
+      context_.AddMetadata("authorization", "Bearer " + token);
+    }
+    if (interpolate) {
+      bidi_ = stub_->Interpolate(&context_);
+    } else {
+      writer_ = stub_->Submit(&context_, &response_);
+    }
+    v1::UploadRequest request;
+    request.mutable_header()->mutable_spec()->set_threshold(300);
+    request.mutable_header()->set_file_count(files);
+    request.mutable_header()->set_total_bytes(total_bytes);
+    Write(request);
+  }
+  ~RawUpload() {
+    if (!finished_) {
+      context_.TryCancel();
+      Finish();
+    }
+  }
+  bool Write(const v1::UploadRequest& request) {
+    return bidi_ ? bidi_->Write(request) : writer_->Write(request);
+  }
+  // The first chunk of file 0: `size` bytes announced, 64 KiB sent.
+  bool WriteFirstChunk(int64_t size) {
+    v1::UploadRequest request;
+    v1::FileChunk* chunk = request.mutable_chunk();
+    chunk->set_file_index(0);
+    chunk->set_file_size(size);
+    chunk->set_sha256(std::string(32, 'x'));
+    chunk->set_data(std::string(65536, 'a'));
+    return Write(request);
+  }
+  // Waits for the server's final status (the test never half-closes).
+  grpc::Status Finish() {
+    finished_ = true;
+    if (bidi_) {
+      v1::InterpolateResponse response;
+      while (bidi_->Read(&response)) {
+      }
+      return bidi_->Finish();
+    }
+    return writer_->Finish();
+  }
+
+ private:
+  std::unique_ptr<v1::InterSlice::Stub> stub_;
+  grpc::ClientContext context_;
+  v1::SubmitResponse response_;
+  std::unique_ptr<grpc::ClientWriter<v1::UploadRequest>> writer_;
+  std::unique_ptr<
+      grpc::ClientReaderWriter<v1::UploadRequest, v1::InterpolateResponse>>
+      bidi_;
+  bool finished_ = false;
+};
+
 TEST(ServerTest, OneCallGivesTheSameFilesAsRun) {
   TempDir dir;
   const std::string local = RunLocally(dir, kSmallJob, "local");
@@ -715,6 +780,51 @@ TEST(ServerTest, SigtermDrainsWithHealthNotServing) {
   const v1::JobStatus again = WaitFor(server, Trim(submit.out), Solving);
   EXPECT_TRUE(Solving(again));
   Cli(Cat({"cancel", Trim(submit.out)}, server.Server()));
+}
+
+// Client text (label, multiframe volume, series UID, file names) never
+// starts a log line of its own.
+TEST(ServerTest, ClientTextCannotForgeLogLines) {
+  TempDir dir;
+  ServerProcess server(dir / "spool", dir / "server.log",
+                       {"--log-level", "trace"});
+  CommandResult submit =
+      Cli(Cat(Cat({"submit", "--label", "x\nFORGED label",
+                   "--multiframe-volume", "v\nFORGED volume\r\nFORGED cr"},
+                  kSmallJob),
+              server.Server()));
+  ASSERT_EQ(submit.exit_code, 0) << submit.err;
+  const v1::JobStatus failed = WaitFor(server, Trim(submit.out), Ended);
+  EXPECT_EQ(failed.state(), v1::JOB_STATE_FAILED);
+  EXPECT_THAT(failed.error_message(), HasSubstr("\\nFORGED volume"));
+  CommandResult uid = Cli(Cat(Cat({"interpolate", "--series-uid",
+                                   "1.2\nFORGED uid", "--out", dir / "o"},
+                                  kSmallJob),
+                              server.Server()));
+  EXPECT_EQ(uid.exit_code, 1);
+  // A file name with a newline is refused without being quoted.
+  RawUpload named(server, 1, 3);
+  v1::UploadRequest request;
+  request.mutable_chunk()->set_file_name("a\nFORGED name.dcm");
+  request.mutable_chunk()->set_file_size(3);
+  request.mutable_chunk()->set_sha256(std::string(32, 'x'));
+  request.mutable_chunk()->set_data("abc");
+  named.Write(request);
+  EXPECT_EQ(named.Finish().error_code(), grpc::INVALID_ARGUMENT);
+  const std::string log = server.Log();
+  EXPECT_THAT(log, HasSubstr("FORGED volume"));  // it was logged, escaped
+  size_t start = 0;
+  int lines = 0;
+  while (start < log.size()) {
+    size_t end = log.find('\n', start);
+    if (end == std::string::npos) end = log.size();
+    const std::string line = log.substr(start, end - start);
+    EXPECT_THAT(line, Not(::testing::StartsWith("FORGED"))) << line;
+    EXPECT_THAT(line, Not(HasSubstr("\r"))) << line;
+    ++lines;
+    start = end + 1;
+  }
+  EXPECT_GT(lines, 3);
 }
 
 TEST(ServerTest, UnreachableServerIsOneLineAndExitOne) {

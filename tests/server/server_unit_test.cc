@@ -1,6 +1,7 @@
 // Unit tests of the server library's pure parts.
 #include <gtest/gtest.h>
 
+#include "server/log_safe.h"
 #include "server/spec_mapping.h"
 #include "server/status_map.h"
 
@@ -12,6 +13,30 @@ TEST(RedactPhiTest, ReplacesUidsButKeepsNumbers) {
             "several series: <uid> (CT, 4 images).");
   EXPECT_EQ(RedactPhi("file 3 of 12 bytes, spacing 0.45 mm, v1.2.3"),
             "file 3 of 12 bytes, spacing 0.45 mm, v1.2.3");
+}
+
+TEST(LogSafeTest, EscapesControlCharactersAndInvalidUtf8) {
+  EXPECT_EQ(LogSafe("plain text, 1.5 mm"), "plain text, 1.5 mm");
+  EXPECT_EQ(LogSafe("a\nFORGED b\r\tc"), "a\\nFORGED b\\r\\tc");
+  EXPECT_EQ(LogSafe(std::string("x\0y\x1b[31m\x7f", 9)),
+            "x\\x00y\\x1b[31m\\x7f");
+  // Valid UTF-8 stays; stray, overlong, surrogate and truncated bytes not.
+  EXPECT_EQ(LogSafe("Gr\xc3\xb6\xc3\x9f\xe2\x82\xac \xf0\x9f\x98\x80"),
+            "Gr\xc3\xb6\xc3\x9f\xe2\x82\xac \xf0\x9f\x98\x80");
+  EXPECT_EQ(LogSafe("\xff\xc0\xaf\xed\xa0\x80\xe2\x82"),
+            "\\xff\\xc0\\xaf\\xed\\xa0\\x80\\xe2\\x82");
+  // Idempotent, so that layers may each apply it.
+  const std::string once = LogSafe("a\n\\n\xff");
+  EXPECT_EQ(LogSafe(once), once);
+  EXPECT_TRUE(IsLogSafe(once));
+  EXPECT_FALSE(IsLogSafe("a\nb"));
+  EXPECT_FALSE(IsLogSafe("\xc3"));
+  EXPECT_TRUE(IsLogSafe("\xc3\xb6"));
+}
+
+TEST(RedactPhiTest, OutputIsOneLine) {
+  EXPECT_EQ(RedactPhi("volume \"\nFORGED 1.2.840.10008.1\" is not in"),
+            "volume \"\\nFORGED <uid>\" is not in");
 }
 
 TEST(StatusMapTest, CodesMapOneToOne) {
