@@ -12,7 +12,6 @@
 
 #include "absl/strings/str_cat.h"
 #include "core/dicom/series_reader.h"
-#include "server/hashing.h"
 #include "server/log_safe.h"
 #include "server/status_map.h"
 #include "spdlog/spdlog.h"
@@ -81,97 +80,53 @@ class ErrorBidiReactor : public grpc::ServerBidiReactor<Request, Response> {
   void OnDone() override { delete this; }
 };
 
-// Receives one upload (header, then the files' chunks) into the spool.
-// Blocking: called on the I/O executor only, one call at a time per upload.
+// Receives one upload (header, then the files' chunks) into the spool, as
+// UploadStream directs. Blocking: called on the I/O executor only, one call
+// at a time per upload.
 class UploadSink {
  public:
   UploadSink(JobManager* manager, Spool* spool, Metrics* metrics,
-             int max_chunk_bytes, bool ephemeral,
+             const UploadStreamLimits& limits, bool ephemeral,
              std::optional<std::chrono::steady_clock::time_point> deadline)
       : manager_(manager),
         spool_(spool),
         metrics_(metrics),
-        max_chunk_bytes_(max_chunk_bytes),
+        stream_(limits),
         ephemeral_(ephemeral),
         deadline_(deadline) {}
   ~UploadSink() { CloseFile(); }
 
   absl::Status Consume(const v1::UploadRequest& message) {
-    if (!job_) {
-      if (!message.has_header()) {
-        return absl::InvalidArgumentError(
-            "the first message of an upload must be the header");
-      }
-      header_ = message.header();
+    UploadStep step;
+    INTERSLICE_SINK_RETURN_IF_ERROR(stream_.Next(message, &step));
+    if (step.header) {
       absl::StatusOr<std::shared_ptr<Job>> job =
-          manager_->Admit(header_, ephemeral_, deadline_);
+          manager_->Admit(stream_.header(), ephemeral_, deadline_);
       if (!job.ok()) return job.status();
       job_ = *job;
       return absl::OkStatus();
     }
-    if (!message.has_chunk()) {
-      return absl::InvalidArgumentError("the header may be sent only once");
+    if (step.open_file) {
+      INTERSLICE_SINK_RETURN_IF_ERROR(OpenFile(step.file_index));
     }
-    const v1::FileChunk& chunk = message.chunk();
-    if (chunk.data().size() > static_cast<size_t>(max_chunk_bytes_)) {
-      return absl::InvalidArgumentError(
-          absl::StrCat("chunk larger than the server's limit of ",
-                       max_chunk_bytes_, " bytes"));
+    if (!step.data.empty()) {
+      INTERSLICE_SINK_RETURN_IF_ERROR(Write(step.offset, step.data));
     }
-    if (chunk.file_index() != index_) {
-      if (index_ >= 0 && written_ != size_) {
-        return absl::InvalidArgumentError(
-            absl::StrCat("file ", index_, " ended after ", written_, " of ",
-                         size_, " bytes"));
-      }
-      if (chunk.file_index() != index_ + 1 ||
-          chunk.file_index() >= header_.file_count()) {
-        return absl::InvalidArgumentError(absl::StrCat(
-            "expected file index ", index_ + 1, ", got ", chunk.file_index()));
-      }
-      if (chunk.file_size() < 0 || chunk.sha256().size() != 32) {
-        return absl::InvalidArgumentError(absl::StrCat(
-            "file ", chunk.file_index(),
-            ": its first chunk must give file_size >= 0 and a 32-byte "
-            "sha256"));
-      }
-      if (received_ + chunk.file_size() > header_.total_bytes()) {
-        return absl::InvalidArgumentError(
-            "the files are larger than header.total_bytes");
-      }
-      INTERSLICE_SINK_RETURN_IF_ERROR(OpenFile(chunk));
-    }
-    if (chunk.offset() != written_) {
-      return absl::InvalidArgumentError(
-          absl::StrCat("file ", index_, ": expected offset ", written_,
-                       ", got ", chunk.offset()));
-    }
-    if (written_ + static_cast<int64_t>(chunk.data().size()) > size_) {
-      return absl::InvalidArgumentError(
-          absl::StrCat("file ", index_, ": more data than its file_size"));
-    }
-    INTERSLICE_SINK_RETURN_IF_ERROR(Write(chunk.data()));
-    if (written_ == size_) return CompleteFile();
+    if (step.close_file) INTERSLICE_SINK_RETURN_IF_ERROR(SyncAndCloseFile());
     return absl::OkStatus();
   }
 
   // The client half-closed: the upload must be complete.
   absl::Status Finish() {
-    if (!job_) return absl::InvalidArgumentError("no upload header received");
-    if (index_ != header_.file_count() - 1 || written_ != size_ ||
-        received_ != header_.total_bytes()) {
-      return absl::InvalidArgumentError(absl::StrCat(
-          "incomplete upload: ", index_ + 1, " of ", header_.file_count(),
-          " file(s), ", received_, " of ", header_.total_bytes(), " bytes"));
-    }
+    INTERSLICE_SINK_RETURN_IF_ERROR(stream_.Finish());
     FsyncDir(spool_->UploadDir(job_->id()));
-    metrics_->BytesIn(static_cast<double>(received_));
+    metrics_->BytesIn(static_cast<double>(stream_.bytes_received()));
     absl::Status s = manager_->Enqueue(job_);
     if (s.ok()) enqueued_ = true;
     return s;
   }
 
-  // Deletes whatever was received unless the job was queued.
+  // Deletes whatever was received unless the job was queued. Idempotent.
   void Abort() {
     CloseFile();
     if (job_ && !enqueued_ && !aborted_) {
@@ -192,29 +147,25 @@ class UploadSink {
     }
   }
 
-  absl::Status OpenFile(const v1::FileChunk& chunk) {
+  absl::Status OpenFile(int index) {
     CloseFile();
-    index_ = chunk.file_index();
-    size_ = chunk.file_size();
-    written_ = 0;
-    expected_sha_ = chunk.sha256();
-    hash_ = std::make_unique<Sha256>();
     // Index-based names: the client's names may carry patient data, and the
     // reader's error messages quote file names.
     char name[32];
-    std::snprintf(name, sizeof(name), "%06d.dcm", index_);
+    std::snprintf(name, sizeof(name), "%06d.dcm", index);
     const std::string path =
         (fs::path(spool_->UploadDir(job_->id())) / name).string();
     fd_ = ::open(path.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0600);
     if (fd_ < 0) return absl::InternalError("cannot create an upload file");
-    if (size_ == 0) return CompleteFile();
     return absl::OkStatus();
   }
 
-  absl::Status Write(const std::string& data) {
+  absl::Status Write(int64_t offset, std::string_view data) {
     size_t done = 0;
     while (done < data.size()) {
-      const ssize_t n = ::write(fd_, data.data() + done, data.size() - done);
+      const ssize_t n =
+          ::pwrite(fd_, data.data() + done, data.size() - done,
+                   static_cast<off_t>(offset + static_cast<int64_t>(done)));
       if (n < 0) {
         if (errno == EINTR) continue;
         return absl::ResourceExhaustedError(
@@ -222,20 +173,13 @@ class UploadSink {
       }
       done += static_cast<size_t>(n);
     }
-    hash_->Update(data);
-    written_ += static_cast<int64_t>(data.size());
-    received_ += static_cast<int64_t>(data.size());
     return absl::OkStatus();
   }
 
-  absl::Status CompleteFile() {
+  absl::Status SyncAndCloseFile() {
     const bool synced = ::fsync(fd_) == 0;
     CloseFile();
     if (!synced) return absl::InternalError("cannot flush an upload file");
-    if (hash_->Finish() != expected_sha_) {
-      return absl::InvalidArgumentError(
-          absl::StrCat("file ", index_, ": SHA-256 mismatch"));
-    }
     return absl::OkStatus();
   }
 
@@ -249,15 +193,10 @@ class UploadSink {
   JobManager* const manager_;
   Spool* const spool_;
   Metrics* const metrics_;
-  const int max_chunk_bytes_;
+  UploadStream stream_;
   const bool ephemeral_;
   const std::optional<std::chrono::steady_clock::time_point> deadline_;
-  v1::UploadHeader header_;
   std::shared_ptr<Job> job_;
-  int index_ = -1;
-  int64_t size_ = 0, written_ = 0, received_ = 0;
-  std::string expected_sha_;
-  std::unique_ptr<Sha256> hash_;
   int fd_ = -1;
   bool enqueued_ = false;
   bool aborted_ = false;
@@ -316,7 +255,7 @@ class SubmitReactor : public grpc::ServerReadReactor<v1::UploadRequest> {
         response_(response),
         sink_(std::make_shared<UploadSink>(
             service->manager(), service->spool(), service->metrics(),
-            service->options().max_chunk_bytes, false, std::nullopt)) {
+            service->upload_limits(), false, std::nullopt)) {
     StartRead(&request_);
   }
 
@@ -370,7 +309,7 @@ class InterpolateReactor
       : service_(service),
         sink_(std::make_shared<UploadSink>(
             service->manager(), service->spool(), service->metrics(),
-            service->options().max_chunk_bytes, true, CallDeadline(context))) {
+            service->upload_limits(), true, CallDeadline(context))) {
     std::lock_guard<std::mutex> lock(mu_);
     io_pending_ = false;
     StartRead(&request_);
@@ -700,6 +639,13 @@ class FetchReactor : public grpc::ServerWriteReactor<v1::ArtifactChunk> {
 };
 
 }  // namespace
+
+UploadStreamLimits InterSliceService::upload_limits() const {
+  UploadStreamLimits limits;
+  limits.max_chunk_bytes = options_.max_chunk_bytes;
+  limits.max_upload_bytes = manager_->options().max_upload_bytes;
+  return limits;
+}
 
 absl::Status InterSliceService::Authenticate(
     grpc::CallbackServerContext* context) const {

@@ -9,6 +9,8 @@
 // pressure to the client. Job status reaches Watch and Interpolate streams
 // through a Subscription that only wakes the reactor; the reactor sends the
 // newest status when its previous write completes (older ones are coalesced).
+//
+// Uploads: UploadStream checks the stream; the reactors write what it says.
 #ifndef INTERSLICE_SERVER_SERVICE_H_
 #define INTERSLICE_SERVER_SERVICE_H_
 
@@ -19,6 +21,7 @@
 #include "server/job_manager.h"
 #include "server/metrics.h"
 #include "server/spool.h"
+#include "server/upload_stream.h"
 
 namespace interslice::server {
 
@@ -66,6 +69,7 @@ class InterSliceService final : public v1::InterSlice::CallbackService {
   Spool* spool() const { return spool_; }
   Executor* io() const { return io_; }
   Metrics* metrics() const { return metrics_; }
+  UploadStreamLimits upload_limits() const;
 
  private:
   absl::Status Authenticate(grpc::CallbackServerContext* context) const;
