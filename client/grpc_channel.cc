@@ -87,6 +87,10 @@ std::string DescribeRpcError(const grpc::Status& status,
       return absl::StrCat("cannot reach the server at ", address, " (", message,
                           ")");
     case grpc::DEADLINE_EXCEEDED:
+      // The server's upload time limits, not the client's deadline.
+      if (message.rfind("upload ", 0) == 0) {
+        return absl::StrCat("the server ended the upload: ", message);
+      }
       return "the deadline expired before the job finished";
     case grpc::UNAUTHENTICATED:
       return absl::StrCat("the server refused the credentials (", message, ")");

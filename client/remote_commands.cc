@@ -631,6 +631,11 @@ int RunInfo(const Connection& connection) {
       l.workers(), l.threads_per_job(), l.max_queued_jobs(),
       static_cast<long long>(l.max_upload_bytes()),
       static_cast<long long>(l.max_output_voxels()), l.max_chunk_bytes());
+  std::printf(
+      "  uploads <= %d at once (%d per client), idle timeout %g s, time "
+      "limit %g s\n",
+      l.max_concurrent_uploads(), l.max_uploads_per_client(),
+      l.upload_idle_timeout_seconds(), l.upload_timeout_seconds());
   std::printf("  results kept %lld s, spool quota %lld bytes, auth %s\n",
               static_cast<long long>(l.result_retention_seconds()),
               static_cast<long long>(l.spool_quota_bytes()),

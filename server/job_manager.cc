@@ -225,7 +225,8 @@ absl::StatusOr<std::shared_ptr<Job>> JobManager::Admit(
   if (!spec.ok()) return reject(spec.status());
   {
     std::lock_guard<std::mutex> lock(mu_);
-    const int waiting = uploading_ + static_cast<int>(queue_.size());
+    // The slot itself is taken by Enqueue, once the upload is complete.
+    const int waiting = static_cast<int>(queue_.size()) + reserved_;
     if (waiting >= options_.max_queued_jobs) {
       metrics_->JobFinished("rejected");
       return absl::ResourceExhaustedError(
@@ -278,6 +279,17 @@ absl::StatusOr<std::shared_ptr<Job>> JobManager::Admit(
 }
 
 absl::Status JobManager::Enqueue(const std::shared_ptr<Job>& job) {
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    const int waiting = static_cast<int>(queue_.size()) + reserved_;
+    if (waiting >= options_.max_queued_jobs) {
+      metrics_->JobFinished("rejected");
+      return absl::ResourceExhaustedError(
+          absl::StrCat("the server's job queue is full (", waiting,
+                       " job(s) waiting); retry later"));
+    }
+    ++reserved_;
+  }
   job->Update([](JobRecord& r) {
     r.mutable_status()->set_state(v1::JOB_STATE_QUEUED);
     r.mutable_status()->mutable_progress()->set_stage("queued");
@@ -294,12 +306,14 @@ absl::Status JobManager::Enqueue(const std::shared_ptr<Job>& job) {
       record = job->record_;
     }
     if (absl::Status s = spool_->WriteRecord(record); !s.ok()) {
-      Abandon(job);
-      return s;
+      std::lock_guard<std::mutex> lock(mu_);
+      --reserved_;
+      return s;  // the caller abandons the job
     }
   }
   {
     std::lock_guard<std::mutex> lock(mu_);
+    --reserved_;
     --uploading_;
     jobs_[job->id()] = job;
     queue_.push_back(job);

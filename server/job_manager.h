@@ -124,14 +124,19 @@ class JobManager {
   absl::Status Recover();
   void Start();
 
-  // Blocking. Checks the header (limits, queue room, spool quota, spec) and
-  // creates the job's folder. RESOURCE_EXHAUSTED, INVALID_ARGUMENT,
-  // UNIMPLEMENTED or UNAVAILABLE (draining). `deadline`: Interpolate's call
-  // deadline; detached jobs use options.deadline_seconds.
+  // Blocking. Checks the header (limits, spool quota, spec; and that the
+  // queue is not full already, so that a client does not upload in vain),
+  // reserves the upload's spool space and creates the job's folder.
+  // RESOURCE_EXHAUSTED, INVALID_ARGUMENT, UNIMPLEMENTED or UNAVAILABLE
+  // (draining). No queue slot is taken yet: uploads in progress are bounded
+  // by the service (UploadGuard). `deadline`: Interpolate's call deadline;
+  // detached jobs use options.deadline_seconds.
   absl::StatusOr<std::shared_ptr<Job>> Admit(
       const v1::UploadHeader& header, bool ephemeral,
       std::optional<std::chrono::steady_clock::time_point> deadline);
-  // Blocking. The upload is complete and verified: persist and queue.
+  // Blocking. The upload is complete and verified: take a queue slot,
+  // persist and queue. RESOURCE_EXHAUSTED when the queue is full; on error
+  // the caller abandons the job.
   absl::Status Enqueue(const std::shared_ptr<Job>& job);
   // Blocking. The upload failed: delete everything.
   void Abandon(const std::shared_ptr<Job>& job);
@@ -172,7 +177,8 @@ class JobManager {
   std::condition_variable cv_;
   std::map<std::string, std::shared_ptr<Job>> jobs_;
   std::deque<std::shared_ptr<Job>> queue_;
-  int uploading_ = 0;
+  int uploading_ = 0;  // admitted, upload not complete
+  int reserved_ = 0;   // queue slots taken by jobs being persisted
   int running_ = 0;
   bool draining_ = false;
   bool stopping_ = false;

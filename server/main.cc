@@ -29,8 +29,23 @@ int main(int argc, char** argv) {
                  "Solver threads per job (0 = CPUs / workers)")
       ->capture_default_str();
   app.add_option("--max-queued", o.max_queued_jobs,
-                 "Jobs waiting (uploading or queued); beyond: "
-                 "RESOURCE_EXHAUSTED")
+                 "Jobs queued (upload complete, waiting for a worker); "
+                 "beyond: RESOURCE_EXHAUSTED")
+      ->capture_default_str();
+  app.add_option("--max-concurrent-uploads", o.max_concurrent_uploads,
+                 "Uploads in progress at once, in all (0 = 2 x --max-queued)")
+      ->capture_default_str();
+  app.add_option("--max-uploads-per-peer", o.max_uploads_per_peer,
+                 "Uploads in progress at once from one client (its "
+                 "authenticated identity, else its IP address)")
+      ->capture_default_str();
+  app.add_option("--upload-idle-timeout", o.upload_idle_timeout_seconds,
+                 "Cancel an upload that sends no data for this many seconds "
+                 "(0 = never)")
+      ->capture_default_str();
+  app.add_option("--upload-timeout", o.upload_timeout_seconds,
+                 "Cancel an upload not complete after this many seconds "
+                 "(0 = never)")
       ->capture_default_str();
   app.add_option("--max-upload-bytes", o.max_upload_bytes,
                  "Largest upload per job, bytes")

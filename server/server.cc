@@ -183,6 +183,17 @@ int RunServer(ServerOptions options) {
         "--max-queued must be >= 0 and --max-chunk-bytes in [1 KiB, 4 MiB)"));
   }
 
+  if (options.max_concurrent_uploads <= 0) {
+    options.max_concurrent_uploads = std::max(1, 2 * options.max_queued_jobs);
+  }
+  if (options.max_uploads_per_peer < 1 ||
+      !(options.upload_idle_timeout_seconds >= 0) ||
+      !(options.upload_timeout_seconds >= 0)) {
+    return fail(absl::InvalidArgumentError(
+        "--max-uploads-per-peer must be >= 1, --upload-idle-timeout and "
+        "--upload-timeout >= 0"));
+  }
+
   std::string token;
   if (!options.auth_token_file.empty()) {
     absl::StatusOr<std::string> t =
@@ -246,6 +257,12 @@ int RunServer(ServerOptions options) {
   ServiceOptions service_options;
   service_options.auth_token = token;
   service_options.max_chunk_bytes = options.max_chunk_bytes;
+  service_options.uploads.max_concurrent = options.max_concurrent_uploads;
+  service_options.uploads.max_per_peer = options.max_uploads_per_peer;
+  service_options.uploads.idle_timeout_seconds =
+      options.upload_idle_timeout_seconds;
+  service_options.uploads.total_timeout_seconds =
+      options.upload_timeout_seconds;
   InterSliceService service(service_options, &manager, spool->get(), &io,
                             &metrics);
 

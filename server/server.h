@@ -15,6 +15,14 @@ struct ServerOptions {
   int workers = 0;
   int threads_per_job = 0;
   int max_queued_jobs = 16;
+  // Uploads in progress (not queued yet): in all (0 = 2 x max_queued_jobs),
+  // and from one client (identity, else IP address).
+  int max_concurrent_uploads = 0;
+  int max_uploads_per_peer = 4;
+  // Cancel an upload after this long without data / this long in all;
+  // 0 = never.
+  double upload_idle_timeout_seconds = 30;
+  double upload_timeout_seconds = 3600;
   int64_t max_upload_bytes = int64_t{2} << 30;
   int64_t max_output_voxels = int64_t{1} << 30;
   int64_t spool_quota_bytes = int64_t{20} << 30;

@@ -202,6 +202,18 @@ class UploadSink {
   bool aborted_ = false;
 };
 
+// Whether an accepted upload message moved the upload forward (resets the
+// idle clock): the header, or file data. Empty chunks do not count.
+bool IsProgress(const v1::UploadRequest& message) {
+  return message.has_header() ||
+         (message.has_chunk() && !message.chunk().data().empty());
+}
+
+// Uploads are limited per client IP address.
+std::string UploadPeerKey(grpc::CallbackServerContext* context) {
+  return "ip:" + PeerAddress(context->peer());
+}
+
 // Reads one artifact chunk by chunk (on the I/O executor).
 class ArtifactReader {
  public:
@@ -250,53 +262,118 @@ class ArtifactReader {
 
 class SubmitReactor : public grpc::ServerReadReactor<v1::UploadRequest> {
  public:
-  SubmitReactor(InterSliceService* service, v1::SubmitResponse* response)
+  SubmitReactor(InterSliceService* service,
+                grpc::CallbackServerContext* context,
+                v1::SubmitResponse* response)
       : service_(service),
         response_(response),
         sink_(std::make_shared<UploadSink>(
             service->manager(), service->spool(), service->metrics(),
             service->upload_limits(), false, std::nullopt)) {
+    std::lock_guard<std::mutex> lock(mu_);
+    absl::StatusOr<std::shared_ptr<UploadTicket>> ticket =
+        service->uploads()->Begin(
+            UploadPeerKey(context),
+            [this](const absl::Status& s, bool idle) { OnTimeout(s, idle); });
+    if (!ticket.ok()) {
+      service->metrics()->JobFinished("rejected");
+      ending_ = true;
+      Finish(ToGrpcStatus(ticket.status()));
+      return;
+    }
+    ticket_ = *std::move(ticket);
     StartRead(&request_);
   }
 
   void OnReadDone(bool ok) override {
-    // Exactly one disk step follows every read, and the next read starts
-    // only after it: the reactor is alive until Finish, which only these
-    // steps call.
-    if (ok) {
-      service_->io()->Post([this] {
-        absl::Status s = sink_->Consume(request_);
-        if (!s.ok()) {
-          sink_->Abort();
-          Finish(ToGrpcStatus(s));
-          return;
-        }
-        StartRead(&request_);
-      });
-      return;
-    }
-    service_->io()->Post([this] {
-      absl::Status s = cancelled_ ? absl::CancelledError("upload cancelled")
-                                  : sink_->Finish();
-      if (!s.ok()) {
-        sink_->Abort();
-        Finish(ToGrpcStatus(s));
-        return;
-      }
-      response_->set_job_id(sink_->job()->id());
-      *response_->mutable_status() = sink_->job()->Snapshot(false);
-      Finish(grpc::Status::OK);
-    });
+    std::lock_guard<std::mutex> lock(mu_);
+    if (ending_) return;  // a timeout is ending the call
+    io_pending_ = true;
+    service_->io()->Post([this, ok] { Step(!ok); });
   }
-  void OnCancel() override { cancelled_ = true; }
-  void OnDone() override { delete this; }
+  void OnCancel() override {
+    std::lock_guard<std::mutex> lock(mu_);
+    cancelled_ = true;
+  }
+  void OnDone() override {
+    if (ticket_) ticket_->Close();
+    // A disk step may still be unlocking mu_ after its Finish().
+    { std::lock_guard<std::mutex> lock(mu_); }
+    delete this;
+  }
 
  private:
+  // Why the upload must stop although the last step succeeded, if it must.
+  absl::Status InterruptionLocked() const {
+    if (cancelled_) return absl::CancelledError("upload cancelled");
+    return interruption_;
+  }
+
+  // One disk step (I/O executor): the message just read, or the end of the
+  // upload (`end`: the client half-closed, or the call broke). While it
+  // runs no read is pending, so it alone touches sink_ and request_.
+  void Step(bool end) {
+    absl::Status s;
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      s = InterruptionLocked();
+    }
+    if (s.ok()) s = end ? sink_->Finish() : sink_->Consume(request_);
+    if (s.ok() && !end && IsProgress(request_)) ticket_->Progress();
+    std::unique_lock<std::mutex> lock(mu_);
+    if (s.ok()) s = InterruptionLocked();
+    if (s.ok() && !end) {
+      io_pending_ = false;
+      StartRead(&request_);
+      return;
+    }
+    ending_ = true;
+    lock.unlock();
+    ticket_->Release();
+    if (s.ok()) {
+      response_->set_job_id(sink_->job()->id());
+      *response_->mutable_status() = sink_->job()->Snapshot(false);
+    } else {
+      sink_->Abort();  // before the status: the client then finds no files
+    }
+    lock.lock();
+    io_pending_ = false;
+    Finish(ToGrpcStatus(s));
+  }
+
+  // The guard's thread: no data for the idle time, or over the total time.
+  void OnTimeout(const absl::Status& status, bool idle) {
+    std::lock_guard<std::mutex> lock(mu_);
+    if (ending_) return;
+    if (io_pending_) {
+      // Our own disk step is slow, not the client: only the total limit
+      // applies, when the step ends.
+      if (!idle) interruption_ = status;
+      return;
+    }
+    // A read is pending and the client sends nothing: end the call (the
+    // pending read then completes with ok = false and is ignored).
+    ending_ = true;
+    io_pending_ = true;
+    service_->io()->Post([this, status] {
+      sink_->Abort();
+      ticket_->Release();
+      std::lock_guard<std::mutex> lock(mu_);
+      io_pending_ = false;
+      Finish(ToGrpcStatus(status));
+    });
+  }
+
   InterSliceService* const service_;
   v1::SubmitResponse* const response_;
   std::shared_ptr<UploadSink> sink_;
+  std::shared_ptr<UploadTicket> ticket_;
   v1::UploadRequest request_;
-  std::atomic<bool> cancelled_{false};
+  std::mutex mu_;
+  bool io_pending_ = false;
+  bool ending_ = false;  // Finish called or about to be: no more steps
+  bool cancelled_ = false;
+  absl::Status interruption_;
 };
 
 // One call: upload, then progress, then artifacts, then the summary.
@@ -311,37 +388,55 @@ class InterpolateReactor
             service->manager(), service->spool(), service->metrics(),
             service->upload_limits(), true, CallDeadline(context))) {
     std::lock_guard<std::mutex> lock(mu_);
+    absl::StatusOr<std::shared_ptr<UploadTicket>> ticket =
+        service->uploads()->Begin(
+            UploadPeerKey(context),
+            [this](const absl::Status& s, bool idle) { OnTimeout(s, idle); });
+    if (!ticket.ok()) {
+      service->metrics()->JobFinished("rejected");
+      FinishLocked(ToGrpcStatus(ticket.status()));
+      return;
+    }
+    ticket_ = *std::move(ticket);
     io_pending_ = false;
     StartRead(&request_);
   }
 
   void OnReadDone(bool ok) override {
     std::lock_guard<std::mutex> lock(mu_);
-    if (finished_) return;
+    if (finished_ || upload_ending_) return;
     io_pending_ = true;
     if (ok) {
       service_->io()->Post([this] {
         absl::Status s = sink_->Consume(request_);
-        std::lock_guard<std::mutex> lock(mu_);
-        io_pending_ = false;
+        if (s.ok() && IsProgress(request_)) ticket_->Progress();
+        std::unique_lock<std::mutex> lock(mu_);
+        if (s.ok() && !interruption_.ok()) s = interruption_;
         if (!s.ok() || cancelled_) {
+          upload_ending_ = true;
+          lock.unlock();
           sink_->Abort();
+          ticket_->Release();
+          lock.lock();
+          io_pending_ = false;
           FinishLocked(cancelled_ ? grpc::Status::CANCELLED : ToGrpcStatus(s));
           return;
         }
+        io_pending_ = false;
         StartRead(&request_);
       });
       return;
     }
+    upload_ending_ = true;
     service_->io()->Post([this] {
-      bool cancelled;
+      absl::Status s;
       {
         std::lock_guard<std::mutex> lock(mu_);
-        cancelled = cancelled_;
+        if (cancelled_) s = absl::CancelledError("call cancelled");
       }
-      absl::Status s =
-          cancelled ? absl::CancelledError("call cancelled") : sink_->Finish();
+      if (s.ok()) s = sink_->Finish();
       if (!s.ok()) sink_->Abort();
+      ticket_->Release();  // the upload is over either way
       std::lock_guard<std::mutex> lock(mu_);
       io_pending_ = false;
       if (!s.ok()) {
@@ -380,6 +475,7 @@ class InterpolateReactor
 
   void OnDone() override {
     if (subscription_) subscription_->Close();
+    if (ticket_) ticket_->Close();
     // Deleting files blocks: leave it to the I/O executor. Discard cancels
     // the job if it still runs (a broken call cancels its job).
     std::shared_ptr<UploadSink> sink = sink_;
@@ -388,10 +484,35 @@ class InterpolateReactor
       sink->Abort();
       if (sink->enqueued()) manager->Discard(sink->job());
     });
+    // A disk step may still be unlocking mu_ after its Finish().
+    { std::lock_guard<std::mutex> lock(mu_); }
     delete this;
   }
 
  private:
+  // The guard's thread: no data for the idle time, or over the total time.
+  void OnTimeout(const absl::Status& status, bool idle) {
+    std::lock_guard<std::mutex> lock(mu_);
+    if (finished_ || upload_ending_) return;
+    if (io_pending_) {
+      // Our own disk step is slow, not the client: only the total limit
+      // applies, when the step ends.
+      if (!idle) interruption_ = status;
+      return;
+    }
+    // A read is pending and the client sends nothing: end the call (the
+    // pending read then completes with ok = false and is ignored).
+    upload_ending_ = true;
+    io_pending_ = true;
+    service_->io()->Post([this, status] {
+      sink_->Abort();
+      ticket_->Release();
+      std::lock_guard<std::mutex> lock(mu_);
+      io_pending_ = false;
+      FinishLocked(ToGrpcStatus(status));
+    });
+  }
+
   // Sends the next message if none is in flight. mu_ held.
   void WriteNextLocked() {
     if (finished_ || write_in_flight_ || io_pending_ || !job_) return;
@@ -489,6 +610,7 @@ class InterpolateReactor
 
   InterSliceService* const service_;
   std::shared_ptr<UploadSink> sink_;
+  std::shared_ptr<UploadTicket> ticket_;
   std::mutex mu_;
   v1::UploadRequest request_;
   v1::InterpolateResponse response_;
@@ -505,6 +627,8 @@ class InterpolateReactor
   bool summary_sent_ = false;
   bool finished_ = false;
   bool cancelled_ = false;
+  bool upload_ending_ = false;  // no more upload reads or steps
+  absl::Status interruption_;   // the total upload time ran out
 };
 
 class WatchReactor : public grpc::ServerWriteReactor<v1::JobStatus> {
@@ -681,7 +805,7 @@ grpc::ServerReadReactor<v1::UploadRequest>* InterSliceService::Submit(
   if (absl::Status s = Authenticate(context); !s.ok()) {
     return new ErrorReadReactor<v1::UploadRequest>(ToGrpcStatus(s));
   }
-  return new SubmitReactor(this, response);
+  return new SubmitReactor(this, context, response);
 }
 
 grpc::ServerWriteReactor<v1::JobStatus>* InterSliceService::Watch(
@@ -801,6 +925,11 @@ grpc::ServerUnaryReactor* InterSliceService::GetServerInfo(
   limits->set_max_chunk_bytes(options_.max_chunk_bytes);
   limits->set_result_retention_seconds(m.retention_seconds);
   limits->set_spool_quota_bytes(spool_->quota_bytes());
+  limits->set_max_concurrent_uploads(options_.uploads.max_concurrent);
+  limits->set_max_uploads_per_client(options_.uploads.max_per_peer);
+  limits->set_upload_idle_timeout_seconds(
+      options_.uploads.idle_timeout_seconds);
+  limits->set_upload_timeout_seconds(options_.uploads.total_timeout_seconds);
   for (const char* s : {"linear", "cg", "direct"}) response->add_methods(s);
   for (const char* s : {"nii", "nrrd"}) response->add_volume_formats(s);
   for (const char* s : {"stl", "ply", "obj"}) response->add_mesh_formats(s);

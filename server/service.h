@@ -10,10 +10,13 @@
 // through a Subscription that only wakes the reactor; the reactor sends the
 // newest status when its previous write completes (older ones are coalesced).
 //
-// Uploads: UploadStream checks the stream; the reactors write what it says.
+// Uploads: UploadStream checks the stream, UploadGuard bounds the uploads in
+// progress (in total and per client) and cancels stalled ones; a queue slot
+// is taken only when an upload is complete.
 #ifndef INTERSLICE_SERVER_SERVICE_H_
 #define INTERSLICE_SERVER_SERVICE_H_
 
+#include <memory>
 #include <string>
 
 #include "interslice/v1/interslice.grpc.pb.h"
@@ -21,6 +24,7 @@
 #include "server/job_manager.h"
 #include "server/metrics.h"
 #include "server/spool.h"
+#include "server/upload_guard.h"
 #include "server/upload_stream.h"
 
 namespace interslice::server {
@@ -29,6 +33,7 @@ struct ServiceOptions {
   // Bearer token every call must carry; empty = no authentication.
   std::string auth_token;
   int max_chunk_bytes = 1 << 20;
+  UploadGuardOptions uploads;
   std::string version = "0.1.0";
 };
 
@@ -37,6 +42,7 @@ class InterSliceService final : public v1::InterSlice::CallbackService {
   InterSliceService(const ServiceOptions& options, JobManager* manager,
                     Spool* spool, Executor* io, Metrics* metrics)
       : options_(options),
+        uploads_(std::make_unique<UploadGuard>(options.uploads)),
         manager_(manager),
         spool_(spool),
         io_(io),
@@ -69,12 +75,14 @@ class InterSliceService final : public v1::InterSlice::CallbackService {
   Spool* spool() const { return spool_; }
   Executor* io() const { return io_; }
   Metrics* metrics() const { return metrics_; }
+  UploadGuard* uploads() const { return uploads_.get(); }
   UploadStreamLimits upload_limits() const;
 
  private:
   absl::Status Authenticate(grpc::CallbackServerContext* context) const;
 
   const ServiceOptions options_;
+  const std::unique_ptr<UploadGuard> uploads_;
   JobManager* const manager_;
   Spool* const spool_;
   Executor* const io_;

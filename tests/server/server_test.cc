@@ -280,6 +280,12 @@ class RawUpload {
   bool finished_ = false;
 };
 
+void WaitForJobFolders(const std::string& spool, int n) {
+  for (int i = 0; i < 500 && CountJobs(spool) != n; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+}
+
 TEST(ServerTest, OneCallGivesTheSameFilesAsRun) {
   TempDir dir;
   const std::string local = RunLocally(dir, kSmallJob, "local");
@@ -780,6 +786,77 @@ TEST(ServerTest, SigtermDrainsWithHealthNotServing) {
   const v1::JobStatus again = WaitFor(server, Trim(submit.out), Solving);
   EXPECT_TRUE(Solving(again));
   Cli(Cat({"cancel", Trim(submit.out)}, server.Server()));
+}
+
+// Uploads in progress take no queue slots: 16 streams that send their
+// header and then nothing do not keep a real job out.
+TEST(ServerTest, StalledUploadsDoNotBlockRealJobs) {
+  TempDir dir;
+  ServerProcess server(dir / "spool", dir / "server.log",
+                       {"--max-queued", "16", "--max-uploads-per-peer", "64",
+                        "--max-concurrent-uploads", "64"});
+  std::vector<std::unique_ptr<RawUpload>> stalled;
+  for (int i = 0; i < 16; ++i) {
+    stalled.push_back(std::make_unique<RawUpload>(server, 2, 1 << 20));
+  }
+  WaitForJobFolders(dir / "spool", 16);
+  ASSERT_EQ(CountJobs(dir / "spool"), 16) << server.Log();
+  EXPECT_EQ(Cli(Cat({"health"}, server.Server())).exit_code, 0);
+  CommandResult r = Cli(Cat(Cat({"interpolate"}, kSmallJob),
+                            Cat(server.Server(), {"--out", dir / "o"})));
+  EXPECT_EQ(r.exit_code, 0) << r.err;
+  CommandResult submit = Cli(Cat(Cat({"submit"}, kSmallJob), server.Server()));
+  ASSERT_EQ(submit.exit_code, 0) << submit.err;
+  EXPECT_EQ(WaitFor(server, Trim(submit.out), Ended).state(),
+            v1::JOB_STATE_SUCCEEDED);
+}
+
+TEST(ServerTest, StalledUploadIsCancelledAndLeavesNothingBehind) {
+  TempDir dir;
+  ServerProcess server(dir / "spool", dir / "server.log",
+                       {"--upload-idle-timeout", "1"});
+  for (const bool interpolate : {false, true}) {
+    SCOPED_TRACE(interpolate ? "Interpolate" : "Submit");
+    RawUpload upload(server, 1, 1 << 20, "", interpolate);
+    ASSERT_TRUE(upload.WriteFirstChunk(1 << 20));
+    WaitForJobFolders(dir / "spool", 1);
+    EXPECT_EQ(CountJobs(dir / "spool"), 1);
+    const auto start = std::chrono::steady_clock::now();
+    const grpc::Status status = upload.Finish();
+    const auto waited = std::chrono::steady_clock::now() - start;
+    EXPECT_EQ(status.error_code(), grpc::DEADLINE_EXCEEDED);
+    EXPECT_EQ(status.error_message(),
+              "upload stalled: no data for 1 s; the server cancelled it");
+    EXPECT_LT(waited, std::chrono::seconds(10));
+    // Its files went before the status was sent.
+    EXPECT_EQ(CountJobs(dir / "spool"), 0);
+  }
+  // The server goes on serving.
+  CommandResult r = Cli(Cat(Cat({"interpolate"}, kSmallJob),
+                            Cat(server.Server(), {"--out", dir / "o"})));
+  EXPECT_EQ(r.exit_code, 0) << r.err;
+}
+
+TEST(ServerTest, UploadsAreLimitedPerClient) {
+  TempDir dir;
+  ServerProcess server(dir / "spool", dir / "server.log",
+                       {"--max-uploads-per-peer", "2"});
+  auto first = std::make_unique<RawUpload>(server, 2, 1 << 20);
+  RawUpload second(server, 2, 1 << 20);
+  WaitForJobFolders(dir / "spool", 2);
+  ASSERT_EQ(CountJobs(dir / "spool"), 2);
+  RawUpload third(server, 2, 1 << 20);
+  const grpc::Status refused = third.Finish();
+  EXPECT_EQ(refused.error_code(), grpc::RESOURCE_EXHAUSTED);
+  EXPECT_THAT(refused.error_message(),
+              HasSubstr("too many uploads in progress from this client"));
+  CommandResult cli = Cli(Cat(Cat({"submit"}, kSmallJob), server.Server()));
+  EXPECT_EQ(cli.exit_code, 1);
+  EXPECT_THAT(cli.err, HasSubstr("--max-uploads-per-peer"));
+  first.reset();  // one upload ends: its slot is free again
+  WaitForJobFolders(dir / "spool", 1);
+  CommandResult ok = Cli(Cat(Cat({"submit"}, kSmallJob), server.Server()));
+  EXPECT_EQ(ok.exit_code, 0) << ok.err;
 }
 
 // Client text (label, multiframe volume, series UID, file names) never

@@ -1,9 +1,15 @@
 // Unit tests of the server library's pure parts.
 #include <gtest/gtest.h>
 
+#include <atomic>
+#include <chrono>
+#include <mutex>
+#include <thread>
+
 #include "server/log_safe.h"
 #include "server/spec_mapping.h"
 #include "server/status_map.h"
+#include "server/upload_guard.h"
 
 namespace interslice::server {
 namespace {
@@ -77,6 +83,98 @@ TEST(SpecMappingTest, DefaultsMatchTheCli) {
   p.mutable_derived_series()->add_contents("bogus");
   EXPECT_EQ(JobSpecFromProto(p).status().code(),
             absl::StatusCode::kInvalidArgument);
+}
+
+TEST(PeerAddressTest, DropsThePort) {
+  EXPECT_EQ(PeerAddress("ipv4:10.1.2.3:5000"), "10.1.2.3");
+  EXPECT_EQ(PeerAddress("ipv6:[::1]:5000"), "::1");
+  EXPECT_EQ(PeerAddress("ipv6:%5B::1%5D:5000"), "::1");
+  EXPECT_EQ(PeerAddress("unix:/tmp/socket"), "unix:/tmp/socket");
+}
+
+TEST(UploadGuardTest, LimitsUploadsInAllAndPerPeer) {
+  UploadGuardOptions options;
+  options.max_concurrent = 3;
+  options.max_per_peer = 2;
+  options.idle_timeout_seconds = 0;
+  UploadGuard guard(options);
+  auto a1 = guard.Begin("a", nullptr);
+  auto a2 = guard.Begin("a", nullptr);
+  ASSERT_TRUE(a1.ok() && a2.ok());
+  auto a3 = guard.Begin("a", nullptr);
+  EXPECT_EQ(a3.status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_NE(a3.status().message().find("--max-uploads-per-peer"),
+            std::string::npos);
+  auto b1 = guard.Begin("b", nullptr);
+  ASSERT_TRUE(b1.ok());
+  auto c1 = guard.Begin("c", nullptr);
+  EXPECT_EQ(c1.status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_NE(c1.status().message().find("--max-concurrent-uploads"),
+            std::string::npos);
+  EXPECT_EQ(guard.active(), 3);
+  (*a1)->Release();
+  (*a1)->Release();  // idempotent
+  EXPECT_EQ(guard.active(), 2);
+  EXPECT_TRUE(guard.Begin("a", nullptr).ok());  // released with the ticket
+  EXPECT_EQ(guard.active(), 2);
+  b1->reset();  // a ticket dropped without Release frees its slot too
+  EXPECT_EQ(guard.active(), 1);
+}
+
+TEST(UploadGuardTest, ReportsStallsUntilClosed) {
+  UploadGuardOptions options;
+  options.idle_timeout_seconds = 0.3;
+  UploadGuard guard(options);
+  std::atomic<int> stalls{0};
+  absl::Status last;
+  std::mutex mu;
+  auto ticket = guard.Begin("a", [&](const absl::Status& s, bool idle) {
+    std::lock_guard<std::mutex> lock(mu);
+    EXPECT_TRUE(idle);
+    last = s;
+    ++stalls;
+  });
+  ASSERT_TRUE(ticket.ok());
+  // Progress keeps it alive.
+  for (int i = 0; i < 8; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    (*ticket)->Progress();
+  }
+  EXPECT_EQ(stalls, 0);
+  for (int i = 0; i < 50 && stalls == 0; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  EXPECT_GE(stalls, 1);
+  {
+    std::lock_guard<std::mutex> lock(mu);
+    EXPECT_EQ(last.code(), absl::StatusCode::kDeadlineExceeded);
+    EXPECT_EQ(last.message(),
+              "upload stalled: no data for 0.3 s; the server cancelled it");
+  }
+  (*ticket)->Close();
+  const int seen = stalls;
+  std::this_thread::sleep_for(std::chrono::milliseconds(800));
+  EXPECT_EQ(stalls, seen);
+}
+
+TEST(UploadGuardTest, ReportsTheTotalLimitOnce) {
+  UploadGuardOptions options;
+  options.idle_timeout_seconds = 0;
+  options.total_timeout_seconds = 0.2;
+  UploadGuard guard(options);
+  std::atomic<int> calls{0};
+  auto ticket = guard.Begin("a", [&](const absl::Status& s, bool idle) {
+    EXPECT_FALSE(idle);
+    EXPECT_EQ(s.code(), absl::StatusCode::kDeadlineExceeded);
+    ++calls;
+  });
+  ASSERT_TRUE(ticket.ok());
+  for (int i = 0; i < 8; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    (*ticket)->Progress();  // data arrives, yet the total limit applies
+  }
+  EXPECT_EQ(calls, 1);
+  (*ticket)->Close();
 }
 
 }  // namespace
