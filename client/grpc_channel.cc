@@ -84,6 +84,12 @@ std::string DescribeRpcError(const grpc::Status& status,
   const std::string message = status.error_message();
   switch (status.error_code()) {
     case grpc::UNAVAILABLE:
+      // The server's own refusal while it drains (its messages say so), not
+      // a transport failure: retrying on another replica helps.
+      if (message.find("shutting down") != std::string::npos) {
+        return absl::StrCat("the server at ", address,
+                            " is unavailable: ", message);
+      }
       return absl::StrCat("cannot reach the server at ", address, " (", message,
                           ")");
     case grpc::DEADLINE_EXCEEDED:

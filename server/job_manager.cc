@@ -281,6 +281,11 @@ absl::StatusOr<std::shared_ptr<Job>> JobManager::Admit(
 absl::Status JobManager::Enqueue(const std::shared_ptr<Job>& job) {
   {
     std::lock_guard<std::mutex> lock(mu_);
+    if (draining_ && job->ephemeral()) {
+      return absl::UnavailableError(
+          "the server is shutting down and accepts no new jobs; retry on "
+          "another replica");
+    }
     const int waiting = static_cast<int>(queue_.size()) + reserved_;
     if (waiting >= options_.max_queued_jobs) {
       metrics_->JobFinished("rejected");
@@ -431,8 +436,49 @@ std::vector<v1::JobStatus> JobManager::List(bool include_finished) {
 }
 
 void JobManager::BeginDrain() {
-  std::lock_guard<std::mutex> lock(mu_);
-  draining_ = true;
+  std::vector<std::shared_ptr<Subscription>> to_fire;
+  std::vector<std::string> ended;
+  int64_t upload_bytes = 0;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    draining_ = true;
+    // Queued Interpolate jobs would only be cancelled at the end of the
+    // grace period, their callers told nothing useful: end them now, so
+    // that the callers can retry on another replica at once. The state
+    // changes under mu_, so that a concurrent Discard sees a terminal job
+    // and does not release its upload bytes a second time.
+    const int64_t now = UnixMillisNow();
+    for (auto it = queue_.begin(); it != queue_.end();) {
+      const std::shared_ptr<Job> job = *it;
+      if (!job->ephemeral()) {
+        ++it;
+        continue;
+      }
+      std::lock_guard<std::mutex> job_lock(job->mu_);
+      v1::JobStatus* s = job->record_.mutable_status();
+      s->set_state(v1::JOB_STATE_FAILED);
+      s->set_error_code(static_cast<int>(absl::StatusCode::kUnavailable));
+      s->set_error_message(
+          "the server is shutting down and did not start the job; retry on "
+          "another replica");
+      s->set_finished_unix_ms(now);
+      s->set_expires_unix_ms(now + options_.retention_seconds * 1000);
+      s->mutable_progress()->set_stage("done");
+      s->set_sequence(s->sequence() + 1);
+      upload_bytes += job->record_.upload_bytes();
+      to_fire.insert(to_fire.end(), job->subscriptions_.begin(),
+                     job->subscriptions_.end());
+      ended.push_back(job->id());
+      it = queue_.erase(it);
+    }
+    PublishGauges();
+  }
+  spool_->Release(upload_bytes);
+  for (const auto& subscription : to_fire) subscription->Fire();
+  for (const std::string& id : ended) {
+    metrics_->JobFinished("failed");
+    spdlog::info("job={} not started: the server is shutting down", id);
+  }
 }
 
 bool JobManager::draining() {

@@ -135,8 +135,9 @@ class JobManager {
       const v1::UploadHeader& header, bool ephemeral,
       std::optional<std::chrono::steady_clock::time_point> deadline);
   // Blocking. The upload is complete and verified: take a queue slot,
-  // persist and queue. RESOURCE_EXHAUSTED when the queue is full; on error
-  // the caller abandons the job.
+  // persist and queue. RESOURCE_EXHAUSTED when the queue is full,
+  // UNAVAILABLE for an Interpolate job while draining; on error the caller
+  // abandons the job.
   absl::Status Enqueue(const std::shared_ptr<Job>& job);
   // Blocking. The upload failed: delete everything.
   void Abandon(const std::shared_ptr<Job>& job);
@@ -150,7 +151,9 @@ class JobManager {
   // Detached jobs, newest first, without report_json.
   std::vector<v1::JobStatus> List(bool include_finished);
 
-  // Refuse new jobs from now on.
+  // Refuse new jobs from now on. Queued Interpolate jobs end at once with
+  // UNAVAILABLE (their callers can retry elsewhere); queued detached jobs
+  // stay queued on disk.
   void BeginDrain();
   bool draining();
   // Blocking: waits up to `grace` for running jobs, then cancels them

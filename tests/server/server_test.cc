@@ -904,6 +904,46 @@ TEST(ServerTest, ClientTextCannotForgeLogLines) {
   EXPECT_GT(lines, 3);
 }
 
+// SIGTERM: a queued Interpolate call ends at once with UNAVAILABLE and a
+// "shutting down, retry elsewhere" message, like a new call during the
+// drain, rather than with "Cancelling all calls" when the server closes.
+TEST(ServerTest, SigtermEndsQueuedInterpolateCallsWithRetryElsewhere) {
+  TempDir dir;
+  ServerProcess server(dir / "spool", dir / "server.log",
+                       {"--drain-grace", "3"});
+  CommandResult submit = Cli(Cat(Cat({"submit"}, kLongJob), server.Server()));
+  ASSERT_EQ(submit.exit_code, 0);
+  WaitFor(server, Trim(submit.out), Solving);
+  CommandResult queued;
+  std::thread call([&] {
+    queued = Cli(Cat(Cat({"interpolate"}, kSmallJob),
+                     Cat(server.Server(), {"--out", dir / "o", "--quiet"})));
+  });
+  // Wait until the second job is queued behind the running one.
+  auto queued_lines = [&] {
+    const std::string log = server.Log();
+    int n = 0;
+    for (size_t at = log.find(" queued\n"); at != std::string::npos;
+         at = log.find(" queued\n", at + 1)) {
+      ++n;
+    }
+    return n;
+  };
+  for (int i = 0; i < 500 && queued_lines() < 2; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  ASSERT_EQ(queued_lines(), 2) << server.Log();
+  EXPECT_EQ(server.Terminate(30), 0);
+  call.join();
+  EXPECT_EQ(queued.exit_code, 1);
+  EXPECT_THAT(queued.err, HasSubstr("is unavailable: the server is shutting "
+                                    "down and did not start the job; retry on "
+                                    "another replica"));
+  EXPECT_THAT(queued.err, Not(HasSubstr("Cancelling all calls")));
+  EXPECT_EQ(std::count(queued.err.begin(), queued.err.end(), '\n'), 1)
+      << queued.err;
+}
+
 TEST(ServerTest, UnreachableServerIsOneLineAndExitOne) {
   CommandResult r = Cli({"info", "--server", "127.0.0.1:1"});
   EXPECT_EQ(r.exit_code, 1);
