@@ -284,6 +284,16 @@ class ArtifactFile {
   std::ofstream out_;
 };
 
+// Whether `path` already holds the artifact: a regular file of its size and
+// SHA-256.
+bool IsCompleteArtifact(const std::string& path, const v1::ArtifactInfo& info) {
+  std::error_code ec;
+  if (!fs::is_regular_file(path, ec)) return false;
+  const auto size = fs::file_size(path, ec);
+  return !ec && static_cast<int64_t>(size) == info.size_bytes() &&
+         HashFile(path) == info.sha256();
+}
+
 // The server's report with artifact paths turned into local ones.
 absl::Status WriteReport(const std::string& report_json,
                          const std::string& out_dir, const std::string& path) {
@@ -511,7 +521,9 @@ int RunFetch(const Connection& connection, const std::string& job_id,
     request.set_job_id(job_id);
     auto reader = stub->Watch(&context, request);
     const bool got = reader->Read(&status);
-    context.TryCancel();
+    // Only a stream still open needs cancelling; cancelling one that ended
+    // would replace its status (NOT_FOUND, ...) with CANCELLED.
+    if (got) context.TryCancel();
     const grpc::Status s = reader->Finish();
     if (!got) return Fail(DescribeRpcError(s, connection.address()));
   }
@@ -524,7 +536,14 @@ int RunFetch(const Connection& connection, const std::string& job_id,
   std::error_code ec;
   fs::create_directories(out, ec);
   if (ec) return Fail("cannot create output folder " + out);
+  int skipped = 0;
   for (const v1::ArtifactInfo& info : status.artifacts()) {
+    // A complete file from an earlier fetch: keep it.
+    if (IsSafeArtifactName(info.name()) &&
+        IsCompleteArtifact((fs::path(out) / info.name()).string(), info)) {
+      ++skipped;
+      continue;
+    }
     int attempts = 0;
     for (;;) {
       // Resume from what an earlier, interrupted fetch left behind.
@@ -572,8 +591,12 @@ int RunFetch(const Connection& connection, const std::string& job_id,
     }
   }
   if (!quiet) {
-    std::printf("interslice: fetched %d file(s) of job %s to %s\n",
-                status.artifacts_size(), job_id.c_str(), out.c_str());
+    const std::string kept =
+        skipped > 0 ? absl::StrCat(" (", skipped, " already complete, kept)")
+                    : "";
+    std::printf("interslice: fetched %d file(s) of job %s to %s%s\n",
+                status.artifacts_size() - skipped, job_id.c_str(), out.c_str(),
+                kept.c_str());
   }
   return 0;
 }

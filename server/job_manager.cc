@@ -221,6 +221,13 @@ absl::StatusOr<std::shared_ptr<Job>> JobManager::Admit(
     return reject(
         absl::InvalidArgumentError("options.deadline_seconds must be >= 0"));
   }
+  if (header.total_bytes() > spool_->quota_bytes()) {
+    // Not "full": this upload can never fit, so retrying is pointless.
+    return reject(absl::ResourceExhaustedError(
+        absl::StrCat("the upload (", header.total_bytes(),
+                     " bytes) exceeds the server's spool quota of ",
+                     spool_->quota_bytes(), " bytes")));
+  }
   absl::StatusOr<JobSpec> spec = JobSpecFromProto(header.spec());
   if (!spec.ok()) return reject(spec.status());
   {

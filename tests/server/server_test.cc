@@ -3,6 +3,7 @@
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 #include <signal.h>
+#include <sys/stat.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -942,6 +943,57 @@ TEST(ServerTest, SigtermEndsQueuedInterpolateCallsWithRetryElsewhere) {
   EXPECT_THAT(queued.err, Not(HasSubstr("Cancelling all calls")));
   EXPECT_EQ(std::count(queued.err.begin(), queued.err.end(), '\n'), 1)
       << queued.err;
+}
+
+// fetch keeps complete files (size and SHA-256 match) and downloads the
+// rest again.
+TEST(ServerTest, FetchSkipsCompleteArtifacts) {
+  TempDir dir;
+  ServerProcess server(dir / "spool", dir / "server.log");
+  CommandResult submit =
+      Cli(Cat(Cat({"submit"}, kSmallJob),
+              Cat(server.Server(), {"--volume", "nii,nrrd"})));
+  ASSERT_EQ(submit.exit_code, 0) << submit.err;
+  const std::string id = Trim(submit.out);
+  ASSERT_EQ(WaitFor(server, id, Ended).state(), v1::JOB_STATE_SUCCEEDED);
+  const std::vector<std::string> fetch =
+      Cat({"fetch", id, "--out", dir / "out"}, server.Server());
+  CommandResult first = Cli(fetch);
+  ASSERT_EQ(first.exit_code, 0) << first.err;
+  auto inode = [](const std::string& path) {
+    struct stat st {};
+    return ::stat(path.c_str(), &st) == 0 ? st.st_ino : 0;
+  };
+  const std::string kept = dir / "out/distance.nii.gz";
+  const std::string changed = dir / "out/mask.nii.gz";
+  const std::string removed = dir / "out/surface.stl";
+  const std::string original = ReadFileOrEmpty(changed);
+  const ino_t kept_inode = inode(kept);
+  ASSERT_NE(kept_inode, 0u);
+  {
+    std::string bytes = original;  // same size, other content
+    bytes[bytes.size() / 2] ^= 1;
+    std::ofstream(changed, std::ios::binary | std::ios::trunc) << bytes;
+  }
+  fs::remove(removed);
+  CommandResult second = Cli(fetch);
+  ASSERT_EQ(second.exit_code, 0) << second.err;
+  EXPECT_THAT(second.out, HasSubstr("already complete, kept"));
+  EXPECT_EQ(inode(kept), kept_inode);  // not written again
+  EXPECT_TRUE(ReadFileOrEmpty(changed) == original);
+  EXPECT_TRUE(fs::exists(removed));
+}
+
+TEST(ServerTest, UploadLargerThanTheSpoolQuotaIsToldItCanNeverFit) {
+  TempDir dir;
+  ServerProcess server(dir / "spool", dir / "server.log",
+                       {"--spool-quota-bytes", "100000"});
+  CommandResult r = Cli(Cat(Cat({"submit"}, kSmallJob), server.Server()));
+  EXPECT_EQ(r.exit_code, 1);
+  EXPECT_THAT(r.err, HasSubstr("exceeds the server's spool quota of 100000 "
+                               "bytes"));
+  EXPECT_THAT(r.err, Not(HasSubstr("retry")));
+  EXPECT_EQ(CountJobs(dir / "spool"), 0);
 }
 
 TEST(ServerTest, UnreachableServerIsOneLineAndExitOne) {
