@@ -628,10 +628,18 @@ int RunList(const Connection& connection, bool all) {
   v1::ListResponse response;
   const grpc::Status s = stub->List(&context, request, &response);
   if (!s.ok()) return Fail(DescribeRpcError(s, connection.address()));
+  // Labels are free text from whoever submitted (an admin lists everyone's):
+  // no control characters reach the terminal, one job stays one line.
+  auto printable = [](std::string text) {
+    for (char& c : text) {
+      if (static_cast<unsigned char>(c) < 0x20 || c == 0x7f) c = '?';
+    }
+    return text;
+  };
   for (const v1::JobStatus& j : response.jobs()) {
     std::printf("%s  %-9s  %-8s %5.1f%%  %s\n", j.job_id().c_str(),
                 StateName(j.state()), j.progress().stage().c_str(),
-                j.progress().stage_percent(), j.label().c_str());
+                j.progress().stage_percent(), printable(j.label()).c_str());
   }
   return 0;
 }

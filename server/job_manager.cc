@@ -10,6 +10,7 @@
 #include "absl/strings/str_format.h"
 #include "core/pipeline/pipeline.h"
 #include "server/hashing.h"
+#include "server/log_safe.h"
 #include "server/spec_mapping.h"
 #include "server/status_map.h"
 #include "spdlog/spdlog.h"
@@ -108,7 +109,7 @@ absl::Status JobManager::Recover() {
       spool_->RemoveJob(id);
       continue;
     }
-    std::shared_ptr<Job> job(new Job(id, false));
+    std::shared_ptr<Job> job(new Job(id, false, record.owner()));
     const v1::JobState state = record.status().state();
     const bool interrupted = state == v1::JOB_STATE_RUNNING;
     if (interrupted && record.attempts() < options_.max_attempts) {
@@ -189,7 +190,8 @@ void JobManager::Start() {
 
 absl::StatusOr<std::shared_ptr<Job>> JobManager::Admit(
     const v1::UploadHeader& header, bool ephemeral,
-    std::optional<std::chrono::steady_clock::time_point> deadline) {
+    std::optional<std::chrono::steady_clock::time_point> deadline,
+    const std::string& owner) {
   auto reject = [this](absl::Status status) {
     metrics_->JobFinished("rejected");
     return status;
@@ -259,8 +261,9 @@ absl::StatusOr<std::shared_ptr<Job>> JobManager::Admit(
     unreserve();
     return s;
   }
-  std::shared_ptr<Job> job(new Job(id, ephemeral));
+  std::shared_ptr<Job> job(new Job(id, ephemeral, owner));
   JobRecord& r = job->record_;
+  r.set_owner(owner);
   r.mutable_status()->set_job_id(id);
   r.mutable_status()->set_state(v1::JOB_STATE_UPLOADING);
   r.mutable_status()->set_sequence(1);
@@ -279,9 +282,10 @@ absl::StatusOr<std::shared_ptr<Job>> JobManager::Admit(
     job->token_.SetDeadline(std::chrono::steady_clock::now() +
                             std::chrono::milliseconds(ms));
   }
-  spdlog::info("job={} admitted: {} file(s), {} bytes{}", id,
+  spdlog::info("job={} admitted: {} file(s), {} bytes{}{}", id,
                header.file_count(), header.total_bytes(),
-               ephemeral ? " (one call)" : "");
+               ephemeral ? " (one call)" : "",
+               owner.empty() ? "" : absl::StrCat(", owner ", LogSafe(owner)));
   return job;
 }
 
@@ -422,12 +426,15 @@ absl::StatusOr<v1::JobStatus> JobManager::Cancel(const std::string& id) {
   return job->Snapshot(true);
 }
 
-std::vector<v1::JobStatus> JobManager::List(bool include_finished) {
+std::vector<v1::JobStatus> JobManager::List(bool include_finished,
+                                            const std::string* owner) {
   std::vector<std::shared_ptr<Job>> jobs;
   {
     std::lock_guard<std::mutex> lock(mu_);
     for (const auto& [id, job] : jobs_) {
-      if (!job->ephemeral()) jobs.push_back(job);
+      if (job->ephemeral()) continue;
+      if (owner != nullptr && job->owner() != *owner) continue;
+      jobs.push_back(job);
     }
   }
   std::vector<v1::JobStatus> out;

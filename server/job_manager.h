@@ -85,6 +85,9 @@ class Job {
  public:
   const std::string& id() const { return id_; }
   bool ephemeral() const { return ephemeral_; }
+  // The identity that submitted the job ("" without authentication);
+  // persisted in the spool record.
+  const std::string& owner() const { return owner_; }
   // The status now; report_json only if `with_report`.
   v1::JobStatus Snapshot(bool with_report = true) const;
   // Watchers: fired after every status change (from worker, ticker or
@@ -93,13 +96,14 @@ class Job {
 
  private:
   friend class JobManager;
-  Job(std::string id, bool ephemeral)
-      : id_(std::move(id)), ephemeral_(ephemeral) {}
+  Job(std::string id, bool ephemeral, std::string owner)
+      : id_(std::move(id)), ephemeral_(ephemeral), owner_(std::move(owner)) {}
   // Applies `change` to the record, bumps the sequence and fires watchers.
   void Update(const std::function<void(JobRecord&)>& change);
 
   const std::string id_;
   const bool ephemeral_;
+  const std::string owner_;
   mutable std::mutex mu_;
   JobRecord record_;
   CancellationToken token_;
@@ -130,10 +134,12 @@ class JobManager {
   // RESOURCE_EXHAUSTED, INVALID_ARGUMENT, UNIMPLEMENTED or UNAVAILABLE
   // (draining). No queue slot is taken yet: uploads in progress are bounded
   // by the service (UploadGuard). `deadline`: Interpolate's call deadline;
-  // detached jobs use options.deadline_seconds.
+  // detached jobs use options.deadline_seconds. `owner`: the caller's
+  // identity.
   absl::StatusOr<std::shared_ptr<Job>> Admit(
       const v1::UploadHeader& header, bool ephemeral,
-      std::optional<std::chrono::steady_clock::time_point> deadline);
+      std::optional<std::chrono::steady_clock::time_point> deadline,
+      const std::string& owner);
   // Blocking. The upload is complete and verified: take a queue slot,
   // persist and queue. RESOURCE_EXHAUSTED when the queue is full,
   // UNAVAILABLE for an Interpolate job while draining; on error the caller
@@ -148,8 +154,10 @@ class JobManager {
   std::shared_ptr<Job> Find(const std::string& id);
   // Blocking (persists a cancelled queued job).
   absl::StatusOr<v1::JobStatus> Cancel(const std::string& id);
-  // Detached jobs, newest first, without report_json.
-  std::vector<v1::JobStatus> List(bool include_finished);
+  // Detached jobs, newest first, without report_json; only those of
+  // `owner` unless it is null.
+  std::vector<v1::JobStatus> List(bool include_finished,
+                                  const std::string* owner = nullptr);
 
   // Refuse new jobs from now on. Queued Interpolate jobs end at once with
   // UNAVAILABLE (their callers can retry elsewhere); queued detached jobs

@@ -70,8 +70,13 @@ int main(int argc, char** argv) {
   app.add_option("--tls-client-ca", o.tls_client_ca,
                  "Require client certificates signed by this CA (mutual TLS)");
   app.add_option("--auth-token-file", o.auth_token_file,
-                 "Require 'authorization: Bearer <token>' with the token in "
-                 "this file");
+                 "Require 'authorization: Bearer <token>' with a token from "
+                 "this file: one token alone (identity 'default'), or lines "
+                 "NAME:TOKEN ('#' comments); jobs belong to the NAME");
+  app.add_option("--admin-identity", o.admin_identities,
+                 "An identity (token NAME, or client certificate subject "
+                 "such as CN=ops) that sees and may cancel every job; "
+                 "repeatable");
   app.add_option("--metrics-listen", o.metrics_listen,
                  "HOST:PORT for Prometheus /metrics (off when empty)");
   app.add_flag("--reflection", o.reflection, "Enable gRPC server reflection");

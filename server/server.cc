@@ -13,11 +13,11 @@
 #include <sstream>
 #include <thread>
 
-#include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
 #include "core/dicom/series_reader.h"
 #include "grpcpp/grpcpp.h"
 #include "grpcpp/health_check_service_interface.h"
+#include "server/auth.h"
 #include "server/executor.h"
 #include "server/job_manager.h"
 #include "server/log_safe.h"
@@ -182,7 +182,6 @@ int RunServer(ServerOptions options) {
     return fail(absl::InvalidArgumentError(
         "--max-queued must be >= 0 and --max-chunk-bytes in [1 KiB, 4 MiB)"));
   }
-
   if (options.max_concurrent_uploads <= 0) {
     options.max_concurrent_uploads = std::max(1, 2 * options.max_queued_jobs);
   }
@@ -194,14 +193,28 @@ int RunServer(ServerOptions options) {
         "--upload-timeout >= 0"));
   }
 
-  std::string token;
+  std::vector<NamedToken> tokens;
   if (!options.auth_token_file.empty()) {
     absl::StatusOr<std::string> t =
         ReadFile(options.auth_token_file, "the token file");
     if (!t.ok()) return fail(t.status());
-    token = std::string(absl::StripAsciiWhitespace(*t));
-    if (token.empty()) {
-      return fail(absl::InvalidArgumentError("the token file is empty"));
+    absl::StatusOr<std::vector<NamedToken>> parsed = ParseTokenFile(*t);
+    if (!parsed.ok()) return fail(parsed.status());
+    tokens = *std::move(parsed);
+  }
+  for (const std::string& admin : options.admin_identities) {
+    if (tokens.empty() && options.tls_client_ca.empty()) {
+      return fail(absl::InvalidArgumentError(
+          "--admin-identity needs --auth-token-file or --tls-client-ca"));
+    }
+    // With tokens the identity is always a token's name: catch typos.
+    const bool known =
+        std::any_of(tokens.begin(), tokens.end(),
+                    [&](const NamedToken& t) { return t.name == admin; });
+    if (!tokens.empty() && !known) {
+      return fail(absl::InvalidArgumentError(
+          absl::StrCat("--admin-identity ", LogSafe(admin),
+                       " is not a name in the token file")));
     }
   }
   std::shared_ptr<grpc::ServerCredentials> credentials;
@@ -255,7 +268,8 @@ int RunServer(ServerOptions options) {
 
   Executor io(options.io_threads);
   ServiceOptions service_options;
-  service_options.auth_token = token;
+  service_options.tokens = std::move(tokens);
+  service_options.admin_identities = options.admin_identities;
   service_options.max_chunk_bytes = options.max_chunk_bytes;
   service_options.uploads.max_concurrent = options.max_concurrent_uploads;
   service_options.uploads.max_per_peer = options.max_uploads_per_peer;

@@ -4,6 +4,7 @@
 
 #include <cstdint>
 #include <string>
+#include <vector>
 
 namespace interslice::server {
 
@@ -30,7 +31,8 @@ struct ServerOptions {
   int max_chunk_bytes = 1 << 20;
   int io_threads = 2;
   std::string tls_cert, tls_key, tls_client_ca;
-  std::string auth_token_file;
+  std::string auth_token_file;  // "TOKEN", or lines "NAME:TOKEN"
+  std::vector<std::string> admin_identities;
   std::string metrics_listen;  // empty = no metrics endpoint
   bool reflection = false;
   std::string log_format = "text";  // text | json

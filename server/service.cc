@@ -87,13 +87,15 @@ class UploadSink {
  public:
   UploadSink(JobManager* manager, Spool* spool, Metrics* metrics,
              const UploadStreamLimits& limits, bool ephemeral,
-             std::optional<std::chrono::steady_clock::time_point> deadline)
+             std::optional<std::chrono::steady_clock::time_point> deadline,
+             std::string owner)
       : manager_(manager),
         spool_(spool),
         metrics_(metrics),
         stream_(limits),
         ephemeral_(ephemeral),
-        deadline_(deadline) {}
+        deadline_(deadline),
+        owner_(std::move(owner)) {}
   ~UploadSink() { CloseFile(); }
 
   absl::Status Consume(const v1::UploadRequest& message) {
@@ -101,7 +103,7 @@ class UploadSink {
     INTERSLICE_SINK_RETURN_IF_ERROR(stream_.Next(message, &step));
     if (step.header) {
       absl::StatusOr<std::shared_ptr<Job>> job =
-          manager_->Admit(stream_.header(), ephemeral_, deadline_);
+          manager_->Admit(stream_.header(), ephemeral_, deadline_, owner_);
       if (!job.ok()) return job.status();
       job_ = *job;
       return absl::OkStatus();
@@ -196,6 +198,7 @@ class UploadSink {
   UploadStream stream_;
   const bool ephemeral_;
   const std::optional<std::chrono::steady_clock::time_point> deadline_;
+  const std::string owner_;
   std::shared_ptr<Job> job_;
   int fd_ = -1;
   bool enqueued_ = false;
@@ -209,8 +212,10 @@ bool IsProgress(const v1::UploadRequest& message) {
          (message.has_chunk() && !message.chunk().data().empty());
 }
 
-// Uploads are limited per client IP address.
-std::string UploadPeerKey(grpc::CallbackServerContext* context) {
+// Uploads are limited per identity when the call has one, else per IP.
+std::string UploadPeerKey(grpc::CallbackServerContext* context,
+                          const Caller& caller) {
+  if (!caller.identity.empty()) return "id:" + caller.identity;
   return "ip:" + PeerAddress(context->peer());
 }
 
@@ -264,16 +269,16 @@ class SubmitReactor : public grpc::ServerReadReactor<v1::UploadRequest> {
  public:
   SubmitReactor(InterSliceService* service,
                 grpc::CallbackServerContext* context,
-                v1::SubmitResponse* response)
+                v1::SubmitResponse* response, const Caller& caller)
       : service_(service),
         response_(response),
         sink_(std::make_shared<UploadSink>(
             service->manager(), service->spool(), service->metrics(),
-            service->upload_limits(), false, std::nullopt)) {
+            service->upload_limits(), false, std::nullopt, caller.identity)) {
     std::lock_guard<std::mutex> lock(mu_);
     absl::StatusOr<std::shared_ptr<UploadTicket>> ticket =
         service->uploads()->Begin(
-            UploadPeerKey(context),
+            UploadPeerKey(context, caller),
             [this](const absl::Status& s, bool idle) { OnTimeout(s, idle); });
     if (!ticket.ok()) {
       service->metrics()->JobFinished("rejected");
@@ -382,15 +387,16 @@ class InterpolateReactor
                                      v1::InterpolateResponse> {
  public:
   InterpolateReactor(InterSliceService* service,
-                     grpc::CallbackServerContext* context)
+                     grpc::CallbackServerContext* context, const Caller& caller)
       : service_(service),
         sink_(std::make_shared<UploadSink>(
             service->manager(), service->spool(), service->metrics(),
-            service->upload_limits(), true, CallDeadline(context))) {
+            service->upload_limits(), true, CallDeadline(context),
+            caller.identity)) {
     std::lock_guard<std::mutex> lock(mu_);
     absl::StatusOr<std::shared_ptr<UploadTicket>> ticket =
         service->uploads()->Begin(
-            UploadPeerKey(context),
+            UploadPeerKey(context, caller),
             [this](const absl::Status& s, bool idle) { OnTimeout(s, idle); });
     if (!ticket.ok()) {
       service->metrics()->JobFinished("rejected");
@@ -762,6 +768,18 @@ class FetchReactor : public grpc::ServerWriteReactor<v1::ArtifactChunk> {
   bool finished_ = false;
 };
 
+// The job `id` if it exists, is detached and `caller` may see it. Jobs of
+// other identities are answered exactly as unknown ones.
+std::shared_ptr<Job> FindVisibleJob(JobManager* manager, const std::string& id,
+                                    const Caller& caller) {
+  std::shared_ptr<Job> job = manager->Find(id);
+  if (!job || job->ephemeral() ||
+      !Authenticator::MayAccess(caller, job->owner())) {
+    return nullptr;
+  }
+  return job;
+}
+
 }  // namespace
 
 UploadStreamLimits InterSliceService::upload_limits() const {
@@ -771,50 +789,45 @@ UploadStreamLimits InterSliceService::upload_limits() const {
   return limits;
 }
 
-absl::Status InterSliceService::Authenticate(
+absl::StatusOr<Caller> InterSliceService::Authenticate(
     grpc::CallbackServerContext* context) const {
-  if (options_.auth_token.empty()) return absl::OkStatus();
-  const auto& metadata = context->client_metadata();
-  auto it = metadata.find("authorization");
-  if (it != metadata.end()) {
-    const std::string value(it->second.data(), it->second.size());
-    const std::string expected = "Bearer " + options_.auth_token;
-    // Constant-time comparison: no early exit on the first difference.
-    unsigned char diff = value.size() == expected.size() ? 0 : 1;
-    for (size_t i = 0; i < value.size() && i < expected.size(); ++i) {
-      diff |= static_cast<unsigned char>(value[i] ^ expected[i]);
-    }
-    if (diff == 0) return absl::OkStatus();
+  absl::StatusOr<Caller> caller = auth_.Identify(*context);
+  if (!caller.ok()) {
+    spdlog::warn("refused a call from {}: missing or wrong bearer token",
+                 LogSafe(context->peer()));
   }
-  spdlog::warn("refused a call from {}: missing or wrong bearer token",
-               LogSafe(context->peer()));
-  return absl::UnauthenticatedError("missing or invalid bearer token");
+  return caller;
 }
 
 grpc::ServerBidiReactor<v1::UploadRequest, v1::InterpolateResponse>*
 InterSliceService::Interpolate(grpc::CallbackServerContext* context) {
-  if (absl::Status s = Authenticate(context); !s.ok()) {
+  absl::StatusOr<Caller> caller = Authenticate(context);
+  if (!caller.ok()) {
     return new ErrorBidiReactor<v1::UploadRequest, v1::InterpolateResponse>(
-        ToGrpcStatus(s));
+        ToGrpcStatus(caller.status()));
   }
-  return new InterpolateReactor(this, context);
+  return new InterpolateReactor(this, context, *caller);
 }
 
 grpc::ServerReadReactor<v1::UploadRequest>* InterSliceService::Submit(
     grpc::CallbackServerContext* context, v1::SubmitResponse* response) {
-  if (absl::Status s = Authenticate(context); !s.ok()) {
-    return new ErrorReadReactor<v1::UploadRequest>(ToGrpcStatus(s));
+  absl::StatusOr<Caller> caller = Authenticate(context);
+  if (!caller.ok()) {
+    return new ErrorReadReactor<v1::UploadRequest>(
+        ToGrpcStatus(caller.status()));
   }
-  return new SubmitReactor(this, context, response);
+  return new SubmitReactor(this, context, response, *caller);
 }
 
 grpc::ServerWriteReactor<v1::JobStatus>* InterSliceService::Watch(
     grpc::CallbackServerContext* context, const v1::WatchRequest* request) {
-  if (absl::Status s = Authenticate(context); !s.ok()) {
-    return new ErrorWriteReactor<v1::JobStatus>(ToGrpcStatus(s));
+  absl::StatusOr<Caller> caller = Authenticate(context);
+  if (!caller.ok()) {
+    return new ErrorWriteReactor<v1::JobStatus>(ToGrpcStatus(caller.status()));
   }
-  std::shared_ptr<Job> job = manager_->Find(request->job_id());
-  if (!job || job->ephemeral()) {
+  std::shared_ptr<Job> job =
+      FindVisibleJob(manager_, request->job_id(), *caller);
+  if (!job) {
     return new ErrorWriteReactor<v1::JobStatus>(
         grpc::Status(grpc::NOT_FOUND, "no such job (it may have expired)"));
   }
@@ -823,11 +836,14 @@ grpc::ServerWriteReactor<v1::JobStatus>* InterSliceService::Watch(
 
 grpc::ServerWriteReactor<v1::ArtifactChunk>* InterSliceService::Fetch(
     grpc::CallbackServerContext* context, const v1::FetchRequest* request) {
-  if (absl::Status s = Authenticate(context); !s.ok()) {
-    return new ErrorWriteReactor<v1::ArtifactChunk>(ToGrpcStatus(s));
+  absl::StatusOr<Caller> caller = Authenticate(context);
+  if (!caller.ok()) {
+    return new ErrorWriteReactor<v1::ArtifactChunk>(
+        ToGrpcStatus(caller.status()));
   }
-  std::shared_ptr<Job> job = manager_->Find(request->job_id());
-  if (!job || job->ephemeral()) {
+  std::shared_ptr<Job> job =
+      FindVisibleJob(manager_, request->job_id(), *caller);
+  if (!job) {
     return new ErrorWriteReactor<v1::ArtifactChunk>(
         grpc::Status(grpc::NOT_FOUND, "no such job (it may have expired)"));
   }
@@ -866,15 +882,15 @@ grpc::ServerUnaryReactor* InterSliceService::Cancel(
     grpc::CallbackServerContext* context, const v1::CancelRequest* request,
     v1::JobStatus* response) {
   grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
-  if (absl::Status s = Authenticate(context); !s.ok()) {
-    reactor->Finish(ToGrpcStatus(s));
+  absl::StatusOr<Caller> caller = Authenticate(context);
+  if (!caller.ok()) {
+    reactor->Finish(ToGrpcStatus(caller.status()));
     return reactor;
   }
   const std::string id = request->job_id();
   // Cancelling a queued job persists its record: off the reactor thread.
-  io_->Post([this, reactor, response, id] {
-    std::shared_ptr<Job> job = manager_->Find(id);
-    if (!job || job->ephemeral()) {
+  io_->Post([this, reactor, response, id, caller = *caller] {
+    if (!FindVisibleJob(manager_, id, caller)) {
       reactor->Finish(grpc::Status(grpc::NOT_FOUND, "no such job"));
       return;
     }
@@ -889,11 +905,14 @@ grpc::ServerUnaryReactor* InterSliceService::List(
     grpc::CallbackServerContext* context, const v1::ListRequest* request,
     v1::ListResponse* response) {
   grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
-  if (absl::Status s = Authenticate(context); !s.ok()) {
-    reactor->Finish(ToGrpcStatus(s));
+  absl::StatusOr<Caller> caller = Authenticate(context);
+  if (!caller.ok()) {
+    reactor->Finish(ToGrpcStatus(caller.status()));
     return reactor;
   }
-  for (v1::JobStatus& s : manager_->List(request->include_finished())) {
+  // Only the caller's own jobs, unless an admin asks.
+  const std::string* owner = caller->admin ? nullptr : &caller->identity;
+  for (v1::JobStatus& s : manager_->List(request->include_finished(), owner)) {
     *response->add_jobs() = std::move(s);
   }
   reactor->Finish(grpc::Status::OK);
@@ -904,8 +923,9 @@ grpc::ServerUnaryReactor* InterSliceService::GetServerInfo(
     grpc::CallbackServerContext* context, const v1::ServerInfoRequest* request,
     v1::ServerInfo* response) {
   grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
-  if (absl::Status s = Authenticate(context); !s.ok()) {
-    reactor->Finish(ToGrpcStatus(s));
+  absl::StatusOr<Caller> caller = Authenticate(context);
+  if (!caller.ok()) {
+    reactor->Finish(ToGrpcStatus(caller.status()));
     return reactor;
   }
   response->set_version(options_.version);
@@ -938,7 +958,7 @@ grpc::ServerUnaryReactor* InterSliceService::GetServerInfo(
   for (int i = 0; i < descriptor->method_count(); ++i) {
     response->add_rpcs(descriptor->method(i)->name());
   }
-  response->set_auth_required(!options_.auth_token.empty());
+  response->set_auth_required(auth_.tokens_required());
   response->set_draining(manager_->draining());
   reactor->Finish(grpc::Status::OK);
   return reactor;

@@ -12,14 +12,17 @@
 //
 // Uploads: UploadStream checks the stream, UploadGuard bounds the uploads in
 // progress (in total and per client) and cancels stalled ones; a queue slot
-// is taken only when an upload is complete.
+// is taken only when an upload is complete. Jobs belong to the caller's
+// identity (auth.h): other identities get NOT_FOUND, admins see every job.
 #ifndef INTERSLICE_SERVER_SERVICE_H_
 #define INTERSLICE_SERVER_SERVICE_H_
 
 #include <memory>
 #include <string>
+#include <vector>
 
 #include "interslice/v1/interslice.grpc.pb.h"
+#include "server/auth.h"
 #include "server/executor.h"
 #include "server/job_manager.h"
 #include "server/metrics.h"
@@ -30,8 +33,11 @@
 namespace interslice::server {
 
 struct ServiceOptions {
-  // Bearer token every call must carry; empty = no authentication.
-  std::string auth_token;
+  // Bearer tokens, one of which every call must carry; empty = none (the
+  // identity then comes from a client certificate, if any).
+  std::vector<NamedToken> tokens;
+  // Identities that see and may act on every job.
+  std::vector<std::string> admin_identities;
   int max_chunk_bytes = 1 << 20;
   UploadGuardOptions uploads;
   std::string version = "0.1.0";
@@ -42,6 +48,7 @@ class InterSliceService final : public v1::InterSlice::CallbackService {
   InterSliceService(const ServiceOptions& options, JobManager* manager,
                     Spool* spool, Executor* io, Metrics* metrics)
       : options_(options),
+        auth_(options.tokens, options.admin_identities),
         uploads_(std::make_unique<UploadGuard>(options.uploads)),
         manager_(manager),
         spool_(spool),
@@ -79,9 +86,11 @@ class InterSliceService final : public v1::InterSlice::CallbackService {
   UploadStreamLimits upload_limits() const;
 
  private:
-  absl::Status Authenticate(grpc::CallbackServerContext* context) const;
+  absl::StatusOr<Caller> Authenticate(
+      grpc::CallbackServerContext* context) const;
 
   const ServiceOptions options_;
+  const Authenticator auth_;
   const std::unique_ptr<UploadGuard> uploads_;
   JobManager* const manager_;
   Spool* const spool_;

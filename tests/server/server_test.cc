@@ -177,9 +177,11 @@ std::unique_ptr<v1::InterSlice::Stub> Stub(const ServerProcess& server) {
 
 // Waits until the job's status satisfies `done` (or 60 s pass).
 v1::JobStatus WaitFor(const ServerProcess& server, const std::string& id,
-                      const std::function<bool(const v1::JobStatus&)>& done) {
+                      const std::function<bool(const v1::JobStatus&)>& done,
+                      const std::string& token = "") {
   auto stub = Stub(server);
   grpc::ClientContext context;
+  if (!token.empty()) context.AddMetadata("authorization", "Bearer " + token);
   context.set_deadline(std::chrono::system_clock::now() +
                        std::chrono::seconds(60));
   v1::WatchRequest request;
@@ -650,6 +652,10 @@ void MakeCertificates(const TempDir& dir) {
       "-keyout client.key -out client.csr\n",
       "openssl x509 -req -in client.csr -CA ca.pem -CAkey ca.key "
       "-CAcreateserial -days 2 -out client.pem\n",
+      "openssl req -newkey rsa:2048 -nodes -subj /CN=other "
+      "-keyout other.key -out other.csr\n",
+      "openssl x509 -req -in other.csr -CA ca.pem -CAkey ca.key "
+      "-CAcreateserial -days 2 -out other.pem\n",
       // A client certificate from a CA the server does not trust.
       "openssl req -x509 -newkey rsa:2048 -nodes -days 2 -subj /CN=rogue "
       "-keyout rogue.key -out rogue.pem\n");
@@ -687,6 +693,20 @@ TEST(ServerTest, TlsAndMutualTls) {
        dir / "client.pem", "--tls-key", dir / "client.key", "--out", dir / "o"},
       Cat(kSmallJob, mtls.Server())));
   EXPECT_EQ(ok.exit_code, 0) << ok.err;
+  // Without tokens, a job belongs to the certificate's subject.
+  auto as = [&](const std::string& who, std::vector<std::string> args) {
+    return Cli(Cat(Cat(std::move(args), {"--tls-ca", dir / "ca.pem",
+                                         "--tls-cert", dir / (who + ".pem"),
+                                         "--tls-key", dir / (who + ".key")}),
+                   mtls.Server()));
+  };
+  CommandResult submit = as("client", Cat({"submit"}, kSmallJob));
+  ASSERT_EQ(submit.exit_code, 0) << submit.err;
+  EXPECT_THAT(as("client", {"list", "--all"}).out, HasSubstr(Trim(submit.out)));
+  EXPECT_EQ(as("other", {"list", "--all"}).out, "");
+  EXPECT_THAT(as("other", {"cancel", Trim(submit.out)}).err,
+              HasSubstr("no such job"));
+  EXPECT_THAT(mtls.Log(), HasSubstr("owner CN=client"));
 }
 
 TEST(ServerTest, BearerTokenAuth) {
@@ -860,6 +880,29 @@ TEST(ServerTest, UploadsAreLimitedPerClient) {
   EXPECT_EQ(ok.exit_code, 0) << ok.err;
 }
 
+// With authentication the limit is per identity; uploads are also limited
+// in all.
+TEST(ServerTest, UploadsAreLimitedPerIdentityAndInAll) {
+  TempDir dir;
+  std::ofstream(dir / "tokens") << "alice:tok-alice\nbob:tok-bob\n";
+  ServerProcess server(
+      dir / "spool", dir / "server.log",
+      {"--auth-token-file", dir / "tokens", "--max-uploads-per-peer", "2",
+       "--max-concurrent-uploads", "3"});
+  RawUpload a1(server, 2, 1 << 20, "tok-alice");
+  RawUpload a2(server, 2, 1 << 20, "tok-alice");
+  WaitForJobFolders(dir / "spool", 2);
+  RawUpload a3(server, 2, 1 << 20, "tok-alice");
+  EXPECT_THAT(a3.Finish().error_message(), HasSubstr("from this client"));
+  RawUpload b1(server, 2, 1 << 20, "tok-bob");  // same IP, other identity
+  WaitForJobFolders(dir / "spool", 3);
+  EXPECT_EQ(CountJobs(dir / "spool"), 3);
+  RawUpload b2(server, 2, 1 << 20, "tok-bob");
+  const grpc::Status all = b2.Finish();
+  EXPECT_EQ(all.error_code(), grpc::RESOURCE_EXHAUSTED);
+  EXPECT_THAT(all.error_message(), HasSubstr("on the server"));
+}
+
 // Client text (label, multiframe volume, series UID, file names) never
 // starts a log line of its own.
 TEST(ServerTest, ClientTextCannotForgeLogLines) {
@@ -994,6 +1037,84 @@ TEST(ServerTest, UploadLargerThanTheSpoolQuotaIsToldItCanNeverFit) {
                                "bytes"));
   EXPECT_THAT(r.err, Not(HasSubstr("retry")));
   EXPECT_EQ(CountJobs(dir / "spool"), 0);
+}
+
+// Jobs belong to the token's name; other names get NOT_FOUND, exactly as
+// for an unknown job; an admin sees and may act on every job; ownership
+// survives a restart.
+TEST(ServerTest, JobsBelongToTheirSubmitter) {
+  TempDir dir;
+  std::ofstream(dir / "tokens")
+      << "# name:token\nalice:tok-alice\nbob:tok-bob\nops:tok-ops\n";
+  for (const char* name : {"alice", "bob", "ops"}) {
+    std::ofstream(dir / name) << "tok-" << name << "\n";
+  }
+  ServerProcess server(
+      dir / "spool", dir / "server.log",
+      {"--auth-token-file", dir / "tokens", "--admin-identity", "ops"});
+  auto as = [&](const std::string& who, std::vector<std::string> args) {
+    return Cli(Cat(Cat(std::move(args), {"--token-file", dir / who}),
+                   server.Server()));
+  };
+  CommandResult submit = as("alice", Cat({"submit"}, kSmallJob));
+  ASSERT_EQ(submit.exit_code, 0) << submit.err;
+  const std::string id = Trim(submit.out);
+  ASSERT_EQ(WaitFor(server, id, Ended, "tok-alice").state(),
+            v1::JOB_STATE_SUCCEEDED);
+  CommandResult bobs = as("bob", Cat({"submit"}, kLongJob));
+  ASSERT_EQ(bobs.exit_code, 0) << bobs.err;
+  const std::string bob_id = Trim(bobs.out);
+
+  EXPECT_THAT(as("alice", {"list", "--all"}).out, HasSubstr(id));
+  EXPECT_THAT(as("alice", {"list", "--all"}).out, Not(HasSubstr(bob_id)));
+  EXPECT_THAT(as("bob", {"list", "--all"}).out, Not(HasSubstr(id)));
+  EXPECT_THAT(as("bob", {"list", "--all"}).out, HasSubstr(bob_id));
+  const std::string ops_list = as("ops", {"list", "--all"}).out;
+  EXPECT_THAT(ops_list, HasSubstr(id));
+  EXPECT_THAT(ops_list, HasSubstr(bob_id));
+
+  // Another identity's job looks exactly like one that does not exist.
+  const std::string unknown = "0123456789abcdef";
+  for (const auto& [who, job] :
+       std::vector<std::pair<std::string, std::string>>{{"bob", id},
+                                                        {"alice", bob_id}}) {
+    for (const std::vector<std::string>& command :
+         std::vector<std::vector<std::string>>{
+             {"watch", "--quiet"}, {"fetch", "--out", dir / "x"}, {"cancel"}}) {
+      SCOPED_TRACE(who + " " + command[0]);
+      std::vector<std::string> theirs = {command[0], job};
+      std::vector<std::string> none = {command[0], unknown};
+      for (size_t k = 1; k < command.size(); ++k) {
+        theirs.push_back(command[k]);
+        none.push_back(command[k]);
+      }
+      CommandResult a = as(who, theirs);
+      CommandResult b = as(who, none);
+      EXPECT_EQ(a.exit_code, 1);
+      EXPECT_THAT(a.err, HasSubstr("no such job"));
+      std::string b_err = b.err;
+      if (const size_t at = b_err.find(unknown); at != std::string::npos) {
+        b_err.replace(at, unknown.size(), job);
+      }
+      EXPECT_EQ(a.err, b_err);
+    }
+  }
+  EXPECT_FALSE(fs::exists(dir / "x/distance.nii.gz"));
+  CommandResult fetched = as("alice", {"fetch", id, "--out", dir / "a"});
+  EXPECT_EQ(fetched.exit_code, 0) << fetched.err;
+  CommandResult admin_fetch = as("ops", {"fetch", id, "--out", dir / "b"});
+  EXPECT_EQ(admin_fetch.exit_code, 0) << admin_fetch.err;
+  CommandResult admin_cancel = as("ops", {"cancel", bob_id});
+  EXPECT_EQ(admin_cancel.exit_code, 0) << admin_cancel.err;
+
+  // Ownership is in the spool: it survives a restart.
+  server.Kill9();
+  server.Start();
+  EXPECT_THAT(as("bob", {"list", "--all"}).out, Not(HasSubstr(id)));
+  EXPECT_THAT(as("bob", {"watch", id, "--quiet"}).err,
+              HasSubstr("no such job"));
+  EXPECT_THAT(as("alice", {"list", "--all"}).out, HasSubstr(id));
+  EXPECT_EQ(as("alice", {"watch", id, "--quiet"}).exit_code, 0);
 }
 
 TEST(ServerTest, UnreachableServerIsOneLineAndExitOne) {

@@ -6,6 +6,7 @@
 #include <mutex>
 #include <thread>
 
+#include "server/auth.h"
 #include "server/log_safe.h"
 #include "server/spec_mapping.h"
 #include "server/status_map.h"
@@ -83,6 +84,51 @@ TEST(SpecMappingTest, DefaultsMatchTheCli) {
   p.mutable_derived_series()->add_contents("bogus");
   EXPECT_EQ(JobSpecFromProto(p).status().code(),
             absl::StatusCode::kInvalidArgument);
+}
+
+TEST(TokenFileTest, OneTokenAloneIsTheDefaultIdentity) {
+  auto tokens = ParseTokenFile("  s3cret-token\n");
+  ASSERT_TRUE(tokens.ok()) << tokens.status();
+  ASSERT_EQ(tokens->size(), 1u);
+  EXPECT_EQ((*tokens)[0].name, "default");
+  EXPECT_EQ((*tokens)[0].token, "s3cret-token");
+}
+
+TEST(TokenFileTest, NamedTokens) {
+  auto tokens =
+      ParseTokenFile("# who:token\nalice: tok-a\n\nbob:tok:b\nops@site:c\n");
+  ASSERT_TRUE(tokens.ok()) << tokens.status();
+  ASSERT_EQ(tokens->size(), 3u);
+  EXPECT_EQ((*tokens)[0].name, "alice");
+  EXPECT_EQ((*tokens)[0].token, "tok-a");
+  EXPECT_EQ((*tokens)[1].token, "tok:b");  // split at the first ':'
+  EXPECT_EQ((*tokens)[2].name, "ops@site");
+  for (const char* bad :
+       {"", "# only a comment\n", "alice:a\nbob\n", "alice:a\nalice:b\n",
+        "alice:a\nbob:a\n", "al ice:a\n", ":a\n", "alice:\n", "alice:a b\n",
+        "two words\n"}) {
+    auto parsed = ParseTokenFile(bad);
+    EXPECT_EQ(parsed.status().code(), absl::StatusCode::kInvalidArgument)
+        << bad;
+    // A refusal never quotes a token.
+    if (!parsed.ok()) {
+      EXPECT_EQ(parsed.status().message().find("a b"), std::string::npos);
+    }
+  }
+}
+
+TEST(AuthenticatorTest, MatchesBearerTokensByName) {
+  Authenticator auth({{"alice", "tok-a"}, {"bob", "tok-b"}}, {"bob"});
+  EXPECT_EQ(auth.MatchBearer("Bearer tok-a"), "alice");
+  EXPECT_EQ(auth.MatchBearer("Bearer tok-b"), "bob");
+  EXPECT_EQ(auth.MatchBearer("Bearer tok-"), std::nullopt);
+  EXPECT_EQ(auth.MatchBearer("Bearer tok-ab"), std::nullopt);
+  EXPECT_EQ(auth.MatchBearer("tok-a"), std::nullopt);
+  EXPECT_EQ(auth.MatchBearer(""), std::nullopt);
+  EXPECT_TRUE(Authenticator::MayAccess({"alice", false}, "alice"));
+  EXPECT_FALSE(Authenticator::MayAccess({"bob", false}, "alice"));
+  EXPECT_TRUE(Authenticator::MayAccess({"bob", true}, "alice"));
+  EXPECT_TRUE(Authenticator::MayAccess({"", false}, ""));
 }
 
 TEST(PeerAddressTest, DropsThePort) {
