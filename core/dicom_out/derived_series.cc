@@ -343,7 +343,7 @@ absl::StatusOr<std::vector<std::string>> WriteIntensitySeries(
   for (int64_t k = 0; k < nz; ++k) {
     DcmFileFormat file;
     DcmDataset& ds = *file.getDataset();
-    CopyPatientStudyFrameOfReference(src, ds);
+    CopyPatientStudyFrameOfReference(src, identity, ds);
 
     // SOP Common, General Series, General Equipment.
     const std::string& sop_uid =
@@ -387,6 +387,12 @@ absl::StatusOr<std::vector<std::string>> WriteIntensitySeries(
     ds.putAndInsertString(DCM_DerivationDescription, derivation.c_str());
     const double position = SlicePositionAlongNormal(grid, k);
     for (int64_t s : NearestSourceSlices(source, position)) {
+      // An anonymised source slice without a SOP Instance UID cannot be
+      // referenced.
+      if (source.slices[s].sop_instance_uid.empty() ||
+          source.sop_class_uid.empty()) {
+        continue;
+      }
       DcmItem* item = nullptr;
       ds.findOrCreateSequenceItem(DCM_SourceImageSequence, item, -2);
       item->putAndInsertString(DCM_ReferencedSOPClassUID,

@@ -49,10 +49,15 @@ absl::StatusOr<std::unique_ptr<DcmFileFormat>> LoadSourceHeader(
 // attribute is an error of the source that must not pass into ours; empty
 // items of copied sequences are dropped likewise); writes absent type 2
 // attributes empty.
-void CopyPatientStudyFrameOfReference(DcmItem& from, DcmItem& to);
+// StudyInstanceUID and FrameOfReferenceUID are then set from `identity`
+// (the source's, or the job's own for a source without them).
+void CopyPatientStudyFrameOfReference(DcmItem& from,
+                                      const DerivedObjectIdentity& identity,
+                                      DcmItem& to);
 
 // Adds ReferencedSeriesSequence (Common Instance Reference module) listing
-// every source instance.
+// every source instance that has a SOP Instance UID (none when the source
+// has no SeriesInstanceUID: an anonymised source cannot be referenced).
 void AddReferencedSeries(const DicomSeries& source, DcmItem& to);
 
 // Adds ReferencedSeriesSequence listing every instance of `series` (a derived

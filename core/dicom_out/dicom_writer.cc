@@ -237,7 +237,9 @@ const DcmTagKey kCopiedTags[] = {
 
 }  // namespace
 
-void CopyPatientStudyFrameOfReference(DcmItem& from, DcmItem& to) {
+void CopyPatientStudyFrameOfReference(DcmItem& from,
+                                      const DerivedObjectIdentity& identity,
+                                      DcmItem& to) {
   for (const DcmTagKey& tag : kCopiedTags) {
     DcmElement* element = nullptr;
     if (from.findAndGetElement(tag, element, /*searchIntoSub=*/OFFalse,
@@ -257,6 +259,14 @@ void CopyPatientStudyFrameOfReference(DcmItem& from, DcmItem& to) {
   for (const DcmTagKey& tag : kType2Tags) {
     if (!to.tagExists(tag)) to.insertEmptyElement(tag);
   }
+  if (!identity.study_instance_uid.empty()) {
+    to.putAndInsertString(DCM_StudyInstanceUID,
+                          identity.study_instance_uid.c_str());
+  }
+  if (!identity.frame_of_reference_uid.empty()) {
+    to.putAndInsertString(DCM_FrameOfReferenceUID,
+                          identity.frame_of_reference_uid.c_str());
+  }
   // Patient Identity Removed "YES" makes De-identification Method (or its
   // code sequence) type 1C. An anonymiser that said YES but left the method
   // empty would make every derived object invalid; repair it with a value
@@ -272,11 +282,15 @@ void CopyPatientStudyFrameOfReference(DcmItem& from, DcmItem& to) {
 
 void AddReferencedSeries(const DicomSeries& source, DcmItem& to) {
   to.findAndDeleteElement(DCM_ReferencedSeriesSequence);
+  if (source.series_instance_uid.empty() || source.sop_class_uid.empty()) {
+    return;
+  }
   DcmItem* series = nullptr;
   to.findOrCreateSequenceItem(DCM_ReferencedSeriesSequence, series, 0);
   series->putAndInsertString(DCM_SeriesInstanceUID,
                              source.series_instance_uid.c_str());
   for (size_t i = 0; i < source.slices.size(); ++i) {
+    if (source.slices[i].sop_instance_uid.empty()) continue;
     DcmItem* instance = nullptr;
     series->findOrCreateSequenceItem(DCM_ReferencedInstanceSequence, instance,
                                      -2 /* append */);

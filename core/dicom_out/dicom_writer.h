@@ -107,6 +107,11 @@ struct DerivedObjectIdentity {
   std::string sop_class_uid;
   // Dimension Organization UID (multi-frame objects only).
   std::string dimension_organization_uid;
+  // The study and frame of reference the object belongs to: the source's,
+  // or (for an anonymised source that has none) one made for the job and
+  // shared by all its objects, so that they stay together and valid.
+  std::string study_instance_uid;
+  std::string frame_of_reference_uid;
 };
 
 // The identities of every object one job may write.

@@ -122,7 +122,22 @@ absl::StatusOr<DerivedObjects> PlanDerivedObjects(
         "series number base %d leaves no room for the derived series", base));
   }
 
+  // An anonymised source may have no study or frame of reference: the
+  // job's objects then share new ones (type 1 in every IOD written here).
+  std::string study = source.study_instance_uid;
+  if (study.empty()) {
+    INTERSLICE_ASSIGN_OR_RETURN(study, namer.Uid("study"));
+  }
+  std::string frame = source.frame_of_reference_uid;
+  if (frame.empty()) {
+    INTERSLICE_ASSIGN_OR_RETURN(frame, namer.Uid("frame-of-reference"));
+  }
   DerivedObjects objects;
+  for (DerivedObjectIdentity* o :
+       {&objects.intensity, &objects.distance_map, &objects.segmentation}) {
+    o->study_instance_uid = study;
+    o->frame_of_reference_uid = frame;
+  }
   DerivedObjectIdentity& intensity = objects.intensity;
   INTERSLICE_ASSIGN_OR_RETURN(intensity.series_instance_uid,
                               namer.Uid("intensity/series"));

@@ -329,15 +329,21 @@ absl::Status WriteDistanceMap(const DicomSeries& source,
 
   // Identity. Patient/study data are copied into the written dataset below;
   // the type 1 UIDs are set here too so that DCMTK does not invent them.
-  if (!source.study_instance_uid.empty()) {
-    INTERSLICE_RETURN_IF_ERROR(Check(
-        map.getStudy().setStudyInstanceUID(source.study_instance_uid.c_str()),
-        "set StudyInstanceUID"));
+  const std::string& study = identity.study_instance_uid.empty()
+                                 ? source.study_instance_uid
+                                 : identity.study_instance_uid;
+  const std::string& frame_of_reference =
+      identity.frame_of_reference_uid.empty() ? source.frame_of_reference_uid
+                                              : identity.frame_of_reference_uid;
+  if (!study.empty()) {
+    INTERSLICE_RETURN_IF_ERROR(
+        Check(map.getStudy().setStudyInstanceUID(study.c_str()),
+              "set StudyInstanceUID"));
   }
-  if (!source.frame_of_reference_uid.empty()) {
+  if (!frame_of_reference.empty()) {
     INTERSLICE_RETURN_IF_ERROR(
         Check(map.getFrameOfReference().setFrameOfReferenceUID(
-                  source.frame_of_reference_uid.c_str()),
+                  frame_of_reference.c_str()),
               "set FrameOfReferenceUID"));
   }
   INTERSLICE_RETURN_IF_ERROR(Check(map.getSeries().setSeriesInstanceUID(
@@ -501,7 +507,7 @@ absl::Status WriteDistanceMap(const DicomSeries& source,
   DcmFileFormat file;
   DcmDataset& ds = *file.getDataset();
   INTERSLICE_RETURN_IF_ERROR(Check(map.writeDataset(ds), "encode"));
-  CopyPatientStudyFrameOfReference(src, ds);
+  CopyPatientStudyFrameOfReference(src, identity, ds);
   // Common Instance Reference module (C.12.2): every image of the intensity
   // series the frames derive from.
   AddReferencedImageSeries(referenced, ds);

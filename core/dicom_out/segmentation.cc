@@ -94,11 +94,17 @@ absl::Status WriteSegmentation(const DicomSeries& source,
   // Identity. Patient/study data are copied into the written dataset below;
   // the type 1 UIDs are set here because dcmseg checks them while writing.
   INTERSLICE_RETURN_IF_ERROR(Check(
-      seg->getStudy().setStudyInstanceUID(source.study_instance_uid.c_str()),
+      seg->getStudy().setStudyInstanceUID((identity.study_instance_uid.empty()
+                                               ? source.study_instance_uid
+                                               : identity.study_instance_uid)
+                                              .c_str()),
       "set StudyInstanceUID"));
   INTERSLICE_RETURN_IF_ERROR(
       Check(seg->getFrameOfReference().setFrameOfReferenceUID(
-                source.frame_of_reference_uid.c_str()),
+                (identity.frame_of_reference_uid.empty()
+                     ? source.frame_of_reference_uid
+                     : identity.frame_of_reference_uid)
+                    .c_str()),
             "set FrameOfReferenceUID"));
   INTERSLICE_RETURN_IF_ERROR(
       Check(seg->getSeries().setSeriesInstanceUID(series_uid.c_str()),
@@ -215,7 +221,7 @@ absl::Status WriteSegmentation(const DicomSeries& source,
   DcmFileFormat file;
   DcmDataset& ds = *file.getDataset();
   INTERSLICE_RETURN_IF_ERROR(Check(seg->writeDataset(ds), "encode"));
-  CopyPatientStudyFrameOfReference(src, ds);
+  CopyPatientStudyFrameOfReference(src, identity, ds);
   AddReferencedImageSeries(referenced, ds);
   return SaveFileAtomically(file, path);
 }

@@ -385,6 +385,58 @@ TEST_F(DicomOutputTest, TiltedSeriesIsCorrectedAndReported) {
   ExpectItkSeesReportGrid(out / "series-intensity", report);
 }
 
+// An anonymised export (SOP, series, study and frame-of-reference UIDs all
+// blanked; the meta header kept) still gives valid objects that belong
+// together: one new study and frame of reference shared by all three.
+TEST_F(DicomOutputTest, AnonymisedSourceGivesValidObjectsThatBelongTogether) {
+  const fs::path source = dir_ / "anonymised";
+  MakeSeries(kPhantom, {8, 9, 10, 11}, {0, 5, 10, 15}, source);
+  for (const fs::path& f : SortedFiles(source)) {
+    DcmFileFormat file;
+    ASSERT_TRUE(file.loadFile(OFFilename(f.c_str())).good());
+    ASSERT_TRUE(file.loadAllDataIntoMemory().good());
+    DcmDataset& ds = *file.getDataset();
+    for (const DcmTagKey& tag :
+         {DCM_SOPClassUID, DCM_SOPInstanceUID, DCM_SeriesInstanceUID,
+          DCM_StudyInstanceUID, DCM_FrameOfReferenceUID}) {
+      ds.putAndInsertString(tag, "");
+    }
+    // Keep the meta header as the anonymiser left it.
+    ASSERT_TRUE(file.saveFile(OFFilename(f.c_str()), EXS_Unknown,
+                              EET_UndefinedLength, EGL_recalcGL, EPD_noChange,
+                              0, 0, EWM_dontUpdateMeta)
+                    .good());
+  }
+  const fs::path out = dir_ / "out";
+  const CommandResult r =
+      RunCli("run " + source.string() +
+             " --threshold 300 --roi 200,60,0,300,160,4 --method direct "
+             "--quiet --volume none --mesh none --seg --output-series "
+             "intensity,distance --out " +
+             out.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  const std::vector<fs::path> files = SortedFiles(out / "series-intensity");
+  ASSERT_FALSE(files.empty());
+  std::string errors;
+  int count = 0;
+  std::vector<std::string> studies, frames;
+  for (const fs::path& f :
+       {files.front(), files.back(), out / "seg.dcm", out / "distance.dcm"}) {
+    count += DciodvfyErrors(f, &errors);
+    DcmFileFormat file;
+    ASSERT_TRUE(file.loadFile(OFFilename(f.c_str())).good());
+    studies.push_back(GetString(*file.getDataset(), DCM_StudyInstanceUID));
+    frames.push_back(GetString(*file.getDataset(), DCM_FrameOfReferenceUID));
+  }
+  EXPECT_EQ(count, 0) << errors;
+  for (size_t i = 0; i < studies.size(); ++i) {
+    EXPECT_FALSE(studies[i].empty());
+    EXPECT_EQ(studies[i], studies[0]);
+    EXPECT_FALSE(frames[i].empty());
+    EXPECT_EQ(frames[i], frames[0]);
+  }
+}
+
 // The same job twice gives the same UIDs (a PACS replaces instead of
 // duplicating); --random-uids gives new ones.
 TEST_F(DicomOutputTest, RerunKeepsUidsAndRandomUidsDoNot) {
