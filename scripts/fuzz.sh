@@ -14,7 +14,8 @@
 # and seeds the next run.
 #
 # Environment: INTERSLICE_FUZZ_JOBS (compile jobs, default nproc),
-# INTERSLICE_FUZZ_TARGETS (default "dicom_ingest_fuzzer job_spec_fuzzer"),
+# INTERSLICE_FUZZ_TARGETS (default "dicom_ingest_fuzzer job_spec_fuzzer
+# upload_stream_fuzzer"),
 # INTERSLICE_FUZZ_ARGS (more libFuzzer flags for every target, e.g.
 # "-max_len=65536": about twice the executions per second for
 # dicom_ingest_fuzzer, at the price of truncating the 512 x 512 seeds).
@@ -28,7 +29,7 @@ if ! [[ "$seconds" =~ ^[0-9]+$ ]] || [ "$seconds" -lt 1 ]; then
   exit 2
 fi
 jobs="${INTERSLICE_FUZZ_JOBS:-$(nproc)}"
-targets=(${INTERSLICE_FUZZ_TARGETS:-dicom_ingest_fuzzer job_spec_fuzzer})
+targets=(${INTERSLICE_FUZZ_TARGETS:-dicom_ingest_fuzzer job_spec_fuzzer upload_stream_fuzzer})
 build="$root/build-fuzz"
 work="$build/fuzz"
 
