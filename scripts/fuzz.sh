@@ -103,6 +103,33 @@ seeds_job_spec() {
   done
 }
 
+seeds_upload_stream() {
+  # Records: a 2-byte little-endian length, then an interslice.v1.UploadRequest;
+  # a first byte of 1 makes the fuzzer fill in whole-file SHA-256s.
+  local dir="$1" proto=proto/interslice/v1/interslice.proto sha
+  mkdir -p "$dir"
+  record() {
+    local b n
+    b="$(mktemp)"
+    printf '%s\n' "$1" | protoc -I proto --encode=interslice.v1.UploadRequest "$proto" >"$b"
+    n=$(stat -c %s "$b")
+    printf "\\x$(printf %02x $((n & 255)))\\x$(printf %02x $((n >> 8)))"
+    cat "$b"
+    rm -f "$b"
+  }
+  sha="$(printf 'hello world' | sha256sum | cut -c1-64 | sed 's/../\\x&/g')"
+  { printf '\x01'
+    record 'header { spec { threshold: 300 } file_count: 2 total_bytes: 22 }'
+    record 'chunk { file_index: 0 file_name: "a.dcm" file_size: 11 data: "hello world" }'
+    record 'chunk { file_index: 1 file_name: "d/b.dcm" file_size: 11 data: "second file" }'
+  } >"$dir/two-files"
+  { printf '\x00'
+    record 'header { spec { threshold: 300 } file_count: 1 total_bytes: 11 }'
+    record "chunk { file_index: 0 file_name: \"a.dcm\" file_size: 11 sha256: \"$sha\" data: \"hello\" }"
+    record 'chunk { file_index: 0 offset: 5 data: " world" }'
+  } >"$dir/split-file"
+}
+
 status=0
 summary=()
 for target in "${targets[@]}"; do
@@ -112,6 +139,7 @@ for target in "${targets[@]}"; do
   case "$target" in
     dicom_ingest_fuzzer) seeds_dicom "$dir/seeds" ;;
     job_spec_fuzzer) seeds_job_spec "$dir/seeds" ;;
+    upload_stream_fuzzer) seeds_upload_stream "$dir/seeds" ;;
   esac
   log="$dir/last-run.log"
   echo "fuzz: $target for $seconds s (log: ${log#$root/})"
