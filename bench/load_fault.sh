@@ -22,7 +22,10 @@
 #  5. SIGTERM under load: 8 one-call jobs in flight, then SIGTERM: the server
 #     exits 0; each client either got its result (reference bytes) or a clear
 #     "shutting down" answer.
-# Loopback only; every loop is bounded.
+# Every client here is one peer (127.0.0.1), so the per-peer upload limit is
+# raised to 64 (the server tests check that limit); stalled uploads are then
+# held off by the idle timeout (10 s here) and by uploads taking no queue
+# slot. Loopback only; every loop is bounded.
 set -uo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 build=${1:-$root/build}
@@ -49,7 +52,8 @@ start_server() {
   rm -f "$work/port"
   INTERSLICE_WORKER_FAULT=abort:contour:777 "$server" --listen 127.0.0.1:0 \
     --spool "$work/spool" --port-file "$work/port" \
-    --drain-grace 20 "$@" >>"$work/server.log" 2>&1 &
+    --drain-grace 20 --max-uploads-per-peer 64 --upload-idle-timeout 10 \
+    "$@" >>"$work/server.log" 2>&1 &
   server_pid=$!
   for _ in $(seq 200); do [[ -s $work/port ]] && break; sleep 0.05; done
   addr=127.0.0.1:$(head -1 "$work/port")
