@@ -1,9 +1,9 @@
-// Corrupt JPEG 2000 pixel data (decoded through GDCM and libopenjp2) is an
-// INVALID_ARGUMENT naming the file, never a crash. Under LeakSanitizer
-// (scripts/test-sanitizers.sh) these cases also exercise GDCM 3.0's error
-// paths that leak libopenjp2's codec, stream and image (suppressed and
-// explained in tools/sanitizers/lsan.supp): any other leak on the same path
-// still fails the test.
+// Corrupt JPEG 2000 pixel data is an INVALID_ARGUMENT naming the file, never
+// a crash, whether CheckJpeg2000Codestream refuses it or GDCM's codec (with
+// libopenjp2) fails on it. Under LeakSanitizer (scripts/test-sanitizers.sh)
+// the truncated codestream also runs GDCM 3.0's opj_decode error path, which
+// leaks libopenjp2's image (suppressed and explained in
+// tools/sanitizers/lsan.supp): any other leak on that path fails the test.
 #include <cstdint>
 #include <cstring>
 #include <filesystem>
@@ -90,11 +90,12 @@ TEST_F(CorruptJpeg2000Test, UnchangedCopyDecodes) {
   EXPECT_EQ(series->image.grid.size, (Index3{512, 512, 1}));
 }
 
-// GDCM's JPEG2000Codec::GetHeaderInfo fails on these.
+// Refused by CheckJpeg2000Codestream: GDCM never sees it.
 TEST_F(CorruptJpeg2000Test, ZeroedCodestream) {
   ExpectInvalid("zeros.dcm", std::string(codestream_.size(), '\0'));
 }
 
+// A valid main header: GDCM's codec fails on it (opj_decode finds no tile).
 TEST_F(CorruptJpeg2000Test, MainHeaderWithoutTiles) {
   const size_t sot = codestream_.find(std::string("\xff\x90", 2));
   ASSERT_NE(sot, std::string::npos);
@@ -102,7 +103,8 @@ TEST_F(CorruptJpeg2000Test, MainHeaderWithoutTiles) {
                 codestream_.substr(0, sot) + std::string("\xff\xd9", 2));
 }
 
-// GDCM's JPEG2000Codec::DecodeByStreamsCommon fails on this (opj_decode).
+// GDCM's JPEG2000Codec::DecodeByStreamsCommon fails on this (opj_decode) and
+// leaks the opj_image_t it got from opj_read_header.
 TEST_F(CorruptJpeg2000Test, TruncatedCodestream) {
   ExpectInvalid("truncated.dcm", codestream_.substr(0, codestream_.size() / 2));
 }
