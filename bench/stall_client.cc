@@ -54,9 +54,9 @@ int main(int argc, char** argv) {
   std::vector<std::unique_ptr<Stream>> open;
   for (int i = 0; i < streams; ++i) {
     auto s = std::make_unique<Stream>();
-    s->context.set_deadline(std::chrono::system_clock::now() +
-                            std::chrono::milliseconds(
-                                static_cast<int64_t>(seconds * 1000) + 5000));
+    s->context.set_deadline(
+        std::chrono::system_clock::now() +
+        std::chrono::milliseconds(static_cast<int64_t>(seconds * 1000) + 5000));
     s->writer = stub->Submit(&s->context, &s->response);
     UploadRequest header;
     header.mutable_header()->mutable_spec()->set_threshold(300);
@@ -65,8 +65,9 @@ int main(int argc, char** argv) {
     s->writer->Write(header);
     open.push_back(std::move(s));
   }
-  const auto end = std::chrono::steady_clock::now() +
-                   std::chrono::milliseconds(static_cast<int64_t>(seconds * 1000));
+  const auto end =
+      std::chrono::steady_clock::now() +
+      std::chrono::milliseconds(static_cast<int64_t>(seconds * 1000));
   int64_t offset = 0;
   const std::string data(64 * 1024, '\0');
   bool first = true;
@@ -86,8 +87,8 @@ int main(int argc, char** argv) {
       }
       first = false;
       offset += static_cast<int64_t>(data.size());
-      std::this_thread::sleep_for(
-          std::chrono::milliseconds(static_cast<int64_t>(trickle_seconds * 1000)));
+      std::this_thread::sleep_for(std::chrono::milliseconds(
+          static_cast<int64_t>(trickle_seconds * 1000)));
     } else {
       std::this_thread::sleep_for(std::chrono::milliseconds(200));
     }

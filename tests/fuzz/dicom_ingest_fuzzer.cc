@@ -3,8 +3,8 @@
 // a corpus entry can hold a small series and reach the stack checks), which
 // are read (ReadDicomSeries, header scan included) with a small voxel limit;
 // when they hold several series, listed (ListDicomSeries) and read again
-// choosing one. Every outcome must be a status: no crash, hang, leak or unbounded
-// allocation.
+// choosing one. Every outcome must be a status: no crash, hang, leak or
+// unbounded allocation.
 #include <stdlib.h>
 #include <unistd.h>
 

@@ -8,8 +8,8 @@
 #include <cstdlib>
 
 #include "core/geometry/volume.h"
-#include "google/protobuf/stubs/logging.h"
 #include "core/pipeline/pipeline.h"
+#include "google/protobuf/stubs/logging.h"
 #include "interslice/v1/interslice.pb.h"
 #include "server/spec_mapping.h"
 

@@ -89,7 +89,8 @@ TEST(CheckJpeg2000CodestreamTest, RefusesWhatGdcmWouldMishandle) {
   EXPECT_THAT(Check(Codestream({}), eight).message(),
               HasSubstr("16-bit samples do not fit BitsAllocated 8"));
   // A JP2 file (signature box first) instead of a bare codestream.
-  std::vector<uint8_t> jp2 = {0, 0, 0, 12, 'j', 'P', ' ', ' ', 13, 10, 0x87, 10};
+  std::vector<uint8_t> jp2 = {0,   0,   0,  12, 'j',  'P',
+                              ' ', ' ', 13, 10, 0x87, 10};
   for (uint8_t byte : Codestream({})) jp2.push_back(byte);
   EXPECT_THAT(Check(jp2).message(), HasSubstr("JP2"));
   // Too short for a SIZ marker.
