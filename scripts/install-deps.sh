@@ -15,6 +15,11 @@ packages=(
   libcli11-dev prometheus-cpp-dev libabsl-dev nlohmann-json3-dev
   zlib1g-dev libgdcm-dev libssl-dev
   dicom3tools
+  # the DICOM node (server/dicom): configuration files; a real PACS for its
+  # end-to-end tests (Orthanc, started by the tests, never as a service)
+  libyaml-cpp-dev orthanc orthanc-dicomweb
+  # deploy/ manifests are linted in CI
+  yamllint
   # libFuzzer targets (scripts/fuzz.sh): clang with its sanitizer runtimes
   clang libclang-rt-14-dev
 )
