@@ -45,7 +45,7 @@
 //   type 2 attributes absent there are written empty.
 // - Series numbers: options.series_number_base, else 1000 x the source's
 //   SeriesNumber, else 9000; the intensity series gets base + 1, the distance
-//   map base + 2, the SEG base + 3.
+//   map base + 2, the SEG base + 3, the Encapsulated STL mesh base + 4.
 // - Equipment (Manufacturer etc.) describes interslice, the creator of the
 //   derived objects, not the scanner.
 //
@@ -119,6 +119,9 @@ struct DerivedObjects {
   DerivedObjectIdentity intensity;     // one instance per output slice
   DerivedObjectIdentity distance_map;  // Parametric Map, one instance
   DerivedObjectIdentity segmentation;  // SEG, one instance
+  // The surface mesh as Encapsulated STL (core/dicom_out/encapsulated_stl.h),
+  // one instance, series number base + 4.
+  DerivedObjectIdentity surface_stl;
 };
 
 // Names the derived objects of a job whose output grid has `output_slices`

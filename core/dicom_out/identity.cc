@@ -113,11 +113,11 @@ absl::StatusOr<DerivedObjects> PlanDerivedObjects(
     base = kFallbackSeriesNumberBase;
     // IS holds a signed 32-bit value; 1000 x a huge source number would not.
     if (number.has_value() && *number > 0 &&
-        *number * 1000 + 3 <= std::numeric_limits<int32_t>::max()) {
+        *number * 1000 + 4 <= std::numeric_limits<int32_t>::max()) {
       base = *number * 1000;
     }
   }
-  if (base + 3 > std::numeric_limits<int32_t>::max()) {
+  if (base + 4 > std::numeric_limits<int32_t>::max()) {
     return absl::InvalidArgumentError(absl::StrFormat(
         "series number base %d leaves no room for the derived series", base));
   }
@@ -134,7 +134,8 @@ absl::StatusOr<DerivedObjects> PlanDerivedObjects(
   }
   DerivedObjects objects;
   for (DerivedObjectIdentity* o :
-       {&objects.intensity, &objects.distance_map, &objects.segmentation}) {
+       {&objects.intensity, &objects.distance_map, &objects.segmentation,
+        &objects.surface_stl}) {
     o->study_instance_uid = study;
     o->frame_of_reference_uid = frame;
   }
@@ -172,6 +173,16 @@ absl::StatusOr<DerivedObjects> PlanDerivedObjects(
   seg.series_number = static_cast<int>(base + 3);
   seg.sop_class_uid = UID_SegmentationStorage;
   seg.series_description = "interslice segmentation";
+
+  DerivedObjectIdentity& stl = objects.surface_stl;
+  INTERSLICE_ASSIGN_OR_RETURN(stl.series_instance_uid,
+                              namer.Uid("surface-stl/series"));
+  INTERSLICE_ASSIGN_OR_RETURN(std::string stl_uid,
+                              namer.Uid("surface-stl/instance"));
+  stl.sop_instance_uids = {stl_uid};
+  stl.series_number = static_cast<int>(base + 4);
+  stl.sop_class_uid = UID_EncapsulatedSTLStorage;
+  stl.series_description = "interslice surface mesh (STL)";
   return objects;
 }
 

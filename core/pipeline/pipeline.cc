@@ -17,6 +17,7 @@
 #include "core/common/status_macros.h"
 #include "core/dicom/series_reader.h"
 #include "core/dicom_out/dicom_writer.h"
+#include "core/dicom_out/encapsulated_stl.h"
 #include "core/sdf/signed_distance.h"
 #include "core/surface/surface.h"
 #include "core/volume_io/volume_io.h"
@@ -418,6 +419,16 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
       INTERSLICE_RETURN_IF_ERROR(task.status);
       report.artifacts.push_back(
           {task.kind, task.path.string(), PathSize(task.path)});
+    }
+    // With DICOM outputs, the STL mesh also goes into the study as an
+    // Encapsulated STL object; it embeds surface.stl, so it comes after.
+    if (wants_intensity && Contains(spec.mesh_formats, "stl")) {
+      const auto path = dir / kEncapsulatedStlFileName;
+      INTERSLICE_RETURN_IF_ERROR(WriteEncapsulatedStl(
+          source, (dir / "surface.stl").string(), objects.surface_stl,
+          dicom_options, path.string()));
+      report.artifacts.push_back(
+          {"surface-stl-dicom", path.string(), PathSize(path)});
     }
   }
   return report;

@@ -53,6 +53,9 @@ struct JobSpec {
   //                    float mm);
   //     "mask"      -> seg.dcm (binary DICOM SEG of the mask; the same as
   //                    write_seg).
+  //   With any of these and mesh format "stl", the mesh is also written as
+  //   surface-stl.dcm (DICOM Encapsulated STL, core/dicom_out/
+  //   encapsulated_stl.h) in the same study and frame of reference.
   //   A SEG or a distance map is always written with the intensity series
   //   it references frame by frame (a viewer opens that series and overlays
   //   them), so either one also writes series-intensity/.
