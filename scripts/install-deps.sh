@@ -18,6 +18,8 @@ packages=(
   # the DICOM node (server/dicom): configuration files; a real PACS for its
   # end-to-end tests (Orthanc, started by the tests, never as a service)
   libyaml-cpp-dev orthanc orthanc-dicomweb
+  # the Orthanc test fixture talks to its REST API with libcurl
+  libcurl4-openssl-dev
   # deploy/ manifests are linted in CI
   yamllint
   # libFuzzer targets (scripts/fuzz.sh): clang with its sanitizer runtimes

@@ -9,6 +9,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "core/pipeline/pipeline.h"
+#include "server/dicom/delivery.h"
 #include "server/hashing.h"
 #include "server/log_safe.h"
 #include "server/spec_mapping.h"
@@ -35,6 +36,15 @@ std::string NewJobId() {
 bool IsTerminal(v1::JobState s) {
   return s == v1::JOB_STATE_SUCCEEDED || s == v1::JOB_STATE_FAILED ||
          s == v1::JOB_STATE_CANCELLED;
+}
+
+// A delivery of the job's results to a DICOM peer is still to be made: the
+// results must stay.
+bool HasPendingDelivery(const JobRecord& record) {
+  for (const v1::Delivery& d : record.status().deliveries()) {
+    if (d.state() == v1::Delivery::PENDING) return true;
+  }
+  return false;
 }
 
 std::chrono::steady_clock::time_point SteadyFromUnixMillis(int64_t ms) {
@@ -164,6 +174,16 @@ absl::Status JobManager::Recover() {
     if (record.deadline_unix_ms() > 0) {
       job->token_.SetDeadline(SteadyFromUnixMillis(record.deadline_unix_ms()));
     }
+    if (deliveries_ != nullptr && HasPendingDelivery(job->record_)) {
+      // Results not yet on every destination: the outbox carries on where
+      // it stopped (attempts and next try kept).
+      const std::vector<std::string> files =
+          dicom::ListDicomFiles(spool_->OutputDir(id));
+      for (const v1::Delivery& d : job->record_.status().deliveries()) {
+        deliveries_->Add(id, d, files,
+                         job->record_.status().finished_unix_ms());
+      }
+    }
     std::lock_guard<std::mutex> lock(mu_);
     jobs_[id] = job;
     if (job->record_.status().state() == v1::JOB_STATE_QUEUED) {
@@ -232,6 +252,23 @@ absl::StatusOr<std::shared_ptr<Job>> JobManager::Admit(
   }
   absl::StatusOr<JobSpec> spec = JobSpecFromProto(header.spec());
   if (!spec.ok()) return reject(spec.status());
+  if (!header.spec().send_to().empty()) {
+    if (deliveries_ == nullptr) {
+      return reject(absl::InvalidArgumentError(
+          "spec.send_to names DICOM peers, but the server has none "
+          "configured (--dicom-peers)"));
+    }
+    const std::vector<std::string> names(header.spec().send_to().begin(),
+                                         header.spec().send_to().end());
+    if (absl::Status s = deliveries_->CheckPeers(names); !s.ok()) {
+      return reject(s);
+    }
+    if (spec->output_series.empty() && !spec->write_seg) {
+      return reject(absl::InvalidArgumentError(
+          "spec.send_to needs DICOM results: ask for derived series "
+          "(output_series) or a segmentation"));
+    }
+  }
   {
     std::lock_guard<std::mutex> lock(mu_);
     // The slot itself is taken by Enqueue, once the upload is complete.
@@ -359,7 +396,7 @@ void JobManager::Discard(const std::shared_ptr<Job>& job) {
     job->token_.Cancel();
     auto it = std::find(queue_.begin(), queue_.end(), job);
     if (it != queue_.end()) queue_.erase(it);
-    if (!job->running_) {
+    if (!job->running_ && !HasPendingDelivery(job->record_)) {
       remove_now = true;
       jobs_.erase(job->id());
     }
@@ -376,8 +413,32 @@ void JobManager::RemoveFinished(const std::shared_ptr<Job>& job) {
     bytes = IsTerminal(s) ? job->record_.result_bytes()
                           : job->record_.upload_bytes();
   }
+  if (deliveries_ != nullptr) deliveries_->Forget(job->id());
   spool_->RemoveJob(job->id());
   spool_->Release(bytes);
+}
+
+void JobManager::UpdateDelivery(const std::string& job_id,
+                                const v1::Delivery& delivery) {
+  std::shared_ptr<Job> job = Find(job_id);
+  if (job == nullptr) return;  // deleted meanwhile
+  job->Update([&](JobRecord& r) {
+    for (v1::Delivery& d : *r.mutable_status()->mutable_deliveries()) {
+      if (d.peer() == delivery.peer()) d = delivery;
+    }
+  });
+  Persist(job);
+  bool remove = false;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    std::lock_guard<std::mutex> job_lock(job->mu_);
+    // An Interpolate job whose call has ended waited only for this.
+    if (job->discard_ && !job->running_ && !HasPendingDelivery(job->record_) &&
+        jobs_.erase(job_id) > 0) {
+      remove = true;
+    }
+  }
+  if (remove) RemoveFinished(job);
 }
 
 std::shared_ptr<Job> JobManager::Find(const std::string& id) {
@@ -577,7 +638,7 @@ void JobManager::WorkerLoop() {
       std::lock_guard<std::mutex> job_lock(job->mu_);
       job->running_ = false;
       --running_;
-      if (job->discard_) {
+      if (job->discard_ && !HasPendingDelivery(job->record_)) {
         remove = true;
         jobs_.erase(job->id());
       }
@@ -742,7 +803,29 @@ void JobManager::RunOne(const std::shared_ptr<Job>& job) {
     if (hashed.ok()) {
       spool_->Add(result_bytes);
       const std::string json = JobReportToJson(*report);
+      // One delivery per destination, of every DICOM file the job wrote.
+      std::vector<std::string> dicom_files;
+      std::vector<v1::Delivery> deliveries;
+      std::vector<std::string> send_to;
+      {
+        std::lock_guard<std::mutex> lock(job->mu_);
+        send_to.assign(job->record_.spec().send_to().begin(),
+                       job->record_.spec().send_to().end());
+      }
+      if (deliveries_ != nullptr && !send_to.empty()) {
+        dicom_files = dicom::ListDicomFiles(spool_->OutputDir(id));
+        for (const std::string& peer : send_to) {
+          v1::Delivery d;
+          d.set_peer(peer);
+          d.set_state(v1::Delivery::PENDING);
+          d.set_instances_total(static_cast<int32_t>(dicom_files.size()));
+          deliveries.push_back(d);
+        }
+      }
       job->Update([&](JobRecord& r) {
+        for (const v1::Delivery& d : deliveries) {
+          *r.mutable_status()->add_deliveries() = d;
+        }
         v1::JobStatus* s = r.mutable_status();
         s->set_state(v1::JOB_STATE_SUCCEEDED);
         s->set_finished_unix_ms(now);
@@ -754,6 +837,9 @@ void JobManager::RunOne(const std::shared_ptr<Job>& job) {
         r.set_result_bytes(result_bytes);
       });
       Persist(job);
+      for (const v1::Delivery& d : deliveries) {
+        deliveries_->Add(id, d, dicom_files, now);
+      }
       metrics_->JobFinished("succeeded");
       spdlog::info("job={} succeeded: {} artifact(s), {} bytes", id,
                    artifacts.size(), result_bytes);
@@ -803,8 +889,11 @@ void JobManager::TickerLoop() {
         std::shared_ptr<Job> job = it->second;
         std::lock_guard<std::mutex> job_lock(job->mu_);
         const v1::JobStatus& s = job->record_.status();
+        // Results still owed to a DICOM peer outlive retention until the
+        // delivery ends (delivered, or failed after give_up_after).
         if (!job->ephemeral() && !job->running_ && IsTerminal(s.state()) &&
-            s.expires_unix_ms() > 0 && s.expires_unix_ms() < now) {
+            s.expires_unix_ms() > 0 && s.expires_unix_ms() < now &&
+            !HasPendingDelivery(job->record_)) {
           expired.push_back(job);
           it = jobs_.erase(it);
         } else {

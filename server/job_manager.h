@@ -36,6 +36,9 @@
 #include "server/spool.h"
 
 namespace interslice::server {
+namespace dicom {
+class DeliveryQueue;
+}
 
 struct ManagerOptions {
   // Run each job's compute in a supervised worker process (see
@@ -121,6 +124,17 @@ class JobManager {
 
   const ManagerOptions& options() const { return options_; }
 
+  // The outbox for JobSpec.send_to (server/dicom/delivery.h); null = no
+  // DICOM peers (send_to is then INVALID_ARGUMENT). Set before Recover():
+  // Recover() hands it the deliveries still PENDING, a successful job with
+  // send_to hands it one delivery per peer, and results are kept past
+  // retention while a delivery is PENDING.
+  void SetDeliveryQueue(dicom::DeliveryQueue* queue) { deliveries_ = queue; }
+  // Blocking. The outbox reports a delivery's new state: stored in the
+  // job's status (JobStatus.deliveries, matched by peer) and spool record.
+  // An Interpolate job whose call ended is deleted once none is PENDING.
+  void UpdateDelivery(const std::string& job_id, const v1::Delivery& delivery);
+
   // Blocking. Reloads the spool: finished jobs stay fetchable, queued jobs
   // are queued again, jobs that were running when the process died are
   // marked FAILED (ABORTED) rather than retried, so that a job that crashes
@@ -181,6 +195,7 @@ class JobManager {
   void RemoveFinished(const std::shared_ptr<Job>& job);
 
   const ManagerOptions options_;
+  dicom::DeliveryQueue* deliveries_ = nullptr;
   Spool* const spool_;
   Metrics* const metrics_;
 

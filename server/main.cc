@@ -100,6 +100,20 @@ int main(int argc, char** argv) {
                  "(kill, power cut) before it fails for good")
       ->check(CLI::Range(1, 100))
       ->capture_default_str();
+  app.add_option("--delivery-retry", o.delivery_retry_seconds,
+                 "Seconds before a failed DICOM delivery (send_to) is tried "
+                 "again; doubled per failure up to --delivery-retry-max")
+      ->check(CLI::Range(0.01, 3600.0))
+      ->capture_default_str();
+  app.add_option("--delivery-retry-max", o.delivery_retry_max_seconds,
+                 "Longest wait between tries of a DICOM delivery, seconds")
+      ->check(CLI::Range(0.01, 86400.0))
+      ->capture_default_str();
+  app.add_option("--delivery-give-up", o.delivery_give_up_seconds,
+                 "A DICOM delivery not accepted after this many seconds is "
+                 "FAILED (its results then expire with the job)")
+      ->check(CLI::Range(1.0, 30 * 86400.0))
+      ->capture_default_str();
   app.add_option("--port-file", o.port_file,
                  "Write the bound gRPC and metrics ports here after start-up");
   try {

@@ -35,6 +35,17 @@ Metrics::Metrics() : registry_(std::make_shared<prometheus::Registry>()) {
                    .Help("DICOM bytes uploaded")
                    .Register(*registry_)
                    .Add({});
+  dicom_sent_ = &prometheus::BuildCounter()
+                     .Name("interslice_dicom_instances_sent_total")
+                     .Help("DICOM instances a peer accepted (C-STORE), by "
+                           "peer name")
+                     .Register(*registry_);
+  dicom_send_failed_ =
+      &prometheus::BuildCounter()
+           .Name("interslice_dicom_instances_send_failed_total")
+           .Help("DICOM instances not stored on a peer in a try (refused, "
+                 "or the peer unreachable), by peer name")
+           .Register(*registry_);
   bytes_out_ = &prometheus::BuildCounter()
                     .Name("interslice_bytes_sent_total")
                     .Help("Artifact bytes sent")
@@ -72,5 +83,13 @@ void Metrics::StageSeconds(const std::string& stage, double seconds) {
 }
 void Metrics::BytesIn(double n) { bytes_in_->Increment(n); }
 void Metrics::BytesOut(double n) { bytes_out_->Increment(n); }
+
+void Metrics::DicomInstancesSent(const std::string& peer, double n) {
+  dicom_sent_->Add({{"peer", peer}}).Increment(n);
+}
+
+void Metrics::DicomInstancesFailed(const std::string& peer, double n) {
+  dicom_send_failed_->Add({{"peer", peer}}).Increment(n);
+}
 
 }  // namespace interslice::server

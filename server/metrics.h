@@ -34,6 +34,9 @@ class Metrics {
   void StageSeconds(const std::string& stage, double seconds);
   void BytesIn(double n);
   void BytesOut(double n);
+  // DICOM instances stored on (or refused by) a peer, by peer name.
+  void DicomInstancesSent(const std::string& peer, double n);
+  void DicomInstancesFailed(const std::string& peer, double n);
 
  private:
   std::shared_ptr<prometheus::Registry> registry_;
@@ -44,6 +47,8 @@ class Metrics {
   prometheus::Gauge* running_;
   prometheus::Counter* bytes_in_;
   prometheus::Counter* bytes_out_;
+  prometheus::Family<prometheus::Counter>* dicom_sent_;
+  prometheus::Family<prometheus::Counter>* dicom_send_failed_;
   int port_ = 0;
 };
 

@@ -15,6 +15,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "core/dicom/series_reader.h"
+#include "server/dicom/delivery.h"
 #include "grpcpp/grpcpp.h"
 #include "grpcpp/health_check_service_interface.h"
 #include "server/auth.h"
@@ -263,8 +264,35 @@ int RunServer(ServerOptions options) {
   manager_options.isolate_jobs = options.isolation == "process";
   manager_options.max_attempts = options.max_attempts;
   JobManager manager(manager_options, spool->get(), &metrics);
+  // The outbox (declared after the manager, so stopped before it).
+  std::unique_ptr<dicom::DeliveryQueue> outbox;
+  if (!options.dicom_peers.empty()) {
+    dicom::DeliveryOptions delivery;
+    delivery.calling_ae_title = options.dicom_ae_title;
+    auto ms = [](double seconds) {
+      return std::chrono::milliseconds(static_cast<int64_t>(seconds * 1000));
+    };
+    delivery.initial_backoff = ms(options.delivery_retry_seconds);
+    delivery.max_backoff = ms(options.delivery_retry_max_seconds);
+    delivery.give_up_after = ms(options.delivery_give_up_seconds);
+    dicom::DeliveryCounters counters;
+    counters.sent = [&metrics](const std::string& peer, int n) {
+      metrics.DicomInstancesSent(peer, n);
+    };
+    counters.failed = [&metrics](const std::string& peer, int n) {
+      metrics.DicomInstancesFailed(peer, n);
+    };
+    outbox = std::make_unique<dicom::DeliveryQueue>(
+        options.dicom_peers, delivery,
+        [&manager](const std::string& job_id, const v1::Delivery& d) {
+          manager.UpdateDelivery(job_id, d);
+        },
+        counters);
+    manager.SetDeliveryQueue(outbox.get());
+  }
   if (absl::Status s = manager.Recover(); !s.ok()) return fail(s);
   manager.Start();
+  if (outbox != nullptr) outbox->Start();
 
   Executor io(options.io_threads);
   ServiceOptions service_options;
@@ -335,6 +363,8 @@ int RunServer(ServerOptions options) {
     manager.BeginDrain();
     manager.Shutdown(std::chrono::milliseconds(
         static_cast<int64_t>(options.drain_grace_seconds * 1000)));
+    // Deliveries still PENDING stay in the spool records for the restart.
+    if (outbox != nullptr) outbox->Stop();
     spdlog::info("jobs stopped; closing connections");
     server->Shutdown(std::chrono::system_clock::now() +
                      std::chrono::seconds(2));

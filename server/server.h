@@ -6,6 +6,8 @@
 #include <string>
 #include <vector>
 
+#include "server/dicom/peer.h"
+
 namespace interslice::server {
 
 struct ServerOptions {
@@ -44,6 +46,16 @@ struct ServerOptions {
   std::string isolation = "process";
   // Starts of a detached job interrupted by a server stop, in all.
   int max_attempts = 3;
+  // DICOM peers (the --dicom-peers file): where JobSpec.send_to stores
+  // results and pacs_source retrieves from. Our AE title on outgoing
+  // associations.
+  std::vector<dicom::DicomPeer> dicom_peers;
+  std::string dicom_ae_title = "INTERSLICE";
+  // Outbox retries: the first wait, doubled per failure up to the cap; a
+  // delivery fails for good after give-up seconds without success.
+  double delivery_retry_seconds = 2;
+  double delivery_retry_max_seconds = 300;
+  double delivery_give_up_seconds = 24 * 3600;
   // After start-up, "<grpc port>\n<metrics port>\n" is written here
   // (atomically), for tests and scripts that listen on port 0.
   std::string port_file;

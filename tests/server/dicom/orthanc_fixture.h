@@ -1,0 +1,84 @@
+// A real Orthanc PACS for the DICOM network tests: Debian's `Orthanc`
+// binary started as a child process on loopback with a configuration the
+// test writes (free HTTP and DICOM ports, its own storage folder, the
+// interslice server as a known modality), and a small REST client over
+// libcurl.
+#ifndef INTERSLICE_TESTS_SERVER_DICOM_ORTHANC_FIXTURE_H_
+#define INTERSLICE_TESTS_SERVER_DICOM_ORTHANC_FIXTURE_H_
+
+#include <sys/types.h>
+
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "nlohmann/json.hpp"
+
+namespace interslice::testing {
+
+inline constexpr char kOrthancBinary[] = "/usr/sbin/Orthanc";
+
+// A port nobody listens on right now (bound to 0 and released).
+int FreeTcpPort();
+
+struct OrthancModality {
+  std::string name;  // Orthanc's name for it (REST /modalities/{name})
+  std::string ae_title;
+  std::string host = "127.0.0.1";
+  int port = 0;
+};
+
+class Orthanc {
+ public:
+  // Writes <dir>/orthanc.json and starts Orthanc with storage in
+  // <dir>/storage; waits (up to 30 s) until its REST API answers.
+  // Modalities may C-STORE, C-GET, C-FIND and C-MOVE with it.
+  static absl::StatusOr<std::unique_ptr<Orthanc>> Start(
+      const std::string& dir, std::vector<OrthancModality> modalities,
+      const std::string& ae_title = "ORTHANC");
+  ~Orthanc();  // Stop()
+
+  // SIGTERM, wait (SIGKILL after 10 s). Storage stays: Restart() brings the
+  // same PACS back on the same ports.
+  void Stop();
+  absl::Status Restart();
+  bool running() const { return pid_ > 0; }
+
+  const std::string& ae_title() const { return ae_title_; }
+  int dicom_port() const { return dicom_port_; }
+  int http_port() const { return http_port_; }
+  std::string log() const;
+
+  // REST. Errors for transport failures and HTTP status >= 400.
+  absl::StatusOr<std::string> Get(const std::string& path) const;
+  absl::StatusOr<nlohmann::json> GetJson(const std::string& path) const;
+  absl::StatusOr<nlohmann::json> PostJson(const std::string& path,
+                                          const std::string& body) const;
+  // POST /instances with the file's bytes: Orthanc's instance id.
+  absl::StatusOr<std::string> Upload(const std::string& file) const;
+  // Every Part 10 file under `dir` uploaded; how many.
+  absl::StatusOr<int> UploadFolder(const std::string& dir) const;
+
+  // The DICOM file of an Orthanc instance id.
+  absl::StatusOr<std::string> InstanceFile(const std::string& id) const;
+
+ private:
+  Orthanc() = default;
+  absl::Status Launch();
+  absl::StatusOr<std::string> Request(const std::string& method,
+                                      const std::string& path,
+                                      const std::string& body) const;
+
+  std::string dir_;
+  std::string config_path_;
+  std::string ae_title_;
+  int http_port_ = 0;
+  int dicom_port_ = 0;
+  pid_t pid_ = -1;
+};
+
+}  // namespace interslice::testing
+
+#endif  // INTERSLICE_TESTS_SERVER_DICOM_ORTHANC_FIXTURE_H_
