@@ -15,6 +15,7 @@
 #include "CLI/CLI.hpp"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "client/job_spec_proto.h"
 #include "client/progress_display.h"
 #include "grpc/health/v1/health.grpc.pb.h"
 #include "interslice/v1/interslice.grpc.pb.h"
@@ -59,70 +60,6 @@ std::string HashFile(const std::string& path) {
     hash.Update(buffer.data(), static_cast<size_t>(in.gcount()));
   }
   return hash.Finish();
-}
-
-v1::JobSpec SpecToProto(const JobSpec& spec) {
-  v1::JobSpec p;
-  p.set_series_instance_uid(spec.series_instance_uid);
-  p.set_threshold(spec.lower_threshold);
-  if (spec.upper_threshold.has_value()) {
-    p.set_upper_threshold(*spec.upper_threshold);
-  }
-  if (spec.roi.has_value()) {
-    v1::VoxelBox* r = p.mutable_roi();
-    r->set_x0(spec.roi->begin[0]);
-    r->set_y0(spec.roi->begin[1]);
-    r->set_z0(spec.roi->begin[2]);
-    r->set_x1(spec.roi->end[0]);
-    r->set_y1(spec.roi->end[1]);
-    r->set_z1(spec.roi->end[2]);
-  }
-  if (spec.band_radius_mm > 0) p.set_band_radius_mm(spec.band_radius_mm);
-  if (spec.z_resolution.factor.has_value()) {
-    p.set_insertion_factor(*spec.z_resolution.factor);
-  } else if (spec.z_resolution.spacing_mm.has_value()) {
-    p.set_slice_spacing_mm(*spec.z_resolution.spacing_mm);
-  }
-  switch (spec.solver.method) {
-    case SolverMethod::kLinear:
-      p.set_method(v1::SOLVER_METHOD_LINEAR);
-      break;
-    case SolverMethod::kConjugateGradient:
-      p.set_method(v1::SOLVER_METHOD_CONJUGATE_GRADIENT);
-      break;
-    case SolverMethod::kDirect:
-      p.set_method(v1::SOLVER_METHOD_DIRECT);
-      break;
-  }
-  p.set_max_iterations(spec.solver.max_iterations);
-  if (spec.solver.tolerance > 0) p.set_tolerance(spec.solver.tolerance);
-  p.set_energy_units(spec.solver.units == EnergyUnits::kMillimetre
-                         ? v1::ENERGY_UNITS_MILLIMETRE
-                         : v1::ENERGY_UNITS_VOXEL);
-  p.set_mesh_adaptivity(spec.mesh_adaptivity);
-  p.set_strict_spacing(spec.strict_spacing);
-  p.set_uid_root(spec.uid_root);
-  p.set_random_uids(spec.random_uids);
-  if (spec.series_number_base > 0) {
-    p.mutable_derived_series()->set_series_number(spec.series_number_base);
-  }
-  p.set_multiframe_volume(spec.multiframe_volume);
-  p.mutable_segmentation()->set_enabled(spec.write_seg);
-  // Sent as asked: the server says clearly if it cannot serve them.
-  for (const std::string& content : spec.output_series) {
-    p.mutable_derived_series()->add_contents(content);
-  }
-  v1::OutputSelection* outputs = p.mutable_outputs();
-  for (const std::string& f : spec.volume_formats) {
-    outputs->add_volume_formats(f == "nrrd" ? v1::VOLUME_FORMAT_NRRD
-                                            : v1::VOLUME_FORMAT_NIFTI);
-  }
-  for (const std::string& f : spec.mesh_formats) {
-    outputs->add_mesh_formats(f == "ply"   ? v1::MESH_FORMAT_PLY
-                              : f == "obj" ? v1::MESH_FORMAT_OBJ
-                                           : v1::MESH_FORMAT_STL);
-  }
-  return p;
 }
 
 struct LocalFile {
@@ -352,7 +289,7 @@ absl::StatusOr<v1::UploadHeader> PrepareUpload(const RunArguments& args,
   if (!found.ok()) return found.status();
   *files = std::move(*found);
   v1::UploadHeader header;
-  *header.mutable_spec() = SpecToProto(*spec);
+  *header.mutable_spec() = JobSpecToProto(*spec);
   header.mutable_options()->set_deadline_seconds(deadline_seconds);
   header.mutable_options()->set_label(label);
   header.set_file_count(static_cast<int>(files->size()));

@@ -17,7 +17,7 @@ packages=(
   dicom3tools
   # the DICOM node (server/dicom): configuration files; a real PACS for its
   # end-to-end tests (Orthanc, started by the tests, never as a service)
-  libyaml-cpp-dev orthanc orthanc-dicomweb
+  libyaml-cpp-dev libre2-dev orthanc orthanc-dicomweb
   # the Orthanc test fixture talks to its REST API with libcurl
   libcurl4-openssl-dev
   # deploy/ manifests are linted in CI

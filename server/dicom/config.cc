@@ -1,0 +1,639 @@
+#include "server/dicom/config.h"
+
+#include <yaml-cpp/yaml.h>
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <set>
+
+#include "absl/strings/ascii.h"
+#include "absl/strings/match.h"
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
+#include "absl/strings/str_split.h"
+#include "absl/strings/strip.h"
+#include "client/job_spec_proto.h"
+#include "client/run_command.h"
+#include "re2/re2.h"
+
+namespace interslice::server::dicom {
+namespace {
+
+// Where in which file: prefixes every error so that it is one line naming
+// the file, the entry (peer or rule) and the field.
+class Context {
+ public:
+  Context(std::string file, std::string entry)
+      : file_(std::move(file)), entry_(std::move(entry)) {}
+
+  absl::Status Error(absl::string_view field, absl::string_view message) const {
+    std::string text = file_ + ": ";
+    if (!entry_.empty()) absl::StrAppend(&text, entry_, ": ");
+    if (!field.empty()) absl::StrAppend(&text, field, ": ");
+    absl::StrAppend(&text, message);
+    // One line, whatever the message (a regex error could hold a newline).
+    std::replace(text.begin(), text.end(), '\n', ' ');
+    return absl::InvalidArgumentError(text);
+  }
+
+ private:
+  std::string file_;
+  std::string entry_;
+};
+
+const char* KindName(const YAML::Node& node) {
+  switch (node.Type()) {
+    case YAML::NodeType::Null:
+      return "nothing";
+    case YAML::NodeType::Scalar:
+      return node.Tag() == "!" ? "a string" : "a scalar";
+    case YAML::NodeType::Sequence:
+      return "a list";
+    case YAML::NodeType::Map:
+      return "a mapping";
+    default:
+      return "an undefined value";
+  }
+}
+
+// Quoted scalars (YAML "..." or '...', and every JSON string) have the
+// non-specific tag "!": they are text, never numbers or booleans.
+bool IsPlainScalar(const YAML::Node& node) {
+  return node.IsScalar() && node.Tag() != "!";
+}
+
+absl::Status CheckKeys(const YAML::Node& map, const Context& ctx,
+                       const std::string& prefix,
+                       const std::vector<std::string>& known) {
+  for (const auto& item : map) {
+    if (!item.first.IsScalar()) {
+      return ctx.Error(prefix, "keys must be plain text");
+    }
+    const std::string key = item.first.Scalar();
+    if (std::find(known.begin(), known.end(), key) == known.end()) {
+      return ctx.Error(prefix.empty() ? key : absl::StrCat(prefix, ".", key),
+                       absl::StrCat("unknown key (known: ",
+                                    absl::StrJoin(known, ", "), ")"));
+    }
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::string> GetString(const YAML::Node& node,
+                                      const Context& ctx,
+                                      const std::string& field) {
+  if (!node.IsScalar()) {
+    return ctx.Error(field,
+                     absl::StrCat("expected text, got ", KindName(node)));
+  }
+  return node.Scalar();
+}
+
+absl::StatusOr<double> GetNumber(const YAML::Node& node, const Context& ctx,
+                                 const std::string& field) {
+  double value = 0;
+  if (!IsPlainScalar(node) || !absl::SimpleAtod(node.Scalar(), &value) ||
+      !std::isfinite(value)) {
+    return ctx.Error(
+        field,
+        absl::StrCat("expected a number, got ",
+                     node.IsScalar() ? absl::StrCat("'", node.Scalar(), "'")
+                                     : KindName(node)));
+  }
+  return value;
+}
+
+absl::StatusOr<int64_t> GetInteger(const YAML::Node& node, const Context& ctx,
+                                   const std::string& field) {
+  int64_t value = 0;
+  if (!IsPlainScalar(node) || !absl::SimpleAtoi(node.Scalar(), &value)) {
+    return ctx.Error(
+        field,
+        absl::StrCat("expected an integer, got ",
+                     node.IsScalar() ? absl::StrCat("'", node.Scalar(), "'")
+                                     : KindName(node)));
+  }
+  return value;
+}
+
+absl::StatusOr<bool> GetBool(const YAML::Node& node, const Context& ctx,
+                             const std::string& field) {
+  if (IsPlainScalar(node)) {
+    const std::string text = absl::AsciiStrToLower(node.Scalar());
+    if (text == "true") return true;
+    if (text == "false") return false;
+  }
+  return ctx.Error(
+      field,
+      absl::StrCat("expected true or false, got ",
+                   node.IsScalar() ? absl::StrCat("'", node.Scalar(), "'")
+                                   : KindName(node)));
+}
+
+// A list of text items, or one text item (a comma-separated list).
+absl::StatusOr<std::vector<std::string>> GetStringList(
+    const YAML::Node& node, const Context& ctx, const std::string& field) {
+  std::vector<std::string> out;
+  if (node.IsScalar()) {
+    for (absl::string_view part :
+         absl::StrSplit(node.Scalar(), ',', absl::SkipWhitespace())) {
+      out.emplace_back(absl::StripAsciiWhitespace(part));
+    }
+    return out;
+  }
+  if (!node.IsSequence()) {
+    return ctx.Error(field,
+                     absl::StrCat("expected a list, got ", KindName(node)));
+  }
+  for (size_t i = 0; i < node.size(); ++i) {
+    absl::StatusOr<std::string> item =
+        GetString(node[i], ctx, absl::StrCat(field, "[", i, "]"));
+    if (!item.ok()) return item.status();
+    out.push_back(*item);
+  }
+  return out;
+}
+
+absl::StatusOr<YAML::Node> LoadYaml(const std::string& path) {
+  try {
+    return YAML::LoadFile(path);
+  } catch (const YAML::BadFile&) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(path, ": cannot read the file"));
+  } catch (const YAML::ParserException& e) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(path, ":", e.mark.line + 1, ":", e.mark.column + 1,
+                     ": not valid YAML or JSON: ", e.msg));
+  } catch (const YAML::Exception& e) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(path, ": not valid YAML or JSON: ", e.msg));
+  }
+}
+
+absl::StatusOr<ValueRange> GetRange(const YAML::Node& node, const Context& ctx,
+                                    const std::string& field) {
+  ValueRange range;
+  if (node.IsSequence() && node.size() == 2) {
+    absl::StatusOr<double> lo = GetNumber(node[0], ctx, field + "[0]");
+    if (!lo.ok()) return lo.status();
+    absl::StatusOr<double> hi = GetNumber(node[1], ctx, field + "[1]");
+    if (!hi.ok()) return hi.status();
+    range.min = *lo;
+    range.max = *hi;
+  } else if (node.IsMap()) {
+    absl::Status keys = CheckKeys(node, ctx, field, {"min", "max"});
+    if (!keys.ok()) return keys;
+    if (node["min"]) {
+      absl::StatusOr<double> v = GetNumber(node["min"], ctx, field + ".min");
+      if (!v.ok()) return v.status();
+      range.min = *v;
+    }
+    if (node["max"]) {
+      absl::StatusOr<double> v = GetNumber(node["max"], ctx, field + ".max");
+      if (!v.ok()) return v.status();
+      range.max = *v;
+    }
+  } else {
+    return ctx.Error(field,
+                     absl::StrCat("expected {min: A, max: B} or [A, B], got ",
+                                  KindName(node)));
+  }
+  if (range.min && range.max && *range.min > *range.max) {
+    return ctx.Error(field, "min is greater than max");
+  }
+  return range;
+}
+
+bool SameText(const std::string& a, const std::string& b) {
+  return absl::EqualsIgnoreCase(absl::StripAsciiWhitespace(a),
+                                absl::StripAsciiWhitespace(b));
+}
+
+absl::StatusOr<RuleMatch> ParseMatch(const YAML::Node& node,
+                                     const Context& ctx) {
+  RuleMatch match;
+  if (!node) return match;  // no criteria: matches every series
+  if (!node.IsMap()) {
+    return ctx.Error("match",
+                     absl::StrCat("expected a mapping, got ", KindName(node)));
+  }
+  absl::Status keys =
+      CheckKeys(node, ctx, "match",
+                {"modality", "series_description", "protocol_name", "body_part",
+                 "slice_thickness", "slice_spacing", "slice_count",
+                 "calling_ae", "called_ae"});
+  if (!keys.ok()) return keys;
+  auto text = [&](const char* key,
+                  std::optional<std::string>* out) -> absl::Status {
+    if (!node[key]) return absl::OkStatus();
+    absl::StatusOr<std::string> v =
+        GetString(node[key], ctx, absl::StrCat("match.", key));
+    if (!v.ok()) return v.status();
+    *out = std::string(absl::StripAsciiWhitespace(*v));
+    return absl::OkStatus();
+  };
+  auto regex = [&](const char* key,
+                   std::shared_ptr<const re2::RE2>* out) -> absl::Status {
+    if (!node[key]) return absl::OkStatus();
+    const std::string field = absl::StrCat("match.", key);
+    absl::StatusOr<std::string> v = GetString(node[key], ctx, field);
+    if (!v.ok()) return v.status();
+    re2::RE2::Options options;
+    options.set_log_errors(false);
+    auto re = std::make_shared<const re2::RE2>(*v, options);
+    if (!re->ok()) {
+      return ctx.Error(field,
+                       absl::StrCat("bad regular expression: ", re->error()));
+    }
+    *out = std::move(re);
+    return absl::OkStatus();
+  };
+  auto range = [&](const char* key,
+                   std::optional<ValueRange>* out) -> absl::Status {
+    if (!node[key]) return absl::OkStatus();
+    absl::StatusOr<ValueRange> v =
+        GetRange(node[key], ctx, absl::StrCat("match.", key));
+    if (!v.ok()) return v.status();
+    *out = *v;
+    return absl::OkStatus();
+  };
+  for (absl::Status s :
+       {text("modality", &match.modality), text("body_part", &match.body_part),
+        regex("series_description", &match.series_description),
+        regex("protocol_name", &match.protocol_name),
+        range("slice_thickness", &match.slice_thickness_mm),
+        range("slice_spacing", &match.slice_spacing_mm),
+        range("slice_count", &match.slice_count)}) {
+    if (!s.ok()) return s;
+  }
+  for (auto [key, out] : {std::pair{"calling_ae", &match.calling_ae},
+                          std::pair{"called_ae", &match.called_ae}}) {
+    if (!node[key]) continue;
+    absl::StatusOr<std::string> v =
+        GetString(node[key], ctx, absl::StrCat("match.", key));
+    if (!v.ok()) return v.status();
+    absl::StatusOr<std::string> ae = NormalizeAeTitle(*v);
+    if (!ae.ok()) {
+      return ctx.Error(absl::StrCat("match.", key), ae.status().message());
+    }
+    *out = *ae;
+  }
+  return match;
+}
+
+// The `job` mapping -> the `interslice run` arguments -> (BuildJobSpec, the
+// command line's own validation) -> the wire spec.
+absl::StatusOr<v1::JobSpec> ParseJob(const YAML::Node& node,
+                                     const Context& ctx) {
+  if (!node) return ctx.Error("job", "missing (every rule needs a job)");
+  if (!node.IsMap()) {
+    return ctx.Error("job",
+                     absl::StrCat("expected a mapping, got ", KindName(node)));
+  }
+  absl::Status keys =
+      CheckKeys(node, ctx, "job",
+                {"threshold", "upper", "method", "iterations", "tolerance",
+                 "energy_units", "spacing", "factor", "roi", "output_series",
+                 "seg", "mesh", "volume", "uid_root"});
+  if (!keys.ok()) return keys;
+  client::RunArguments args;
+  // Placeholders: the server supplies the received files and the output
+  // folder when it makes the job.
+  args.inputs = {"dicom"};
+  args.out = "out";
+  auto number = [&](const char* key,
+                    std::optional<double>* out) -> absl::Status {
+    if (!node[key]) return absl::OkStatus();
+    absl::StatusOr<double> v =
+        GetNumber(node[key], ctx, absl::StrCat("job.", key));
+    if (!v.ok()) return v.status();
+    *out = *v;
+    return absl::OkStatus();
+  };
+  auto integer = [&](const char* key, std::optional<int>* out) -> absl::Status {
+    if (!node[key]) return absl::OkStatus();
+    absl::StatusOr<int64_t> v =
+        GetInteger(node[key], ctx, absl::StrCat("job.", key));
+    if (!v.ok()) return v.status();
+    if (*v < std::numeric_limits<int>::min() ||
+        *v > std::numeric_limits<int>::max()) {
+      return ctx.Error(absl::StrCat("job.", key), "out of range");
+    }
+    *out = static_cast<int>(*v);
+    return absl::OkStatus();
+  };
+  auto text = [&](const char* key, std::string* out) -> absl::Status {
+    if (!node[key]) return absl::OkStatus();
+    absl::StatusOr<std::string> v =
+        GetString(node[key], ctx, absl::StrCat("job.", key));
+    if (!v.ok()) return v.status();
+    *out = *v;
+    return absl::OkStatus();
+  };
+  // Lists are written as YAML lists or as the command line's "a,b".
+  auto list = [&](const char* key, std::string* out) -> absl::Status {
+    if (!node[key]) return absl::OkStatus();
+    absl::StatusOr<std::vector<std::string>> v =
+        GetStringList(node[key], ctx, absl::StrCat("job.", key));
+    if (!v.ok()) return v.status();
+    *out = v->empty() ? "none" : absl::StrJoin(*v, ",");
+    return absl::OkStatus();
+  };
+  for (absl::Status s :
+       {number("threshold", &args.threshold), number("upper", &args.upper),
+        text("method", &args.method), integer("iterations", &args.iterations),
+        number("tolerance", &args.tolerance),
+        text("energy_units", &args.energy_units),
+        number("spacing", &args.spacing), integer("factor", &args.factor),
+        list("output_series", &args.output_series), list("mesh", &args.mesh),
+        list("volume", &args.volume), text("uid_root", &args.uid_root)}) {
+    if (!s.ok()) return s;
+  }
+  if (!node["threshold"]) {
+    return ctx.Error("job.threshold", "missing (it is required)");
+  }
+  if (node["seg"]) {
+    absl::StatusOr<bool> v = GetBool(node["seg"], ctx, "job.seg");
+    if (!v.ok()) return v.status();
+    args.seg = *v;
+  }
+  if (node["roi"]) {
+    const YAML::Node roi = node["roi"];
+    if (roi.IsSequence()) {
+      std::vector<std::string> parts;
+      for (size_t i = 0; i < roi.size(); ++i) {
+        absl::StatusOr<int64_t> v =
+            GetInteger(roi[i], ctx, absl::StrCat("job.roi[", i, "]"));
+        if (!v.ok()) return v.status();
+        parts.push_back(absl::StrCat(*v));
+      }
+      args.roi = absl::StrJoin(parts, ",");
+    } else {
+      absl::StatusOr<std::string> v = GetString(roi, ctx, "job.roi");
+      if (!v.ok()) return v.status();
+      args.roi = *v;
+    }
+  }
+  absl::StatusOr<JobSpec> spec = client::BuildJobSpec(args);
+  if (!spec.ok()) {
+    // The command line's messages name the option ("--energy-units: ...");
+    // name the rule file's field instead.
+    std::string message(spec.status().message());
+    std::string field = "job";
+    if (absl::StartsWith(message, "--")) {
+      const size_t end = message.find_first_of(": ");
+      std::string option = message.substr(2, end - 2);
+      std::replace(option.begin(), option.end(), '-', '_');
+      field = absl::StrCat("job.", option);
+      if (end != std::string::npos && message[end] == ':') {
+        message = std::string(absl::StripLeadingAsciiWhitespace(
+            absl::string_view(message).substr(end + 1)));
+      }
+    }
+    return ctx.Error(field, message);
+  }
+  return client::JobSpecToProto(*spec);
+}
+
+}  // namespace
+
+absl::StatusOr<std::string> NormalizeAeTitle(const std::string& text) {
+  const std::string ae(absl::StripAsciiWhitespace(text));
+  if (ae.empty() || ae.size() > 16) {
+    return absl::InvalidArgumentError(
+        "an AE title has 1 to 16 characters (not all spaces)");
+  }
+  for (char c : ae) {
+    if (c == '\\' || static_cast<unsigned char>(c) < 0x20 ||
+        static_cast<unsigned char>(c) > 0x7e) {
+      return absl::InvalidArgumentError(
+          "an AE title holds no backslash, control or non-ASCII characters");
+    }
+  }
+  return ae;
+}
+
+bool ValueRange::Contains(double value) const {
+  return (!min || value >= *min) && (!max || value <= *max);
+}
+
+bool RuleMatch::Matches(const SeriesFacts& f) const {
+  if (modality && !SameText(*modality, f.modality)) return false;
+  if (body_part && !SameText(*body_part, f.body_part)) return false;
+  if (calling_ae && !SameText(*calling_ae, f.calling_ae)) return false;
+  if (called_ae && !SameText(*called_ae, f.called_ae)) return false;
+  if (series_description &&
+      !re2::RE2::PartialMatch(f.series_description, *series_description)) {
+    return false;
+  }
+  if (protocol_name &&
+      !re2::RE2::PartialMatch(f.protocol_name, *protocol_name)) {
+    return false;
+  }
+  if (slice_thickness_mm &&
+      (!f.slice_thickness_mm ||
+       !slice_thickness_mm->Contains(*f.slice_thickness_mm))) {
+    return false;
+  }
+  if (slice_spacing_mm && (!f.slice_spacing_mm ||
+                           !slice_spacing_mm->Contains(*f.slice_spacing_mm))) {
+    return false;
+  }
+  if (slice_count &&
+      !slice_count->Contains(static_cast<double>(f.slice_count))) {
+    return false;
+  }
+  return true;
+}
+
+const Rule* RuleSet::FirstMatch(const SeriesFacts& facts) const {
+  for (const Rule& rule : rules) {
+    if (rule.match.Matches(facts)) return &rule;
+  }
+  return nullptr;
+}
+
+absl::StatusOr<PeersConfig> LoadPeersConfig(const std::string& path) {
+  absl::StatusOr<YAML::Node> root = LoadYaml(path);
+  if (!root.ok()) return root.status();
+  const Context file_ctx(path, "");
+  PeersConfig config;
+  if (root->IsNull()) return config;
+  if (!root->IsMap()) {
+    return file_ctx.Error("", absl::StrCat("expected a mapping with 'peers', "
+                                           "got ",
+                                           KindName(*root)));
+  }
+  absl::Status keys =
+      CheckKeys(*root, file_ctx, "", {"peers", "accept_unknown_callers"});
+  if (!keys.ok()) return keys;
+  if ((*root)["accept_unknown_callers"]) {
+    absl::StatusOr<bool> v = GetBool((*root)["accept_unknown_callers"],
+                                     file_ctx, "accept_unknown_callers");
+    if (!v.ok()) return v.status();
+    config.accept_unknown_callers = *v;
+  }
+  const YAML::Node peers = (*root)["peers"];
+  if (!peers || peers.IsNull()) return config;
+  if (!peers.IsSequence()) {
+    return file_ctx.Error(
+        "peers", absl::StrCat("expected a list, got ", KindName(peers)));
+  }
+  std::set<std::string> names;
+  for (size_t i = 0; i < peers.size(); ++i) {
+    const YAML::Node p = peers[i];
+    std::string entry = absl::StrCat("peer #", i + 1);
+    if (p.IsMap() && p["name"] && p["name"].IsScalar()) {
+      entry = absl::StrCat("peer '", p["name"].Scalar(), "' (#", i + 1, ")");
+    }
+    const Context ctx(path, entry);
+    if (!p.IsMap()) {
+      return ctx.Error("",
+                       absl::StrCat("expected a mapping, got ", KindName(p)));
+    }
+    keys = CheckKeys(p, ctx, "", {"name", "ae_title", "host", "port", "tls"});
+    if (!keys.ok()) return keys;
+    DicomPeer peer;
+    for (const char* required : {"name", "ae_title", "host"}) {
+      if (!p[required]) return ctx.Error(required, "missing");
+    }
+    absl::StatusOr<std::string> name = GetString(p["name"], ctx, "name");
+    if (!name.ok()) return name.status();
+    peer.name = std::string(absl::StripAsciiWhitespace(*name));
+    if (peer.name.empty()) return ctx.Error("name", "empty");
+    if (!names.insert(peer.name).second) {
+      return ctx.Error("name", "another peer has this name");
+    }
+    absl::StatusOr<std::string> ae = GetString(p["ae_title"], ctx, "ae_title");
+    if (!ae.ok()) return ae.status();
+    absl::StatusOr<std::string> normal = NormalizeAeTitle(*ae);
+    if (!normal.ok()) return ctx.Error("ae_title", normal.status().message());
+    peer.ae_title = *normal;
+    absl::StatusOr<std::string> host = GetString(p["host"], ctx, "host");
+    if (!host.ok()) return host.status();
+    peer.host = std::string(absl::StripAsciiWhitespace(*host));
+    if (peer.host.empty()) return ctx.Error("host", "empty");
+    if (p["port"]) {
+      absl::StatusOr<int64_t> port = GetInteger(p["port"], ctx, "port");
+      if (!port.ok()) return port.status();
+      if (*port < 1 || *port > 65535) {
+        return ctx.Error("port", "expected a port number 1-65535");
+      }
+      peer.port = static_cast<int>(*port);
+    }
+    if (p["tls"]) {
+      absl::StatusOr<bool> tls = GetBool(p["tls"], ctx, "tls");
+      if (!tls.ok()) return tls.status();
+      peer.tls = *tls;
+    }
+    config.peers.push_back(std::move(peer));
+  }
+  return config;
+}
+
+absl::StatusOr<std::vector<DicomPeer>> LoadPeersFile(const std::string& path) {
+  absl::StatusOr<PeersConfig> config = LoadPeersConfig(path);
+  if (!config.ok()) return config.status();
+  return std::move(config->peers);
+}
+
+absl::StatusOr<RuleSet> LoadRulesFile(const std::string& path,
+                                      const std::vector<DicomPeer>& peers) {
+  absl::StatusOr<YAML::Node> root = LoadYaml(path);
+  if (!root.ok()) return root.status();
+  const Context file_ctx(path, "");
+  RuleSet set;
+  set.path = path;
+  if (!root->IsMap()) {
+    return file_ctx.Error("", absl::StrCat("expected a mapping with 'rules', "
+                                           "got ",
+                                           KindName(*root)));
+  }
+  absl::Status keys =
+      CheckKeys(*root, file_ctx, "", {"stable_seconds", "rules"});
+  if (!keys.ok()) return keys;
+  if ((*root)["stable_seconds"]) {
+    absl::StatusOr<double> v =
+        GetNumber((*root)["stable_seconds"], file_ctx, "stable_seconds");
+    if (!v.ok()) return v.status();
+    if (!(*v > 0) || *v > 7 * 24 * 3600) {
+      return file_ctx.Error(
+          "stable_seconds",
+          "expected a number of seconds > 0 (at most a week)");
+    }
+    set.stable_seconds = *v;
+  }
+  const YAML::Node rules = (*root)["rules"];
+  if (!rules || !rules.IsSequence()) {
+    return file_ctx.Error(
+        "rules", rules ? absl::StrCat("expected a list, got ", KindName(rules))
+                       : std::string("missing"));
+  }
+  std::set<std::string> names;
+  for (size_t i = 0; i < rules.size(); ++i) {
+    const YAML::Node r = rules[i];
+    Rule rule;
+    rule.name = absl::StrCat("#", i + 1);
+    std::string entry = absl::StrCat("rule #", i + 1);
+    if (r.IsMap() && r["name"] && r["name"].IsScalar()) {
+      rule.name = std::string(absl::StripAsciiWhitespace(r["name"].Scalar()));
+      entry = absl::StrCat("rule '", rule.name, "' (#", i + 1, ")");
+    }
+    const Context ctx(path, entry);
+    if (!r.IsMap()) {
+      return ctx.Error("",
+                       absl::StrCat("expected a mapping, got ", KindName(r)));
+    }
+    keys = CheckKeys(
+        r, ctx, "", {"name", "match", "job", "send_to", "complete_on_release"});
+    if (!keys.ok()) return keys;
+    if (r["name"]) {
+      if (!r["name"].IsScalar()) {
+        return ctx.Error(
+            "name", absl::StrCat("expected text, got ", KindName(r["name"])));
+      }
+      if (rule.name.empty()) return ctx.Error("name", "empty");
+      if (!names.insert(rule.name).second) {
+        return ctx.Error("name", "another rule has this name");
+      }
+    }
+    absl::StatusOr<RuleMatch> match = ParseMatch(r["match"], ctx);
+    if (!match.ok()) return match.status();
+    rule.match = *std::move(match);
+    absl::StatusOr<v1::JobSpec> job = ParseJob(r["job"], ctx);
+    if (!job.ok()) return job.status();
+    rule.job = *std::move(job);
+    if (r["send_to"]) {
+      absl::StatusOr<std::vector<std::string>> to =
+          GetStringList(r["send_to"], ctx, "send_to");
+      if (!to.ok()) return to.status();
+      for (const std::string& name : *to) {
+        const bool known =
+            std::any_of(peers.begin(), peers.end(),
+                        [&](const DicomPeer& p) { return p.name == name; });
+        if (!known) {
+          return ctx.Error("send_to",
+                           absl::StrCat("unknown peer '", name,
+                                        "' (not in the peers file)"));
+        }
+        if (std::find(rule.send_to.begin(), rule.send_to.end(), name) ==
+            rule.send_to.end()) {
+          rule.send_to.push_back(name);
+        }
+      }
+    }
+    for (const std::string& name : rule.send_to) rule.job.add_send_to(name);
+    if (r["complete_on_release"]) {
+      absl::StatusOr<bool> v =
+          GetBool(r["complete_on_release"], ctx, "complete_on_release");
+      if (!v.ok()) return v.status();
+      rule.complete_on_release = *v;
+    }
+    set.rules.push_back(std::move(rule));
+  }
+  return set;
+}
+
+}  // namespace interslice::server::dicom

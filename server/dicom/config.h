@@ -1,0 +1,123 @@
+// The DICOM node's configuration files: the peers file (--dicom-peers) and
+// the rules file (--rules). Both are YAML; JSON is valid YAML, so tools may
+// write either. docs/dicom-node.md documents them with examples
+// (docs/examples/peers.yaml, rules.yaml, parsed by the tests).
+//
+// Peers file:
+//   accept_unknown_callers: false     # optional; default false
+//   peers:
+//     - {name: orthanc, ae_title: ORTHANC, host: 127.0.0.1, port: 4242,
+//        tls: false}                  # port default 104, tls default false
+//
+// Rules file:
+//   stable_seconds: 30                # optional, > 0 (fractions allowed)
+//   rules:                            # ordered; the first match wins
+//     - name: ct-bone                 # optional; default "#<1-based index>"
+//       match: {modality: CT, series_description: "(?i)head",
+//               called_ae: INTERSLICE}
+//       job: {threshold: 300, method: direct, output_series: [intensity],
+//             seg: true, mesh: [stl]}
+//       send_to: [orthanc]            # peer names; optional
+//       complete_on_release: false    # optional; see Rule
+//
+// Every error is INVALID_ARGUMENT with one line naming the file, the peer or
+// rule (name and 1-based index) and the field, e.g.
+//   "rules.yaml: rule 'ct-bone' (#1): match.series_description: bad regular
+//    expression: missing ): (?i(head"
+// Unknown keys and values of the wrong type are errors, never ignored.
+#ifndef INTERSLICE_SERVER_DICOM_CONFIG_H_
+#define INTERSLICE_SERVER_DICOM_CONFIG_H_
+
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "interslice/v1/interslice.pb.h"
+#include "server/dicom/peer.h"
+
+namespace re2 {
+class RE2;
+}  // namespace re2
+
+namespace interslice::server::dicom {
+
+struct PeersConfig {
+  std::vector<DicomPeer> peers;  // names unique; AE titles trimmed
+  // Associations from calling AE titles not listed are rejected at
+  // association time unless this is true.
+  bool accept_unknown_callers = false;
+};
+
+absl::StatusOr<PeersConfig> LoadPeersConfig(const std::string& path);
+// The peers only (the sender's view).
+absl::StatusOr<std::vector<DicomPeer>> LoadPeersFile(const std::string& path);
+
+// Inclusive range; an absent end is open.
+struct ValueRange {
+  std::optional<double> min, max;
+  bool Contains(double value) const;
+};
+
+// What a rule matches on, taken from the received series (the first
+// instance's header; counts and spacing over all instances).
+struct SeriesFacts {
+  std::string modality;                      // (0008,0060)
+  std::string series_description;            // (0008,103E)
+  std::string protocol_name;                 // (0018,1030)
+  std::string body_part;                     // (0018,0015)
+  std::optional<double> slice_thickness_mm;  // (0018,0050)
+  // Median distance of neighbouring image positions along the slice normal;
+  // absent with fewer than two slices or no geometry.
+  std::optional<double> slice_spacing_mm;
+  int64_t slice_count = 0;  // frames in all instances
+  std::string calling_ae;
+  std::string called_ae;
+};
+
+// Each present criterion must hold (AND). Text equality (modality,
+// body_part, AE titles) ignores case and surrounding spaces; the regular
+// expressions (RE2 syntax, e.g. "(?i)head") are searched anywhere in the
+// value (partial match). A range criterion fails when the value is unknown.
+struct RuleMatch {
+  std::optional<std::string> modality, body_part, calling_ae, called_ae;
+  std::shared_ptr<const re2::RE2> series_description, protocol_name;
+  std::optional<ValueRange> slice_thickness_mm, slice_spacing_mm, slice_count;
+  bool Matches(const SeriesFacts& facts) const;
+};
+
+struct Rule {
+  std::string name;  // as written, or "#<index>" when the file gives none
+  RuleMatch match;
+  // The job: the `interslice run` options of the same names, mapped exactly
+  // as the command line maps them (client/run_command.h BuildJobSpec), with
+  // the same defaults (so mesh: stl and volume: nii unless given). send_to
+  // is filled from the rule's send_to.
+  v1::JobSpec job;
+  std::vector<std::string> send_to;
+  // true: the series is complete as soon as the association that sent it
+  // releases normally (no stable wait); false: only after stable_seconds.
+  bool complete_on_release = false;
+};
+
+struct RuleSet {
+  std::string path;  // the file, for logs ("rule set <path>")
+  double stable_seconds = 30;
+  std::vector<Rule> rules;
+  // The first rule whose match holds, or null.
+  const Rule* FirstMatch(const SeriesFacts& facts) const;
+};
+
+// `peers` are those of the peers file: send_to names must be among them.
+absl::StatusOr<RuleSet> LoadRulesFile(const std::string& path,
+                                      const std::vector<DicomPeer>& peers);
+
+// An AE title as DICOM allows it (PS3.5 AE VR): 1-16 characters of the
+// default repertoire without backslash or control characters, not all
+// spaces. Returns it without surrounding spaces.
+absl::StatusOr<std::string> NormalizeAeTitle(const std::string& text);
+
+}  // namespace interslice::server::dicom
+
+#endif  // INTERSLICE_SERVER_DICOM_CONFIG_H_

@@ -1,0 +1,363 @@
+#include "server/dicom/config.h"
+
+#include <unistd.h>
+
+#include <filesystem>
+#include <fstream>
+#include <string>
+
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+
+namespace interslice::server::dicom {
+namespace {
+
+namespace fs = std::filesystem;
+using ::testing::ElementsAre;
+using ::testing::HasSubstr;
+using ::testing::Not;
+
+class ConfigTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    dir_ = fs::temp_directory_path() /
+           ("interslice-config-test-" + std::to_string(::getpid()) + "-" +
+            ::testing::UnitTest::GetInstance()->current_test_info()->name());
+    fs::create_directories(dir_);
+  }
+  void TearDown() override { fs::remove_all(dir_); }
+
+  std::string Write(const std::string& name, const std::string& text) {
+    const std::string path = (dir_ / name).string();
+    std::ofstream(path) << text;
+    return path;
+  }
+
+  std::vector<DicomPeer> Peers() {
+    absl::StatusOr<std::vector<DicomPeer>> peers = LoadPeersFile(Write(
+        "peers.yaml",
+        "peers:\n"
+        "  - {name: orthanc, ae_title: ORTHANC, host: 127.0.0.1, port: 4242}\n"
+        "  - {name: ws, ae_title: WS, host: ws.example, tls: true}\n"));
+    EXPECT_TRUE(peers.ok()) << peers.status();
+    return peers.ok() ? *peers : std::vector<DicomPeer>{};
+  }
+
+  // The rules file made of `rule` (one list item) fails; returns the message.
+  std::string RuleError(const std::string& rule) {
+    const std::string path = Write("rules.yaml", "rules:\n" + rule);
+    absl::StatusOr<RuleSet> set = LoadRulesFile(path, Peers());
+    EXPECT_FALSE(set.ok()) << rule;
+    if (set.ok()) return "";
+    EXPECT_EQ(set.status().code(), absl::StatusCode::kInvalidArgument);
+    const std::string message(set.status().message());
+    // One line, naming the file.
+    EXPECT_EQ(message.find('\n'), std::string::npos) << message;
+    EXPECT_THAT(message, HasSubstr(path));
+    return message;
+  }
+
+  std::string PeersError(const std::string& text) {
+    const std::string path = Write("bad-peers.yaml", text);
+    absl::StatusOr<PeersConfig> config = LoadPeersConfig(path);
+    EXPECT_FALSE(config.ok()) << text;
+    if (config.ok()) return "";
+    EXPECT_EQ(config.status().code(), absl::StatusCode::kInvalidArgument);
+    const std::string message(config.status().message());
+    EXPECT_EQ(message.find('\n'), std::string::npos) << message;
+    EXPECT_THAT(message, HasSubstr(path));
+    return message;
+  }
+
+  fs::path dir_;
+};
+
+TEST_F(ConfigTest, PeersFileWithDefaults) {
+  absl::StatusOr<PeersConfig> config = LoadPeersConfig(Write(
+      "p.yaml",
+      "accept_unknown_callers: true\n"
+      "peers:\n"
+      "  - {name: orthanc, ae_title: ' ORTHANC ', host: 127.0.0.1, port: "
+      "4242, tls: false}\n"
+      "  - name: ws\n    ae_title: WS\n    host: ws.example\n    tls: true\n"));
+  ASSERT_TRUE(config.ok()) << config.status();
+  EXPECT_TRUE(config->accept_unknown_callers);
+  ASSERT_EQ(config->peers.size(), 2u);
+  EXPECT_EQ(config->peers[0].name, "orthanc");
+  EXPECT_EQ(config->peers[0].ae_title, "ORTHANC");  // trimmed
+  EXPECT_EQ(config->peers[0].port, 4242);
+  EXPECT_FALSE(config->peers[0].tls);
+  EXPECT_EQ(config->peers[1].port, 104);  // the DICOM default
+  EXPECT_TRUE(config->peers[1].tls);
+}
+
+TEST_F(ConfigTest, PeersFileAsJson) {
+  absl::StatusOr<PeersConfig> config = LoadPeersConfig(
+      Write("p.json",
+            R"({"peers": [{"name": "orthanc", "ae_title": "ORTHANC",
+          "host": "127.0.0.1", "port": 4242, "tls": false}]})"));
+  ASSERT_TRUE(config.ok()) << config.status();
+  EXPECT_FALSE(config->accept_unknown_callers);
+  ASSERT_EQ(config->peers.size(), 1u);
+  EXPECT_EQ(config->peers[0].port, 4242);
+}
+
+TEST_F(ConfigTest, PeersFileErrorsNameThePeerAndField) {
+  EXPECT_THAT(PeersError("peers:\n  - {name: a, ae_title: A, host: h, "
+                         "prot: 1}\n"),
+              HasSubstr("peer 'a' (#1): prot: unknown key"));
+  EXPECT_THAT(PeersError("peers:\n  - {name: a, ae_title: A, host: h, "
+                         "port: '4242'}\n"),
+              HasSubstr("peer 'a' (#1): port: expected an integer"));
+  EXPECT_THAT(PeersError(R"({"peers": [{"name": "a", "ae_title": "A",
+                            "host": "h", "port": "4242"}]})"),
+              HasSubstr("port: expected an integer"));
+  EXPECT_THAT(PeersError("peers:\n  - {name: a, ae_title: A, host: h, "
+                         "port: 70000}\n"),
+              HasSubstr("port: expected a port number"));
+  EXPECT_THAT(PeersError("peers:\n  - {name: a, ae_title: A, host: h, "
+                         "tls: maybe}\n"),
+              HasSubstr("tls: expected true or false"));
+  EXPECT_THAT(PeersError("peers:\n  - {name: a, ae_title: "
+                         "THIS_IS_SEVENTEEN, host: h}\n"),
+              HasSubstr("ae_title: an AE title has 1 to 16"));
+  EXPECT_THAT(PeersError("peers:\n  - {name: a, ae_title: 'A\\B', host: h}\n"),
+              HasSubstr("ae_title: an AE title holds no backslash"));
+  EXPECT_THAT(PeersError("peers:\n  - {name: a, host: h}\n"),
+              HasSubstr("peer 'a' (#1): ae_title: missing"));
+  EXPECT_THAT(PeersError("peers:\n  - {name: a, ae_title: A, host: h}\n"
+                         "  - {name: a, ae_title: B, host: h}\n"),
+              HasSubstr("peer 'a' (#2): name: another peer has this name"));
+  EXPECT_THAT(PeersError("peers: {name: a}\n"),
+              HasSubstr("peers: expected a list"));
+  EXPECT_THAT(PeersError("peers: []\nallow_all: true\n"),
+              HasSubstr("allow_all: unknown key"));
+  EXPECT_THAT(PeersError("peers: [\n"), HasSubstr("not valid YAML or JSON"));
+  EXPECT_THAT(
+      LoadPeersConfig((dir_ / "missing.yaml").string()).status().message(),
+      HasSubstr("cannot read"));
+}
+
+TEST_F(ConfigTest, FullRulesFile) {
+  absl::StatusOr<RuleSet> set = LoadRulesFile(
+      Write("rules.yaml",
+            "stable_seconds: 1.5\n"
+            "rules:\n"
+            "  - name: ct-bone\n"
+            "    match: {modality: CT, series_description: '(?i)head',\n"
+            "            protocol_name: 'bone|skull', body_part: HEAD,\n"
+            "            slice_thickness: {min: 2, max: 6},\n"
+            "            slice_spacing: [2, 6], slice_count: {min: 10},\n"
+            "            calling_ae: ORTHANC, called_ae: INTERSLICE}\n"
+            "    job: {threshold: 300, upper: 2000, method: direct,\n"
+            "          spacing: 1.25, roi: [1, 2, 3, 40, 50, 60],\n"
+            "          output_series: [intensity, mask], seg: true,\n"
+            "          mesh: [stl, ply], volume: none, uid_root: '1.2.3',\n"
+            "          energy_units: mm}\n"
+            "    send_to: [orthanc, ws]\n"
+            "    complete_on_release: true\n"
+            "  - match: {modality: MR}\n"
+            "    job: {threshold: 100, method: cg, iterations: 20,\n"
+            "          tolerance: 0.001, factor: 3, mesh: 'stl,obj'}\n"),
+      Peers());
+  ASSERT_TRUE(set.ok()) << set.status();
+  EXPECT_DOUBLE_EQ(set->stable_seconds, 1.5);
+  ASSERT_EQ(set->rules.size(), 2u);
+  const Rule& bone = set->rules[0];
+  EXPECT_EQ(bone.name, "ct-bone");
+  EXPECT_TRUE(bone.complete_on_release);
+  EXPECT_THAT(bone.send_to, ElementsAre("orthanc", "ws"));
+  const v1::JobSpec& job = bone.job;
+  EXPECT_FLOAT_EQ(job.threshold(), 300);
+  EXPECT_FLOAT_EQ(job.upper_threshold(), 2000);
+  EXPECT_EQ(job.method(), v1::SOLVER_METHOD_DIRECT);
+  EXPECT_DOUBLE_EQ(job.slice_spacing_mm(), 1.25);
+  EXPECT_EQ(job.roi().x0(), 1);
+  EXPECT_EQ(job.roi().z1(), 60);
+  EXPECT_THAT(job.derived_series().contents(),
+              ElementsAre("intensity", "mask"));
+  EXPECT_TRUE(job.segmentation().enabled());
+  EXPECT_THAT(job.outputs().mesh_formats(),
+              ElementsAre(v1::MESH_FORMAT_STL, v1::MESH_FORMAT_PLY));
+  EXPECT_EQ(job.outputs().volume_formats_size(), 0);
+  EXPECT_EQ(job.uid_root(), "1.2.3");
+  EXPECT_EQ(job.energy_units(), v1::ENERGY_UNITS_MILLIMETRE);
+  EXPECT_THAT(job.send_to(), ElementsAre("orthanc", "ws"));
+
+  const Rule& mr = set->rules[1];
+  EXPECT_EQ(mr.name, "#2");
+  EXPECT_FALSE(mr.complete_on_release);
+  EXPECT_EQ(mr.job.method(), v1::SOLVER_METHOD_CONJUGATE_GRADIENT);
+  EXPECT_EQ(mr.job.max_iterations(), 20);
+  EXPECT_DOUBLE_EQ(mr.job.tolerance(), 0.001);
+  EXPECT_EQ(mr.job.insertion_factor(), 3);
+  EXPECT_THAT(mr.job.outputs().mesh_formats(),
+              ElementsAre(v1::MESH_FORMAT_STL, v1::MESH_FORMAT_OBJ));
+  // The command line's default: NIfTI unless `volume` says otherwise.
+  EXPECT_THAT(mr.job.outputs().volume_formats(),
+              ElementsAre(v1::VOLUME_FORMAT_NIFTI));
+
+  SeriesFacts facts;
+  facts.modality = "CT";
+  facts.series_description = "Routine HEAD 5mm";
+  facts.protocol_name = "skull base";
+  facts.body_part = "head";
+  facts.slice_thickness_mm = 5;
+  facts.slice_spacing_mm = 5;
+  facts.slice_count = 28;
+  facts.calling_ae = "ORTHANC";
+  facts.called_ae = "INTERSLICE";
+  EXPECT_EQ(set->FirstMatch(facts), &set->rules[0]);
+  SeriesFacts other = facts;
+  other.called_ae = "OTHER";
+  EXPECT_EQ(set->FirstMatch(other), nullptr);
+  other = facts;
+  other.series_description = "chest";
+  EXPECT_EQ(set->FirstMatch(other), nullptr);
+  other = facts;
+  other.slice_thickness_mm.reset();  // unknown: a range does not hold
+  EXPECT_EQ(set->FirstMatch(other), nullptr);
+  other = facts;
+  other.slice_thickness_mm = 7;
+  EXPECT_EQ(set->FirstMatch(other), nullptr);
+  other = facts;
+  other.slice_count = 9;
+  EXPECT_EQ(set->FirstMatch(other), nullptr);
+  other = facts;
+  other.modality = "mr";  // falls through to the MR rule
+  EXPECT_EQ(set->FirstMatch(other), &set->rules[1]);
+}
+
+TEST_F(ConfigTest, RulesFileAsJson) {
+  absl::StatusOr<RuleSet> set =
+      LoadRulesFile(Write("rules.json",
+                          R"({"stable_seconds": 2, "rules": [{"name": "all",
+                "job": {"threshold": 300, "mesh": ["stl"], "seg": true},
+                "send_to": ["orthanc"], "complete_on_release": false}]})"),
+                    Peers());
+  ASSERT_TRUE(set.ok()) << set.status();
+  EXPECT_DOUBLE_EQ(set->stable_seconds, 2);
+  ASSERT_EQ(set->rules.size(), 1u);
+  EXPECT_TRUE(set->rules[0].job.segmentation().enabled());
+  // No criteria: every series.
+  EXPECT_EQ(set->FirstMatch(SeriesFacts{}), &set->rules[0]);
+}
+
+TEST_F(ConfigTest, StableSecondsDefault) {
+  absl::StatusOr<RuleSet> set = LoadRulesFile(
+      Write("r.yaml", "rules:\n  - job: {threshold: 1}\n"), Peers());
+  ASSERT_TRUE(set.ok()) << set.status();
+  EXPECT_DOUBLE_EQ(set->stable_seconds, 30);
+}
+
+TEST_F(ConfigTest, UnknownKeys) {
+  EXPECT_THAT(RuleError("  - {name: a, job: {threshold: 1}, sendto: [x]}\n"),
+              HasSubstr("rule 'a' (#1): sendto: unknown key"));
+  EXPECT_THAT(RuleError("  - {name: a, match: {modality: CT, series: x}, "
+                        "job: {threshold: 1}}\n"),
+              HasSubstr("rule 'a' (#1): match.series: unknown key"));
+  EXPECT_THAT(RuleError("  - {job: {threshold: 1, thresh: 2}}\n"),
+              HasSubstr("rule #1: job.thresh: unknown key"));
+  const std::string path = Write("top.yaml", "stable: 3\nrules: []\n");
+  EXPECT_THAT(LoadRulesFile(path, Peers()).status().message(),
+              HasSubstr("stable: unknown key"));
+}
+
+TEST_F(ConfigTest, WrongTypes) {
+  EXPECT_THAT(RuleError("  - {name: a, job: {threshold: '300'}}\n"),
+              HasSubstr("rule 'a' (#1): job.threshold: expected a number"));
+  EXPECT_THAT(RuleError("  - {name: a, job: {threshold: high}}\n"),
+              HasSubstr("job.threshold: expected a number, got 'high'"));
+  EXPECT_THAT(RuleError("  - {name: a, job: {threshold: 1, seg: yes}}\n"),
+              HasSubstr("job.seg: expected true or false"));
+  EXPECT_THAT(
+      RuleError("  - {name: a, job: {threshold: 1, iterations: 1.5}}\n"),
+      HasSubstr("job.iterations: expected an integer"));
+  EXPECT_THAT(RuleError("  - {name: a, job: {threshold: 1, mesh: {a: b}}}\n"),
+              HasSubstr("job.mesh: expected a list"));
+  EXPECT_THAT(RuleError("  - {name: a, job: {threshold: 1, roi: [1, 2, x]}}\n"),
+              HasSubstr("job.roi[2]: expected an integer"));
+  EXPECT_THAT(RuleError("  - {name: a, match: [CT], job: {threshold: 1}}\n"),
+              HasSubstr("rule 'a' (#1): match: expected a mapping"));
+  EXPECT_THAT(RuleError("  - {name: a, match: {slice_count: 5}, "
+                        "job: {threshold: 1}}\n"),
+              HasSubstr("match.slice_count: expected {min: A, max: B}"));
+  EXPECT_THAT(RuleError("  - {name: a, match: {slice_count: {min: 5, max: 2}}, "
+                        "job: {threshold: 1}}\n"),
+              HasSubstr("match.slice_count: min is greater than max"));
+  EXPECT_THAT(RuleError("  - {name: a, job: {threshold: 1}, "
+                        "complete_on_release: 1}\n"),
+              HasSubstr("complete_on_release: expected true or false"));
+  EXPECT_THAT(RuleError("  - just text\n"),
+              HasSubstr("rule #1: expected a mapping"));
+}
+
+TEST_F(ConfigTest, BadRegularExpression) {
+  EXPECT_THAT(RuleError("  - name: a\n    match: {series_description: "
+                        "'(?i(head'}\n    job: {threshold: 1}\n"),
+              HasSubstr("rule 'a' (#1): match.series_description: bad "
+                        "regular expression"));
+  EXPECT_THAT(RuleError("  - name: b\n    match: {protocol_name: '[a-'}\n"
+                        "    job: {threshold: 1}\n"),
+              HasSubstr("rule 'b' (#1): match.protocol_name: bad regular"));
+}
+
+TEST_F(ConfigTest, UnknownPeer) {
+  EXPECT_THAT(RuleError("  - {name: a, job: {threshold: 1}, "
+                        "send_to: [orthanc, pacs2]}\n"),
+              HasSubstr("rule 'a' (#1): send_to: unknown peer 'pacs2'"));
+}
+
+TEST_F(ConfigTest, JobValuesCheckedAsTheCommandLineChecksThem) {
+  EXPECT_THAT(RuleError("  - {name: a, job: {upper: 5}}\n"),
+              HasSubstr("rule 'a' (#1): job.threshold: missing"));
+  EXPECT_THAT(RuleError("  - {name: a, job: {threshold: 1, method: fast}}\n"),
+              HasSubstr("rule 'a' (#1): job.method: unknown method 'fast'"));
+  EXPECT_THAT(RuleError("  - {name: a, job: {threshold: 1, energy_units: "
+                        "inch}}\n"),
+              HasSubstr("job.energy_units: unknown units 'inch'"));
+  EXPECT_THAT(RuleError("  - {name: a, job: {threshold: 1, mesh: [stl, "
+                        "vrml]}}\n"),
+              HasSubstr("job.mesh: unknown value 'vrml'"));
+  EXPECT_THAT(RuleError("  - {name: a, job: {threshold: 1, factor: 2, "
+                        "spacing: 1}}\n"),
+              HasSubstr("job.factor: --factor and --spacing are alternatives"));
+  EXPECT_THAT(RuleError("  - {name: a, job: {threshold: 1, roi: [1, 2, 3]}}\n"),
+              HasSubstr("job.roi: expected six integers"));
+  EXPECT_THAT(RuleError("  - {name: a}\n"),
+              HasSubstr("rule 'a' (#1): job: missing"));
+}
+
+TEST_F(ConfigTest, OtherRuleErrors) {
+  EXPECT_THAT(RuleError("  - {name: a, match: {called_ae: ''}, "
+                        "job: {threshold: 1}}\n"),
+              HasSubstr("rule 'a' (#1): match.called_ae: an AE title"));
+  EXPECT_THAT(RuleError("  - {name: a, job: {threshold: 1}}\n"
+                        "  - {name: a, job: {threshold: 2}}\n"),
+              HasSubstr("rule 'a' (#2): name: another rule has this name"));
+  EXPECT_THAT(
+      LoadRulesFile(Write("s.yaml", "stable_seconds: 0\nrules: []\n"), Peers())
+          .status()
+          .message(),
+      HasSubstr("stable_seconds: expected a number of seconds > 0"));
+  EXPECT_THAT(LoadRulesFile(Write("n.yaml", "stable_seconds: 3\n"), Peers())
+                  .status()
+                  .message(),
+              HasSubstr("rules: missing"));
+}
+
+// The documented examples parse, so that they cannot rot.
+TEST_F(ConfigTest, DocumentedExamplesParse) {
+  const std::string dir = std::string(INTERSLICE_SOURCE_DIR) + "/docs/examples";
+  absl::StatusOr<PeersConfig> peers = LoadPeersConfig(dir + "/peers.yaml");
+  ASSERT_TRUE(peers.ok()) << peers.status();
+  EXPECT_GE(peers->peers.size(), 1u);
+  absl::StatusOr<RuleSet> rules =
+      LoadRulesFile(dir + "/rules.yaml", peers->peers);
+  ASSERT_TRUE(rules.ok()) << rules.status();
+  EXPECT_GE(rules->rules.size(), 1u);
+  EXPECT_THAT(rules->rules[0].name, Not(HasSubstr("#")));
+}
+
+}  // namespace
+}  // namespace interslice::server::dicom
