@@ -283,13 +283,44 @@ absl::StatusOr<v1::UploadHeader> PrepareUpload(const RunArguments& args,
                                                double deadline_seconds,
                                                const std::string& label,
                                                std::vector<LocalFile>* files) {
-  absl::StatusOr<JobSpec> spec = BuildJobSpec(args);
+  const bool pacs = !args.pacs_peer.empty();
+  if (pacs && (args.pacs_study.empty() || args.pacs_series.empty())) {
+    return absl::InvalidArgumentError(
+        "--pacs needs --study and --series (the series' Study and Series "
+        "Instance UIDs)");
+  }
+  if (!pacs && (!args.pacs_study.empty() || !args.pacs_series.empty())) {
+    return absl::InvalidArgumentError("--study and --series need --pacs PEER");
+  }
+  if (pacs && !args.inputs.empty()) {
+    return absl::InvalidArgumentError(
+        "give either DICOM_DIR... or --pacs PEER, not both");
+  }
+  if (!pacs && args.inputs.empty()) {
+    return absl::InvalidArgumentError(
+        "no input: give DICOM_DIR... or --pacs PEER --study UID --series UID");
+  }
+  RunArguments checked = args;
+  // BuildJobSpec checks the job options; the series comes from the peer.
+  if (pacs) checked.inputs = {"."};
+  absl::StatusOr<JobSpec> spec = BuildJobSpec(checked);
   if (!spec.ok()) return spec.status();
-  absl::StatusOr<std::vector<LocalFile>> found = CollectFiles(spec->inputs);
-  if (!found.ok()) return found.status();
-  *files = std::move(*found);
+  if (!pacs) {
+    absl::StatusOr<std::vector<LocalFile>> found = CollectFiles(spec->inputs);
+    if (!found.ok()) return found.status();
+    *files = std::move(*found);
+  }
   v1::UploadHeader header;
   *header.mutable_spec() = JobSpecToProto(*spec);
+  for (const std::string& peer : args.send_to) {
+    header.mutable_spec()->add_send_to(peer);
+  }
+  if (pacs) {
+    v1::PacsSeriesSource* source = header.mutable_spec()->mutable_pacs_source();
+    source->set_peer(args.pacs_peer);
+    source->set_study_instance_uid(args.pacs_study);
+    source->set_series_instance_uid(args.pacs_series);
+  }
   header.mutable_options()->set_deadline_seconds(deadline_seconds);
   header.mutable_options()->set_label(label);
   header.set_file_count(static_cast<int>(files->size()));
@@ -428,19 +459,83 @@ int WatchJob(const Connection& connection, const std::string& job_id,
   return 0;
 }
 
+const char* DeliveryStateName(v1::Delivery::State s) {
+  switch (s) {
+    case v1::Delivery::PENDING:
+      return "pending";
+    case v1::Delivery::DELIVERED:
+      return "delivered";
+    case v1::Delivery::FAILED:
+      return "FAILED";
+    default:
+      return "unknown";
+  }
+}
+
+bool HasPendingDelivery(const v1::JobStatus& status) {
+  for (const v1::Delivery& d : status.deliveries()) {
+    if (d.state() == v1::Delivery::PENDING) return true;
+  }
+  return false;
+}
+
+void PrintDeliveries(const v1::JobStatus& status) {
+  for (const v1::Delivery& d : status.deliveries()) {
+    std::printf("  to %s: %s, %d of %d instance(s) stored, %d attempt(s)%s%s\n",
+                d.peer().c_str(), DeliveryStateName(d.state()),
+                d.instances_sent(), d.instances_total(), d.attempts(),
+                d.last_error().empty() ? "" : "; last error: ",
+                d.last_error().c_str());
+  }
+}
+
+// The job's status now (the first message of a Watch).
+absl::StatusOr<v1::JobStatus> CurrentStatus(const Connection& connection,
+                                            const std::string& job_id) {
+  auto stub = v1::InterSlice::NewStub(connection.channel());
+  grpc::ClientContext context;
+  connection.Authorize(context);
+  SetTimeout(context, 60);
+  v1::WatchRequest request;
+  request.set_job_id(job_id);
+  auto reader = stub->Watch(&context, request);
+  v1::JobStatus status;
+  const bool got = reader->Read(&status);
+  if (got) context.TryCancel();
+  const grpc::Status s = reader->Finish();
+  if (!got) {
+    return absl::UnavailableError(DescribeRpcError(s, connection.address()));
+  }
+  return status;
+}
+
 int RunWatch(const Connection& connection, const std::string& job_id,
-             bool quiet) {
+             bool quiet, bool wait_deliveries) {
   v1::JobStatus final;
   if (int rc = WatchJob(connection, job_id, quiet, &final); rc != 0) return rc;
   if (final.state() != v1::JOB_STATE_SUCCEEDED) {
     return Fail(absl::StrCat("job ", job_id, " ", StateName(final.state()),
                              ": ", final.error_message()));
   }
+  // Deliveries to DICOM peers go on after the job: poll until they end.
+  while (wait_deliveries && HasPendingDelivery(final)) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(500));
+    absl::StatusOr<v1::JobStatus> now = CurrentStatus(connection, job_id);
+    if (!now.ok()) return Fail(std::string(now.status().message()));
+    final = *now;
+  }
   if (!quiet) {
     std::printf(
         "job %s succeeded: %d artifact(s); get them with "
         "`interslice fetch %s --out DIR`\n",
         job_id.c_str(), final.artifacts_size(), job_id.c_str());
+    PrintDeliveries(final);
+  }
+  for (const v1::Delivery& d : final.deliveries()) {
+    if (wait_deliveries && d.state() == v1::Delivery::FAILED) {
+      return Fail(absl::StrCat("job ", job_id, ": delivery to ", d.peer(),
+                               " failed: ", d.last_error()));
+    }
   }
   return 0;
 }
@@ -662,6 +757,24 @@ void RemoteCommands::Register(CLI::App& app) {
   submit_->add_option("--deadline", deadline_seconds_,
                       "Server-side limit on the job, seconds from acceptance");
   submit_->add_option("--label", label_, "Free text shown by `list` (no PHI)");
+  for (CLI::App* remote : {interpolate_, submit_}) {
+    remote
+        ->add_option("--send-to", run_args_.send_to,
+                     "Store the DICOM results on these DICOM peers of the "
+                     "server (names from its --dicom-peers file)")
+        ->delimiter(',');
+    remote->add_option("--pacs", run_args_.pacs_peer,
+                       "Read the series from this DICOM peer of the server "
+                       "(C-GET) instead of DICOM_DIR");
+    remote->add_option("--study", run_args_.pacs_study,
+                       "With --pacs: the series' StudyInstanceUID");
+    remote->add_option("--series", run_args_.pacs_series,
+                       "With --pacs: the SeriesInstanceUID");
+    // DICOM_DIR is not needed with --pacs (PrepareUpload checks one of them).
+    for (CLI::Option* o : remote->get_options()) {
+      if (o->check_name("inputs")) o->required(false);
+    }
+  }
   // --out is required by AddRunOptions; a detached job needs none.
   for (CLI::Option* o : submit_->get_options()) {
     if (o->check_name("--out")) o->required(false);
@@ -672,6 +785,9 @@ void RemoteCommands::Register(CLI::App& app) {
                               "(reconnects after network failures)");
   watch_->add_option("job", job_id_, "Job id")->required();
   watch_->add_flag("--quiet", quiet_, "No progress display");
+  watch_->add_flag("--wait-deliveries", wait_deliveries_,
+                   "After the job, wait until its DICOM deliveries (send_to) "
+                   "are delivered or failed; exit 1 if one failed");
   AddConnectionOptions(*watch_, connection_);
 
   fetch_ = app.add_subcommand(
@@ -713,7 +829,9 @@ int RemoteCommands::Execute() {
   if (submit_->parsed()) {
     return RunSubmit(*connection, run_args_, deadline_seconds_, label_);
   }
-  if (watch_->parsed()) return RunWatch(*connection, job_id_, quiet_);
+  if (watch_->parsed()) {
+    return RunWatch(*connection, job_id_, quiet_, wait_deliveries_);
+  }
   if (fetch_->parsed()) {
     return RunFetch(*connection, job_id_, out_, report_, quiet_);
   }

@@ -28,6 +28,7 @@ class RemoteCommands {
   double deadline_seconds_ = 0;
   std::string label_;
   std::string job_id_;
+  bool wait_deliveries_ = false;
   std::string out_;
   std::string report_;
   bool all_ = false;

@@ -43,6 +43,11 @@ struct RunArguments {
   std::string report;
   int threads = 0;
   bool quiet = false;
+  // Remote jobs only (interpolate, submit): DICOM peers of the server to
+  // store the DICOM results on (JobSpec.send_to), and a series on a peer to
+  // read instead of local files (JobSpec.pacs_source).
+  std::vector<std::string> send_to;
+  std::string pacs_peer, pacs_study, pacs_series;
 };
 
 // Adds the `run` subcommand's options to `app`, bound to `args`.

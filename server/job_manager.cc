@@ -10,6 +10,7 @@
 #include "absl/strings/str_format.h"
 #include "core/pipeline/pipeline.h"
 #include "server/dicom/delivery.h"
+#include "server/dicom/retrieve.h"
 #include "server/hashing.h"
 #include "server/log_safe.h"
 #include "server/spec_mapping.h"
@@ -221,9 +222,34 @@ absl::StatusOr<std::shared_ptr<Job>> JobManager::Admit(
         "the server is shutting down and accepts no new jobs; retry on "
         "another replica"));
   }
-  if (header.file_count() < 1 || header.file_count() > kMaxFiles) {
+  const bool pacs = header.spec().has_pacs_source();
+  if (pacs && header.file_count() != 0) {
+    return reject(absl::InvalidArgumentError(
+        "spec.pacs_source reads the series from a DICOM peer: the upload "
+        "must carry no files (file_count 0)"));
+  }
+  if (!pacs && (header.file_count() < 1 || header.file_count() > kMaxFiles)) {
     return reject(absl::InvalidArgumentError(
         absl::StrCat("header.file_count must be between 1 and ", kMaxFiles)));
+  }
+  if (pacs) {
+    const v1::PacsSeriesSource& source = header.spec().pacs_source();
+    if (deliveries_ == nullptr) {
+      return reject(absl::InvalidArgumentError(
+          "spec.pacs_source names a DICOM peer, but the server has none "
+          "configured (--dicom-peers)"));
+    }
+    if (absl::Status s = deliveries_->CheckPeers({source.peer()}); !s.ok()) {
+      return reject(absl::InvalidArgumentError(absl::StrCat(
+          "spec.pacs_source.peer: unknown DICOM peer \"", source.peer(),
+          "\"")));
+    }
+    if (source.study_instance_uid().empty() ||
+        source.series_instance_uid().empty()) {
+      return reject(absl::InvalidArgumentError(
+          "spec.pacs_source needs study_instance_uid and "
+          "series_instance_uid"));
+    }
   }
   if (header.total_bytes() < 0) {
     return reject(
@@ -674,6 +700,25 @@ void JobManager::RunOne(const std::shared_ptr<Job>& job) {
 
   absl::StatusOr<JobReport> report =
       spec_or.ok() ? absl::InternalError("not run") : spec_or.status();
+  // A series named on a DICOM peer is retrieved into the upload folder
+  // first; then the job runs as if it had been uploaded.
+  v1::PacsSeriesSource pacs_source;
+  {
+    std::lock_guard<std::mutex> lock(job->mu_);
+    if (job->record_.spec().has_pacs_source()) {
+      pacs_source = job->record_.spec().pacs_source();
+    }
+  }
+  if (spec_or.ok() && !pacs_source.peer().empty()) {
+    job->Update([](JobRecord& r) {
+      r.mutable_status()->mutable_progress()->set_stage("retrieve");
+    });
+    absl::Status retrieved = RetrieveFromPeer(job, pacs_source);
+    if (!retrieved.ok()) {
+      spec_or = retrieved;
+      report = retrieved;
+    }
+  }
   if (spec_or.ok()) {
     JobSpec spec = *spec_or;
     spec.inputs = {spool_->UploadDir(id)};
@@ -865,6 +910,48 @@ void JobManager::RunOne(const std::shared_ptr<Job>& job) {
   metrics_->JobFinished(OutcomeName(job->Snapshot(false).state()));
   spdlog::info("job={} {}: {} ({})", id, cancelled ? "cancelled" : "failed",
                absl::StatusCodeToString(error.code()), message);
+}
+
+absl::Status JobManager::RetrieveFromPeer(
+    const std::shared_ptr<Job>& job, const v1::PacsSeriesSource& source) {
+  const std::string& id = job->id();
+  if (deliveries_ == nullptr) {
+    return absl::FailedPreconditionError("the server has no DICOM peers");
+  }
+  std::optional<dicom::DicomPeer> peer = deliveries_->FindPeer(source.peer());
+  if (!peer.has_value()) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "DICOM peer ", source.peer(), " is no longer configured"));
+  }
+  // A rerun after a restart starts from an empty folder.
+  spool_->RemoveUploads(id);
+  std::error_code ec;
+  fs::create_directories(spool_->UploadDir(id), ec);
+  dicom::RetrieveOptions options;
+  options.calling_ae_title = deliveries_->options().calling_ae_title;
+  options.tls = deliveries_->options().tls;
+  options.max_bytes = std::min(options_.max_upload_bytes,
+                               spool_->quota_bytes());
+  const auto started = std::chrono::steady_clock::now();
+  absl::StatusOr<dicom::RetrieveResult> result = dicom::RetrieveSeries(
+      *peer, source.study_instance_uid(), source.series_instance_uid(),
+      spool_->UploadDir(id), options);
+  if (!result.ok()) {
+    spool_->RemoveUploads(id);
+    spdlog::info("job={} retrieval from peer {} failed: {}", id, peer->name,
+                 RedactPhi(result.status().message()));
+    return result.status();
+  }
+  // Accounted like an upload (released when the job ends).
+  spool_->Add(result->bytes);
+  job->Update([&](JobRecord& r) { r.set_upload_bytes(result->bytes); });
+  spdlog::info("job={} retrieved {} instance(s), {} bytes from peer {} in "
+               "{:.2f} s",
+               id, result->instances, result->bytes, peer->name,
+               std::chrono::duration<double>(std::chrono::steady_clock::now() -
+                                             started)
+                   .count());
+  return absl::OkStatus();
 }
 
 void JobManager::TickerLoop() {

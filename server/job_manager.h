@@ -193,6 +193,9 @@ class JobManager {
   void Persist(const std::shared_ptr<Job>& job);
   void PublishGauges();  // with mu_ held
   void RemoveFinished(const std::shared_ptr<Job>& job);
+  // C-GET of JobSpec.pacs_source into the job's upload folder.
+  absl::Status RetrieveFromPeer(const std::shared_ptr<Job>& job,
+                                const v1::PacsSeriesSource& source);
 
   const ManagerOptions options_;
   dicom::DeliveryQueue* deliveries_ = nullptr;

@@ -100,6 +100,12 @@ int main(int argc, char** argv) {
                  "(kill, power cut) before it fails for good")
       ->check(CLI::Range(1, 100))
       ->capture_default_str();
+  app.add_option("--dicom-peers", o.dicom_peers_file,
+                 "YAML/JSON file of DICOM peers (name, ae_title, host, port, "
+                 "tls): destinations of send_to and sources of pacs_source");
+  app.add_option("--dicom-ae", o.dicom_ae_title,
+                 "Our DICOM AE title on outgoing associations")
+      ->capture_default_str();
   app.add_option("--delivery-retry", o.delivery_retry_seconds,
                  "Seconds before a failed DICOM delivery (send_to) is tried "
                  "again; doubled per failure up to --delivery-retry-max")

@@ -15,6 +15,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "core/dicom/series_reader.h"
+#include "server/dicom/config.h"
 #include "server/dicom/delivery.h"
 #include "grpcpp/grpcpp.h"
 #include "grpcpp/health_check_service_interface.h"
@@ -266,9 +267,17 @@ int RunServer(ServerOptions options) {
   JobManager manager(manager_options, spool->get(), &metrics);
   // The outbox (declared after the manager, so stopped before it).
   std::unique_ptr<dicom::DeliveryQueue> outbox;
+  if (!options.dicom_peers_file.empty()) {
+    absl::StatusOr<std::vector<dicom::DicomPeer>> peers =
+        dicom::LoadPeersFile(options.dicom_peers_file);
+    if (!peers.ok()) return fail(peers.status());
+    options.dicom_peers.insert(options.dicom_peers.end(), peers->begin(),
+                               peers->end());
+  }
   if (!options.dicom_peers.empty()) {
     dicom::DeliveryOptions delivery;
     delivery.calling_ae_title = options.dicom_ae_title;
+    delivery.tls = options.dicom_tls;
     auto ms = [](double seconds) {
       return std::chrono::milliseconds(static_cast<int64_t>(seconds * 1000));
     };

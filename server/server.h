@@ -46,11 +46,14 @@ struct ServerOptions {
   std::string isolation = "process";
   // Starts of a detached job interrupted by a server stop, in all.
   int max_attempts = 3;
-  // DICOM peers (the --dicom-peers file): where JobSpec.send_to stores
-  // results and pacs_source retrieves from. Our AE title on outgoing
-  // associations.
+  // DICOM peers (server/dicom/config.h): where JobSpec.send_to stores
+  // results and pacs_source retrieves from; the file is read at start-up
+  // and its peers added to dicom_peers. Our AE title on outgoing
+  // associations, and the TLS material for peers with tls: true.
+  std::string dicom_peers_file;
   std::vector<dicom::DicomPeer> dicom_peers;
   std::string dicom_ae_title = "INTERSLICE";
+  dicom::DicomTlsFiles dicom_tls;
   // Outbox retries: the first wait, doubled per failure up to the cap; a
   // delivery fails for good after give-up seconds without success.
   double delivery_retry_seconds = 2;

@@ -20,7 +20,15 @@ absl::Status UploadStream::Fail(absl::Status status) {
 }
 
 absl::Status UploadStream::CheckHeader(const v1::UploadHeader& header) const {
-  if (header.file_count() < 1 || header.file_count() > limits_.max_files) {
+  // A job that reads its series from a DICOM peer uploads no file.
+  const bool pacs = header.spec().has_pacs_source();
+  if (pacs && (header.file_count() != 0 || header.total_bytes() != 0)) {
+    return absl::InvalidArgumentError(
+        "spec.pacs_source reads the series from a DICOM peer: the upload "
+        "must carry no files (file_count 0)");
+  }
+  if (!pacs &&
+      (header.file_count() < 1 || header.file_count() > limits_.max_files)) {
     return absl::InvalidArgumentError(absl::StrCat(
         "header.file_count must be between 1 and ", limits_.max_files));
   }

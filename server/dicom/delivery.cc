@@ -14,12 +14,14 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
+#include "server/dicom/tls.h"
 #include "spdlog/spdlog.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmnet/diutil.h"
 #include "dcmtk/dcmnet/dimse.h"
 #include "dcmtk/dcmnet/dstorscu.h"
+#include "dcmtk/dcmtls/tlslayer.h"
 
 namespace interslice::server::dicom {
 namespace fs = std::filesystem;
@@ -40,6 +42,8 @@ bool Accepted(Uint16 status) {
 class CountingStorageScu : public DcmStorageSCU {
  public:
   StoreResult result;
+  // Protected in DcmSCU (3.6.7); dcmtls' TLS layer goes in through it.
+  using DcmStorageSCU::useSecureConnection;
 
  protected:
   void notifySOPInstanceSent(const TransferEntry& entry) override {
@@ -84,13 +88,6 @@ std::vector<std::string> ListDicomFiles(const std::string& dir) {
 absl::StatusOr<StoreResult> StoreFiles(const DicomPeer& peer,
                                        const std::vector<std::string>& files,
                                        const DeliveryOptions& options) {
-  if (peer.tls) {
-    // Outgoing TLS uses the shared TLS helper (server/dicom/tls.h), wired
-    // in once it is available.
-    return absl::UnimplementedError(absl::StrCat(
-        PeerLabel(peer), " needs TLS, which outgoing deliveries do not "
-                         "support yet"));
-  }
   CountingStorageScu scu;
   scu.setAETitle(options.calling_ae_title.c_str());
   scu.setPeerAETitle(peer.ae_title.c_str());
@@ -104,6 +101,15 @@ absl::StatusOr<StoreResult> StoreFiles(const DicomPeer& peer,
   // Keep sending after a refused instance: the rest may well be accepted,
   // and the refusal is reported.
   scu.setHaltOnUnsuccessfulStoreMode(OFFalse);
+  DicomTlsLayer tls;
+  if (peer.tls) {
+    absl::StatusOr<DicomTlsLayer> layer = MakeDicomTls(options.tls, false);
+    if (!layer.ok()) {
+      return absl::FailedPreconditionError(
+          absl::StrCat(PeerLabel(peer), " needs TLS: ", layer.status().message()));
+    }
+    tls = *std::move(layer);
+  }
   for (const std::string& file : files) {
     const OFCondition cond =
         scu.addDicomFile(OFFilename(file.c_str()), ERM_fileOnly,
@@ -124,6 +130,13 @@ absl::StatusOr<StoreResult> StoreFiles(const DicomPeer& peer,
   if (cond.bad()) {
     return absl::InternalError(
         absl::StrCat("cannot initialise the network: ", cond.text()));
+  }
+  if (tls != nullptr) {
+    cond = scu.useSecureConnection(tls.get());
+    if (cond.bad()) {
+      return absl::InternalError(
+          absl::StrCat("cannot use TLS with ", PeerLabel(peer), ": ", cond.text()));
+    }
   }
   // One association per group of at most 128 presentation contexts
   // (DcmStorageSCU groups them); bounded so that a peer that accepts an
@@ -182,6 +195,14 @@ void DeliveryQueue::Stop() {
   }
   cv_.notify_all();
   if (thread_.joinable()) thread_.join();
+}
+
+std::optional<DicomPeer> DeliveryQueue::FindPeer(
+    const std::string& name) const {
+  for (const DicomPeer& p : peers_) {
+    if (p.name == name) return p;
+  }
+  return std::nullopt;
 }
 
 absl::Status DeliveryQueue::CheckPeers(

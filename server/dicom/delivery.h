@@ -33,6 +33,7 @@
 #include <functional>
 #include <map>
 #include <mutex>
+#include <optional>
 #include <string>
 #include <thread>
 #include <utility>
@@ -93,6 +94,10 @@ class DeliveryQueue {
   void Start();
   // Stops the thread after the try in progress (which ends by the timeouts).
   void Stop();
+
+  // The configured peers and options (the retriever uses them too).
+  std::optional<DicomPeer> FindPeer(const std::string& name) const;
+  const DeliveryOptions& options() const { return options_; }
 
   // INVALID_ARGUMENT naming the first name that is not a configured peer.
   absl::Status CheckPeers(const std::vector<std::string>& names) const;

@@ -1,0 +1,246 @@
+#include "server/dicom/retrieve.h"
+
+#include <fcntl.h>
+#include <unistd.h>
+
+#include <cstdio>
+#include <filesystem>
+#include <memory>
+#include <string>
+#include <utility>
+
+#include "absl/status/status.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "core/dicom/series_reader.h"
+#include "server/dicom/tls.h"
+// osconfig.h must precede every other DCMTK header.
+#include "dcmtk/config/osconfig.h"
+#include "dcmtk/dcmdata/dcdeftag.h"
+#include "dcmtk/dcmdata/dcfilefo.h"
+#include "dcmtk/dcmdata/dcuid.h"
+#include "dcmtk/dcmnet/diutil.h"
+#include "dcmtk/dcmnet/dimse.h"
+#include "dcmtk/dcmnet/scu.h"
+#include "dcmtk/dcmtls/tlslayer.h"
+
+namespace interslice::server::dicom {
+namespace fs = std::filesystem;
+namespace {
+
+// The image storage classes the reader turns into volumes.
+const char* const kStorageClasses[] = {
+    UID_CTImageStorage,
+    UID_EnhancedCTImageStorage,
+    UID_LegacyConvertedEnhancedCTImageStorage,
+    UID_MRImageStorage,
+    UID_EnhancedMRImageStorage,
+    UID_LegacyConvertedEnhancedMRImageStorage,
+};
+
+bool SyncPath(const std::string& path, bool directory) {
+  const int fd = ::open(path.c_str(), directory ? O_RDONLY | O_DIRECTORY
+                                                : O_RDONLY);
+  if (fd < 0) return false;
+  const bool ok = ::fsync(fd) == 0;
+  ::close(fd);
+  return ok;
+}
+
+std::string PeerLabel(const DicomPeer& peer) {
+  return absl::StrCat("peer ", peer.name, " (", peer.ae_title, "@", peer.host,
+                      ":", peer.port, ")");
+}
+
+// C-GET with the sub-operations' instances written durably into a folder,
+// within the limits.
+class GetScu : public DcmSCU {
+ public:
+  GetScu(std::string dest, const RetrieveOptions& options)
+      : dest_(std::move(dest)), options_(options) {}
+
+  int64_t instances = 0;
+  int64_t bytes = 0;
+  absl::Status error = absl::OkStatus();
+  // Protected in DcmSCU (3.6.7); dcmtls' TLS layer goes in through it.
+  using DcmSCU::useSecureConnection;
+
+ protected:
+  OFCondition handleSTORERequest(const T_ASC_PresentationContextID /*presID*/,
+                                 DcmDataset* incoming,
+                                 OFBool& continue_session,
+                                 Uint16& status) override {
+    std::unique_ptr<DcmDataset> dataset(incoming);  // ours to delete
+    continue_session = OFTrue;
+    if (!error.ok() || dataset == nullptr) {
+      status = STATUS_STORE_Refused_OutOfResources;
+      continue_session = OFFalse;
+      return EC_Normal;
+    }
+    if (instances + 1 > options_.max_instances) {
+      error = absl::ResourceExhaustedError(absl::StrCat(
+          "the series on the peer has more than ", options_.max_instances,
+          " instances (the server's limit per job)"));
+      status = STATUS_STORE_Refused_OutOfResources;
+      continue_session = OFFalse;
+      return EC_Normal;
+    }
+    const std::string name = absl::StrFormat("pacs-%06d.dcm", instances + 1);
+    const std::string path = (fs::path(dest_) / name).string();
+    const std::string temp = path + ".part";
+    DcmFileFormat file(dataset.get(), /*deepCopy=*/OFFalse);
+    // Kept in the transfer syntax it arrived in (the reader decodes it).
+    const E_TransferSyntax xfer = dataset->getOriginalXfer();
+    OFCondition cond = file.saveFile(
+        OFFilename(temp.c_str()),
+        xfer == EXS_Unknown ? EXS_LittleEndianExplicit : xfer);
+    // The file format borrowed the dataset; take it back before both die.
+    file.getAndRemoveDataset();
+    std::error_code ec;
+    const int64_t size =
+        cond.good() ? static_cast<int64_t>(fs::file_size(temp, ec)) : 0;
+    if (cond.bad() || ec || !SyncPath(temp, false)) {
+      fs::remove(temp, ec);
+      error = absl::InternalError(absl::StrCat(
+          "cannot write a retrieved instance to the job's folder: ",
+          cond.bad() ? cond.text() : "write/sync failed"));
+      status = STATUS_STORE_Refused_OutOfResources;
+      continue_session = OFFalse;
+      return EC_Normal;
+    }
+    if (bytes + size > options_.max_bytes) {
+      fs::remove(temp, ec);
+      error = absl::ResourceExhaustedError(absl::StrCat(
+          "the series on the peer is larger than ", options_.max_bytes,
+          " bytes (the server's upload limit per job)"));
+      status = STATUS_STORE_Refused_OutOfResources;
+      continue_session = OFFalse;
+      return EC_Normal;
+    }
+    fs::rename(temp, path, ec);
+    if (ec) {
+      fs::remove(temp, ec);
+      error = absl::InternalError("cannot rename a retrieved instance");
+      status = STATUS_STORE_Refused_OutOfResources;
+      continue_session = OFFalse;
+      return EC_Normal;
+    }
+    ++instances;
+    bytes += size;
+    status = STATUS_Success;
+    return EC_Normal;
+  }
+
+ private:
+  const std::string dest_;
+  const RetrieveOptions options_;
+};
+
+}  // namespace
+
+absl::StatusOr<RetrieveResult> RetrieveSeries(
+    const DicomPeer& peer, const std::string& study_instance_uid,
+    const std::string& series_instance_uid, const std::string& dest_dir,
+    const RetrieveOptions& options) {
+  if (study_instance_uid.empty() || series_instance_uid.empty()) {
+    return absl::InvalidArgumentError(
+        "pacs_source needs study_instance_uid and series_instance_uid");
+  }
+  GetScu scu(dest_dir, options);
+  scu.setAETitle(options.calling_ae_title.c_str());
+  scu.setPeerAETitle(peer.ae_title.c_str());
+  scu.setPeerHostName(peer.host.c_str());
+  scu.setPeerPort(static_cast<Uint16>(peer.port));
+  scu.setMaxReceivePDULength(options.max_pdu_bytes);
+  scu.setACSETimeout(static_cast<Uint32>(options.timeout_seconds));
+  scu.setDIMSETimeout(static_cast<Uint32>(options.timeout_seconds));
+  scu.setDIMSEBlockingMode(DIMSE_NONBLOCKING);
+  scu.setConnectionTimeout(options.timeout_seconds);
+
+  OFList<OFString> model_syntaxes;
+  model_syntaxes.push_back(UID_LittleEndianExplicitTransferSyntax);
+  model_syntaxes.push_back(UID_LittleEndianImplicitTransferSyntax);
+  scu.addPresentationContext(UID_GETStudyRootQueryRetrieveInformationModel,
+                             model_syntaxes);
+  OFList<OFString> image_syntaxes;
+  for (const TransferSyntaxInfo& ts : DecodableTransferSyntaxes()) {
+    image_syntaxes.push_back(ts.uid.c_str());
+  }
+  for (const char* sop_class : kStorageClasses) {
+    scu.addPresentationContext(sop_class, image_syntaxes, ASC_SC_ROLE_SCP);
+  }
+
+  DicomTlsLayer tls;
+  if (peer.tls) {
+    absl::StatusOr<DicomTlsLayer> layer = MakeDicomTls(options.tls, false);
+    if (!layer.ok()) {
+      return absl::FailedPreconditionError(absl::StrCat(
+          PeerLabel(peer), " needs TLS: ", layer.status().message()));
+    }
+    tls = *std::move(layer);
+  }
+  OFCondition cond = scu.initNetwork();
+  if (cond.bad()) {
+    return absl::InternalError(
+        absl::StrCat("cannot initialise the network: ", cond.text()));
+  }
+  if (tls != nullptr) {
+    cond = scu.useSecureConnection(tls.get());
+    if (cond.bad()) {
+      return absl::InternalError(absl::StrCat(
+          "cannot use TLS with ", PeerLabel(peer), ": ", cond.text()));
+    }
+  }
+  cond = scu.negotiateAssociation();
+  if (cond.bad()) {
+    return absl::UnavailableError(absl::StrCat(
+        "cannot associate with ", PeerLabel(peer), ": ", cond.text()));
+  }
+  const T_ASC_PresentationContextID pc = scu.findPresentationContextID(
+      UID_GETStudyRootQueryRetrieveInformationModel, "");
+  if (pc == 0) {
+    scu.releaseAssociation();
+    return absl::FailedPreconditionError(absl::StrCat(
+        PeerLabel(peer), " does not offer C-GET (Study Root); the server "
+                         "retrieves with C-GET only"));
+  }
+  DcmDataset query;
+  query.putAndInsertString(DCM_QueryRetrieveLevel, "SERIES");
+  query.putAndInsertString(DCM_StudyInstanceUID, study_instance_uid.c_str());
+  query.putAndInsertString(DCM_SeriesInstanceUID, series_instance_uid.c_str());
+  OFList<RetrieveResponse*> responses;
+  cond = scu.sendCGETRequest(pc, &query, &responses);
+  Uint16 final_status = 0;
+  int failed = 0;
+  if (!responses.empty()) {
+    const RetrieveResponse* last = responses.back();
+    final_status = last->m_status;
+    failed = last->m_numberOfFailedSubops;
+  }
+  for (RetrieveResponse* r : responses) delete r;
+  if (scu.isConnected()) scu.releaseAssociation();
+  SyncPath(dest_dir, true);
+
+  if (!scu.error.ok()) return scu.error;
+  if (cond.bad()) {
+    return absl::UnavailableError(absl::StrCat(
+        "C-GET from ", PeerLabel(peer), " failed: ", cond.text()));
+  }
+  if (final_status != STATUS_Success && !DICOM_WARNING_STATUS(final_status)) {
+    return absl::FailedPreconditionError(
+        absl::StrFormat("%s refused the C-GET: 0x%04X %s", PeerLabel(peer),
+                        final_status, DU_cgetStatusString(final_status)));
+  }
+  if (failed > 0) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        PeerLabel(peer), " could not send ", failed,
+        " instance(s) of the series (failed C-GET sub-operations)"));
+  }
+  if (scu.instances == 0) {
+    return absl::NotFoundError(absl::StrCat(
+        PeerLabel(peer), " has no CT or MR instance of the requested series"));
+  }
+  return RetrieveResult{scu.instances, scu.bytes};
+}
+
+}  // namespace interslice::server::dicom

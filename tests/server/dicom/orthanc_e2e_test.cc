@@ -1,0 +1,349 @@
+// interslice next to a real PACS: a real interslice-server process (and the
+// `interslice` client) with a real Orthanc on loopback.
+//  - results of a job with --send-to land in Orthanc's copy of the study:
+//    the derived series, the SEG and the Encapsulated STL, in the source's
+//    study and frame of reference, equal to what `interslice run` writes;
+//  - sending the same job twice leaves one copy;
+//  - a destination that is down gets the results after it comes back, also
+//    across a server restart;
+//  - a job can read its series from Orthanc (C-GET) instead of uploads, and
+//    gives the same results.
+#include <signal.h>
+#include <sys/wait.h>
+
+#include <algorithm>
+#include <chrono>
+#include <filesystem>
+#include <fstream>
+#include <map>
+#include <memory>
+#include <set>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "absl/strings/str_cat.h"
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "tests/server/dicom/orthanc_fixture.h"
+#include "tests/server/process.h"
+#include "tests/testing/temp_dir.h"
+// osconfig.h must precede every other DCMTK header.
+#include "dcmtk/config/osconfig.h"
+#include "dcmtk/dcmdata/dcdeftag.h"
+#include "dcmtk/dcmdata/dcfilefo.h"
+#include "dcmtk/dcmdata/dcistrmb.h"
+
+namespace interslice::testing {
+namespace {
+
+namespace fs = std::filesystem;
+using ::testing::HasSubstr;
+
+const std::string kCli = INTERSLICE_CLI_PATH;
+const std::string kServer = INTERSLICE_SERVER_PATH;
+const fs::path kPhantom =
+    fs::path(INTERSLICE_SOURCE_DIR) / "data" / "ct-head-phantom-thick";
+// The job: bone of the phantom, one slice inserted per gap (factor 2 keeps
+// the test to seconds), every DICOM result.
+const std::vector<std::string> kJob = {
+    "--threshold", "300",       "--method", "direct", "--factor",
+    "2",           "--output-series", "intensity",    "--seg",
+    "--mesh",      "stl",       "--volume", "none"};
+
+std::vector<std::string> Cat(std::vector<std::string> a,
+                             const std::vector<std::string>& b) {
+  a.insert(a.end(), b.begin(), b.end());
+  return a;
+}
+
+CommandResult Cli(const std::vector<std::string>& args, double timeout = 300) {
+  return RunCommand(Cat({kCli}, args), timeout);
+}
+
+std::string Tag(DcmItem& item, const DcmTagKey& tag) {
+  OFString value;
+  item.findAndGetOFStringArray(tag, value);
+  return value.c_str();
+}
+
+std::unique_ptr<DcmFileFormat> Load(const std::string& path) {
+  auto file = std::make_unique<DcmFileFormat>();
+  EXPECT_TRUE(file->loadFile(OFFilename(path.c_str())).good()) << path;
+  return file;
+}
+
+std::unique_ptr<DcmFileFormat> LoadBytes(const std::string& bytes) {
+  auto file = std::make_unique<DcmFileFormat>();
+  DcmInputBufferStream stream;
+  stream.setBuffer(bytes.data(), bytes.size());
+  stream.setEos();
+  file->transferInit();
+  EXPECT_TRUE(file->read(stream).good());
+  file->transferEnd();
+  file->loadAllDataIntoMemory();
+  return file;
+}
+
+// The content that must survive the trip: pixel data, or the encapsulated
+// document.
+std::string Payload(DcmItem& item) {
+  for (const DcmTagKey& tag : {DCM_PixelData, DCM_EncapsulatedDocument}) {
+    const Uint8* bytes = nullptr;
+    unsigned long count = 0;
+    if (item.findAndGetUint8Array(tag, bytes, &count).good() && bytes) {
+      return std::string(reinterpret_cast<const char*>(bytes), count);
+    }
+    const Uint16* words = nullptr;
+    if (item.findAndGetUint16Array(tag, words, &count).good() && words) {
+      return std::string(reinterpret_cast<const char*>(words), count * 2);
+    }
+  }
+  return "";
+}
+
+// SOP Instance UID -> payload of every DICOM file under `dir`.
+std::map<std::string, std::string> LocalPayloads(const std::string& dir) {
+  std::map<std::string, std::string> out;
+  for (const auto& e : fs::recursive_directory_iterator(dir)) {
+    if (!e.is_regular_file() || e.path().extension() != ".dcm") continue;
+    auto file = Load(e.path().string());
+    out[Tag(*file->getDataset(), DCM_SOPInstanceUID)] =
+        Payload(*file->getDataset());
+  }
+  return out;
+}
+
+class Server {
+ public:
+  Server(std::string spool, std::string log, std::vector<std::string> extra)
+      : spool_(std::move(spool)), log_(std::move(log)),
+        extra_(std::move(extra)) {
+    Start();
+  }
+  ~Server() { Stop(); }
+  void Start() {
+    const std::string port_file = spool_ + ".port";
+    std::error_code ec;
+    fs::remove(port_file, ec);
+    pid_ = StartProcess(
+        Cat({kServer, "--listen", "127.0.0.1:0", "--spool", spool_,
+             "--port-file", port_file, "--workers", "1", "--threads-per-job",
+             "2", "--drain-grace", "0", "--isolation", "thread"},
+            extra_),
+        log_);
+    for (int i = 0; i < 1500 && !fs::exists(port_file) &&
+                    WaitProcess(pid_, 0) == -1;
+         ++i) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    }
+    std::ifstream in(port_file);
+    int port = 0;
+    in >> port;
+    address_ = absl::StrCat("127.0.0.1:", port);
+  }
+  void Stop() {
+    if (pid_ <= 0) return;
+    kill(pid_, SIGTERM);
+    EXPECT_EQ(WaitProcess(pid_, 60), 0) << Log();
+    pid_ = -1;
+  }
+  std::vector<std::string> Flag() const { return {"--server", address_}; }
+  std::string Log() const { return ReadFileOrEmpty(log_); }
+
+ private:
+  std::string spool_, log_;
+  std::vector<std::string> extra_;
+  pid_t pid_ = -1;
+  std::string address_;
+};
+
+class OrthancEndToEndTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    auto orthanc = Orthanc::Start(
+        (dir_.path() / "orthanc").string(),
+        {{"interslice", "INTERSLICE", "127.0.0.1", FreeTcpPort()}});
+    ASSERT_TRUE(orthanc.ok()) << orthanc.status();
+    orthanc_ = *std::move(orthanc);
+    peers_ = (dir_.path() / "peers.yaml").string();
+    std::ofstream(peers_) << "peers:\n  - {name: orthanc, ae_title: "
+                          << orthanc_->ae_title()
+                          << ", host: 127.0.0.1, port: "
+                          << orthanc_->dicom_port() << ", tls: false}\n";
+    auto source = Load((kPhantom / "I10.dcm").string());
+    study_ = Tag(*source->getDataset(), DCM_StudyInstanceUID);
+    series_ = Tag(*source->getDataset(), DCM_SeriesInstanceUID);
+    frame_ = Tag(*source->getDataset(), DCM_FrameOfReferenceUID);
+  }
+  std::unique_ptr<Server> StartServer() {
+    return std::make_unique<Server>(
+        (dir_.path() / "spool").string(), (dir_.path() / "server.log").string(),
+        std::vector<std::string>{"--dicom-peers", peers_, "--delivery-retry",
+                                 "0.2", "--delivery-retry-max", "1"});
+  }
+  // Orthanc's instances of the study: SOP Instance UID -> Orthanc id.
+  std::map<std::string, std::string> OrthancInstances() {
+    std::map<std::string, std::string> out;
+    auto ids = orthanc_->GetJson("/instances?expand");
+    EXPECT_TRUE(ids.ok()) << ids.status();
+    if (!ids.ok()) return out;
+    for (const auto& i : *ids) {
+      out[i["MainDicomTags"]["SOPInstanceUID"].get<std::string>()] =
+          i["ID"].get<std::string>();
+    }
+    return out;
+  }
+  std::string Submit(Server& server, const std::vector<std::string>& extra) {
+    const CommandResult r =
+        Cli(Cat(Cat({"submit"}, kJob), Cat(extra, server.Flag())));
+    EXPECT_EQ(r.exit_code, 0) << r.err << server.Log();
+    std::string id = r.out;
+    while (!id.empty() && (id.back() == '\n' || id.back() == '\r')) {
+      id.pop_back();
+    }
+    return id;
+  }
+  std::string LocalRun() {
+    const std::string out = (dir_.path() / "local").string();
+    const CommandResult r = Cli(
+        Cat(Cat({"run", kPhantom.string()}, kJob), {"--out", out, "--quiet"}));
+    EXPECT_EQ(r.exit_code, 0) << r.err;
+    return out;
+  }
+
+  TempDir dir_{"interslice_orthanc_e2e_"};
+  std::unique_ptr<Orthanc> orthanc_;
+  std::string peers_, study_, series_, frame_;
+};
+
+TEST_F(OrthancEndToEndTest, ResultsLandInTheStudyAndEqualALocalRun) {
+  auto server = StartServer();
+  const auto t0 = std::chrono::steady_clock::now();
+  const std::string job = Submit(*server, {kPhantom.string(), "--send-to",
+                                           "orthanc"});
+  const CommandResult watch =
+      Cli(Cat({"watch", job, "--wait-deliveries"}, server->Flag()));
+  const double seconds = std::chrono::duration<double>(
+                             std::chrono::steady_clock::now() - t0)
+                             .count();
+  ASSERT_EQ(watch.exit_code, 0) << watch.err << watch.out << server->Log();
+  EXPECT_THAT(watch.out, HasSubstr("to orthanc: delivered"));
+  std::printf("submission to results in Orthanc: %.2f s\n", seconds);
+
+  // One study (the source's), three series: intensity, SEG, STL.
+  auto studies = orthanc_->GetJson("/studies?expand");
+  ASSERT_TRUE(studies.ok()) << studies.status();
+  ASSERT_EQ(studies->size(), 1u);
+  EXPECT_EQ((*studies)[0]["MainDicomTags"]["StudyInstanceUID"], study_);
+  const std::string study_id = (*studies)[0]["ID"];
+  auto series = orthanc_->GetJson("/studies/" + study_id + "/series?expand");
+  ASSERT_TRUE(series.ok());
+  std::map<std::string, size_t> by_modality;
+  for (const auto& s : *series) {
+    by_modality[s["MainDicomTags"]["Modality"].get<std::string>()] =
+        s["Instances"].size();
+  }
+  EXPECT_EQ(by_modality.size(), 3u);
+  EXPECT_EQ(by_modality["SEG"], 1u);
+  EXPECT_EQ(by_modality["M3D"], 1u);
+  EXPECT_GT(by_modality["CT"], 28u);  // more slices than the source
+
+  // Every instance equals the local run's instance of the same UID.
+  const std::map<std::string, std::string> local =
+      LocalPayloads(LocalRun());
+  const std::map<std::string, std::string> remote = OrthancInstances();
+  ASSERT_EQ(remote.size(), local.size());
+  for (const auto& [uid, id] : remote) {
+    ASSERT_EQ(local.count(uid), 1u) << "not in the local run: " << uid;
+    absl::StatusOr<std::string> bytes = orthanc_->InstanceFile(id);
+    ASSERT_TRUE(bytes.ok()) << bytes.status();
+    auto file = LoadBytes(*bytes);
+    DcmDataset& ds = *file->getDataset();
+    EXPECT_EQ(Tag(ds, DCM_StudyInstanceUID), study_);
+    EXPECT_EQ(Tag(ds, DCM_FrameOfReferenceUID), frame_);
+    const std::string payload = Payload(ds);
+    EXPECT_FALSE(payload.empty()) << uid;
+    EXPECT_TRUE(payload == local.at(uid)) << "payload differs: " << uid;
+  }
+  const double instances = static_cast<double>(remote.size());
+  std::printf("%zu instances stored\n", remote.size());
+  (void)instances;
+
+  // Sending the same job again leaves one copy of each.
+  const std::string again =
+      Submit(*server, {kPhantom.string(), "--send-to", "orthanc"});
+  const CommandResult watch2 =
+      Cli(Cat({"watch", again, "--wait-deliveries"}, server->Flag()));
+  ASSERT_EQ(watch2.exit_code, 0) << watch2.err;
+  EXPECT_EQ(OrthancInstances().size(), remote.size());
+}
+
+TEST_F(OrthancEndToEndTest, UnknownPeerIsRefusedAtAdmission) {
+  auto server = StartServer();
+  const CommandResult r = Cli(Cat(Cat({"submit"}, kJob),
+                                  Cat({kPhantom.string(), "--send-to",
+                                       "orthanc,nowhere"},
+                                      server->Flag())));
+  EXPECT_NE(r.exit_code, 0);
+  EXPECT_THAT(r.err, HasSubstr("nowhere"));
+}
+
+TEST_F(OrthancEndToEndTest, DownPeerGetsResultsAfterItComesBackAndARestart) {
+  orthanc_->Stop();
+  auto server = StartServer();
+  const std::string job =
+      Submit(*server, {kPhantom.string(), "--send-to", "orthanc"});
+  // The job succeeds; its delivery waits.
+  const CommandResult watch = Cli(Cat({"watch", job}, server->Flag()));
+  ASSERT_EQ(watch.exit_code, 0) << watch.err << server->Log();
+  EXPECT_THAT(watch.out, HasSubstr("to orthanc: pending"));
+  // Let it fail a few times, then stop the server with it still pending.
+  std::this_thread::sleep_for(std::chrono::milliseconds(1500));
+  server->Stop();
+  EXPECT_THAT(server->Log(), HasSubstr("delivery to peer orthanc failed"));
+  ASSERT_TRUE(orthanc_->Restart().ok());
+  server->Start();
+  const CommandResult done =
+      Cli(Cat({"watch", job, "--wait-deliveries"}, server->Flag()));
+  ASSERT_EQ(done.exit_code, 0) << done.err << server->Log();
+  EXPECT_THAT(done.out, HasSubstr("to orthanc: delivered"));
+  EXPECT_GT(OrthancInstances().size(), 30u);
+}
+
+TEST_F(OrthancEndToEndTest, PullFromOrthancEqualsUploadedFiles) {
+  absl::StatusOr<int> uploaded = orthanc_->UploadFolder(kPhantom.string());
+  ASSERT_TRUE(uploaded.ok()) << uploaded.status();
+  ASSERT_EQ(*uploaded, 28);
+  auto server = StartServer();
+  const std::string pulled = Submit(
+      *server, {"--pacs", "orthanc", "--study", study_, "--series", series_});
+  const std::string sent = Submit(*server, {kPhantom.string()});
+  for (const std::string& job : {pulled, sent}) {
+    const CommandResult w = Cli(Cat({"watch", job, "--quiet"}, server->Flag()));
+    ASSERT_EQ(w.exit_code, 0) << w.err << server->Log();
+    const CommandResult f =
+        Cli(Cat({"fetch", job, "--out", (dir_.path() / job).string(),
+                 "--quiet"},
+                server->Flag()));
+    ASSERT_EQ(f.exit_code, 0) << f.err;
+  }
+  // Same source instances and job: same mesh bytes, same derived UIDs and
+  // pixel data.
+  EXPECT_TRUE(ReadFileOrEmpty((dir_.path() / pulled / "surface.stl").string()) ==
+              ReadFileOrEmpty((dir_.path() / sent / "surface.stl").string()));
+  const auto a = LocalPayloads((dir_.path() / pulled).string());
+  const auto b = LocalPayloads((dir_.path() / sent).string());
+  EXPECT_GT(a.size(), 30u);
+  EXPECT_TRUE(a == b);
+
+  // A series the peer does not have fails the job, naming the peer.
+  const std::string missing = Submit(
+      *server, {"--pacs", "orthanc", "--study", study_, "--series", "1.2.3"});
+  const CommandResult w = Cli(Cat({"watch", missing}, server->Flag()));
+  EXPECT_NE(w.exit_code, 0);
+  EXPECT_THAT(w.err, HasSubstr("orthanc"));
+}
+
+}  // namespace
+}  // namespace interslice::testing
