@@ -45,8 +45,25 @@ struct ServerOptions {
   // Starts of a detached job interrupted by a server stop, in all.
   int max_attempts = 3;
   // After start-up, "<grpc port>\n<metrics port>\n" is written here
-  // (atomically), for tests and scripts that listen on port 0.
+  // (atomically), for tests and scripts that listen on port 0; with a DICOM
+  // listener, "<dicom port>\n" follows.
   std::string port_file;
+
+  // The DICOM node's receiving side (server/dicom/, docs/dicom-node.md).
+  // Empty dicom_listen: no DICOM listener. "HOST:PORT"; port 0 picks one.
+  std::string dicom_listen;
+  std::vector<std::string> dicom_ae_titles;  // empty: {"INTERSLICE"}
+  std::string dicom_peers_file;  // YAML/JSON; see server/dicom/config.h
+  std::string rules_file;        // YAML/JSON; see server/dicom/config.h
+  int dicom_max_associations = 8;
+  int64_t dicom_max_pdu = 65536;
+  double dicom_acse_timeout_seconds = 10;
+  double dicom_dimse_timeout_seconds = 60;
+  int64_t dicom_max_series_instances = 10000;
+  int64_t dicom_max_series_bytes = int64_t{4} << 30;
+  // DICOM TLS: all three, or none. Peers must present a certificate signed
+  // by a CA in dicom_tls_ca.
+  std::string dicom_tls_cert, dicom_tls_key, dicom_tls_ca;
 };
 
 // CPUs this process may use: the affinity mask, capped by a cgroup v2
