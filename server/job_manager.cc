@@ -403,6 +403,51 @@ absl::Status JobManager::Enqueue(const std::shared_ptr<Job>& job) {
   return absl::OkStatus();
 }
 
+absl::StatusOr<std::string> JobManager::SubmitLocalFiles(
+    const v1::JobSpec& spec, const std::string& files_dir,
+    const std::string& owner, const std::string& origin) {
+  std::vector<fs::path> files;
+  int64_t bytes = 0;
+  std::error_code ec;
+  for (const auto& entry : fs::directory_iterator(files_dir, ec)) {
+    if (entry.path().extension() != ".dcm" || !entry.is_regular_file(ec)) {
+      continue;
+    }
+    files.push_back(entry.path());
+    bytes += static_cast<int64_t>(entry.file_size(ec));
+  }
+  if (ec) {
+    return absl::InternalError("cannot list the received files of a series");
+  }
+  v1::UploadHeader header;
+  *header.mutable_spec() = spec;
+  header.set_file_count(static_cast<int32_t>(files.size()));
+  header.set_total_bytes(bytes);
+  absl::StatusOr<std::shared_ptr<Job>> job =
+      Admit(header, /*ephemeral=*/false, std::nullopt, owner);
+  if (!job.ok()) return job.status();
+  const std::string upload = spool_->UploadDir((*job)->id());
+  for (size_t i = 0; i < files.size(); ++i) {
+    const fs::path target =
+        fs::path(upload) / absl::StrFormat("%06d.dcm", static_cast<int>(i));
+    // Same file system (both in the spool): a link, not a copy.
+    fs::create_hard_link(files[i], target, ec);
+    if (ec) fs::copy_file(files[i], target, ec);
+    if (ec) {
+      Abandon(*job);
+      return absl::ResourceExhaustedError(
+          "cannot place a received series into a job's upload folder");
+    }
+  }
+  (*job)->Update(
+      [&origin](JobRecord& r) { r.mutable_status()->set_origin(origin); });
+  if (absl::Status s = Enqueue(*job); !s.ok()) {
+    Abandon(*job);
+    return s;
+  }
+  return (*job)->id();
+}
+
 void JobManager::Abandon(const std::shared_ptr<Job>& job) {
   spool_->RemoveJob(job->id());
   spool_->Release(job->record_.upload_bytes());

@@ -159,6 +159,16 @@ class JobManager {
   // UNAVAILABLE for an Interpolate job while draining; on error the caller
   // abandons the job.
   absl::Status Enqueue(const std::shared_ptr<Job>& job);
+  // Blocking. A detached job on DICOM files that are already in the spool
+  // (a complete series the DICOM listener received, in `files_dir`): admitted
+  // and queued like an upload (same limits and errors), its files
+  // hard-linked into the job's upload folder (`files_dir` is left as it
+  // is; the caller deletes it). `origin` is recorded in the job's status.
+  // Returns the job id.
+  absl::StatusOr<std::string> SubmitLocalFiles(const v1::JobSpec& spec,
+                                               const std::string& files_dir,
+                                               const std::string& owner,
+                                               const std::string& origin);
   // Blocking. The upload failed: delete everything.
   void Abandon(const std::shared_ptr<Job>& job);
   // Blocking. An Interpolate call ended: cancel the job if it still runs and

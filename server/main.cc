@@ -100,12 +100,6 @@ int main(int argc, char** argv) {
                  "(kill, power cut) before it fails for good")
       ->check(CLI::Range(1, 100))
       ->capture_default_str();
-  app.add_option("--dicom-peers", o.dicom_peers_file,
-                 "YAML/JSON file of DICOM peers (name, ae_title, host, port, "
-                 "tls): destinations of send_to and sources of pacs_source");
-  app.add_option("--dicom-ae", o.dicom_ae_title,
-                 "Our DICOM AE title on outgoing associations")
-      ->capture_default_str();
   app.add_option("--delivery-retry", o.delivery_retry_seconds,
                  "Seconds before a failed DICOM delivery (send_to) is tried "
                  "again; doubled per failure up to --delivery-retry-max")
@@ -121,7 +115,48 @@ int main(int argc, char** argv) {
       ->check(CLI::Range(1.0, 30 * 86400.0))
       ->capture_default_str();
   app.add_option("--port-file", o.port_file,
-                 "Write the bound gRPC and metrics ports here after start-up");
+                 "Write the bound gRPC and metrics ports (and the DICOM port "
+                 "with --dicom-listen) here after start-up, one a line");
+  app.add_option("--dicom-listen", o.dicom_listen,
+                 "Receive series as a DICOM Storage SCP on HOST:PORT (port 0 "
+                 "picks one); see docs/dicom-node.md");
+  app.add_option("--dicom-ae", o.dicom_ae_titles,
+                 "AE title(s) the DICOM listener answers to (repeatable; "
+                 "default INTERSLICE); rules bind to them with "
+                 "match.called_ae");
+  app.add_option("--dicom-peers", o.dicom_peers_file,
+                 "Peers file (YAML or JSON): the DICOM nodes allowed to "
+                 "associate and to receive results");
+  app.add_option("--rules", o.rules_file,
+                 "Rules file (YAML or JSON): which received series make "
+                 "which job");
+  app.add_option("--dicom-max-associations", o.dicom_max_associations,
+                 "Simultaneous DICOM associations")
+      ->check(CLI::Range(1, 1000))
+      ->capture_default_str();
+  app.add_option("--dicom-max-pdu", o.dicom_max_pdu,
+                 "Largest PDU the listener receives, bytes")
+      ->check(CLI::Range(4096, 131072))
+      ->capture_default_str();
+  app.add_option("--dicom-acse-timeout", o.dicom_acse_timeout_seconds,
+                 "Seconds a peer may take to open or release an association")
+      ->capture_default_str();
+  app.add_option("--dicom-dimse-timeout", o.dicom_dimse_timeout_seconds,
+                 "Seconds a peer may stay silent within an association")
+      ->capture_default_str();
+  app.add_option("--dicom-max-series-instances", o.dicom_max_series_instances,
+                 "Instances one received series may hold")
+      ->capture_default_str();
+  app.add_option("--dicom-max-series-bytes", o.dicom_max_series_bytes,
+                 "Bytes one received series may hold")
+      ->capture_default_str();
+  app.add_option("--dicom-tls-cert", o.dicom_tls_cert,
+                 "DICOM TLS: our certificate (PEM)");
+  app.add_option("--dicom-tls-key", o.dicom_tls_key,
+                 "DICOM TLS: its private key (PEM)");
+  app.add_option("--dicom-tls-ca", o.dicom_tls_ca,
+                 "DICOM TLS: CA certificates (PEM) that sign peer "
+                 "certificates; peers without one are refused");
   try {
     app.parse(argc, argv);
   } catch (const CLI::CallForHelp& e) {

@@ -54,6 +54,22 @@ Metrics::Metrics() : registry_(std::make_shared<prometheus::Registry>()) {
   for (const char* outcome : {"succeeded", "failed", "cancelled", "rejected"}) {
     jobs_->Add({{"outcome", outcome}});
   }
+  dicom_ = &prometheus::BuildCounter()
+                .Name("interslice_dicom_events_total")
+                .Help(
+                    "DICOM listener events: associations (accepted, "
+                    "rejected), instances (received, refused), series "
+                    "completed, jobs created")
+                .Register(*registry_);
+  for (const char* event :
+       {"associations", "associations_rejected", "instances_received",
+        "instances_refused", "series_completed", "jobs_created"}) {
+    dicom_->Add({{"event", event}});
+  }
+}
+
+void Metrics::DicomEvent(const std::string& event, double n) {
+  dicom_->Add({{"event", event}}).Increment(n);
 }
 
 Metrics::~Metrics() = default;

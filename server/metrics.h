@@ -37,12 +37,17 @@ class Metrics {
   // DICOM instances stored on (or refused by) a peer, by peer name.
   void DicomInstancesSent(const std::string& peer, double n);
   void DicomInstancesFailed(const std::string& peer, double n);
+  // The DICOM listener (interslice_dicom_events_total{event=...}):
+  // "associations", "associations_rejected", "instances_received",
+  // "instances_refused", "series_completed", "jobs_created".
+  void DicomEvent(const std::string& event, double n = 1);
 
  private:
   std::shared_ptr<prometheus::Registry> registry_;
   std::unique_ptr<prometheus::Exposer> exposer_;
   prometheus::Family<prometheus::Counter>* jobs_;
   prometheus::Family<prometheus::Histogram>* stages_;
+  prometheus::Family<prometheus::Counter>* dicom_;
   prometheus::Gauge* queue_depth_;
   prometheus::Gauge* running_;
   prometheus::Counter* bytes_in_;

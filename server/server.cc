@@ -13,6 +13,7 @@
 #include <sstream>
 #include <thread>
 
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "core/dicom/series_reader.h"
 #include "server/dicom/config.h"
@@ -20,6 +21,9 @@
 #include "grpcpp/grpcpp.h"
 #include "grpcpp/health_check_service_interface.h"
 #include "server/auth.h"
+#include "server/dicom/config.h"
+#include "server/dicom/series_assembler.h"
+#include "server/dicom/storage_scp.h"
 #include "server/executor.h"
 #include "server/job_manager.h"
 #include "server/log_safe.h"
@@ -149,6 +153,111 @@ int AvailableCpus() {
   return std::max(1, cpus);
 }
 
+namespace {
+
+absl::StatusOr<std::unique_ptr<dicom::SeriesAssembler>> StartDicomAssembler(
+    const ServerOptions& options, Spool* spool, Metrics* metrics,
+    JobManager* manager) {
+  dicom::PeersConfig peers;
+  if (!options.dicom_peers_file.empty()) {
+    absl::StatusOr<dicom::PeersConfig> loaded =
+        dicom::LoadPeersConfig(options.dicom_peers_file);
+    if (!loaded.ok()) return loaded.status();
+    peers = *std::move(loaded);
+  }
+  dicom::RuleSet rules;
+  if (!options.rules_file.empty()) {
+    absl::StatusOr<dicom::RuleSet> loaded =
+        dicom::LoadRulesFile(options.rules_file, peers.peers);
+    if (!loaded.ok()) return loaded.status();
+    rules = *std::move(loaded);
+  } else {
+    rules.path = "(none: --rules not given)";
+    spdlog::warn("dicom: no --rules: received series make no jobs");
+  }
+  std::vector<std::string> titles = options.dicom_ae_titles;
+  if (titles.empty()) titles.push_back("INTERSLICE");
+  for (std::string& ae : titles) {
+    absl::StatusOr<std::string> normal = dicom::NormalizeAeTitle(ae);
+    if (!normal.ok()) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "--dicom-ae '", LogSafe(ae), "': ", normal.status().message()));
+    }
+    ae = *normal;
+  }
+  for (size_t i = 0; i < rules.rules.size(); ++i) {
+    const auto& called = rules.rules[i].match.called_ae;
+    if (called &&
+        std::find(titles.begin(), titles.end(), *called) == titles.end()) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          options.rules_file, ": rule '", rules.rules[i].name, "' (#", i + 1,
+          "): match.called_ae: ", *called,
+          " is not an AE title this server listens as (--dicom-ae)"));
+    }
+  }
+  dicom::AssemblerOptions a;
+  a.root = options.spool + "/dicom-in";
+  a.max_instances_per_series = options.dicom_max_series_instances;
+  a.max_bytes_per_series = options.dicom_max_series_bytes;
+  a.unmatched_retention_seconds =
+      static_cast<double>(options.retention_seconds);
+  return dicom::SeriesAssembler::Open(
+      a, std::move(rules), spool, metrics,
+      [manager](const v1::JobSpec& spec, const std::string& dir,
+                const std::string& origin) {
+        return manager->SubmitLocalFiles(spec, dir, "dicom", origin);
+      });
+}
+
+absl::StatusOr<std::unique_ptr<dicom::StorageScp>> StartDicomListener(
+    const ServerOptions& options, dicom::SeriesAssembler* assembler,
+    Metrics* metrics) {
+  dicom::StorageScpOptions o;
+  const size_t colon = options.dicom_listen.rfind(':');
+  int port = -1;
+  if (colon == std::string::npos ||
+      !absl::SimpleAtoi(options.dicom_listen.substr(colon + 1), &port) ||
+      port < 0 || port > 65535) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("--dicom-listen: expected HOST:PORT, got '",
+                     LogSafe(options.dicom_listen), "'"));
+  }
+  const std::string host = options.dicom_listen.substr(0, colon);
+  if (!host.empty() && host != "0.0.0.0" && host != "[::]" && host != "*") {
+    // DCMTK 3.6.7's SCP pool binds every interface.
+    spdlog::warn(
+        "dicom: --dicom-listen host {} is not honoured: DCMTK listens "
+        "on every interface; restrict access with a firewall",
+        LogSafe(host));
+  }
+  o.port = port;
+  o.ae_titles = options.dicom_ae_titles;
+  if (o.ae_titles.empty()) o.ae_titles = {"INTERSLICE"};
+  for (std::string& ae : o.ae_titles) {
+    ae = *dicom::NormalizeAeTitle(ae);  // checked by StartDicomAssembler
+  }
+  if (!options.dicom_peers_file.empty()) {
+    absl::StatusOr<dicom::PeersConfig> peers =
+        dicom::LoadPeersConfig(options.dicom_peers_file);
+    if (!peers.ok()) return peers.status();
+    o.peers = *std::move(peers);
+  }
+  o.max_associations = options.dicom_max_associations;
+  if (options.dicom_max_pdu < 4096 || options.dicom_max_pdu > 131072) {
+    return absl::InvalidArgumentError(
+        "--dicom-max-pdu must be between 4096 and 131072 bytes");
+  }
+  o.max_pdu_bytes = static_cast<uint32_t>(options.dicom_max_pdu);
+  o.acse_timeout_seconds = options.dicom_acse_timeout_seconds;
+  o.dimse_timeout_seconds = options.dicom_dimse_timeout_seconds;
+  o.tls.certificate = options.dicom_tls_cert;
+  o.tls.private_key = options.dicom_tls_key;
+  o.tls.ca_certificates = options.dicom_tls_ca;
+  return dicom::StorageScp::Start(o, assembler, metrics);
+}
+
+}  // namespace
+
 int RunServer(ServerOptions options) {
   // Only the signal thread takes SIGTERM/SIGINT: every thread started from
   // here on inherits this mask.
@@ -276,8 +385,15 @@ int RunServer(ServerOptions options) {
   }
   if (!options.dicom_peers.empty()) {
     dicom::DeliveryOptions delivery;
-    delivery.calling_ae_title = options.dicom_ae_title;
-    delivery.tls = options.dicom_tls;
+    if (!options.dicom_ae_titles.empty()) {
+      absl::StatusOr<std::string> ae =
+          dicom::NormalizeAeTitle(options.dicom_ae_titles.front());
+      if (!ae.ok()) return fail(ae.status());
+      delivery.calling_ae_title = *ae;
+    }
+    delivery.tls.certificate = options.dicom_tls_cert;
+    delivery.tls.private_key = options.dicom_tls_key;
+    delivery.tls.ca_certificates = options.dicom_tls_ca;
     auto ms = [](double seconds) {
       return std::chrono::milliseconds(static_cast<int64_t>(seconds * 1000));
     };
@@ -302,6 +418,28 @@ int RunServer(ServerOptions options) {
   if (absl::Status s = manager.Recover(); !s.ok()) return fail(s);
   manager.Start();
   if (outbox != nullptr) outbox->Start();
+
+  // The DICOM listener: configuration errors stop the start-up with the
+  // file's one-line message.
+  std::unique_ptr<dicom::SeriesAssembler> assembler;
+  std::unique_ptr<dicom::StorageScp> dicom_scp;
+  if (!options.dicom_listen.empty()) {
+    absl::StatusOr<std::unique_ptr<dicom::SeriesAssembler>> a =
+        StartDicomAssembler(options, spool->get(), &metrics, &manager);
+    if (!a.ok()) {
+      manager.Shutdown(std::chrono::milliseconds(0));
+      return fail(a.status());
+    }
+    assembler = *std::move(a);
+    absl::StatusOr<std::unique_ptr<dicom::StorageScp>> scp =
+        StartDicomListener(options, assembler.get(), &metrics);
+    if (!scp.ok()) {
+      manager.Shutdown(std::chrono::milliseconds(0));
+      return fail(scp.status());
+    }
+    dicom_scp = *std::move(scp);
+    assembler->Start();
+  }
 
   Executor io(options.io_threads);
   ServiceOptions service_options;
@@ -353,8 +491,9 @@ int RunServer(ServerOptions options) {
                  metrics.port());
   }
   if (!options.port_file.empty()) {
-    if (absl::Status s = WriteFileAtomically(
-            options.port_file, absl::StrCat(port, "\n", metrics.port(), "\n"));
+    std::string ports = absl::StrCat(port, "\n", metrics.port(), "\n");
+    if (dicom_scp) absl::StrAppend(&ports, dicom_scp->port(), "\n");
+    if (absl::Status s = WriteFileAtomically(options.port_file, ports);
         !s.ok()) {
       spdlog::error("cannot write the port file: {}", std::string(s.message()));
     }
@@ -369,6 +508,10 @@ int RunServer(ServerOptions options) {
                  options.drain_grace_seconds);
     health->SetServingStatus(false);
     health->SetServingStatus("interslice.v1.InterSlice", false);
+    // No new associations; those in progress end (bounded by the DIMSE
+    // timeout) with their instances kept, to be completed after a restart.
+    if (dicom_scp) dicom_scp->Stop();
+    if (assembler) assembler->Stop();
     manager.BeginDrain();
     manager.Shutdown(std::chrono::milliseconds(
         static_cast<int64_t>(options.drain_grace_seconds * 1000)));

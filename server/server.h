@@ -46,22 +46,36 @@ struct ServerOptions {
   std::string isolation = "process";
   // Starts of a detached job interrupted by a server stop, in all.
   int max_attempts = 3;
-  // DICOM peers (server/dicom/config.h): where JobSpec.send_to stores
-  // results and pacs_source retrieves from; the file is read at start-up
-  // and its peers added to dicom_peers. Our AE title on outgoing
-  // associations, and the TLS material for peers with tls: true.
-  std::string dicom_peers_file;
+  // DICOM peers besides those of dicom_peers_file (below): where
+  // JobSpec.send_to stores results and pacs_source retrieves from. Outgoing
+  // associations call as the first of dicom_ae_titles and use the
+  // dicom_tls_* files with peers marked tls.
   std::vector<dicom::DicomPeer> dicom_peers;
-  std::string dicom_ae_title = "INTERSLICE";
-  dicom::DicomTlsFiles dicom_tls;
   // Outbox retries: the first wait, doubled per failure up to the cap; a
   // delivery fails for good after give-up seconds without success.
   double delivery_retry_seconds = 2;
   double delivery_retry_max_seconds = 300;
   double delivery_give_up_seconds = 24 * 3600;
   // After start-up, "<grpc port>\n<metrics port>\n" is written here
-  // (atomically), for tests and scripts that listen on port 0.
+  // (atomically), for tests and scripts that listen on port 0; with a DICOM
+  // listener, "<dicom port>\n" follows.
   std::string port_file;
+
+  // The DICOM node's receiving side (server/dicom/, docs/dicom-node.md).
+  // Empty dicom_listen: no DICOM listener. "HOST:PORT"; port 0 picks one.
+  std::string dicom_listen;
+  std::vector<std::string> dicom_ae_titles;  // empty: {"INTERSLICE"}
+  std::string dicom_peers_file;  // YAML/JSON; see server/dicom/config.h
+  std::string rules_file;        // YAML/JSON; see server/dicom/config.h
+  int dicom_max_associations = 8;
+  int64_t dicom_max_pdu = 65536;
+  double dicom_acse_timeout_seconds = 10;
+  double dicom_dimse_timeout_seconds = 60;
+  int64_t dicom_max_series_instances = 10000;
+  int64_t dicom_max_series_bytes = int64_t{4} << 30;
+  // DICOM TLS: all three, or none. Peers must present a certificate signed
+  // by a CA in dicom_tls_ca.
+  std::string dicom_tls_cert, dicom_tls_key, dicom_tls_ca;
 };
 
 // CPUs this process may use: the affinity mask, capped by a cgroup v2

@@ -15,8 +15,8 @@ namespace interslice::server::dicom {
 // TLS material for DICOM associations (DICOM PS3.15 Annex B, BCP 195
 // profile). Empty paths mean "no TLS".
 struct DicomTlsFiles {
-  std::string certificate;  // PEM: our certificate
-  std::string private_key;  // PEM: its key (unencrypted)
+  std::string certificate;      // PEM: our certificate
+  std::string private_key;      // PEM: its key (unencrypted)
   std::string ca_certificates;  // PEM: CAs that sign peer certificates
 };
 

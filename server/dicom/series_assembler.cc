@@ -1,0 +1,552 @@
+#include "server/dicom/series_assembler.h"
+
+#include <fcntl.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "dcmtk/config/osconfig.h"
+#include "dcmtk/dcmdata/dcdeftag.h"
+#include "dcmtk/dcmdata/dcfilefo.h"
+#include "nlohmann/json.hpp"
+#include "server/hashing.h"
+#include "server/job_manager.h"
+#include "server/log_safe.h"
+#include "server/metrics.h"
+#include "server/spool.h"
+#include "spdlog/spdlog.h"
+
+namespace interslice::server::dicom {
+namespace {
+
+namespace fs = std::filesystem;
+
+void FsyncPath(const std::string& path, bool directory) {
+  const int fd =
+      ::open(path.c_str(), directory ? (O_RDONLY | O_DIRECTORY) : O_RDONLY);
+  if (fd >= 0) {
+    ::fsync(fd);
+    ::close(fd);
+  }
+}
+
+// fsync that reports failure (the instance file: success must mean kept).
+absl::Status FsyncFile(const std::string& path) {
+  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd < 0) return absl::InternalError("cannot open a received instance");
+  const int rc = ::fsync(fd);
+  ::close(fd);
+  if (rc != 0) {
+    return absl::ResourceExhaustedError("cannot sync a received instance");
+  }
+  return absl::OkStatus();
+}
+
+std::string Key(const std::string& called_ae, const std::string& study,
+                const std::string& series) {
+  Sha256 hash;
+  hash.Update(called_ae);
+  hash.Update(std::string_view("\0", 1));
+  hash.Update(study);
+  hash.Update(std::string_view("\0", 1));
+  hash.Update(series);
+  return HexString(hash.Finish()).substr(0, 32);
+}
+
+std::string InstanceName(const std::string& sop_instance_uid) {
+  Sha256 hash;
+  hash.Update(sop_instance_uid);
+  return HexString(hash.Finish()).substr(0, 32) + ".dcm";
+}
+
+std::string GetString(DcmItem* item, const DcmTagKey& tag) {
+  OFString value;
+  if (item->findAndGetOFStringArray(tag, value).good()) {
+    return std::string(value.c_str());
+  }
+  return "";
+}
+
+}  // namespace
+
+SeriesFacts ReadSeriesFacts(const std::string& dir) {
+  SeriesFacts facts;
+  std::vector<double> positions;
+  bool first = true;
+  std::error_code ec;
+  std::vector<std::string> files;
+  for (const auto& entry : fs::directory_iterator(dir, ec)) {
+    if (entry.path().extension() == ".dcm") files.push_back(entry.path());
+  }
+  std::sort(files.begin(), files.end());
+  for (const std::string& file : files) {
+    DcmFileFormat ff;
+    if (ff.loadFileUntilTag(file.c_str(), EXS_Unknown, EGL_noChange,
+                            DCM_MaxReadLength, ERM_autoDetect, DCM_PixelData)
+            .bad()) {
+      continue;
+    }
+    DcmDataset* ds = ff.getDataset();
+    if (first) {
+      first = false;
+      facts.modality = GetString(ds, DCM_Modality);
+      facts.series_description = GetString(ds, DCM_SeriesDescription);
+      facts.protocol_name = GetString(ds, DCM_ProtocolName);
+      facts.body_part = GetString(ds, DCM_BodyPartExamined);
+      Float64 thickness = 0;
+      if (ds->findAndGetFloat64(DCM_SliceThickness, thickness).good() &&
+          std::isfinite(thickness) && thickness > 0) {
+        facts.slice_thickness_mm = thickness;
+      }
+    }
+    Sint32 frames = 1;
+    if (ds->findAndGetSint32(DCM_NumberOfFrames, frames).bad() || frames < 1) {
+      frames = 1;
+    }
+    facts.slice_count += frames;
+    // Classic single-frame images: their position along the slice normal.
+    double ipp[3], iop[6];
+    bool geometry = frames == 1;
+    for (int i = 0; geometry && i < 3; ++i) {
+      geometry =
+          ds->findAndGetFloat64(DCM_ImagePositionPatient, ipp[i], i).good();
+    }
+    for (int i = 0; geometry && i < 6; ++i) {
+      geometry =
+          ds->findAndGetFloat64(DCM_ImageOrientationPatient, iop[i], i).good();
+    }
+    if (geometry) {
+      const double n[3] = {iop[1] * iop[5] - iop[2] * iop[4],
+                           iop[2] * iop[3] - iop[0] * iop[5],
+                           iop[0] * iop[4] - iop[1] * iop[3]};
+      positions.push_back(ipp[0] * n[0] + ipp[1] * n[1] + ipp[2] * n[2]);
+    }
+  }
+  if (positions.size() >= 2) {
+    std::sort(positions.begin(), positions.end());
+    std::vector<double> gaps;
+    for (size_t i = 1; i < positions.size(); ++i) {
+      const double gap = positions[i] - positions[i - 1];
+      if (gap > 1e-6) gaps.push_back(gap);
+    }
+    if (!gaps.empty()) {
+      std::nth_element(gaps.begin(), gaps.begin() + gaps.size() / 2,
+                       gaps.end());
+      facts.slice_spacing_mm = gaps[gaps.size() / 2];
+    }
+  }
+  return facts;
+}
+
+SeriesAssembler::SeriesAssembler(const AssemblerOptions& options, RuleSet rules,
+                                 Spool* spool, Metrics* metrics,
+                                 JobSubmitter submitter)
+    : options_(options),
+      rules_(std::move(rules)),
+      spool_(spool),
+      metrics_(metrics),
+      submitter_(std::move(submitter)) {}
+
+absl::StatusOr<std::unique_ptr<SeriesAssembler>> SeriesAssembler::Open(
+    const AssemblerOptions& options, RuleSet rules, Spool* spool,
+    Metrics* metrics, JobSubmitter submitter) {
+  std::unique_ptr<SeriesAssembler> a(new SeriesAssembler(
+      options, std::move(rules), spool, metrics, std::move(submitter)));
+  if (absl::Status s = a->Recover(); !s.ok()) return s;
+  return a;
+}
+
+SeriesAssembler::~SeriesAssembler() { Stop(); }
+
+std::string SeriesAssembler::SeriesDir(const std::string& key) const {
+  return (fs::path(options_.root) / "series" / key).string();
+}
+
+absl::Status SeriesAssembler::Recover() {
+  std::error_code ec;
+  for (const char* sub : {"incoming", "series", "completing", "unmatched"}) {
+    fs::create_directories(fs::path(options_.root) / sub, ec);
+    if (ec) {
+      return absl::InternalError(
+          absl::StrCat("cannot create the DICOM spool folder ", options_.root,
+                       "/", sub, ": ", ec.message()));
+    }
+  }
+  // Partial receptions: never acknowledged, so never kept.
+  for (const auto& entry :
+       fs::directory_iterator(fs::path(options_.root) / "incoming", ec)) {
+    fs::remove_all(entry.path(), ec);
+  }
+  // Series being handed to a job when the server stopped: back to series/
+  // (merged with instances that arrived since), to be completed again.
+  for (const auto& entry :
+       fs::directory_iterator(fs::path(options_.root) / "completing", ec)) {
+    const std::string name = entry.path().filename().string();
+    const std::string back = SeriesDir(name.substr(0, name.rfind('-')));
+    if (!fs::exists(back, ec)) {
+      fs::rename(entry.path(), back, ec);
+      continue;
+    }
+    for (const auto& f : fs::directory_iterator(entry.path(), ec)) {
+      if (f.path().extension() == ".dcm") {
+        fs::rename(f.path(), fs::path(back) / f.path().filename(), ec);
+      }
+    }
+    fs::remove_all(entry.path(), ec);
+  }
+  const auto now = std::chrono::steady_clock::now();
+  int recovered = 0;
+  for (const auto& entry :
+       fs::directory_iterator(fs::path(options_.root) / "series", ec)) {
+    if (!entry.is_directory()) continue;
+    Pending p;
+    std::ifstream origin(entry.path() / "origin.json");
+    nlohmann::json j = nlohmann::json::parse(origin, nullptr, false);
+    if (j.is_object()) {
+      p.called_ae = j.value("called_ae", "");
+      p.calling_ae = j.value("calling_ae", "");
+    }
+    for (const auto& f : fs::directory_iterator(entry.path(), ec)) {
+      if (f.path().extension() != ".dcm") continue;
+      ++p.instances;
+      p.bytes += static_cast<int64_t>(f.file_size(ec));
+    }
+    if (p.instances == 0 || p.called_ae.empty()) {
+      fs::remove_all(entry.path(), ec);
+      continue;
+    }
+    // The stable wait starts over: the server cannot know how long it was
+    // down, and a sender may still be retrying.
+    p.last_arrival = now;
+    if (spool_ != nullptr) spool_->Add(p.bytes);
+    pending_[entry.path().filename().string()] = p;
+    ++recovered;
+  }
+  int64_t unmatched_bytes =
+      TreeSize((fs::path(options_.root) / "unmatched").string());
+  if (spool_ != nullptr) spool_->Add(unmatched_bytes);
+  if (recovered > 0) {
+    spdlog::info(
+        "dicom: {} series received before the restart wait for "
+        "completion again",
+        recovered);
+  }
+  return absl::OkStatus();
+}
+
+void SeriesAssembler::Start() {
+  std::lock_guard<std::mutex> lock(mu_);
+  if (thread_.joinable()) return;
+  stopping_ = false;
+  thread_ = std::thread([this] { Loop(); });
+}
+
+void SeriesAssembler::Stop() {
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    stopping_ = true;
+  }
+  cv_.notify_all();
+  if (thread_.joinable()) thread_.join();
+}
+
+int SeriesAssembler::pending_series() {
+  std::lock_guard<std::mutex> lock(mu_);
+  return static_cast<int>(pending_.size());
+}
+
+std::string SeriesAssembler::StagingPath() {
+  std::lock_guard<std::mutex> lock(mu_);
+  return (fs::path(options_.root) / "incoming" /
+          absl::StrCat(::getpid(), "-", next_staging_++, ".part"))
+      .string();
+}
+
+absl::StatusOr<std::string> SeriesAssembler::AddInstance(
+    const std::string& calling_ae, const std::string& called_ae,
+    const std::string& staged) {
+  std::error_code ec;
+  struct Cleanup {
+    const std::string& path;
+    bool keep = false;
+    ~Cleanup() {
+      if (!keep) ::unlink(path.c_str());
+    }
+  } cleanup{staged};
+  const int64_t size = static_cast<int64_t>(fs::file_size(staged, ec));
+  if (ec) return absl::InternalError("a received instance vanished");
+  InstanceIds ids;
+  {
+    DcmFileFormat ff;
+    if (ff.loadFileUntilTag(staged.c_str(), EXS_Unknown, EGL_noChange,
+                            DCM_MaxReadLength, ERM_autoDetect, DCM_PixelData)
+            .bad()) {
+      return absl::InvalidArgumentError("the instance is not readable DICOM");
+    }
+    DcmDataset* ds = ff.getDataset();
+    ids.study_uid = GetString(ds, DCM_StudyInstanceUID);
+    ids.series_uid = GetString(ds, DCM_SeriesInstanceUID);
+    ids.sop_instance_uid = GetString(ds, DCM_SOPInstanceUID);
+  }
+  if (ids.series_uid.empty() || ids.sop_instance_uid.empty()) {
+    return absl::InvalidArgumentError(
+        "the instance has no Series or SOP Instance UID");
+  }
+  const std::string key = Key(called_ae, ids.study_uid, ids.series_uid);
+  const std::string dir = SeriesDir(key);
+  const std::string target =
+      (fs::path(dir) / InstanceName(ids.sop_instance_uid)).string();
+  if (absl::Status s = FsyncFile(staged); !s.ok()) return s;
+
+  std::lock_guard<std::mutex> lock(mu_);
+  auto it = pending_.find(key);
+  const bool fresh = it == pending_.end();
+  Pending& p = fresh ? pending_[key] : it->second;
+  auto forget_fresh = [&] {
+    if (fresh) pending_.erase(key);
+  };
+  const bool replaces = !fresh && fs::exists(target, ec);
+  if (!replaces && p.instances + 1 > options_.max_instances_per_series) {
+    forget_fresh();
+    return absl::ResourceExhaustedError(absl::StrCat(
+        "the series already holds ", p.instances, " instances, the limit"));
+  }
+  if (p.bytes + size > options_.max_bytes_per_series) {
+    forget_fresh();
+    return absl::ResourceExhaustedError(
+        "the series would exceed the byte limit per series");
+  }
+  if (spool_ != nullptr && !spool_->TryReserve(size)) {
+    forget_fresh();
+    return absl::ResourceExhaustedError("the spool quota is reached");
+  }
+  if (fresh) {
+    fs::create_directories(dir, ec);
+    nlohmann::json origin = {{"called_ae", called_ae},
+                             {"calling_ae", calling_ae}};
+    absl::Status s =
+        ec ? absl::ResourceExhaustedError("cannot create a series folder")
+           : WriteFileAtomically((fs::path(dir) / "origin.json").string(),
+                                 origin.dump());
+    if (!s.ok()) {
+      if (spool_ != nullptr) spool_->Release(size);
+      fs::remove_all(dir, ec);
+      forget_fresh();
+      return absl::ResourceExhaustedError(s.message());
+    }
+    FsyncPath((fs::path(options_.root) / "series").string(), true);
+    p.called_ae = called_ae;
+    if (submitted_.count(key) > 0) {
+      spdlog::info(
+          "dicom: a series from {} -> {} grew after its job was made; its "
+          "new instances will make a new job when complete",
+          LogSafe(calling_ae), LogSafe(called_ae));
+    }
+  }
+  int64_t replaced_bytes = 0;
+  if (replaces)
+    replaced_bytes = static_cast<int64_t>(fs::file_size(target, ec));
+  if (::rename(staged.c_str(), target.c_str()) != 0) {
+    if (spool_ != nullptr) spool_->Release(size);
+    if (fresh) {
+      fs::remove_all(dir, ec);
+      forget_fresh();
+    }
+    return absl::ResourceExhaustedError("cannot keep a received instance");
+  }
+  cleanup.keep = true;
+  FsyncPath(dir, true);
+  if (replaces && spool_ != nullptr) spool_->Release(replaced_bytes);
+  if (!replaces) ++p.instances;
+  p.bytes += size - replaced_bytes;
+  p.calling_ae = calling_ae;
+  p.last_arrival = std::chrono::steady_clock::now();
+  return key;
+}
+
+void SeriesAssembler::AssociationReleased(
+    const std::set<std::string>& series_keys) {
+  bool any = false;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    for (const std::string& key : series_keys) {
+      auto it = pending_.find(key);
+      if (it == pending_.end()) continue;
+      it->second.release_requested = true;
+      any = true;
+    }
+  }
+  if (any) cv_.notify_all();
+}
+
+int SeriesAssembler::CompleteStableSeries() {
+  const auto now = std::chrono::steady_clock::now();
+  const auto stable =
+      std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+          std::chrono::duration<double>(rules_.stable_seconds));
+  std::vector<std::pair<std::string, Pending>> ready;
+  std::vector<std::string> dirs;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    for (auto it = pending_.begin(); it != pending_.end();) {
+      Pending& p = it->second;
+      bool done = now - p.last_arrival >= stable;
+      if (!done && p.release_requested) {
+        // Only a rule with complete_on_release cuts the wait short; which
+        // rule matches is known from the files, read outside the lock below
+        // (a cheap header scan), so the candidate is checked there.
+        done = true;
+      }
+      if (!done) {
+        ++it;
+        continue;
+      }
+      if (p.release_requested && now - p.last_arrival < stable) {
+        // Decide on the rule now: the files are all there (the association
+        // released), reading their headers is cheap.
+        SeriesFacts facts = ReadSeriesFacts(SeriesDir(it->first));
+        facts.calling_ae = p.calling_ae;
+        facts.called_ae = p.called_ae;
+        const Rule* rule = rules_.FirstMatch(facts);
+        p.release_requested = false;
+        if (rule == nullptr || !rule->complete_on_release) {
+          ++it;
+          continue;
+        }
+      }
+      // Out of series/, so that a new instance of the series starts a new
+      // folder (and later a new job) instead of joining this one.
+      const std::string dir = (fs::path(options_.root) / "completing" /
+                               absl::StrCat(it->first, "-", ++next_completion_))
+                                  .string();
+      if (::rename(SeriesDir(it->first).c_str(), dir.c_str()) != 0) {
+        spdlog::error(
+            "dicom: cannot move a complete series out of the way; "
+            "it stays pending");
+        ++it;
+        continue;
+      }
+      submitted_.insert(it->first);
+      ready.emplace_back(it->first, it->second);
+      dirs.push_back(dir);
+      it = pending_.erase(it);
+    }
+  }
+  for (size_t i = 0; i < ready.size(); ++i) {
+    Complete(ready[i].first, ready[i].second, dirs[i]);
+  }
+  return static_cast<int>(ready.size());
+}
+
+void SeriesAssembler::Complete(const std::string& key, const Pending& p,
+                               const std::string& dir) {
+  std::error_code ec;
+  if (metrics_ != nullptr) metrics_->DicomEvent("series_completed");
+  SeriesFacts facts = ReadSeriesFacts(dir);
+  facts.calling_ae = p.calling_ae;
+  facts.called_ae = p.called_ae;
+  const Rule* rule = rules_.FirstMatch(facts);
+  const std::string from =
+      absl::StrCat(LogSafe(p.calling_ae), " -> ", LogSafe(p.called_ae));
+  if (rule == nullptr) {
+    const std::string kept = (fs::path(options_.root) / "unmatched" /
+                              absl::StrCat(key, "-", UnixMillisNow()))
+                                 .string();
+    fs::rename(dir, kept, ec);
+    spdlog::warn(
+        "dicom: no rule of rule set {} matched a series from {} ({} "
+        "instance(s), modality {}); kept for {} s, then removed",
+        LogSafe(rules_.path), from, p.instances, LogSafe(facts.modality),
+        options_.unmatched_retention_seconds);
+    return;
+  }
+  const std::string origin = absl::StrCat("dicom:", p.calling_ae, "->",
+                                          p.called_ae, " rule ", rule->name);
+  absl::StatusOr<std::string> job = submitter_(rule->job, dir, origin);
+  if (!job.ok()) {
+    // Back into series/ so that it is tried again after another stable
+    // wait (a full queue, a drain) and survives a restart.
+    std::lock_guard<std::mutex> lock(mu_);
+    const std::string back = SeriesDir(key);
+    if (!fs::exists(back, ec) && ::rename(dir.c_str(), back.c_str()) == 0) {
+      Pending again = p;
+      again.last_arrival = std::chrono::steady_clock::now();
+      again.release_requested = false;
+      pending_[key] = again;
+    } else {
+      // New instances arrived meanwhile: merge ours into their folder.
+      for (const auto& f : fs::directory_iterator(dir, ec)) {
+        if (f.path().extension() != ".dcm") continue;
+        fs::rename(f.path(), fs::path(back) / f.path().filename(), ec);
+      }
+      fs::remove_all(dir, ec);
+      auto it = pending_.find(key);
+      if (it != pending_.end()) {
+        it->second.instances += p.instances;
+        it->second.bytes += p.bytes;
+      }
+    }
+    submitted_.erase(key);
+    spdlog::warn(
+        "dicom: rule {} matched a series from {} but its job could "
+        "not be made ({}); trying again after another stable wait",
+        LogSafe(rule->name), from, LogSafe(job.status().message()));
+    return;
+  }
+  if (spool_ != nullptr) spool_->Release(p.bytes);
+  fs::remove_all(dir, ec);
+  if (metrics_ != nullptr) metrics_->DicomEvent("jobs_created");
+  spdlog::info(
+      "dicom: job={} made by rule {} for a series from {} ({} "
+      "instance(s))",
+      *job, LogSafe(rule->name), from, p.instances);
+}
+
+void SeriesAssembler::SweepUnmatched() {
+  std::error_code ec;
+  const int64_t now_ms = UnixMillisNow();
+  for (const auto& entry :
+       fs::directory_iterator(fs::path(options_.root) / "unmatched", ec)) {
+    const std::string name = entry.path().filename().string();
+    const size_t dash = name.rfind('-');
+    int64_t made_ms = 0;
+    if (dash == std::string::npos ||
+        !absl::SimpleAtoi(name.substr(dash + 1), &made_ms)) {
+      continue;
+    }
+    if (now_ms - made_ms <
+        static_cast<int64_t>(options_.unmatched_retention_seconds * 1000)) {
+      continue;
+    }
+    const int64_t bytes = TreeSize(entry.path().string());
+    fs::remove_all(entry.path(), ec);
+    if (spool_ != nullptr) spool_->Release(bytes);
+    spdlog::info(
+        "dicom: an unmatched series reached its retention time and "
+        "was removed");
+  }
+}
+
+void SeriesAssembler::Loop() {
+  std::unique_lock<std::mutex> lock(mu_);
+  while (!stopping_) {
+    cv_.wait_for(lock, options_.poll_interval);
+    if (stopping_) break;
+    lock.unlock();
+    CompleteStableSeries();
+    const auto now = std::chrono::steady_clock::now();
+    if (now - last_sweep_ > std::chrono::seconds(10)) {
+      last_sweep_ = now;
+      SweepUnmatched();
+    }
+    lock.lock();
+  }
+}
+
+}  // namespace interslice::server::dicom
