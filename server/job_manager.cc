@@ -232,6 +232,7 @@ absl::StatusOr<std::shared_ptr<Job>> JobManager::Admit(
   }
   absl::StatusOr<JobSpec> spec = JobSpecFromProto(header.spec());
   if (!spec.ok()) return reject(spec.status());
+  std::string id_suffix;
   {
     std::lock_guard<std::mutex> lock(mu_);
     // The slot itself is taken by Enqueue, once the upload is complete.
@@ -244,6 +245,7 @@ absl::StatusOr<std::shared_ptr<Job>> JobManager::Admit(
     }
     ++uploading_;
     PublishGauges();
+    id_suffix = job_id_suffix_;
   }
   auto unreserve = [this] {
     std::lock_guard<std::mutex> lock(mu_);
@@ -255,7 +257,7 @@ absl::StatusOr<std::shared_ptr<Job>> JobManager::Admit(
     return reject(absl::ResourceExhaustedError(
         "the server's spool is full; retry later"));
   }
-  const std::string id = NewJobId();
+  const std::string id = NewJobId() + id_suffix;
   if (absl::Status s = spool_->CreateJob(id); !s.ok()) {
     spool_->Release(header.total_bytes());
     unreserve();
@@ -378,6 +380,11 @@ void JobManager::RemoveFinished(const std::shared_ptr<Job>& job) {
   }
   spool_->RemoveJob(job->id());
   spool_->Release(bytes);
+}
+
+void JobManager::SetJobIdSuffix(std::string suffix) {
+  std::lock_guard<std::mutex> lock(mu_);
+  job_id_suffix_ = std::move(suffix);
 }
 
 std::shared_ptr<Job> JobManager::Find(const std::string& id) {
