@@ -83,17 +83,18 @@ fi
 # --- images -----------------------------------------------------------------
 server_image=localhost/interslice-server:test
 orthanc_image=localhost/interslice-orthanc:test
+work="$(mktemp -d)"
+trap 'rm -rf "$work"' EXIT
 t=$SECONDS
-"${build[@]}" -f deploy/Dockerfile -t "$server_image" . >"${TMPDIR:-/tmp}/test-deploy-build.log" 2>&1 || {
-  tail -n 50 "${TMPDIR:-/tmp}/test-deploy-build.log"; say "FAILED: building deploy/Dockerfile"; exit 1; }
+"${build[@]}" -f deploy/Dockerfile -t "$server_image" . >"$work/build.log" 2>&1 || {
+  tail -n 50 "$work/build.log"; say "FAILED: building deploy/Dockerfile"; exit 1; }
 "${build[@]}" -f deploy/orthanc/Containerfile -t "$orthanc_image" deploy/orthanc \
-  >>"${TMPDIR:-/tmp}/test-deploy-build.log" 2>&1 || {
-  tail -n 50 "${TMPDIR:-/tmp}/test-deploy-build.log"; say "FAILED: building deploy/orthanc/Containerfile"; exit 1; }
+  >>"$work/build.log" 2>&1 || {
+  tail -n 50 "$work/build.log"; say "FAILED: building deploy/orthanc/Containerfile"; exit 1; }
 size=$($runtime image inspect -f '{{.Size}}' "$server_image")
 say "images built in $((SECONDS - t)) s; interslice-server image $((size / 1000000)) MB"
 
 # --- the stack ----------------------------------------------------------------
-work="$(mktemp -d)"
 project="interslice-deploy-$$"
 # Free ports on the host (published ports; podman here runs other
 # containers with the host's network).
@@ -120,6 +121,7 @@ cleanup() {
   rm -rf "$work"
 }
 trap cleanup EXIT
+t=$SECONDS
 dc up -d >"$work/up.log" 2>&1 || { cat "$work/up.log"; say "FAILED: compose up"; exit 1; }
 server="127.0.0.1:$INTERSLICE_GRPC_PORT"
 for _ in $(seq 1 100); do
