@@ -1,11 +1,16 @@
 #include "client/grpc_channel.h"
 
+#include <algorithm>
 #include <fstream>
+#include <random>
 #include <sstream>
+#include <vector>
 
 #include "CLI/CLI.hpp"
 #include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
+#include "absl/strings/str_split.h"
 
 namespace interslice::client {
 namespace {
@@ -21,10 +26,31 @@ absl::StatusOr<std::string> ReadFile(const std::string& path,
   return buffer.str();
 }
 
+// A static address list ("ipv4:A:P,B:P,...") in random order. round_robin
+// sends a channel's first call to the first address that connects, which is
+// nearly always the first of the list; the CLI makes a channel per command,
+// so without this every `submit` of a script would land on one replica.
+// (DNS servers rotate the answers of dns:/// targets themselves.)
+std::string ShuffleStaticList(const std::string& target) {
+  const size_t colon = target.find(':');
+  if (colon == std::string::npos) return target;
+  const std::string scheme = target.substr(0, colon);
+  if (scheme != "ipv4" && scheme != "ipv6") return target;
+  std::vector<std::string> addresses =
+      absl::StrSplit(target.substr(colon + 1), ',');
+  if (addresses.size() < 2) return target;
+  std::shuffle(addresses.begin(), addresses.end(),
+               std::mt19937_64(std::random_device{}()));
+  return absl::StrCat(scheme, ":", absl::StrJoin(addresses, ","));
+}
+
 }  // namespace
 
 void AddConnectionOptions(CLI::App& app, ConnectionOptions& options) {
-  app.add_option("--server", options.server, "Server address HOST:PORT")
+  app.add_option("--server", options.server,
+                 "Server: HOST:PORT, or any gRPC target such as "
+                 "ipv4:10.0.0.1:50051,10.0.0.2:50051 or dns:///NAME:PORT; "
+                 "calls are balanced round-robin over its addresses")
       ->capture_default_str();
   app.add_option("--tls-ca", options.tls_ca,
                  "Use TLS, trusting this CA certificate (PEM)");
@@ -69,7 +95,16 @@ absl::StatusOr<Connection> Connection::Open(const ConnectionOptions& options) {
   grpc::ChannelArguments args;
   // Fail fast rather than retrying a dead address for the whole deadline.
   args.SetInt(GRPC_ARG_ENABLE_RETRIES, 0);
-  c.channel_ = grpc::CreateCustomChannel(options.server, credentials, args);
+  // Replicas answer for each other's jobs (server/forwarding.h), so every
+  // call may go to any address of the target: spread them, and skip the
+  // addresses that are down.
+  args.SetLoadBalancingPolicyName("round_robin");
+  // A replica that restarts is used again within a second or so.
+  args.SetInt(GRPC_ARG_INITIAL_RECONNECT_BACKOFF_MS, 200);
+  args.SetInt(GRPC_ARG_MIN_RECONNECT_BACKOFF_MS, 200);
+  args.SetInt(GRPC_ARG_MAX_RECONNECT_BACKOFF_MS, 1000);
+  c.channel_ = grpc::CreateCustomChannel(ShuffleStaticList(options.server),
+                                         credentials, args);
   return c;
 }
 
@@ -86,6 +121,11 @@ std::string DescribeRpcError(const grpc::Status& status,
     case grpc::UNAVAILABLE:
       // The server's own refusal while it drains (its messages say so), not
       // a transport failure: retrying on another replica helps.
+      // A replica forwarding to the job's owner, which is down.
+      if (message.find("that holds this job is unavailable") !=
+          std::string::npos) {
+        return message;
+      }
       if (message.find("shutting down") != std::string::npos) {
         return absl::StrCat("the server at ", address,
                             " is unavailable: ", message);

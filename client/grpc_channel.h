@@ -16,7 +16,9 @@ class App;
 namespace interslice::client {
 
 struct ConnectionOptions {
-  std::string server = "localhost:50051";  // HOST:PORT
+  // HOST:PORT or any gRPC target (ipv4:A:P,B:P; dns:///NAME:PORT), balanced
+  // round-robin.
+  std::string server = "localhost:50051";
   std::string tls_ca;      // PEM; with it (or a client cert) the call uses TLS
   std::string tls_cert;    // client certificate (mutual TLS)
   std::string tls_key;     // its private key

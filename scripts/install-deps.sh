@@ -43,6 +43,20 @@ viewer_npm() {
     npm ci --prefix "$dir" --no-audit --no-fund --ignore-scripts
   fi
 }
+# --image: only what building the server and the client needs (the
+# container image's build stage, deploy/Dockerfile): no test, lint, fuzzing,
+# PACS or viewer tools.
+if [ "${1:-}" = "--image" ]; then
+  not_for_image=" libgtest-dev libgmock-dev libbenchmark-dev dicom3tools "
+  not_for_image+=" git orthanc orthanc-dicomweb yamllint clang "
+  not_for_image+=" libclang-rt-14-dev nodejs npm "
+  kept=()
+  for p in "${packages[@]}"; do
+    [[ $not_for_image == *" $p "* ]] || kept+=("$p")
+  done
+  packages=("${kept[@]}")
+  viewer_npm() { :; }
+fi
 # Extra packages for the evaluation report (scripts/eval.sh): plots.
 if [ "${1:-}" = "--eval" ]; then
   packages+=(python3-matplotlib python3-numpy)

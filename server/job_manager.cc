@@ -295,6 +295,8 @@ absl::StatusOr<std::shared_ptr<Job>> JobManager::Admit(
           "(output_series) or a segmentation"));
     }
   }
+
+  std::string id_suffix;
   {
     std::lock_guard<std::mutex> lock(mu_);
     // The slot itself is taken by Enqueue, once the upload is complete.
@@ -307,6 +309,7 @@ absl::StatusOr<std::shared_ptr<Job>> JobManager::Admit(
     }
     ++uploading_;
     PublishGauges();
+    id_suffix = job_id_suffix_;
   }
   auto unreserve = [this] {
     std::lock_guard<std::mutex> lock(mu_);
@@ -318,7 +321,7 @@ absl::StatusOr<std::shared_ptr<Job>> JobManager::Admit(
     return reject(absl::ResourceExhaustedError(
         "the server's spool is full; retry later"));
   }
-  const std::string id = NewJobId();
+  const std::string id = NewJobId() + id_suffix;
   if (absl::Status s = spool_->CreateJob(id); !s.ok()) {
     spool_->Release(header.total_bytes());
     unreserve();
@@ -510,6 +513,10 @@ void JobManager::UpdateDelivery(const std::string& job_id,
     }
   }
   if (remove) RemoveFinished(job);
+
+void JobManager::SetJobIdSuffix(std::string suffix) {
+  std::lock_guard<std::mutex> lock(mu_);
+  job_id_suffix_ = std::move(suffix);
 }
 
 std::shared_ptr<Job> JobManager::Find(const std::string& id) {

@@ -176,6 +176,9 @@ class JobManager {
   void Discard(const std::shared_ptr<Job>& job);
 
   std::shared_ptr<Job> Find(const std::string& id);
+  // Appended to the ids of new jobs: names this replica as their owner
+  // (server/forwarding.h).
+  void SetJobIdSuffix(std::string suffix);
   // Blocking (persists a cancelled queued job).
   absl::StatusOr<v1::JobStatus> Cancel(const std::string& id);
   // Detached jobs, newest first, without report_json; only those of
@@ -217,6 +220,7 @@ class JobManager {
   std::map<std::string, std::shared_ptr<Job>> jobs_;
   std::deque<std::shared_ptr<Job>> queue_;
   int uploading_ = 0;  // admitted, upload not complete
+  std::string job_id_suffix_;
   int reserved_ = 0;   // queue slots taken by jobs being persisted
   int running_ = 0;
   bool draining_ = false;

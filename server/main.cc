@@ -19,6 +19,14 @@ int main(int argc, char** argv) {
   app.add_option("--listen", o.listen,
                  "HOST:PORT to listen on (port 0 picks one)")
       ->capture_default_str();
+  app.add_option("--advertise", o.advertise,
+                 "HOST:PORT other replicas and balanced clients reach this "
+                 "server at (default: the listen address); job ids name it, "
+                 "and calls for another replica's job are forwarded to the "
+                 "replica its id names");
+  app.add_option("--peer-tls-ca", o.peer_tls_ca,
+                 "With TLS: CA certificate that verifies other replicas "
+                 "(default: the system's roots)");
   app.add_option("--spool", o.spool,
                  "Folder for uploads and results (created if missing)")
       ->required();

@@ -25,6 +25,7 @@
 #include "server/dicom/series_assembler.h"
 #include "server/dicom/storage_scp.h"
 #include "server/executor.h"
+#include "server/forwarding.h"
 #include "server/job_manager.h"
 #include "server/log_safe.h"
 #include "server/metrics.h"
@@ -304,6 +305,12 @@ int RunServer(ServerOptions options) {
         "--upload-timeout >= 0"));
   }
 
+  if (!options.advertise.empty() && !IsReplicaAddress(options.advertise)) {
+    return fail(absl::InvalidArgumentError(
+        absl::StrCat("--advertise ", LogSafe(options.advertise),
+                     " is not HOST:PORT (a DNS name, IPv4 address or "
+                     "[IPv6] address, and a port)")));
+  }
   std::vector<NamedToken> tokens;
   if (!options.auth_token_file.empty()) {
     absl::StatusOr<std::string> t =
@@ -329,6 +336,8 @@ int RunServer(ServerOptions options) {
     }
   }
   std::shared_ptr<grpc::ServerCredentials> credentials;
+  std::shared_ptr<grpc::ChannelCredentials> peer_credentials =
+      grpc::InsecureChannelCredentials();
   if (!options.tls_cert.empty() || !options.tls_key.empty()) {
     absl::StatusOr<std::string> cert = ReadFile(options.tls_cert, "--tls-cert");
     if (!cert.ok()) return fail(cert.status());
@@ -346,6 +355,18 @@ int RunServer(ServerOptions options) {
           GRPC_SSL_REQUEST_AND_REQUIRE_CLIENT_CERTIFICATE_AND_VERIFY;
     }
     credentials = grpc::SslServerCredentials(ssl);
+    grpc::SslCredentialsOptions peer_ssl;
+    if (!options.peer_tls_ca.empty()) {
+      absl::StatusOr<std::string> ca =
+          ReadFile(options.peer_tls_ca, "--peer-tls-ca");
+      if (!ca.ok()) return fail(ca.status());
+      peer_ssl.pem_root_certs = *ca;
+    }
+    if (!options.tls_client_ca.empty()) {
+      peer_ssl.pem_cert_chain = *cert;
+      peer_ssl.pem_private_key = *key;
+    }
+    peer_credentials = grpc::SslCredentials(peer_ssl);
   } else if (!options.tls_client_ca.empty()) {
     return fail(absl::InvalidArgumentError(
         "--tls-client-ca needs --tls-cert and --tls-key"));
@@ -454,6 +475,8 @@ int RunServer(ServerOptions options) {
       options.upload_timeout_seconds;
   InterSliceService service(service_options, &manager, spool->get(), &io,
                             &metrics);
+  Forwarder forwarder(peer_credentials);
+  service.set_forwarder(&forwarder);
 
   if (options.reflection) {
     // Linking gRPC's reflection library registers the service in every
@@ -476,6 +499,14 @@ int RunServer(ServerOptions options) {
     return fail(absl::UnavailableError(
         absl::StrCat("cannot listen on ", options.listen)));
   }
+  if (options.advertise.empty()) {
+    options.advertise = absl::StrCat(
+        options.listen.substr(0, options.listen.rfind(':')), ":", port);
+  }
+  forwarder.SetAdvertise(options.advertise);
+  manager.SetJobIdSuffix(JobIdSuffix(options.advertise));
+  spdlog::info("advertised as {}: jobs accepted here are named for it",
+               LogSafe(options.advertise));
   grpc::HealthCheckServiceInterface* health = server->GetHealthCheckService();
   health->SetServingStatus(true);
   health->SetServingStatus("interslice.v1.InterSlice", true);

@@ -12,6 +12,14 @@ namespace interslice::server {
 
 struct ServerOptions {
   std::string listen = "0.0.0.0:50051";  // HOST:PORT; port 0 picks one
+  // HOST:PORT other replicas reach this one at; new job ids name it and
+  // calls for other replicas' jobs are forwarded (server/forwarding.h).
+  // Empty: the listen address with the bound port.
+  std::string advertise;
+  // With TLS: the CA certificate(s) that verify other replicas (empty: the
+  // system's roots). With --tls-client-ca, this server's own certificate is
+  // presented to them.
+  std::string peer_tls_ca;
   std::string spool;                     // required
   // 0 = from the CPU count (cgroup limits honoured): workers = max(1,
   // cpus / 4), threads_per_job = max(1, cpus / workers).

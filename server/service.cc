@@ -799,6 +799,15 @@ absl::StatusOr<Caller> InterSliceService::Authenticate(
   return caller;
 }
 
+std::optional<std::string> InterSliceService::ForwardTarget(
+    const grpc::CallbackServerContext& context,
+    const std::string& job_id) const {
+  if (forwarder_ == nullptr || manager_->Find(job_id) != nullptr) {
+    return std::nullopt;
+  }
+  return forwarder_->Route(context, job_id);
+}
+
 grpc::ServerBidiReactor<v1::UploadRequest, v1::InterpolateResponse>*
 InterSliceService::Interpolate(grpc::CallbackServerContext* context) {
   absl::StatusOr<Caller> caller = Authenticate(context);
@@ -825,6 +834,10 @@ grpc::ServerWriteReactor<v1::JobStatus>* InterSliceService::Watch(
   if (!caller.ok()) {
     return new ErrorWriteReactor<v1::JobStatus>(ToGrpcStatus(caller.status()));
   }
+  if (std::optional<std::string> owner =
+          ForwardTarget(*context, request->job_id())) {
+    return forwarder_->Watch(context, *request, *owner);
+  }
   std::shared_ptr<Job> job =
       FindVisibleJob(manager_, request->job_id(), *caller);
   if (!job) {
@@ -840,6 +853,10 @@ grpc::ServerWriteReactor<v1::ArtifactChunk>* InterSliceService::Fetch(
   if (!caller.ok()) {
     return new ErrorWriteReactor<v1::ArtifactChunk>(
         ToGrpcStatus(caller.status()));
+  }
+  if (std::optional<std::string> owner =
+          ForwardTarget(*context, request->job_id())) {
+    return forwarder_->Fetch(context, *request, *owner);
   }
   std::shared_ptr<Job> job =
       FindVisibleJob(manager_, request->job_id(), *caller);
@@ -888,6 +905,10 @@ grpc::ServerUnaryReactor* InterSliceService::Cancel(
     return reactor;
   }
   const std::string id = request->job_id();
+  if (std::optional<std::string> owner = ForwardTarget(*context, id)) {
+    forwarder_->Cancel(context, reactor, *request, response, *owner);
+    return reactor;
+  }
   // Cancelling a queued job persists its record: off the reactor thread.
   io_->Post([this, reactor, response, id, caller = *caller] {
     if (!FindVisibleJob(manager_, id, caller)) {

@@ -18,12 +18,14 @@
 #define INTERSLICE_SERVER_SERVICE_H_
 
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
 #include "interslice/v1/interslice.grpc.pb.h"
 #include "server/auth.h"
 #include "server/executor.h"
+#include "server/forwarding.h"
 #include "server/job_manager.h"
 #include "server/metrics.h"
 #include "server/spool.h"
@@ -76,6 +78,11 @@ class InterSliceService final : public v1::InterSlice::CallbackService {
                                           const v1::ServerInfoRequest* request,
                                           v1::ServerInfo* response) override;
 
+  // Calls for jobs this replica does not hold go to their owner through
+  // `forwarder` (server/forwarding.h); without one they are unknown jobs.
+  // Set before the server starts.
+  void set_forwarder(Forwarder* forwarder) { forwarder_ = forwarder; }
+
   // Shared with the reactors (service.cc).
   const ServiceOptions& options() const { return options_; }
   JobManager* manager() const { return manager_; }
@@ -88,6 +95,10 @@ class InterSliceService final : public v1::InterSlice::CallbackService {
  private:
   absl::StatusOr<Caller> Authenticate(
       grpc::CallbackServerContext* context) const;
+  // The owner to forward a call for `job_id` to, if it is not held here.
+  std::optional<std::string> ForwardTarget(
+      const grpc::CallbackServerContext& context,
+      const std::string& job_id) const;
 
   const ServiceOptions options_;
   const Authenticator auth_;
@@ -96,6 +107,7 @@ class InterSliceService final : public v1::InterSlice::CallbackService {
   Spool* const spool_;
   Executor* const io_;
   Metrics* const metrics_;
+  Forwarder* forwarder_ = nullptr;
 };
 
 }  // namespace interslice::server
