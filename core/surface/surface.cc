@@ -61,11 +61,17 @@ openvdb::math::Transform::Ptr MakeTransform(const Grid& grid) {
   return openvdb::math::Transform::createLinearTransform(m);
 }
 
-// The dense field as a level set (negative inside), wrapped in a shell of
-// explicit active voxels one voxel thick holding +background, so that the
-// surface closes where the shape meets the grid boundary. Every voxel of the
-// padded box is an active leaf voxel (no tiles), so the mesher sees exactly
-// the dense data.
+// The field as a narrow-band level set (negative inside): leaf nodes (8^3
+// voxels) only where the surface can pass, i.e. where the leaf grown by one
+// voxel on every side holds samples of both signs (a crossing edge lies in
+// it, or ends on its border); leaves entirely inside become inactive tiles
+// of -background and leaves entirely outside stay background, so every
+// sample the mesher reads through a leaf's border has the right sign. The
+// grid is wrapped in a shell one voxel thick of +background (outside), so
+// that the surface closes where the shape meets the grid boundary. Band
+// leaves hold every voxel of the padded box as active, so the mesher sees
+// exactly the dense data there; away from the surface nothing is copied
+// (the dense copy was one float volume at the mesh stage's peak).
 openvdb::FloatGrid::Ptr MakeLevelSet(const Volume<float>& field,
                                      float isovalue) {
   const Grid& g = field.grid;
@@ -94,6 +100,9 @@ openvdb::FloatGrid::Ptr MakeLevelSet(const Volume<float>& field,
       }
     }
   }
+  // Per origin: a band leaf, an inside tile, or nothing (outside).
+  enum : uint8_t { kOutside, kInside, kBand };
+  std::vector<uint8_t> kinds(origins.size(), kOutside);
   std::vector<LeafT*> leaves(origins.size(), nullptr);
   const float* data = field.data.data();
   // A sample at (or within float noise of) the isovalue puts the vertices of
@@ -106,11 +115,40 @@ openvdb::FloatGrid::Ptr MakeLevelSet(const Volume<float>& field,
   const float nudge = static_cast<float>(
       1e-3 * std::min({g.spacing[0], g.spacing[1], g.spacing[2]}));
   const int64_t sx = 1, sy = g.size[0], sz = g.size[0] * g.size[1];
+  auto inside = [&](int x, int y, int z) {
+    if (x < 0 || x >= nx || y < 0 || y >= ny || z < 0 || z >= nz) return false;
+    return data[x * sx + y * sy + z * sz] >= isovalue;
+  };
   tbb::parallel_for(
       tbb::blocked_range<size_t>(0, origins.size()),
       [&](const tbb::blocked_range<size_t>& range) {
         for (size_t n = range.begin(); n != range.end(); ++n) {
           const openvdb::Coord& o = origins[n];
+          // Signs over the leaf grown by one voxel, clipped to the padded
+          // box (beyond it nothing is stored: background, outside).
+          const int x0 = std::max(o.x() - 1, -1),
+                    x1 = std::min(o.x() + kDim, nx);
+          const int y0 = std::max(o.y() - 1, -1),
+                    y1 = std::min(o.y() + kDim, ny);
+          const int z0 = std::max(o.z() - 1, -1),
+                    z1 = std::min(o.z() + kDim, nz);
+          bool any_in = false, any_out = false;
+          for (int z = z0; z <= z1 && !(any_in && any_out); ++z) {
+            for (int y = y0; y <= y1 && !(any_in && any_out); ++y) {
+              for (int x = x0; x <= x1; ++x) {
+                if (inside(x, y, z)) {
+                  any_in = true;
+                } else {
+                  any_out = true;
+                }
+              }
+            }
+          }
+          if (!(any_in && any_out)) {
+            kinds[n] = any_in ? kInside : kOutside;
+            continue;
+          }
+          kinds[n] = kBand;
           auto* leaf = new LeafT(o, background, /*active=*/false);
           for (int x = o.x(); x < o.x() + kDim; ++x) {
             for (int y = o.y(); y < o.y() + kDim; ++y) {
@@ -132,7 +170,15 @@ openvdb::FloatGrid::Ptr MakeLevelSet(const Volume<float>& field,
         }
       });
   openvdb::FloatTree& tree = grid->tree();
-  for (LeafT* leaf : leaves) tree.addLeaf(leaf);  // the tree takes ownership
+  for (size_t n = 0; n < origins.size(); ++n) {
+    if (kinds[n] == kBand) {
+      tree.addLeaf(leaves[n]);  // the tree takes ownership
+    } else if (kinds[n] == kInside) {
+      // A tile the size of a leaf (level 1: a child of the lowest internal
+      // node), inactive, as OpenVDB's level sets hold their interior.
+      tree.addTile(/*level=*/1, origins[n], -background, /*active=*/false);
+    }
+  }
   return grid;
 }
 
