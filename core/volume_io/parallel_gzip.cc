@@ -5,6 +5,7 @@
 #include <tbb/parallel_pipeline.h>
 #include <tbb/task_arena.h>
 #include <unistd.h>
+#include <zlib.h>
 
 #include <algorithm>
 #include <atomic>
@@ -15,6 +16,7 @@
 #include <system_error>
 
 #include "absl/strings/str_cat.h"
+#include "core/common/status_macros.h"
 
 namespace interslice::volume_io_internal {
 namespace {
@@ -23,8 +25,35 @@ namespace {
 struct Block {
   size_t offset = 0;  // in the concatenation of the pieces
   size_t length = 0;
-  std::vector<uint8_t> member;
+  bool last = false;
+  std::vector<uint8_t> member;  // a gzip member, or a run of deflate blocks
+  uint32_t crc = 0;             // CRC-32 of the input (single member)
 };
+
+// Deflates `length` bytes as a run of raw deflate blocks that a following
+// run can continue (Z_SYNC_FLUSH ends on a byte boundary without the final
+// bit), or that ends the stream (`last`). Z_RLE finds only runs (distance 1),
+// so no block refers to another block's data and blocks can be deflated
+// independently, as pigz does with a preset dictionary.
+absl::Status DeflateRun(const uint8_t* in, size_t length, bool last,
+                        std::vector<uint8_t>& out) {
+  z_stream z{};
+  if (deflateInit2(&z, /*level=*/1, Z_DEFLATED, /*windowBits=*/-15,
+                   /*memLevel=*/8, Z_RLE) != Z_OK) {
+    return absl::ResourceExhaustedError("cannot start zlib deflate");
+  }
+  out.resize(deflateBound(&z, length) + 16);
+  z.next_in = const_cast<Bytef*>(in);
+  z.avail_in = static_cast<uInt>(length);
+  z.next_out = out.data();
+  z.avail_out = static_cast<uInt>(out.size());
+  const int result = deflate(&z, last ? Z_FINISH : Z_SYNC_FLUSH);
+  const bool ok = last ? result == Z_STREAM_END
+                       : (result == Z_OK && z.avail_in == 0 && z.avail_out > 0);
+  out.resize(out.size() - z.avail_out);
+  deflateEnd(&z);
+  return ok ? absl::OkStatus() : absl::InternalError("zlib deflate failed");
+}
 
 struct CompressorDeleter {
   void operator()(libdeflate_compressor* c) const {
@@ -52,7 +81,8 @@ absl::Status WriteAll(int fd, const uint8_t* data, size_t size) {
 absl::Status WriteParallelGzip(
     int fd, const std::vector<std::span<const std::byte>>& pieces,
     const GzipOptions& options, const ComputeContext& context) {
-  if (options.level < 0 || options.level > 12 || options.block_size == 0) {
+  if (options.level < 0 || options.level > 12 || options.block_size == 0 ||
+      (options.single_member && options.block_size > (size_t{1} << 30))) {
     return absl::InvalidArgumentError(
         absl::StrCat("gzip level ", options.level, " or block size ",
                      options.block_size, " out of range"));
@@ -111,6 +141,13 @@ absl::Status WriteParallelGzip(
   size_t next = 0;
   // An empty input is still one (empty) member: a gzip file needs one.
   bool emitted_any = false;
+  // Single member: gzip header (no name, no time, OS unknown), the deflate
+  // runs, then the CRC-32 and the length modulo 2^32 of the whole input.
+  uint32_t crc = 0;
+  if (options.single_member) {
+    const uint8_t header[10] = {0x1f, 0x8b, 8, 0, 0, 0, 0, 0, 0, 255};
+    INTERSLICE_RETURN_IF_ERROR(WriteAll(fd, header, sizeof(header)));
+  }
   tbb::task_arena arena(context.threads > 0 ? context.threads
                                             : tbb::task_arena::automatic);
   arena.execute([&] {
@@ -133,6 +170,7 @@ absl::Status WriteParallelGzip(
               block->offset = next;
               block->length = std::min(options.block_size, total - next);
               next += block->length;
+              block->last = next >= total;
               emitted_any = true;
               return block;
             }) &
@@ -140,6 +178,18 @@ absl::Status WriteParallelGzip(
                 tbb::filter_mode::parallel,
                 [&](Block* block) -> Block* {
                   if (failed.load(std::memory_order_relaxed)) return block;
+                  if (options.single_member) {
+                    const uint8_t* in =
+                        gather(block->offset, block->length, scratches.local());
+                    block->crc =
+                        static_cast<uint32_t>(crc32_z(0, in, block->length));
+                    if (absl::Status s = DeflateRun(in, block->length,
+                                                    block->last, block->member);
+                        !s.ok()) {
+                      fail(std::move(s));
+                    }
+                    return block;
+                  }
                   CompressorPtr& compressor = compressors.local();
                   if (compressor == nullptr) {
                     fail(absl::ResourceExhaustedError(
@@ -163,6 +213,10 @@ absl::Status WriteParallelGzip(
                 tbb::filter_mode::serial_in_order, [&](Block* block) {
                   std::unique_ptr<Block> owned(block);
                   if (failed.load(std::memory_order_relaxed)) return;
+                  if (options.single_member) {
+                    crc = static_cast<uint32_t>(
+                        crc32_combine(crc, owned->crc, owned->length));
+                  }
                   if (absl::Status s = WriteAll(fd, owned->member.data(),
                                                 owned->member.size());
                       !s.ok()) {
@@ -170,6 +224,15 @@ absl::Status WriteParallelGzip(
                   }
                 }));
   });
+  if (status.ok() && options.single_member) {
+    uint8_t trailer[8];
+    const uint32_t size = static_cast<uint32_t>(total);
+    for (int i = 0; i < 4; ++i) {
+      trailer[i] = static_cast<uint8_t>(crc >> (8 * i));
+      trailer[4 + i] = static_cast<uint8_t>(size >> (8 * i));
+    }
+    status = WriteAll(fd, trailer, sizeof(trailer));
+  }
   return status;
 }
 

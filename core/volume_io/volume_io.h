@@ -21,10 +21,11 @@ namespace interslice {
 // appears complete or not at all (written to a temporary name, then renamed).
 //
 // Compression (.nii.gz, .nrrd) uses context.threads threads (0 = all):
-// libdeflate level 1 on independent 4 MiB blocks, stored as consecutive gzip
-// members (RFC 1952 allows any number; ITK, zlib's gzread, gzip, Python's
-// gzip/nibabel read them all). The decompressed bytes are exactly what ITK
-// writes uncompressed (header from ITK, voxels as held in memory).
+// 4 MiB blocks deflated in parallel. A .nii.gz is a series of gzip members
+// (libdeflate level 1; every gzip reader reads all members); a .nrrd's data
+// are one gzip member (zlib run-length blocks joined as pigz does), for
+// readers that stop after one member. The decompressed bytes are exactly
+// what ITK writes uncompressed (header from ITK, voxels as held in memory).
 absl::Status WriteVolume(const Volume<float>& volume, const std::string& path,
                          const ComputeContext& context = {});
 absl::Status WriteVolume(const Volume<uint8_t>& volume, const std::string& path,

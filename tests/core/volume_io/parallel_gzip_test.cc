@@ -141,6 +141,35 @@ TEST_F(ParallelGzipTest, OutputDoesNotDependOnThreads) {
   EXPECT_EQ(bytes_a, bytes_b);
 }
 
+TEST_F(ParallelGzipTest, SingleMemberJoinsTheBlocksIntoOneStream) {
+  const std::vector<std::string> pieces = {Noise(352, 11), "", Noise(70001, 12),
+                                           Noise(5, 13)};
+  const std::string all = pieces[0] + pieces[2] + pieces[3];
+  GzipOptions options;
+  options.single_member = true;
+  options.block_size = 4096;  // 18 blocks
+  ASSERT_TRUE(Write("one.gz", pieces, options, {.threads = 3}).ok());
+  const Unzipped unzipped = Gunzip(Path("one.gz"));
+  ASSERT_TRUE(unzipped.ok);
+  EXPECT_EQ(unzipped.bytes, all);
+  EXPECT_EQ(unzipped.members, 1);
+  EXPECT_LT(std::filesystem::file_size(Path("one.gz")), all.size());
+  // Independent of the thread count, and readable by a reader that takes
+  // one member only (a single zlib inflate over the whole file).
+  ASSERT_TRUE(Write("two.gz", pieces, options, {.threads = 1}).ok());
+  std::ifstream a(Path("one.gz"), std::ios::binary),
+      b(Path("two.gz"), std::ios::binary);
+  EXPECT_EQ(std::string((std::istreambuf_iterator<char>(a)), {}),
+            std::string((std::istreambuf_iterator<char>(b)), {}));
+
+  options.block_size = 1000;
+  ASSERT_TRUE(Write("empty.gz", {}, options, {}).ok());
+  const Unzipped empty = Gunzip(Path("empty.gz"));
+  ASSERT_TRUE(empty.ok);
+  EXPECT_EQ(empty.bytes, "");
+  EXPECT_EQ(empty.members, 1);
+}
+
 TEST_F(ParallelGzipTest, EmptyInputIsOneEmptyMember) {
   ASSERT_TRUE(Write("empty.gz", {}, {}, {}).ok());
   const Unzipped unzipped = Gunzip(Path("empty.gz"));
