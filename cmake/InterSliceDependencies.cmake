@@ -18,6 +18,8 @@ find_package(OpenSSL REQUIRED)
 # FFTW ships no usable CMake config for the float library: use pkg-config.
 pkg_check_modules(FFTW3F REQUIRED IMPORTED_TARGET fftw3f)
 pkg_check_modules(FFTW3 REQUIRED IMPORTED_TARGET fftw3)
+# libdeflate: parallel block compression of .nii.gz / .nrrd (core/volume_io).
+pkg_check_modules(LIBDEFLATE REQUIRED IMPORTED_TARGET libdeflate)
 
 # OpenVDB ships only FindOpenVDB.cmake in the multiarch cmake folder.
 if(CMAKE_LIBRARY_ARCHITECTURE)

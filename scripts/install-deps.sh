@@ -13,7 +13,7 @@ packages=(
   libfftw3-dev libtbb-dev
   libopenvdb-dev libboost-iostreams-dev
   libcli11-dev prometheus-cpp-dev libabsl-dev nlohmann-json3-dev
-  zlib1g-dev libgdcm-dev libssl-dev
+  zlib1g-dev libdeflate-dev libgdcm-dev libssl-dev
   dicom3tools
   # the DICOM node (server/dicom): configuration files; a real PACS for its
   # end-to-end tests (Orthanc, started by the tests, never as a service)

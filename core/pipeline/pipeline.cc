@@ -366,10 +366,11 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
       const auto distance_path = dir / ("distance" + ext);
       const auto mask_path = dir / ("mask" + ext);
       tasks.push_back({"distance", distance_path, [&, distance_path] {
-                         return WriteVolume(field, distance_path.string());
+                         return WriteVolume(field, distance_path.string(),
+                                            context);
                        }});
       tasks.push_back({"mask", mask_path, [&, mask_path] {
-                         return WriteVolume(mask, mask_path.string());
+                         return WriteVolume(mask, mask_path.string(), context);
                        }});
     }
     for (const std::string& format : spec.mesh_formats) {

@@ -61,11 +61,17 @@ openvdb::math::Transform::Ptr MakeTransform(const Grid& grid) {
   return openvdb::math::Transform::createLinearTransform(m);
 }
 
-// The dense field as a level set (negative inside), wrapped in a shell of
-// explicit active voxels one voxel thick holding +background, so that the
-// surface closes where the shape meets the grid boundary. Every voxel of the
-// padded box is an active leaf voxel (no tiles), so the mesher sees exactly
-// the dense data.
+// The field as a narrow-band level set (negative inside): leaf nodes (8^3
+// voxels) only where the surface can pass, i.e. where the leaf grown by one
+// voxel on every side holds samples of both signs (a crossing edge lies in
+// it, or ends on its border); leaves entirely inside become inactive tiles
+// of -background and leaves entirely outside stay background, so every
+// sample the mesher reads through a leaf's border has the right sign. The
+// grid is wrapped in a shell one voxel thick of +background (outside), so
+// that the surface closes where the shape meets the grid boundary. Band
+// leaves hold every voxel of the padded box as active, so the mesher sees
+// exactly the dense data there; away from the surface nothing is copied
+// (the dense copy was one float volume at the mesh stage's peak).
 openvdb::FloatGrid::Ptr MakeLevelSet(const Volume<float>& field,
                                      float isovalue) {
   const Grid& g = field.grid;
@@ -80,9 +86,8 @@ openvdb::FloatGrid::Ptr MakeLevelSet(const Volume<float>& field,
   const int nx = static_cast<int>(g.size[0]);
   const int ny = static_cast<int>(g.size[1]);
   const int nz = static_cast<int>(g.size[2]);
-  // Padded box [-1, n] on each axis; leaf origins are multiples of kDim.
-  const openvdb::CoordBBox box(openvdb::Coord(-1, -1, -1),
-                               openvdb::Coord(nx, ny, nz));
+  // Leaves cover the padded box [-1, n] on each axis; their origins are
+  // multiples of kDim.
   auto first_origin = [](int lo) {
     return static_cast<int>(std::floor(static_cast<double>(lo) / kDim)) * kDim;
   };
@@ -94,6 +99,9 @@ openvdb::FloatGrid::Ptr MakeLevelSet(const Volume<float>& field,
       }
     }
   }
+  // Per origin: a band leaf, an inside tile, or nothing (outside).
+  enum : uint8_t { kOutside, kInside, kBand };
+  std::vector<uint8_t> kinds(origins.size(), kOutside);
   std::vector<LeafT*> leaves(origins.size(), nullptr);
   const float* data = field.data.data();
   // A sample at (or within float noise of) the isovalue puts the vertices of
@@ -105,26 +113,76 @@ openvdb::FloatGrid::Ptr MakeLevelSet(const Volume<float>& field,
   // float ulps at patient coordinates and moves the surface by at most that.
   const float nudge = static_cast<float>(
       1e-3 * std::min({g.spacing[0], g.spacing[1], g.spacing[2]}));
-  const int64_t sx = 1, sy = g.size[0], sz = g.size[0] * g.size[1];
+  const int64_t sy = g.size[0], sz = g.size[0] * g.size[1];
+  // Signs per row segment, in one streaming pass over the field: for row
+  // (y, z) and the i-th leaf column, bit 0 = some sample inside, bit 1 =
+  // some sample outside, over x in [x_i - 1, x_i + kDim] within the grid
+  // (each leaf's grown box then reads (kDim + 2)^2 bytes, not floats
+  // scattered over the volume).
+  const int x_first = first_origin(-1);
+  const int64_t columns = (nx - x_first) / kDim + 1;
+  std::vector<uint8_t> row_signs(static_cast<size_t>(columns * ny * nz));
+  tbb::parallel_for(
+      tbb::blocked_range<int64_t>(0, int64_t{ny} * nz),
+      [&](const tbb::blocked_range<int64_t>& rows) {
+        for (int64_t r = rows.begin(); r != rows.end(); ++r) {
+          const float* row = data + r * sy;
+          uint8_t* signs = row_signs.data() + r * columns;
+          for (int64_t i = 0; i < columns; ++i) {
+            const int x0 = std::max<int>(x_first + kDim * i - 1, 0);
+            const int x1 = std::min<int>(x_first + kDim * i + kDim, nx - 1);
+            int count = 0;  // branch-free, so that the loop vectorises
+            for (int x = x0; x <= x1; ++x) count += row[x] >= isovalue;
+            signs[i] = static_cast<uint8_t>((count > 0 ? 1 : 0) |
+                                            (count < x1 - x0 + 1 ? 2 : 0));
+          }
+        }
+      });
   tbb::parallel_for(
       tbb::blocked_range<size_t>(0, origins.size()),
       [&](const tbb::blocked_range<size_t>& range) {
         for (size_t n = range.begin(); n != range.end(); ++n) {
           const openvdb::Coord& o = origins[n];
+          // Signs over the leaf grown by one voxel. Samples beyond the grid
+          // (the shell, and beyond it background) are outside.
+          const int x0 = o.x() - 1, x1 = o.x() + kDim;  // inclusive
+          const int y0 = o.y() - 1, y1 = o.y() + kDim;
+          const int z0 = o.z() - 1, z1 = o.z() + kDim;
+          const int64_t column = (o.x() - x_first) / kDim;
+          uint8_t signs =
+              (x0 < 0 || x1 >= nx || y0 < 0 || y1 >= ny || z0 < 0 || z1 >= nz)
+                  ? 2
+                  : 0;
+          for (int z = std::max(z0, 0); z <= std::min(z1, nz - 1); ++z) {
+            const uint8_t* plane = row_signs.data() + int64_t{z} * ny * columns;
+            for (int y = std::max(y0, 0); y <= std::min(y1, ny - 1); ++y) {
+              signs |= plane[int64_t{y} * columns + column];
+            }
+          }
+          const bool any_in = (signs & 1) != 0, any_out = (signs & 2) != 0;
+          if (!(any_in && any_out)) {
+            kinds[n] = any_in ? kInside : kOutside;
+            continue;
+          }
+          kinds[n] = kBand;
           auto* leaf = new LeafT(o, background, /*active=*/false);
-          for (int x = o.x(); x < o.x() + kDim; ++x) {
+          // Leaf voxel offsets are x * 64 + y * 8 + z; the field's x is
+          // contiguous, so x runs innermost.
+          for (int z = o.z(); z < o.z() + kDim; ++z) {
             for (int y = o.y(); y < o.y() + kDim; ++y) {
-              for (int z = o.z(); z < o.z() + kDim; ++z) {
-                const openvdb::Coord c(x, y, z);
-                if (!box.isInside(c)) continue;
+              for (int x = o.x(); x < o.x() + kDim; ++x) {
+                if (x < -1 || x > nx || y < -1 || y > ny || z < -1 || z > nz) {
+                  continue;  // beyond the shell: inactive background
+                }
                 float value = background;
                 if (x >= 0 && x < nx && y >= 0 && y < ny && z >= 0 && z < nz) {
-                  value = isovalue - data[x * sx + y * sy + z * sz];
+                  value = isovalue - data[x + y * sy + z * sz];
                   if (std::abs(value) < nudge) {
                     value = value > 0 ? nudge : -nudge;
                   }
                 }
-                leaf->setValueOn(c, value);
+                leaf->setValueOn(LeafT::coordToOffset(openvdb::Coord(x, y, z)),
+                                 value);
               }
             }
           }
@@ -132,7 +190,15 @@ openvdb::FloatGrid::Ptr MakeLevelSet(const Volume<float>& field,
         }
       });
   openvdb::FloatTree& tree = grid->tree();
-  for (LeafT* leaf : leaves) tree.addLeaf(leaf);  // the tree takes ownership
+  for (size_t n = 0; n < origins.size(); ++n) {
+    if (kinds[n] == kBand) {
+      tree.addLeaf(leaves[n]);  // the tree takes ownership
+    } else if (kinds[n] == kInside) {
+      // A tile the size of a leaf (level 1: a child of the lowest internal
+      // node), inactive, as OpenVDB's level sets hold their interior.
+      tree.addTile(/*level=*/1, origins[n], -background, /*active=*/false);
+    }
+  }
   return grid;
 }
 

@@ -9,7 +9,6 @@
 #include <itkNiftiImageIO.h>
 #include <itkNrrdImageIO.h>
 #include <unistd.h>
-#include <zlib.h>
 
 #include <algorithm>
 #include <cerrno>
@@ -18,8 +17,10 @@
 #include <cstring>
 #include <exception>
 #include <filesystem>
+#include <limits>
 #include <optional>
 #include <random>
+#include <span>
 #include <system_error>
 #include <vector>
 
@@ -27,6 +28,8 @@
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "core/common/status_macros.h"
+#include "core/volume_io/parallel_gzip.h"
 
 namespace interslice {
 namespace {
@@ -93,30 +96,196 @@ absl::Status CreateEmptyFile(const std::string& path) {
   return absl::OkStatus();
 }
 
-// Compresses `from` into the gzip file `to` with zlib at level 1.
-absl::Status GzipFile(const std::string& from, const std::string& to) {
-  std::FILE* in = std::fopen(from.c_str(), "rb");
-  if (in == nullptr) return absl::InternalError("cannot reopen the .nii");
-  gzFile out = gzopen(to.c_str(), "wb1");
-  if (out == nullptr) {
-    std::fclose(in);
-    return absl::InternalError("cannot create the .nii.gz");
+// The pixel type's ITK image of `grid`'s geometry with `size` voxels, over
+// `data` (not copied; writers only read it).
+template <typename T>
+typename itk::Image<T, 3>::Pointer WrapImage(const Grid& grid,
+                                             const Index3& size,
+                                             const T* data) {
+  using ImageType = itk::Image<T, 3>;
+  typename ImageType::Pointer image = ImageType::New();
+  typename ImageType::SizeType itk_size;
+  typename ImageType::SpacingType spacing;
+  typename ImageType::PointType origin;
+  typename ImageType::DirectionType direction;
+  for (int a = 0; a < 3; ++a) {
+    itk_size[a] = static_cast<itk::SizeValueType>(size[a]);
+    spacing[a] = grid.spacing[a];
+    origin[a] = grid.origin[a];
+    for (int c = 0; c < 3; ++c) direction(a, c) = grid.direction[3 * a + c];
   }
-  std::vector<char> buffer(1 << 20);
-  bool ok = true;
+  image->SetRegions(typename ImageType::RegionType(itk_size));
+  image->SetSpacing(spacing);
+  image->SetOrigin(origin);
+  image->SetDirection(direction);
+  auto container = ImageType::PixelContainer::New();
+  container->SetImportPointer(const_cast<T*>(data), size[0] * size[1] * size[2],
+                              /*LetContainerManageMemory=*/false);
+  image->SetPixelContainer(container);
+  return image;
+}
+
+// Writes `image` with ITK to `temp` (created empty beforehand);
+// `compress` asks ITK's own compression (zlib level 1).
+template <typename ImagePointer>
+absl::Status ItkWrite(const ImagePointer& image, Format format,
+                      const std::string& temp, bool compress) {
+  using ImageType = typename ImagePointer::ObjectType;
+  try {
+    auto writer = itk::ImageFileWriter<ImageType>::New();
+    auto io = MakeImageIO(format);
+    io->SetCompressionLevel(1);
+    writer->SetImageIO(io);
+    writer->SetFileName(temp);
+    writer->SetInput(image);
+    writer->SetUseCompression(compress);
+    writer->Update();
+  } catch (const std::exception& e) {
+    return absl::InternalError(e.what());
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::string> ReadWholeFile(const std::string& path) {
+  std::FILE* f = std::fopen(path.c_str(), "rb");
+  if (f == nullptr) return absl::InternalError("cannot reopen the header");
+  std::string bytes;
+  char buffer[4096];
   size_t n;
-  while (ok && (n = std::fread(buffer.data(), 1, buffer.size(), in)) > 0) {
-    ok = gzwrite(out, buffer.data(), static_cast<unsigned>(n)) ==
-         static_cast<int>(n);
+  while ((n = std::fread(buffer, 1, sizeof(buffer), f)) > 0) {
+    bytes.append(buffer, n);
   }
-  ok = ok && !std::ferror(in);
-  std::fclose(in);
-  ok = (gzclose(out) == Z_OK) && ok;
-  return ok ? absl::OkStatus() : absl::InternalError("gzip failed");
+  const bool ok = !std::ferror(f);
+  std::fclose(f);
+  if (!ok) return absl::InternalError("cannot read the header back");
+  return bytes;
+}
+
+// The probe volume whose file ITK writes to learn the header: 2 voxels per
+// axis (no axis of length 1, which some writers treat specially).
+constexpr int64_t kProbeSize = 2;
+
+// The header ITK writes for a volume of `grid` (geometry, pixel type): ITK
+// writes a 2x2x2 probe volume of the same geometry uncompressed, and its
+// header gets the real sizes (the only field that depends on them). The
+// header and the voxels, gzipped in parallel, then make the same file as
+// ITK's own (tests/core/volume_io compare the decompressed bytes).
+// NIfTI-1: the 348-byte header and extension flag up to vox_offset, dim[1..3]
+// patched. NRRD: the text header up to the blank line, "sizes:" patched and
+// "encoding: raw" made "encoding: gzip".
+template <typename T>
+absl::StatusOr<std::string> ItkHeader(const Grid& grid, Format format,
+                                      const std::string& probe_path) {
+  const std::vector<T> probe(kProbeSize * kProbeSize * kProbeSize, T{0});
+  const Index3 probe_size = {kProbeSize, kProbeSize, kProbeSize};
+  INTERSLICE_RETURN_IF_ERROR(CreateEmptyFile(probe_path));
+  absl::Status written = ItkWrite(WrapImage<T>(grid, probe_size, probe.data()),
+                                  format, probe_path, /*compress=*/false);
+  absl::StatusOr<std::string> bytes =
+      written.ok() ? ReadWholeFile(probe_path) : written;
+  std::error_code ec;
+  std::filesystem::remove(probe_path, ec);
+  if (!bytes.ok()) return bytes.status();
+  const size_t data_bytes = probe.size() * sizeof(T);
+  if (bytes->size() < data_bytes) {
+    return absl::InternalError("ITK wrote a short probe file");
+  }
+  std::string header = bytes->substr(0, bytes->size() - data_bytes);
+
+  if (format == Format::kNifti) {
+    int32_t sizeof_hdr = 0;
+    float vox_offset = 0;
+    std::memcpy(&sizeof_hdr, header.data(), 4);
+    if (header.size() >= 112) std::memcpy(&vox_offset, header.data() + 108, 4);
+    int16_t dim[8] = {};
+    if (header.size() >= 56) std::memcpy(dim, header.data() + 40, sizeof(dim));
+    if (sizeof_hdr != 348 || vox_offset != static_cast<float>(header.size()) ||
+        header.compare(344, 4, std::string("n+1\0", 4)) != 0 || dim[0] != 3 ||
+        dim[1] != kProbeSize || dim[2] != kProbeSize || dim[3] != kProbeSize) {
+      return absl::InternalError("unexpected NIfTI header from ITK");
+    }
+    for (int a = 0; a < 3; ++a) {
+      if (grid.size[a] > std::numeric_limits<int16_t>::max()) {
+        return absl::InvalidArgumentError(
+            absl::StrCat("NIfTI-1 holds at most 32767 voxels per axis; axis ",
+                         a, " has ", grid.size[a]));
+      }
+      dim[1 + a] = static_cast<int16_t>(grid.size[a]);
+    }
+    std::memcpy(header.data() + 40, dim, sizeof(dim));
+    return header;
+  }
+
+  // NRRD: lines up to and including the empty line that ends the header.
+  const std::string probe_sizes = absl::StrFormat(
+      "\nsizes: %d %d %d\n", kProbeSize, kProbeSize, kProbeSize);
+  const std::string raw = "\nencoding: raw\n";
+  const size_t sizes_at = header.find(probe_sizes);
+  const size_t raw_at = header.find(raw);
+  if (!absl::EndsWith(header, "\n\n") || sizes_at == std::string::npos ||
+      raw_at == std::string::npos ||
+      header.find(probe_sizes, sizes_at + 1) != std::string::npos) {
+    return absl::InternalError("unexpected NRRD header from ITK");
+  }
+  header.replace(raw_at, raw.size(), "\nencoding: gzip\n");
+  header.replace(header.find(probe_sizes), probe_sizes.size(),
+                 absl::StrFormat("\nsizes: %d %d %d\n", grid.size[0],
+                                 grid.size[1], grid.size[2]));
+  return header;
+}
+
+// How each format's data are gzipped. NIfTI: independent libdeflate
+// members (RFC 1952 allows any number; zlib's gzread in ITK, FSL, AFNI and
+// dcm2niix, Python's gzip in nibabel, gzip(1) read them all), the best ratio
+// and speed. NRRD: one member, because pynrrd decompresses a NRRD's data with
+// a single zlib decompressobj, which stops after the first member; zlib's
+// run-length strategy lets its blocks be deflated in parallel, at 4% more
+// size on the phantom's distance field and much less on periodic data such
+// as constant floats (bench/gzip_benchmark.cc).
+volume_io_internal::GzipOptions GzipOptionsFor(Format format) {
+  volume_io_internal::GzipOptions options;
+  options.single_member = format == Format::kNrrd;
+  return options;
+}
+
+absl::Status WriteHeaderAndGzippedData(const std::string& path,
+                                       const std::string& header,
+                                       std::span<const std::byte> data,
+                                       bool gzip_header,
+                                       const ComputeContext& context) {
+  const int fd = open(path.c_str(), O_WRONLY | O_TRUNC | O_CLOEXEC);
+  if (fd < 0) {
+    return absl::InternalError(
+        std::error_code(errno, std::generic_category()).message());
+  }
+  const std::span<const std::byte> header_bytes(
+      reinterpret_cast<const std::byte*>(header.data()), header.size());
+  absl::Status status;
+  if (gzip_header) {
+    status = volume_io_internal::WriteParallelGzip(
+        fd, {header_bytes, data}, GzipOptionsFor(Format::kNifti), context);
+  } else {
+    status =
+        ::write(fd, header.data(), header.size()) ==
+                static_cast<ssize_t>(header.size())
+            ? absl::OkStatus()
+            : absl::InternalError(
+                  std::error_code(errno, std::generic_category()).message());
+    if (status.ok()) {
+      status = volume_io_internal::WriteParallelGzip(
+          fd, {data}, GzipOptionsFor(Format::kNrrd), context);
+    }
+  }
+  if (close(fd) != 0 && status.ok()) {
+    status = absl::InternalError(
+        std::error_code(errno, std::generic_category()).message());
+  }
+  return status;
 }
 
 template <typename T>
-absl::Status WriteVolumeImpl(const Volume<T>& volume, const std::string& path) {
+absl::Status WriteVolumeImpl(const Volume<T>& volume, const std::string& path,
+                             const ComputeContext& context) {
   const std::optional<FormatInfo> info = FormatOf(path, /*for_reading=*/false);
   if (!info.has_value()) {
     return absl::InvalidArgumentError(
@@ -133,76 +302,53 @@ absl::Status WriteVolumeImpl(const Volume<T>& volume, const std::string& path) {
         "voxels",
         path, volume.data.size(), volume.grid.VoxelCount()));
   }
-
-  using ImageType = itk::Image<T, 3>;
-  const Grid& grid = volume.grid;
-  typename ImageType::Pointer image = ImageType::New();
-  typename ImageType::SizeType size;
-  typename ImageType::SpacingType spacing;
-  typename ImageType::PointType origin;
-  typename ImageType::DirectionType direction;
-  for (int a = 0; a < 3; ++a) {
-    size[a] = static_cast<itk::SizeValueType>(grid.size[a]);
-    spacing[a] = grid.spacing[a];
-    origin[a] = grid.origin[a];
-    for (int c = 0; c < 3; ++c) direction(a, c) = grid.direction[3 * a + c];
-  }
-  image->SetRegions(typename ImageType::RegionType(size));
-  image->SetSpacing(spacing);
-  image->SetOrigin(origin);
-  image->SetDirection(direction);
-  // Writers only read the buffer: wrap the volume's memory without a copy.
-  auto container = ImageType::PixelContainer::New();
-  container->SetImportPointer(const_cast<T*>(volume.data.data()),
-                              volume.data.size(),
-                              /*LetContainerManageMemory=*/false);
-  image->SetPixelContainer(container);
-
-  // NIfTI's own gzip ignores ITK's compression level and is slow on float
-  // volumes that barely compress (267 of 312 MB on the CT phantom), so a
-  // .nii.gz is written as .nii by ITK and then gzipped by zlib at level 1:
-  // the same file format (a .nii.gz is a gzip stream of the .nii).
-  const bool gzip_nifti = info->extension == ".nii.gz";
-  FormatInfo itk_info = *info;
-  if (gzip_nifti) itk_info.extension = ".nii";
-  const std::string temp = TemporaryPath(
-      gzip_nifti ? path.substr(0, path.size() - 3) : path, itk_info);
+  const std::string temp = TemporaryPath(path, *info);
   if (absl::Status created = CreateEmptyFile(temp); !created.ok()) {
     return absl::InternalError(
         absl::StrCat("cannot write ", path, ": ", created.message()));
   }
   std::error_code ec;
-  try {
-    auto writer = itk::ImageFileWriter<ImageType>::New();
-    auto io = MakeImageIO(info->format);
-    // zlib's fastest level (NRRD): float distance fields gain little from
-    // harder compression, which made writing the largest stage of a job.
-    io->SetCompressionLevel(1);
-    writer->SetImageIO(io);
-    writer->SetFileName(temp);
-    writer->SetInput(image);
-    writer->SetUseCompression(itk_info.extension == ".nrrd");
-    writer->Update();
-  } catch (const std::exception& e) {
-    std::filesystem::remove(temp, ec);
-    return absl::InternalError(
-        absl::StrCat("cannot write ", path, ": ", e.what()));
-  }
-  std::string final_temp = temp;
-  if (gzip_nifti) {
-    final_temp = temp + ".gz";
-    const absl::Status gz = GzipFile(temp, final_temp);
-    std::filesystem::remove(temp, ec);
-    if (!gz.ok()) {
-      std::filesystem::remove(final_temp, ec);
-      return absl::InternalError(
-          absl::StrCat("cannot write ", path, ": ", gz.message()));
+  absl::Status status;
+  if (info->extension == ".nii") {
+    // Uncompressed: ITK writes the file itself.
+    status = ItkWrite(
+        WrapImage<T>(volume.grid, volume.grid.size, volume.data.data()),
+        info->format, temp, /*compress=*/false);
+  } else {
+    // Compressed: zlib in ITK (NIfTI's gzip, NRRD's gzip encoding) is one
+    // thread at ~50-100 MB/s, and the float distance field barely compresses
+    // (86%), so compression was most of a job's time. ITK provides the
+    // header (see ItkHeader) and the voxels are deflated in parallel blocks
+    // straight from memory, without an intermediate file. A .nii.gz is a
+    // gzip stream of the whole .nii (header included); a NRRD's header is
+    // text and only its data are gzipped.
+    const FormatInfo probe_info{
+        info->format, info->format == Format::kNifti ? ".nii" : ".nrrd"};
+    absl::StatusOr<std::string> header = ItkHeader<T>(
+        volume.grid, info->format,
+        TemporaryPath(path.substr(0, path.size() - info->extension.size()) +
+                          probe_info.extension,
+                      probe_info));
+    status = header.status();
+    if (status.ok()) {
+      status = WriteHeaderAndGzippedData(
+          temp, *header, std::as_bytes(std::span(volume.data)),
+          /*gzip_header=*/info->format == Format::kNifti, context);
     }
   }
-  std::filesystem::rename(final_temp, path, ec);
+  if (!status.ok()) {
+    std::filesystem::remove(temp, ec);
+    if (status.code() == absl::StatusCode::kCancelled ||
+        status.code() == absl::StatusCode::kDeadlineExceeded) {
+      return status;
+    }
+    return absl::Status(status.code(), absl::StrCat("cannot write ", path, ": ",
+                                                    status.message()));
+  }
+  std::filesystem::rename(temp, path, ec);
   if (ec) {
     const std::string reason = ec.message();
-    std::filesystem::remove(final_temp, ec);
+    std::filesystem::remove(temp, ec);
     return absl::InternalError(
         absl::StrCat("cannot write ", path, ": ", reason));
   }
@@ -211,13 +357,14 @@ absl::Status WriteVolumeImpl(const Volume<T>& volume, const std::string& path) {
 
 }  // namespace
 
-absl::Status WriteVolume(const Volume<float>& volume, const std::string& path) {
-  return WriteVolumeImpl(volume, path);
+absl::Status WriteVolume(const Volume<float>& volume, const std::string& path,
+                         const ComputeContext& context) {
+  return WriteVolumeImpl(volume, path, context);
 }
 
-absl::Status WriteVolume(const Volume<uint8_t>& volume,
-                         const std::string& path) {
-  return WriteVolumeImpl(volume, path);
+absl::Status WriteVolume(const Volume<uint8_t>& volume, const std::string& path,
+                         const ComputeContext& context) {
+  return WriteVolumeImpl(volume, path, context);
 }
 
 absl::StatusOr<Volume<float>> ReadVolumeAsFloat(const std::string& path) {

@@ -162,6 +162,51 @@ TEST(ExtractSurfaceTest, ObliqueAnisotropicSphereIsWatertightOutwardAccurate) {
   EXPECT_LT(MaxRadialError(*mesh, centre, radius), kVertexTolerance);
 }
 
+// A thick spherical shell: away from the surface the narrow band holds no
+// leaves, the solid part as inside tiles and the cavity and the outside as
+// background; a tile with the wrong sign would add surfaces along leaf
+// borders (more area, less volume, or open edges).
+TEST(ExtractSurfaceTest, ThickShellFromTheNarrowBandIsExact) {
+  Grid grid;
+  grid.size = {72, 70, 68};
+  grid.spacing = {1.0, 1.0, 1.0};
+  const Vec3 centre = {35.3, 34.6, 33.9};
+  const double outer = 30.0, inner = 12.0;
+  Volume<float> field;
+  field.grid = grid;
+  field.data.resize(grid.VoxelCount());
+  for (int64_t k = 0; k < grid.size[2]; ++k) {
+    for (int64_t j = 0; j < grid.size[1]; ++j) {
+      for (int64_t i = 0; i < grid.size[0]; ++i) {
+        const double d =
+            std::hypot(i - centre[0], j - centre[1], k - centre[2]);
+        field.at(i, j, k) = static_cast<float>(std::min(outer - d, d - inner));
+      }
+    }
+  }
+  absl::StatusOr<Mesh> mesh = ExtractSurface(field, {}, {});
+  ASSERT_TRUE(mesh.ok()) << mesh.status();
+  EXPECT_TRUE(IsWatertight(*mesh));
+  const double exact =
+      4.0 / 3.0 * kPi * (outer * outer * outer - inner * inner * inner);
+  EXPECT_NEAR(SignedVolume(*mesh) / exact, 1.0, 0.01);
+  double area = 0;
+  for (const auto& t : mesh->triangles) {
+    const auto& a = mesh->vertices[t[0]];
+    const auto& b = mesh->vertices[t[1]];
+    const auto& c = mesh->vertices[t[2]];
+    const double u[3] = {b[0] - a[0], b[1] - a[1], b[2] - a[2]};
+    const double v[3] = {c[0] - a[0], c[1] - a[1], c[2] - a[2]};
+    area +=
+        0.5 * std::hypot(u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2],
+                         u[0] * v[1] - u[1] * v[0]);
+  }
+  // Marching-cubes facets overestimate a smooth area by a few percent.
+  const double exact_area = 4 * kPi * (outer * outer + inner * inner);
+  EXPECT_GT(area / exact_area, 0.99);
+  EXPECT_LT(area / exact_area, 1.10);
+}
+
 TEST(ExtractSurfaceTest, IsovalueSelectsTheLevel) {
   const Grid grid = ObliqueGrid();
   const Vec3 centre = GridCentre(grid);
