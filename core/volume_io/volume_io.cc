@@ -220,6 +220,11 @@ absl::Status WriteVolume(const Volume<uint8_t>& volume,
   return WriteVolumeImpl(volume, path);
 }
 
+absl::Status WriteVolume(const Volume<uint16_t>& volume,
+                         const std::string& path) {
+  return WriteVolumeImpl(volume, path);
+}
+
 absl::StatusOr<Volume<float>> ReadVolumeAsFloat(const std::string& path) {
   const std::optional<FormatInfo> info = FormatOf(path, /*for_reading=*/true);
   if (!info.has_value()) {

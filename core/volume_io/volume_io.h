@@ -20,6 +20,8 @@ namespace interslice {
 absl::Status WriteVolume(const Volume<float>& volume, const std::string& path);
 absl::Status WriteVolume(const Volume<uint8_t>& volume,
                          const std::string& path);
+absl::Status WriteVolume(const Volume<uint16_t>& volume,  // label maps
+                         const std::string& path);
 
 // Reads a scalar volume written by WriteVolume (any scalar type, converted).
 absl::StatusOr<Volume<float>> ReadVolumeAsFloat(const std::string& path);
