@@ -9,6 +9,7 @@
 #include "absl/strings/str_format.h"
 #include "core/common/status_macros.h"
 #include "core/dicom/series_reader.h"
+#include "core/labels/segmentation_reader.h"
 #include "core/surface/surface.h"
 #include "core/volume_io/volume_io.h"
 #include "nlohmann/json.hpp"
@@ -81,15 +82,27 @@ absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
   }
   report.input_grid = series->image.grid;
   const Grid reference = series->image.grid;
-  *series = DicomSeries();  // only its geometry is needed from here on
+  const ReferenceSeries reference_series{reference, series->series_instance_uid,
+                                         series->frame_of_reference_uid};
+  *series = DicomSeries();  // only its geometry and UIDs are needed
 
-  absl::StatusOr<Volume<float>> raw = ReadVolumeAsFloat(spec.segmentation);
-  if (!raw.ok()) return Annotate(raw.status(), spec.segmentation);
-  INTERSLICE_RETURN_IF_ERROR(
-      CheckSameGrid(raw->grid, reference, "the label map"));
-  absl::StatusOr<LabelVolume> labels = LabelVolumeFromFloat(*raw);
-  if (!labels.ok()) return Annotate(labels.status(), spec.segmentation);
-  *raw = Volume<float>();
+  absl::StatusOr<LabelVolume> labels;
+  if (LooksLikeDicomFile(spec.segmentation)) {
+    absl::StatusOr<SegmentationInput> seg =
+        ReadDicomSegmentation(spec.segmentation, reference_series);
+    if (!seg.ok()) return seg.status();
+    report.input_kind = seg->fractional ? "seg-fractional" : "seg-binary";
+    report.segments = seg->segments;
+    labels = std::move(seg->labels);
+  } else {
+    absl::StatusOr<Volume<float>> raw = ReadVolumeAsFloat(spec.segmentation);
+    if (!raw.ok()) return Annotate(raw.status(), spec.segmentation);
+    INTERSLICE_RETURN_IF_ERROR(
+        CheckSameGrid(raw->grid, reference, "the label map"));
+    labels = LabelVolumeFromFloat(*raw);
+    if (!labels.ok()) return Annotate(labels.status(), spec.segmentation);
+    report.input_kind = "label-map";
+  }
   // The label map's grid equals the reference up to rounding; the
   // reference's (DICOM) geometry is the one carried to the outputs.
   labels->grid = reference;
@@ -170,6 +183,15 @@ std::string FillJobReportToJson(const FillJobReport& report) {
                {"direction", g.direction},
                {"insertion_factor", report.factor}};
   j["method"] = report.method;
+  j["input"] = report.input_kind;
+  ordered_json segments = ordered_json::array();
+  for (const SegmentDescription& d : report.segments) {
+    segments.push_back({{"number", d.number},
+                        {"label", d.label},
+                        {"category", d.category.meaning},
+                        {"type", d.type.meaning}});
+  }
+  j["segments"] = segments;
   ordered_json labels = ordered_json::array();
   for (const LabelFillInfo& info : report.per_label) {
     labels.push_back({{"label", info.label},

@@ -4,7 +4,8 @@
 //
 // Input: a label map (.nii, .nii.gz, .nrrd; integer labels, 0 = background)
 // on the grid of the reference series (CheckSameGrid; the reference is read
-// with core/dicom).
+// with core/dicom), or a DICOM SEG drawn on the reference series (any DICOM
+// file is read as one; label = SegmentNumber; segmentation_reader.h).
 // Output files in output_dir (created if missing), each written atomically
 // after every computation succeeded:
 //   volume formats "nii" -> labels.nii.gz, "nrrd" -> labels.nrrd (uint16
@@ -24,11 +25,12 @@
 #include "core/common/compute.h"
 #include "core/geometry/volume.h"
 #include "core/labels/label_fill.h"
+#include "core/labels/segmentation_reader.h"
 
 namespace interslice {
 
 struct FillJobSpec {
-  std::string segmentation;            // label map path
+  std::string segmentation;            // label map or DICOM SEG path
   std::vector<std::string> reference;  // DICOM files and/or directories
   std::string series_instance_uid;     // when the reference holds several
   FillOptions fill;
@@ -51,7 +53,10 @@ struct FillJobReport {
          write_seconds = 0;
   Grid input_grid, output_grid;
   int factor = 1;
-  std::string method;                    // "linear", "cg", "direct"
+  std::string method;  // "linear", "cg", "direct"
+  // "label-map", "seg-binary" or "seg-fractional"; a SEG's segments.
+  std::string input_kind;
+  std::vector<SegmentDescription> segments;
   std::vector<LabelFillInfo> per_label;  // fields dropped
   int64_t gap_voxels_closed = 0;
   int64_t key_voxels_restored = 0;

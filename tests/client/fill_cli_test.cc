@@ -11,6 +11,7 @@
 #include <string>
 
 #include "core/dicom/series_reader.h"
+#include "core/labels/segmentation_reader.h"
 #include "core/volume_io/volume_io.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
@@ -212,6 +213,88 @@ TEST_F(FillCliTest, BadInputGivesOneLineAndExitCodeOne) {
         << r.output;
   }
   EXPECT_FALSE(fs::exists(dir_ / "out" / "labels.nii.gz"));
+}
+
+// A binary SEG written by `interslice run --seg` (one segment, a frame per
+// slice of its intensity series) read back as a label map, and filled.
+TEST_F(FillCliTest, ReadsAndFillsADicomSeg) {
+  const fs::path run = dir_ / "run";
+  const std::string small =
+      std::string(INTERSLICE_SOURCE_DIR) + "/tests/data/ct-thick";
+  CommandResult r = RunCli("run " + small +
+                           " --threshold 300 --roi 200,40,0,296,136,4 "
+                           "--method direct --factor 5 --seg --volume nrrd "
+                           "--mesh none --quiet --out " +
+                           run.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  absl::StatusOr<DicomSeries> series = ReadDicomSeries(
+      {(run / "series-intensity").string()}, {}, ComputeContext{.threads = 1});
+  ASSERT_TRUE(series.ok()) << series.status();
+  ReferenceSeries reference{series->image.grid, series->series_instance_uid,
+                            series->frame_of_reference_uid};
+  const std::string seg_path = (run / "seg.dcm").string();
+  absl::StatusOr<SegmentationInput> seg =
+      ReadDicomSegmentation(seg_path, reference);
+  ASSERT_TRUE(seg.ok()) << seg.status();
+  EXPECT_FALSE(seg->fractional);
+  ASSERT_EQ(seg->segments.size(), 1u);
+  EXPECT_EQ(seg->segments[0].number, 1);
+  absl::StatusOr<Volume<float>> mask =
+      ReadVolumeAsFloat((run / "mask.nrrd").string());
+  ASSERT_TRUE(mask.ok()) << mask.status();
+  ASSERT_EQ(mask->data.size(), seg->labels.data.size());
+  int64_t set = 0;
+  for (size_t n = 0; n < mask->data.size(); ++n) {
+    ASSERT_EQ(seg->labels.data[n], mask->data[n] > 0.5f ? 1 : 0) << n;
+    set += seg->labels.data[n];
+  }
+  EXPECT_GT(set, 100);
+
+  // Another frame of reference, another series, a shifted grid.
+  ReferenceSeries other = reference;
+  other.frame_of_reference_uid = "1.2.3";
+  EXPECT_THAT(ReadDicomSegmentation(seg_path, other).status().message(),
+              HasSubstr("FrameOfReferenceUID"));
+  other = reference;
+  other.series_instance_uid = "1.2.3";
+  EXPECT_THAT(ReadDicomSegmentation(seg_path, other).status().message(),
+              HasSubstr("references another series"));
+  other = reference;
+  other.grid.origin = other.grid.IndexToPhysical({0, 0, 0.5});
+  EXPECT_THAT(ReadDicomSegmentation(seg_path, other).status().message(),
+              HasSubstr("is not on a slice of the reference series"));
+  other = reference;
+  other.grid.size[0] += 1;
+  EXPECT_THAT(ReadDicomSegmentation(seg_path, other).status().message(),
+              HasSubstr("pixels"));
+  EXPECT_FALSE(
+      ReadDicomSegmentation((run / "series-intensity" / "IM00001.dcm").string(),
+                            reference)
+          .ok());
+
+  // The CLI takes the SEG directly; every 5th slice is a key slice.
+  const fs::path out = dir_ / "fill";
+  const fs::path report = dir_ / "fill.json";
+  r = RunCli("fill " + seg_path + " --reference " +
+             (run / "series-intensity").string() +
+             " --key-slices 0-15:5 --method direct --mesh none --volume nrrd "
+             "--out " +
+             out.string() + " --report " + report.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  absl::StatusOr<Volume<float>> filled =
+      ReadVolumeAsFloat((out / "labels.nrrd").string());
+  ASSERT_TRUE(filled.ok()) << filled.status();
+  const int64_t plane = filled->grid.SliceVoxelCount();
+  for (int64_t k = 0; k < filled->grid.size[2]; k += 5) {
+    for (int64_t p = 0; p < plane; ++p) {
+      ASSERT_EQ(filled->data[k * plane + p],
+                static_cast<float>(seg->labels.data[k * plane + p]));
+    }
+  }
+  std::ifstream in(report);
+  const nlohmann::json j = nlohmann::json::parse(in);
+  EXPECT_EQ(j["input"], "seg-binary");
+  EXPECT_EQ(j["segments"].size(), 1u);
 }
 
 }  // namespace
