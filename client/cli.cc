@@ -5,6 +5,7 @@
 #include <string>
 
 #include "CLI/CLI.hpp"
+#include "client/fill_command.h"
 #include "client/run_command.h"
 #ifdef INTERSLICE_WITH_SERVER
 #include "client/remote_commands.h"
@@ -24,6 +25,12 @@ int RunCli(int argc, char** argv) {
   CLI::App* run = app.add_subcommand(
       "run", "Run the whole pipeline in this process (no server)");
   AddRunOptions(*run, run_args);
+  FillArguments fill_args;
+  CLI::App* fill = app.add_subcommand(
+      "fill",
+      "Fill a segmentation (label map) between its key slices for every "
+      "label, in this process");
+  AddFillOptions(*fill, fill_args);
 #ifdef INTERSLICE_WITH_SERVER
   RemoteCommands remote;
   remote.Register(app);
@@ -58,6 +65,7 @@ int RunCli(int argc, char** argv) {
     return 1;
   }
   if (run->parsed()) return ExecuteRun(run_args);
+  if (fill->parsed()) return ExecuteFill(fill_args);
 #ifdef INTERSLICE_WITH_SERVER
   if (const int rc = remote.Execute(); rc >= 0) return rc;
 #endif

@@ -513,6 +513,7 @@ void JobManager::UpdateDelivery(const std::string& job_id,
     }
   }
   if (remove) RemoveFinished(job);
+}
 
 void JobManager::SetJobIdSuffix(std::string suffix) {
   std::lock_guard<std::mutex> lock(mu_);

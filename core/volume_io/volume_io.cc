@@ -367,6 +367,12 @@ absl::Status WriteVolume(const Volume<uint8_t>& volume, const std::string& path,
   return WriteVolumeImpl(volume, path, context);
 }
 
+absl::Status WriteVolume(const Volume<uint16_t>& volume,
+                         const std::string& path,
+                         const ComputeContext& context) {
+  return WriteVolumeImpl(volume, path, context);
+}
+
 absl::StatusOr<Volume<float>> ReadVolumeAsFloat(const std::string& path) {
   const std::optional<FormatInfo> info = FormatOf(path, /*for_reading=*/true);
   if (!info.has_value()) {

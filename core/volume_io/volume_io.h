@@ -30,6 +30,9 @@ absl::Status WriteVolume(const Volume<float>& volume, const std::string& path,
                          const ComputeContext& context = {});
 absl::Status WriteVolume(const Volume<uint8_t>& volume, const std::string& path,
                          const ComputeContext& context = {});
+absl::Status WriteVolume(const Volume<uint16_t>& volume,  // label maps
+                         const std::string& path,
+                         const ComputeContext& context = {});
 
 // Reads a scalar volume written by WriteVolume (any scalar type, converted).
 absl::StatusOr<Volume<float>> ReadVolumeAsFloat(const std::string& path);

@@ -1,0 +1,84 @@
+// A fill job: a segmentation drawn on some slices of a reference DICOM series
+// through FillBetweenSlices (label_fill.h) to files. Used in-process by
+// `interslice fill`.
+//
+// Input: a label map (.nii, .nii.gz, .nrrd; integer labels, 0 = background)
+// on the grid of the reference series (CheckSameGrid; the reference is read
+// with core/dicom), or a DICOM SEG drawn on the reference series (any DICOM
+// file is read as one; label = SegmentNumber; segmentation_reader.h).
+// Output files in output_dir (created if missing), each written atomically
+// after every computation succeeded:
+//   volume formats "nii" -> labels.nii.gz, "nrrd" -> labels.nrrd (uint16
+//   label map on the output grid);
+//   mesh formats "stl" / "ply" / "obj" -> label-<L>.<ext>, one watertight
+//   mesh per filled label (LPS mm, from the label's combined field, so
+//   neighbouring labels' meshes meet without overlap); a label with an empty
+//   result writes no mesh.
+#ifndef INTERSLICE_CORE_LABELS_FILL_JOB_H_
+#define INTERSLICE_CORE_LABELS_FILL_JOB_H_
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "core/common/compute.h"
+#include "core/geometry/volume.h"
+#include "core/labels/label_fill.h"
+#include "core/labels/segmentation_reader.h"
+
+namespace interslice {
+
+struct FillJobSpec {
+  std::string segmentation;            // label map or DICOM SEG path
+  std::vector<std::string> reference;  // DICOM files and/or directories
+  std::string series_instance_uid;     // when the reference holds several
+  FillOptions fill;
+  std::vector<std::string> volume_formats = {"nii"};
+  std::vector<std::string> mesh_formats = {"stl"};
+  double mesh_adaptivity = 0;  // OpenVDB adaptivity in [0, 1]
+  std::string output_dir;
+  int64_t max_input_voxels = int64_t{1} << 31;
+};
+
+struct FillArtifact {
+  std::string kind;  // "labels", "surface"
+  int label = 0;     // surfaces: the label; else 0
+  std::string path;
+  int64_t size_bytes = 0;
+};
+
+struct FillJobReport {
+  double read_seconds = 0, fill_seconds = 0, mesh_seconds = 0,
+         write_seconds = 0;
+  Grid input_grid, output_grid;
+  int factor = 1;
+  std::string method;  // "linear", "cg", "direct"
+  // "label-map", "seg-binary" or "seg-fractional"; a SEG's segments.
+  std::string input_kind;
+  std::vector<SegmentDescription> segments;
+  std::vector<LabelFillInfo> per_label;  // fields dropped
+  int64_t gap_voxels_closed = 0;
+  int64_t key_voxels_restored = 0;
+  std::vector<std::string> warnings;
+  std::vector<FillArtifact> artifacts;
+};
+
+// INVALID_ARGUMENT naming the field for a spec that cannot run.
+absl::Status ValidateFillJobSpec(const FillJobSpec& spec);
+
+// Runs the job. Errors from reading (the label map, the reference series),
+// CheckSameGrid, FillBetweenSlices, meshing and writing, each naming the
+// file or label.
+absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
+                                         const ComputeContext& context);
+
+// {"stages": {...}, "grid": {...}, "method", "labels": [{"label",
+// "key_slices", "drawn_slices", "voxels", "iterations",
+// "relative_residual"}], "gap_voxels_closed", "key_voxels_restored",
+// "warnings": [...], "artifacts": [...]}.
+std::string FillJobReportToJson(const FillJobReport& report);
+
+}  // namespace interslice
+
+#endif  // INTERSLICE_CORE_LABELS_FILL_JOB_H_

@@ -1,0 +1,508 @@
+#include "core/labels/label_fill.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <set>
+#include <utility>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "absl/strings/str_join.h"
+#include "core/common/status_macros.h"
+#include "core/sdf/signed_distance.h"
+
+namespace interslice {
+namespace {
+
+constexpr float kNoField = -std::numeric_limits<float>::infinity();
+
+// Half-open in-plane box of a label on the input grid.
+struct PlaneBox {
+  int64_t i0 = 0, i1 = 0, j0 = 0, j1 = 0;
+};
+
+absl::Status ValidateLabels(const LabelVolume& labels) {
+  INTERSLICE_RETURN_IF_ERROR(labels.grid.Validate());
+  if (static_cast<int64_t>(labels.data.size()) != labels.grid.VoxelCount()) {
+    return absl::InvalidArgumentError(
+        absl::StrFormat("label map holds %d values but its grid has %d voxels",
+                        labels.data.size(), labels.grid.VoxelCount()));
+  }
+  return absl::OkStatus();
+}
+
+bool SliceHasLabel(const LabelVolume& labels, int64_t k, int label) {
+  const int64_t plane = labels.grid.SliceVoxelCount();
+  const uint16_t* s = labels.data.data() + k * plane;
+  return std::find(s, s + plane, static_cast<uint16_t>(label)) != s + plane;
+}
+
+// The median of the gaps between consecutive key slices, in slices (>= 1).
+double MedianGap(const std::vector<int64_t>& keys) {
+  if (keys.size() < 2) return 1;
+  std::vector<int64_t> gaps;
+  for (size_t s = 1; s < keys.size(); ++s)
+    gaps.push_back(keys[s] - keys[s - 1]);
+  std::nth_element(gaps.begin(), gaps.begin() + gaps.size() / 2, gaps.end());
+  return static_cast<double>(gaps[gaps.size() / 2]);
+}
+
+}  // namespace
+
+absl::StatusOr<LabelVolume> LabelVolumeFromFloat(const Volume<float>& volume) {
+  INTERSLICE_RETURN_IF_ERROR(volume.grid.Validate());
+  if (static_cast<int64_t>(volume.data.size()) != volume.grid.VoxelCount()) {
+    return absl::InvalidArgumentError(
+        "label map: data size does not match grid");
+  }
+  LabelVolume out;
+  out.grid = volume.grid;
+  out.data.resize(volume.data.size());
+  for (size_t n = 0; n < volume.data.size(); ++n) {
+    const float v = volume.data[n];
+    if (!(v >= 0 && v <= 65535) || v != std::floor(v)) {
+      const int64_t plane = volume.grid.SliceVoxelCount();
+      const int64_t k = static_cast<int64_t>(n) / plane;
+      const int64_t r = static_cast<int64_t>(n) % plane;
+      return absl::InvalidArgumentError(absl::StrFormat(
+          "label map: voxel (%d, %d, %d) holds %g; labels must be integers "
+          "0..65535 (0 = background)",
+          r % volume.grid.size[0], r / volume.grid.size[0], k, v));
+    }
+    out.data[n] = static_cast<uint16_t>(v);
+  }
+  return out;
+}
+
+absl::Status CheckSameGrid(const Grid& grid, const Grid& reference,
+                           const std::string& what) {
+  if (grid.size != reference.size) {
+    return absl::InvalidArgumentError(absl::StrFormat(
+        "%s is %d x %d x %d voxels but the reference series is %d x %d x %d",
+        what, grid.size[0], grid.size[1], grid.size[2], reference.size[0],
+        reference.size[1], reference.size[2]));
+  }
+  static constexpr const char* kAxis[] = {"x", "y", "z"};
+  for (int a = 0; a < 3; ++a) {
+    if (std::abs(grid.spacing[a] - reference.spacing[a]) >
+        1e-3 * reference.spacing[a]) {
+      return absl::InvalidArgumentError(absl::StrFormat(
+          "%s has %s spacing %g mm but the reference series %g mm", what,
+          kAxis[a], grid.spacing[a], reference.spacing[a]));
+    }
+  }
+  const double min_spacing = std::min(
+      {reference.spacing[0], reference.spacing[1], reference.spacing[2]});
+  double origin_error = 0;
+  for (int a = 0; a < 3; ++a) {
+    origin_error =
+        std::max(origin_error, std::abs(grid.origin[a] - reference.origin[a]));
+  }
+  if (origin_error > 0.01 + 0.01 * min_spacing) {
+    return absl::InvalidArgumentError(absl::StrFormat(
+        "%s has origin (%.3f, %.3f, %.3f) mm (LPS) but the reference series "
+        "(%.3f, %.3f, %.3f) mm",
+        what, grid.origin[0], grid.origin[1], grid.origin[2],
+        reference.origin[0], reference.origin[1], reference.origin[2]));
+  }
+  for (int e = 0; e < 9; ++e) {
+    if (std::abs(grid.direction[e] - reference.direction[e]) > 1e-3) {
+      return absl::InvalidArgumentError(
+          absl::StrFormat("%s has direction [%s] but the reference series [%s]",
+                          what, absl::StrJoin(grid.direction, ", "),
+                          absl::StrJoin(reference.direction, ", ")));
+    }
+  }
+  return absl::OkStatus();
+}
+
+std::vector<int> LabelsPresent(const LabelVolume& labels) {
+  std::vector<bool> seen(65536, false);
+  for (uint16_t v : labels.data) seen[v] = true;
+  std::vector<int> out;
+  for (int v = 1; v < 65536; ++v) {
+    if (seen[v]) out.push_back(v);
+  }
+  return out;
+}
+
+std::vector<int64_t> DrawnSlices(const LabelVolume& labels, int label) {
+  std::vector<int64_t> out;
+  for (int64_t k = 0; k < labels.grid.size[2]; ++k) {
+    if (SliceHasLabel(labels, k, label)) out.push_back(k);
+  }
+  return out;
+}
+
+std::vector<int64_t> KeySlicesForLabel(
+    const LabelVolume& labels, int label, const std::vector<int64_t>& annotated,
+    const std::optional<std::vector<int64_t>>& explicit_keys) {
+  std::vector<int64_t> drawn;
+  if (explicit_keys.has_value()) {
+    std::vector<int64_t> keys = *explicit_keys;
+    std::sort(keys.begin(), keys.end());
+    for (int64_t k : keys) {
+      if (SliceHasLabel(labels, k, label)) drawn.push_back(k);
+    }
+    if (drawn.empty()) return {};
+    // The explicit keys from the one before the first drawn slice to the one
+    // after the last: every key slice inside counts (drawn or drawn-empty).
+    auto first = std::lower_bound(keys.begin(), keys.end(), drawn.front());
+    auto last = std::upper_bound(keys.begin(), keys.end(), drawn.back());
+    if (first != keys.begin()) --first;
+    if (last != keys.end()) ++last;
+    return std::vector<int64_t>(first, last);
+  }
+  drawn = DrawnSlices(labels, label);
+  if (drawn.empty()) return {};
+  const int64_t nz = labels.grid.size[2];
+  int64_t below = -1, above = -1;
+  if (drawn.size() > 1) {
+    // The label's own rhythm: the next slice it would have been drawn on.
+    const auto gap = static_cast<int64_t>(MedianGap(drawn));
+    if (drawn.front() - gap >= 0) below = drawn.front() - gap;
+    if (drawn.back() + gap < nz) above = drawn.back() + gap;
+  } else {
+    // One drawn slice: the nearest slices where anything else was drawn.
+    auto it =
+        std::lower_bound(annotated.begin(), annotated.end(), drawn.front());
+    if (it != annotated.begin()) below = *(it - 1);
+    it = std::upper_bound(annotated.begin(), annotated.end(), drawn.back());
+    if (it != annotated.end()) above = *it;
+  }
+  std::vector<int64_t> out;
+  if (below >= 0) out.push_back(below);
+  out.insert(out.end(), drawn.begin(), drawn.end());
+  if (above >= 0) out.push_back(above);
+  return out;
+}
+
+absl::StatusOr<FillResult> FillBetweenSlices(const LabelVolume& input,
+                                             const FillOptions& options,
+                                             const ComputeContext& context) {
+  INTERSLICE_RETURN_IF_ERROR(ValidateLabels(input));
+  INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
+  const Grid& in_grid = input.grid;
+  const int64_t nx = in_grid.size[0], ny = in_grid.size[1],
+                nz = in_grid.size[2];
+  if (options.margin_pixels < 1) {
+    return absl::InvalidArgumentError("fill: margin_pixels must be >= 1");
+  }
+  if (options.solver.max_iterations < 0 || !(options.solver.tolerance >= 0)) {
+    return absl::InvalidArgumentError(
+        "fill: solver iterations and tolerance must be >= 0");
+  }
+
+  // Which labels.
+  const std::vector<int> present = LabelsPresent(input);
+  if (present.empty()) {
+    return absl::InvalidArgumentError(
+        "the segmentation is empty: no voxel holds a label");
+  }
+  std::vector<int> labels = options.labels;
+  if (labels.empty()) labels = present;
+  std::sort(labels.begin(), labels.end());
+  for (size_t n = 0; n < labels.size(); ++n) {
+    if (labels[n] < 1 || labels[n] > 65535) {
+      return absl::InvalidArgumentError(absl::StrFormat(
+          "label %d is out of range (labels are 1..65535)", labels[n]));
+    }
+    if (n > 0 && labels[n] == labels[n - 1]) {
+      return absl::InvalidArgumentError(
+          absl::StrFormat("label %d is listed twice", labels[n]));
+    }
+    if (!std::binary_search(present.begin(), present.end(), labels[n])) {
+      return absl::InvalidArgumentError(absl::StrFormat(
+          "label %d is not drawn anywhere in the segmentation (present: %s)",
+          labels[n], absl::StrJoin(present, ",")));
+    }
+  }
+  std::vector<bool> filled(65536, false);
+  for (int l : labels) filled[l] = true;
+
+  if (options.key_slices.has_value()) {
+    std::vector<int64_t> keys = *options.key_slices;
+    std::sort(keys.begin(), keys.end());
+    if (keys.empty()) {
+      return absl::InvalidArgumentError("the key slice list is empty");
+    }
+    for (size_t n = 0; n < keys.size(); ++n) {
+      if (keys[n] < 0 || keys[n] >= nz) {
+        return absl::InvalidArgumentError(
+            absl::StrFormat("key slice %d is outside the series (slices 0..%d)",
+                            keys[n], nz - 1));
+      }
+      if (n > 0 && keys[n] == keys[n - 1]) {
+        return absl::InvalidArgumentError(
+            absl::StrFormat("key slice %d is listed twice", keys[n]));
+      }
+    }
+  }
+
+  // Output grid.
+  int factor = 1;
+  if (options.z_resolution.factor.has_value() ||
+      options.z_resolution.spacing_mm.has_value()) {
+    INTERSLICE_ASSIGN_OR_RETURN(
+        factor,
+        ChooseInsertionFactor(in_grid.spacing[2],
+                              std::min(in_grid.spacing[0], in_grid.spacing[1]),
+                              options.z_resolution));
+  }
+  const int64_t out_nz = (nz - 1) * factor + 1;
+  const int64_t plane = in_grid.SliceVoxelCount();
+  if (out_nz > options.max_output_voxels / plane) {
+    return absl::ResourceExhaustedError(absl::StrFormat(
+        "the filled grid of %d x %d x %d voxels exceeds the limit of %d voxels",
+        nx, ny, out_nz, options.max_output_voxels));
+  }
+  Grid out_grid = in_grid;
+  out_grid.size[2] = out_nz;
+  out_grid.spacing[2] = in_grid.spacing[2] / factor;
+
+  FillResult result;
+  result.factor = factor;
+
+  // Key slices per label; the annotated slices are what the default rule
+  // sees as "drawn": every slice holding a filled label.
+  std::vector<int64_t> annotated;
+  if (!options.key_slices.has_value()) {
+    for (int64_t k = 0; k < nz; ++k) {
+      const uint16_t* s = input.data.data() + k * plane;
+      if (std::any_of(s, s + plane, [&](uint16_t v) { return filled[v]; })) {
+        annotated.push_back(k);
+      }
+    }
+  }
+  std::vector<std::vector<int64_t>> keys(labels.size());
+  std::set<int64_t> all_keys;
+  for (size_t n = 0; n < labels.size(); ++n) {
+    keys[n] =
+        KeySlicesForLabel(input, labels[n], annotated, options.key_slices);
+    all_keys.insert(keys[n].begin(), keys[n].end());
+  }
+  // is_key[n][k]: slice k is a key slice of labels[n].
+  std::vector<std::vector<bool>> is_key(labels.size(),
+                                        std::vector<bool>(nz, false));
+  for (size_t n = 0; n < labels.size(); ++n) {
+    for (int64_t k : keys[n]) is_key[n][k] = true;
+  }
+  std::vector<int> label_index(65536, -1);
+  for (size_t n = 0; n < labels.size(); ++n) label_index[labels[n]] = n;
+
+  // Running best and second-best field value and the best label (ties: the
+  // earlier, i.e. smaller, label keeps the voxel: labels run in ascending
+  // order and only a strictly larger value replaces the best).
+  const int64_t out_voxels = out_grid.VoxelCount();
+  std::vector<float> best(out_voxels, kNoField), second(out_voxels, kNoField);
+  std::vector<uint16_t> best_label(out_voxels, 0);
+
+  struct Region {
+    PlaneBox box;
+    int64_t z0 = 0, z1 = 0;  // output slices [z0, z1)
+    Volume<float> field;     // kept only for meshing
+  };
+  std::vector<Region> regions(labels.size());
+
+  for (size_t n = 0; n < labels.size(); ++n) {
+    INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
+    const int label = labels[n];
+    LabelFillInfo info;
+    info.label = label;
+    info.key_slices = keys[n];
+    const std::vector<int64_t>& key = keys[n];
+    if (key.empty()) {
+      result.warnings.push_back(absl::StrFormat(
+          "label %d is not drawn on any key slice: left out", label));
+      result.per_label.push_back(std::move(info));
+      continue;
+    }
+    // The box: drawn pixels on the key slices, grown by the margin.
+    PlaneBox box{nx, 0, ny, 0};
+    std::vector<bool> drawn_on(key.size(), false);
+    for (size_t s = 0; s < key.size(); ++s) {
+      const uint16_t* slice = input.data.data() + key[s] * plane;
+      for (int64_t j = 0; j < ny; ++j) {
+        for (int64_t i = 0; i < nx; ++i) {
+          if (slice[i + nx * j] != label) continue;
+          drawn_on[s] = true;
+          box.i0 = std::min(box.i0, i);
+          box.i1 = std::max(box.i1, i + 1);
+          box.j0 = std::min(box.j0, j);
+          box.j1 = std::max(box.j1, j + 1);
+        }
+      }
+      if (drawn_on[s]) ++info.drawn_slices;
+    }
+    if (info.drawn_slices == 1) {
+      const int64_t k = key[std::find(drawn_on.begin(), drawn_on.end(), true) -
+                            drawn_on.begin()];
+      result.warnings.push_back(absl::StrFormat(
+          "label %d is drawn on slice %d only: kept as drawn%s", label, k,
+          key.size() > 1 ? ", closing off toward the neighbouring key slices"
+                         : ""));
+    }
+    const int64_t m = options.margin_pixels;
+    box.i0 = std::max<int64_t>(0, box.i0 - m);
+    box.j0 = std::max<int64_t>(0, box.j0 - m);
+    box.i1 = std::min(nx, box.i1 + m);
+    box.j1 = std::min(ny, box.j1 + m);
+    const int64_t bw = box.i1 - box.i0, bh = box.j1 - box.j0;
+    const int64_t bplane = bw * bh;
+
+    // The key slices of the label as a 0/1 stack; its z spacing (used only
+    // by the end caps of core/sdf) is the median key gap.
+    Volume<float> mask;
+    mask.grid.size = {bw, bh, static_cast<int64_t>(key.size())};
+    mask.grid.spacing = {in_grid.spacing[0], in_grid.spacing[1],
+                         in_grid.spacing[2] * MedianGap(key)};
+    mask.data.assign(mask.grid.VoxelCount(), 0.0f);
+    for (size_t s = 0; s < key.size(); ++s) {
+      for (int64_t j = 0; j < bh; ++j) {
+        const uint16_t* row =
+            input.data.data() + in_grid.LinearIndex(box.i0, box.j0 + j, key[s]);
+        float* dst = mask.data.data() + s * bplane + j * bw;
+        for (int64_t i = 0; i < bw; ++i) dst[i] = row[i] == label ? 1.0f : 0.0f;
+      }
+    }
+    ContourOptions contour;
+    contour.lower = 0.5f;
+    contour.band_radius_mm = options.band_radius_mm;
+    INTERSLICE_ASSIGN_OR_RETURN(
+        Volume<float> maps, ComputeSliceDistanceMaps(mask, contour, context));
+    mask = Volume<float>();
+
+    StackPlan plan;
+    plan.factor = factor;
+    plan.spacing_mm = out_grid.spacing[2];
+    for (int64_t k : key) plan.nodes.push_back((k - key.front()) * factor);
+    plan.output_slices = plan.nodes.back() + 1;
+    INTERSLICE_ASSIGN_OR_RETURN(
+        StackedField stacked,
+        StackLinear(maps, plan, options.max_output_voxels, context));
+    maps = Volume<float>();
+    const bool any_free =
+        std::any_of(stacked.fixed_slices.begin(), stacked.fixed_slices.end(),
+                    [](uint8_t f) { return f == 0; });
+    if (options.solver.method != SolverMethod::kLinear && any_free) {
+      INTERSLICE_ASSIGN_OR_RETURN(
+          info.solver,
+          Solve(stacked.field, stacked.fixed_slices, options.solver, context));
+    } else {
+      info.solver.method = SolverMethod::kLinear;
+      info.solver.relative_residual = 1;
+    }
+
+    // Merge into the running best / second best.
+    Region& region = regions[n];
+    region.box = box;
+    region.z0 = key.front() * factor;
+    region.z1 = region.z0 + plan.output_slices;
+    const float* f = stacked.field.data.data();
+    for (int64_t z = region.z0; z < region.z1; ++z) {
+      for (int64_t j = 0; j < bh; ++j) {
+        const int64_t dst = out_grid.LinearIndex(box.i0, box.j0 + j, z);
+        const float* src = f + (z - region.z0) * bplane + j * bw;
+        for (int64_t i = 0; i < bw; ++i) {
+          const float v = src[i];
+          if (v > best[dst + i]) {
+            second[dst + i] = best[dst + i];
+            best[dst + i] = v;
+            best_label[dst + i] = static_cast<uint16_t>(label);
+          } else if (v > second[dst + i]) {
+            second[dst + i] = v;
+          }
+        }
+      }
+    }
+    if (options.keep_fields) {
+      region.field = std::move(stacked.field);
+      Grid& g = region.field.grid;
+      g.spacing = out_grid.spacing;
+      g.direction = out_grid.direction;
+      g.origin = out_grid.IndexToPhysical({static_cast<double>(box.i0),
+                                           static_cast<double>(box.j0),
+                                           static_cast<double>(region.z0)});
+    }
+    result.per_label.push_back(std::move(info));
+  }
+  INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
+
+  // Combine: the largest positive field wins.
+  LabelVolume& out = result.labels;
+  out.grid = out_grid;
+  out.data.assign(out_voxels, 0);
+  for (int64_t v = 0; v < out_voxels; ++v) {
+    if (best[v] > 0) out.data[v] = best_label[v];
+  }
+
+  // Gap closing between annotated slices labelled on both sides.
+  const std::vector<int64_t> annotated_keys(all_keys.begin(), all_keys.end());
+  for (size_t a = 0; a + 1 < annotated_keys.size(); ++a) {
+    const int64_t ka = annotated_keys[a], kb = annotated_keys[a + 1];
+    const uint16_t* la = input.data.data() + ka * plane;
+    const uint16_t* lb = input.data.data() + kb * plane;
+    for (int64_t z = ka * factor + 1; z < kb * factor; ++z) {
+      for (int64_t p = 0; p < plane; ++p) {
+        const int64_t v = z * plane + p;
+        if (out.data[v] != 0 || best[v] == kNoField) continue;
+        if (la[p] != 0 && lb[p] != 0) {
+          out.data[v] = best_label[v];
+          ++result.gap_voxels_closed;
+        }
+      }
+    }
+  }
+
+  // Key slices exactly as drawn.
+  for (int64_t k = 0; k < nz; ++k) {
+    const uint16_t* drawn = input.data.data() + k * plane;
+    uint16_t* o = out.data.data() + k * factor * plane;
+    for (int64_t p = 0; p < plane; ++p) {
+      const uint16_t in = drawn[p];
+      uint16_t want = o[p];
+      if (in != 0 && (!filled[in] || is_key[label_index[in]][k])) {
+        want = in;
+      } else if (o[p] != 0 && is_key[label_index[o[p]]][k]) {
+        want = 0;  // drawn-and-empty for that label
+      }
+      if (want != o[p]) {
+        o[p] = want;
+        ++result.key_voxels_restored;
+      }
+    }
+  }
+
+  for (uint16_t v : out.data) {
+    if (v != 0 && filled[v]) ++result.per_label[label_index[v]].output_voxels;
+  }
+
+  if (options.keep_fields) {
+    for (size_t n = 0; n < labels.size(); ++n) {
+      Region& region = regions[n];
+      if (region.field.data.empty()) continue;
+      const PlaneBox& box = region.box;
+      const int64_t bw = box.i1 - box.i0, bh = box.j1 - box.j0;
+      float* f = region.field.data.data();
+      for (int64_t z = region.z0; z < region.z1; ++z) {
+        for (int64_t j = 0; j < bh; ++j) {
+          const int64_t src = out_grid.LinearIndex(box.i0, box.j0 + j, z);
+          float* row = f + ((z - region.z0) * bh + j) * bw;
+          for (int64_t i = 0; i < bw; ++i) {
+            const int64_t v = src + i;
+            const float other =
+                best_label[v] == labels[n] ? second[v] : best[v];
+            if (other != kNoField) {
+              row[i] = std::min(row[i], 0.5f * (row[i] - other));
+            }
+          }
+        }
+      }
+      result.per_label[n].field = std::move(region.field);
+    }
+  }
+  return result;
+}
+
+}  // namespace interslice

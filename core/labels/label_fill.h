@@ -1,0 +1,143 @@
+// Filling a multi-label segmentation between its key slices with the paper's
+// method, one label at a time (issue 13):
+//   per label L, on its key slices: the 2D signed distance of L's mask
+//   (core/sdf, at the 0.5 level of the 0/1 mask: the contour runs along the
+//   pixel edges, so every drawn pixel is inside and every other one outside)
+//   -> linear stacking onto the output grid (core/stack) -> refinement with
+//   the key slices held fixed (core/solver: cg, direct or none).
+// Each label is computed in its own box: the in-plane bounding box of its
+// drawn pixels grown by `margin_pixels`, between its first and last key
+// slice. Outside its box a label's field is -infinity.
+//
+// Combining the labels (no overlaps, no gaps):
+// - A voxel takes the label with the largest field value f_L if that value is
+//   > 0; on exactly equal values the smaller label number wins, so the result
+//   does not depend on the order or the thread count.
+// - Gap closing: a voxel whose every f_L <= 0 but that lies between two
+//   annotated slices (the union of all key slices) on both of which its
+//   in-plane pixel is labelled takes the label with the largest (least
+//   negative) f_L among the labels whose box holds it. Two structures that
+//   touch on both bracketing key slices therefore leave no background
+//   between them.
+// - Key slices are kept exactly: on input slice k, a pixel drawn with label
+//   M keeps M when k is a key slice of M (or M is not being filled), and a
+//   label is never put on a key slice of its own where it was not drawn.
+//
+// Key slices, per label (KeySlicesForLabel): by default the slices where L is
+// drawn, plus one drawn-and-empty slice beyond each end, where L would have
+// been drawn next at its own rhythm (its median gap between drawn slices),
+// if that slice is inside the series: L then ends between its last drawn
+// slice and that one (the end caps of core/sdf); at the edge of the series
+// it ends at its last drawn slice. A label drawn on one slice only takes
+// instead the nearest annotated slices (any filled label drawn) on either
+// side as its empty ends. A slice between two drawn slices of L where L is
+// absent counts as not drawn.
+// With FillOptions::key_slices, every label uses that list (a key slice where
+// L is absent is drawn-and-empty), cut to the part that brackets L's drawn
+// slices.
+//
+// Units: field values are signed distances in mm, positive inside.
+#ifndef INTERSLICE_CORE_LABELS_LABEL_FILL_H_
+#define INTERSLICE_CORE_LABELS_LABEL_FILL_H_
+
+#include <cstdint>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "core/common/compute.h"
+#include "core/geometry/volume.h"
+#include "core/solver/solver.h"
+#include "core/stack/stacking.h"
+
+namespace interslice {
+
+// A label map: 0 = background, 1..65535 = labels.
+using LabelVolume = Volume<uint16_t>;
+
+// Converts a volume read as float (core/volume_io) to labels.
+// INVALID_ARGUMENT naming the first offending voxel (i, j, k) for a value
+// that is negative, not an integer, not finite or above 65535.
+absl::StatusOr<LabelVolume> LabelVolumeFromFloat(const Volume<float>& volume);
+
+// OK when `grid` is `reference` up to rounding: the same size; spacing within
+// 0.1%; origin within 0.01 mm + 1% of the smallest spacing; direction within
+// 1e-3. Otherwise INVALID_ARGUMENT saying what differs (both values), with
+// `what` (e.g. "the label map") as the subject.
+absl::Status CheckSameGrid(const Grid& grid, const Grid& reference,
+                           const std::string& what);
+
+// The labels present (sorted) and, per label, the slices where it is drawn.
+std::vector<int> LabelsPresent(const LabelVolume& labels);
+std::vector<int64_t> DrawnSlices(const LabelVolume& labels, int label);
+
+// Key slices of `label` (sorted input slice indices) as described above.
+// `annotated`: the slices where any filled label is drawn (sorted);
+// `explicit_keys`: FillOptions::key_slices if given. Empty if the label is not
+// drawn.
+std::vector<int64_t> KeySlicesForLabel(
+    const LabelVolume& labels, int label, const std::vector<int64_t>& annotated,
+    const std::optional<std::vector<int64_t>>& explicit_keys);
+
+struct FillOptions {
+  // Labels to fill; empty = every label present. Labels not filled are
+  // copied through where drawn and take precedence over filled ones.
+  std::vector<int> labels;
+  // Key slices for every label (input slice indices, any order, no
+  // duplicates); unset = detected per label.
+  std::optional<std::vector<int64_t>> key_slices;
+  // method kLinear stops after stacking. Default: the paper's 15 CG steps.
+  SolverOptions solver;
+  // Output z resolution: unset = the input grid itself (factor 1); otherwise
+  // as ChooseInsertionFactor (input slices land on output slices k * N).
+  ZResolution z_resolution;
+  // Exact band of the 2D distance, mm (<= 0: core/sdf's default).
+  double band_radius_mm = 0;
+  // In-plane growth of each label's box, pixels (>= 1): room for the
+  // refinement to move the surface outside the drawn pixels.
+  int margin_pixels = 6;
+  // Keep each label's combined field (for meshing) in FillResult.
+  bool keep_fields = false;
+  // Bound on voxels of the output grid, checked before allocation.
+  int64_t max_output_voxels = int64_t{1} << 30;
+};
+
+struct LabelFillInfo {
+  int label = 0;
+  std::vector<int64_t> key_slices;  // input slice indices
+  int64_t drawn_slices = 0;         // key slices where the label is drawn
+  int64_t output_voxels = 0;        // voxels of the label in the result
+  SolverResult solver;
+  // Field for meshing, on the label's box of the output grid:
+  // min(f_L, (f_L - max_{M != L} f_M) / 2), positive exactly where L wins
+  // the comparison (before gap closing and key-slice restoration). Empty
+  // unless keep_fields.
+  Volume<float> field;
+};
+
+struct FillResult {
+  LabelVolume labels;  // on the output grid
+  int factor = 1;      // input slice k is output slice k * factor
+  std::vector<LabelFillInfo> per_label;  // ascending label
+  // Voxels given a label by gap closing; voxels where an interpolated label
+  // was overruled by a drawn key-slice pixel.
+  int64_t gap_voxels_closed = 0;
+  int64_t key_voxels_restored = 0;
+  // One sentence each, naming label and slice (e.g. a label drawn on one
+  // slice only).
+  std::vector<std::string> warnings;
+};
+
+// Fills `input`. Errors (INVALID_ARGUMENT unless noted): invalid grid or
+// data size; no label drawn; a requested label absent or out of range; a key
+// slice out of range or repeated; bad solver options; RESOURCE_EXHAUSTED when
+// the output would exceed max_output_voxels; CANCELLED / DEADLINE_EXCEEDED
+// from context.cancel (polled per label and inside each stage).
+absl::StatusOr<FillResult> FillBetweenSlices(const LabelVolume& input,
+                                             const FillOptions& options,
+                                             const ComputeContext& context);
+
+}  // namespace interslice
+
+#endif  // INTERSLICE_CORE_LABELS_LABEL_FILL_H_

@@ -1,0 +1,70 @@
+// Segmentations in from DICOM: a DICOM Segmentation (SEG, DCMTK dcmseg) as a
+// label map on the grid of the series it was drawn on.
+//
+// - Binary and fractional SEGs, one or many segments, frames for any subset
+//   of the reference's slices (slices without a frame are not drawn).
+// - Label = SegmentNumber. A fractional frame sets a pixel when its value is
+//   at least half of MaximumFractionalValue (the 0.5 iso-level of the
+//   fraction).
+// - Each frame is placed by its ImagePositionPatient (per-frame or shared
+//   Plane Position) on the reference slice it lies on.
+//
+// Errors (INVALID_ARGUMENT, naming the file and, where it applies, the frame
+// (1-based, as in DICOM) and segment): not a readable SEG; a
+// FrameOfReferenceUID other than the reference's; a referenced series
+// (ReferencedSeriesSequence) other than the reference series; Rows/Columns
+// or ImageOrientationPatient not the reference's; a frame off the
+// reference's slice planes (more than 1% of a slice gap) or shifted in plane
+// (more than 1% of a pixel); a frame without segment number or position;
+// two segments set on the same pixel ("segments 1 and 2 overlap on slice
+// 12"); more than 65535 segments.
+#ifndef INTERSLICE_CORE_LABELS_SEGMENTATION_READER_H_
+#define INTERSLICE_CORE_LABELS_SEGMENTATION_READER_H_
+
+#include <array>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "core/geometry/volume.h"
+#include "core/labels/label_fill.h"
+
+namespace interslice {
+
+// A coded concept as (CodeValue, CodingSchemeDesignator, CodeMeaning).
+struct CodedConcept {
+  std::string value, scheme, meaning;
+};
+
+// What a SEG says about one segment (label = number).
+struct SegmentDescription {
+  int number = 0;
+  std::string label;                              // SegmentLabel
+  std::optional<std::array<uint16_t, 3>> cielab;  // RecommendedDisplayCIELab
+  CodedConcept category, type;  // SegmentedPropertyCategory/TypeCode
+};
+
+struct SegmentationInput {
+  LabelVolume labels;  // on the reference grid
+  std::vector<SegmentDescription> segments;
+  bool fractional = false;
+  int64_t frames = 0;
+};
+
+// The reference series, as core/dicom read it.
+struct ReferenceSeries {
+  Grid grid;
+  std::string series_instance_uid;
+  std::string frame_of_reference_uid;
+};
+
+// True if `path` is a DICOM file (the "DICM" magic at byte 128).
+bool LooksLikeDicomFile(const std::string& path);
+
+absl::StatusOr<SegmentationInput> ReadDicomSegmentation(
+    const std::string& path, const ReferenceSeries& reference);
+
+}  // namespace interslice
+
+#endif  // INTERSLICE_CORE_LABELS_SEGMENTATION_READER_H_

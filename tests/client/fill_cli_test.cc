@@ -1,0 +1,301 @@
+// End-to-end tests of `interslice fill`: the real binary on the shipped
+// thick CT phantom, with a two-label segmentation made from it.
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <array>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <string>
+
+#include "core/dicom/series_reader.h"
+#include "core/labels/segmentation_reader.h"
+#include "core/volume_io/volume_io.h"
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "nlohmann/json.hpp"
+#include "tests/testing/mesh_checks.h"
+
+namespace interslice {
+namespace {
+
+namespace fs = std::filesystem;
+using ::testing::HasSubstr;
+
+struct CommandResult {
+  int exit_code = -1;
+  std::string output;
+};
+
+CommandResult RunCli(const std::string& arguments) {
+  const std::string command =
+      std::string(INTERSLICE_CLI_PATH) + " " + arguments + " 2>&1";
+  CommandResult result;
+  FILE* pipe = popen(command.c_str(), "r");
+  if (pipe == nullptr) return result;
+  std::array<char, 4096> buffer;
+  size_t n;
+  while ((n = fread(buffer.data(), 1, buffer.size(), pipe)) > 0) {
+    result.output.append(buffer.data(), n);
+  }
+  const int status = pclose(pipe);
+  result.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  return result;
+}
+
+// Every 2nd slice of the 5 mm series is a key slice (10 mm gaps).
+constexpr int64_t kStep = 2;
+constexpr const char* kMethod = "direct";
+const std::string kPhantom =
+    std::string(INTERSLICE_SOURCE_DIR) + "/data/ct-head-phantom-thick";
+
+class FillCliTest : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    absl::StatusOr<DicomSeries> series =
+        ReadDicomSeries({kPhantom}, {}, ComputeContext{.threads = 1});
+    ASSERT_TRUE(series.ok()) << series.status();
+    // Two touching structures: bone (>= 300 HU) and the soft tissue next to
+    // it (0..300 HU) inside a box, so they share a long boundary.
+    truth_ = new Volume<uint16_t>;
+    truth_->grid = series->image.grid;
+    truth_->data.assign(truth_->grid.VoxelCount(), 0);
+    for (int64_t k = 0; k < truth_->grid.size[2]; ++k) {
+      for (int64_t j = 150; j < 350; ++j) {
+        for (int64_t i = 150; i < 350; ++i) {
+          const float hu = series->image.at(i, j, k);
+          if (hu >= 300) {
+            truth_->at(i, j, k) = 1;
+          } else if (hu >= 0) {
+            truth_->at(i, j, k) = 2;
+          }
+        }
+      }
+    }
+  }
+  static void TearDownTestSuite() { delete truth_; }
+
+  void SetUp() override {
+    dir_ = fs::temp_directory_path() /
+           ("interslice_fill_cli_test_" + std::to_string(getpid()) + "_" +
+            ::testing::UnitTest::GetInstance()->current_test_info()->name());
+    fs::remove_all(dir_);
+    fs::create_directories(dir_);
+  }
+  void TearDown() override { fs::remove_all(dir_); }
+
+  static Volume<uint16_t>* truth_;
+  fs::path dir_;
+};
+
+Volume<uint16_t>* FillCliTest::truth_ = nullptr;
+
+TEST_F(FillCliTest, FillsEverySecondSliceOfTwoTouchingLabels) {
+  const std::string labels = (dir_ / "labels.nii.gz").string();
+  ASSERT_TRUE(WriteVolume(*truth_, labels).ok());
+  const fs::path out = dir_ / "out";
+  const fs::path report = dir_ / "report.json";
+  // Only every 2nd slice is given as key; the full segmentation on the
+  // others is the ground truth they are compared with.
+  const CommandResult r = RunCli("fill " + labels + " --reference " + kPhantom +
+                                 " --key-slices 0-27:" + std::to_string(kStep) +
+                                 " --method " + std::string(kMethod) +
+                                 " --threads 2 "
+                                 "--mesh stl,ply --volume nii,nrrd --out " +
+                                 out.string() + " --report " + report.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+
+  absl::StatusOr<Volume<float>> filled =
+      ReadVolumeAsFloat((out / "labels.nrrd").string());
+  ASSERT_TRUE(filled.ok()) << filled.status();
+  ASSERT_EQ(filled->grid.size, truth_->grid.size);
+  for (int a = 0; a < 3; ++a) {
+    EXPECT_NEAR(filled->grid.origin[a], truth_->grid.origin[a], 1e-3);
+  }
+  // Dice per label on the withheld slices, of the fill and of the
+  // nearest-slice copy (the baseline a fill must beat).
+  int64_t both[3] = {0, 0, 0}, count_truth[3] = {0, 0, 0},
+          count_out[3] = {0, 0, 0}, both_copy[3] = {0, 0, 0},
+          count_copy[3] = {0, 0, 0};
+  const int64_t plane = truth_->grid.SliceVoxelCount();
+  for (int64_t k = 0; k < truth_->grid.size[2]; ++k) {
+    const int64_t nearest =
+        std::min<int64_t>(27 / kStep * kStep, (k + kStep / 2) / kStep * kStep);
+    for (int64_t p = 0; p < plane; ++p) {
+      const int t = truth_->data[k * plane + p];
+      const int o = static_cast<int>(filled->data[k * plane + p]);
+      const int c = truth_->data[nearest * plane + p];
+      if (k % kStep == 0) {
+        ASSERT_EQ(o, t) << "key slice " << k << " changed at pixel " << p;
+        continue;
+      }
+      if (k > 27 / kStep * kStep) continue;
+      ++count_truth[t];
+      ++count_out[o];
+      ++count_copy[c];
+      if (t == o) ++both[t];
+      if (t == c) ++both_copy[t];
+    }
+  }
+  for (int l : {1, 2}) {
+    const double dice =
+        2.0 * both[l] / static_cast<double>(count_truth[l] + count_out[l]);
+    const double dice_copy =
+        2.0 * both_copy[l] /
+        static_cast<double>(count_truth[l] + count_copy[l]);
+    std::printf("label %d: Dice fill %.3f, nearest-slice copy %.3f\n", l, dice,
+                dice_copy);
+    EXPECT_GT(dice, dice_copy) << "label " << l;
+  }
+
+  std::ifstream in(report);
+  const nlohmann::json j = nlohmann::json::parse(in);
+  ASSERT_EQ(j["labels"].size(), 2u);
+  EXPECT_EQ(j["labels"][0]["label"], 1);
+  EXPECT_EQ(j["method"], "direct");
+  EXPECT_EQ(j["grid"]["size"][2], truth_->grid.size[2]);
+  for (int l : {1, 2}) {
+    ::interslice::testing::TriangleSoup soup;
+    const std::string stl =
+        (out / ("label-" + std::to_string(l) + ".stl")).string();
+    ASSERT_TRUE(::interslice::testing::ReadBinaryStl(stl, soup)) << stl;
+    const ::interslice::testing::MeshTopology topology =
+        ::interslice::testing::AnalyzeSoup(soup);
+    EXPECT_EQ(topology.boundary_edges, 0) << "label " << l;
+    EXPECT_TRUE(fs::exists(out / ("label-" + std::to_string(l) + ".ply")));
+  }
+}
+
+TEST_F(FillCliTest, BadInputGivesOneLineAndExitCodeOne) {
+  // A label map on another grid (one slice fewer), a non-label value, a
+  // label that is not drawn, a bad key slice list.
+  Volume<uint16_t> short_map = *truth_;
+  short_map.grid.size[2] -= 1;
+  short_map.data.resize(short_map.grid.VoxelCount());
+  const std::string short_path = (dir_ / "short.nrrd").string();
+  ASSERT_TRUE(WriteVolume(short_map, short_path).ok());
+  const std::string good = (dir_ / "good.nrrd").string();
+  ASSERT_TRUE(WriteVolume(*truth_, good).ok());
+  Volume<float> fractional;
+  fractional.grid = truth_->grid;
+  fractional.data.assign(fractional.grid.VoxelCount(), 0.0f);
+  fractional.data[1000] = 0.5f;
+  const std::string fractional_path = (dir_ / "fractional.nrrd").string();
+  ASSERT_TRUE(WriteVolume(fractional, fractional_path).ok());
+  const std::string out = " --out " + (dir_ / "out").string();
+  struct Case {
+    std::string args;
+    std::string message;
+  };
+  const Case cases[] = {
+      {"fill " + short_path + " --reference " + kPhantom + out,
+       "the label map is 512 x 512 x 27 voxels"},
+      {"fill " + fractional_path + " --reference " + kPhantom + out,
+       "holds 0.5"},
+      {"fill " + good + " --reference " + kPhantom + " --labels 1,9" + out,
+       "label 9 is not drawn"},
+      {"fill " + good + " --reference " + kPhantom + " --key-slices 0-x" + out,
+       "--key-slices"},
+      {"fill " + good + " --reference " + kPhantom + " --key-slices 0,99" + out,
+       "key slice 99 is outside"},
+      {"fill " + good + " --reference " + kPhantom + " --method magic" + out,
+       "--method"},
+      {"fill " + good + out, "--reference"},
+  };
+  for (const Case& c : cases) {
+    const CommandResult r = RunCli(c.args);
+    EXPECT_EQ(r.exit_code, 1) << c.args << "\n" << r.output;
+    EXPECT_THAT(r.output, HasSubstr(c.message)) << c.args;
+    EXPECT_EQ(std::count(r.output.begin(), r.output.end(), '\n'), 1)
+        << c.args << "\n"
+        << r.output;
+  }
+  EXPECT_FALSE(fs::exists(dir_ / "out" / "labels.nii.gz"));
+}
+
+// A binary SEG written by `interslice run --seg` (one segment, a frame per
+// slice of its intensity series) read back as a label map, and filled.
+TEST_F(FillCliTest, ReadsAndFillsADicomSeg) {
+  const fs::path run = dir_ / "run";
+  const std::string small =
+      std::string(INTERSLICE_SOURCE_DIR) + "/tests/data/ct-thick";
+  CommandResult r = RunCli("run " + small +
+                           " --threshold 300 --roi 200,40,0,296,136,4 "
+                           "--method direct --factor 5 --seg --volume nrrd "
+                           "--mesh none --quiet --out " +
+                           run.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  absl::StatusOr<DicomSeries> series = ReadDicomSeries(
+      {(run / "series-intensity").string()}, {}, ComputeContext{.threads = 1});
+  ASSERT_TRUE(series.ok()) << series.status();
+  ReferenceSeries reference{series->image.grid, series->series_instance_uid,
+                            series->frame_of_reference_uid};
+  const std::string seg_path = (run / "seg.dcm").string();
+  absl::StatusOr<SegmentationInput> seg =
+      ReadDicomSegmentation(seg_path, reference);
+  ASSERT_TRUE(seg.ok()) << seg.status();
+  EXPECT_FALSE(seg->fractional);
+  ASSERT_EQ(seg->segments.size(), 1u);
+  EXPECT_EQ(seg->segments[0].number, 1);
+  absl::StatusOr<Volume<float>> mask =
+      ReadVolumeAsFloat((run / "mask.nrrd").string());
+  ASSERT_TRUE(mask.ok()) << mask.status();
+  ASSERT_EQ(mask->data.size(), seg->labels.data.size());
+  int64_t set = 0;
+  for (size_t n = 0; n < mask->data.size(); ++n) {
+    ASSERT_EQ(seg->labels.data[n], mask->data[n] > 0.5f ? 1 : 0) << n;
+    set += seg->labels.data[n];
+  }
+  EXPECT_GT(set, 100);
+
+  // Another frame of reference, another series, a shifted grid.
+  ReferenceSeries other = reference;
+  other.frame_of_reference_uid = "1.2.3";
+  EXPECT_THAT(ReadDicomSegmentation(seg_path, other).status().message(),
+              HasSubstr("FrameOfReferenceUID"));
+  other = reference;
+  other.series_instance_uid = "1.2.3";
+  EXPECT_THAT(ReadDicomSegmentation(seg_path, other).status().message(),
+              HasSubstr("references another series"));
+  other = reference;
+  other.grid.origin = other.grid.IndexToPhysical({0, 0, 0.5});
+  EXPECT_THAT(ReadDicomSegmentation(seg_path, other).status().message(),
+              HasSubstr("is not on a slice of the reference series"));
+  other = reference;
+  other.grid.size[0] += 1;
+  EXPECT_THAT(ReadDicomSegmentation(seg_path, other).status().message(),
+              HasSubstr("pixels"));
+  EXPECT_FALSE(
+      ReadDicomSegmentation((run / "series-intensity" / "IM00001.dcm").string(),
+                            reference)
+          .ok());
+
+  // The CLI takes the SEG directly; every 5th slice is a key slice.
+  const fs::path out = dir_ / "fill";
+  const fs::path report = dir_ / "fill.json";
+  r = RunCli("fill " + seg_path + " --reference " +
+             (run / "series-intensity").string() +
+             " --key-slices 0-15:5 --method direct --mesh none --volume nrrd "
+             "--out " +
+             out.string() + " --report " + report.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  absl::StatusOr<Volume<float>> filled =
+      ReadVolumeAsFloat((out / "labels.nrrd").string());
+  ASSERT_TRUE(filled.ok()) << filled.status();
+  const int64_t plane = filled->grid.SliceVoxelCount();
+  for (int64_t k = 0; k < filled->grid.size[2]; k += 5) {
+    for (int64_t p = 0; p < plane; ++p) {
+      ASSERT_EQ(filled->data[k * plane + p],
+                static_cast<float>(seg->labels.data[k * plane + p]));
+    }
+  }
+  std::ifstream in(report);
+  const nlohmann::json j = nlohmann::json::parse(in);
+  EXPECT_EQ(j["input"], "seg-binary");
+  EXPECT_EQ(j["segments"].size(), 1u);
+}
+
+}  // namespace
+}  // namespace interslice

@@ -1,0 +1,369 @@
+#include "core/labels/label_fill.h"
+
+#include <cmath>
+#include <cstdint>
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include "core/volume_io/volume_io.h"
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+
+namespace interslice {
+namespace {
+
+using ::testing::HasSubstr;
+
+constexpr int64_t kN = 40;   // in-plane size
+constexpr int64_t kNz = 21;  // slices
+
+// Ground truth: a disc of radius r(k) centred in the slice, split at column
+// 20 into label 1 (left) and label 2 (right), so the two touch along a
+// straight line. r(k) follows a sphere of radius 9 slices... centred on slice
+// 10, so it ends between slices 1 and 2 and between 18 and 19.
+LabelVolume TouchingHalves() {
+  LabelVolume v;
+  v.grid.size = {kN, kN, kNz};
+  v.grid.spacing = {1, 1, 1};
+  v.data.assign(v.grid.VoxelCount(), 0);
+  for (int64_t k = 0; k < kNz; ++k) {
+    const double dz = k - 10.0;
+    const double r2 = 8.6 * 8.6 - dz * dz;
+    if (r2 <= 0) continue;
+    for (int64_t j = 0; j < kN; ++j) {
+      for (int64_t i = 0; i < kN; ++i) {
+        const double x = i - 19.5, y = j - 19.5;
+        if (x * x + y * y * 0.6 <= r2 * 1.5) v.at(i, j, k) = i < 20 ? 1 : 2;
+      }
+    }
+  }
+  return v;
+}
+
+// Only the key slices of `truth` kept (others set to 0).
+LabelVolume KeepSlices(const LabelVolume& truth,
+                       const std::vector<int64_t>& keys) {
+  LabelVolume v = truth;
+  const int64_t plane = v.grid.SliceVoxelCount();
+  for (int64_t k = 0; k < v.grid.size[2]; ++k) {
+    if (std::find(keys.begin(), keys.end(), k) != keys.end()) continue;
+    std::fill(v.data.begin() + k * plane, v.data.begin() + (k + 1) * plane, 0);
+  }
+  return v;
+}
+
+double Dice(const LabelVolume& a, const LabelVolume& b, int label) {
+  int64_t both = 0, na = 0, nb = 0;
+  for (size_t n = 0; n < a.data.size(); ++n) {
+    na += a.data[n] == label;
+    nb += b.data[n] == label;
+    both += a.data[n] == label && b.data[n] == label;
+  }
+  return na + nb == 0 ? 1.0 : 2.0 * both / (na + nb);
+}
+
+int64_t CountOnSlice(const LabelVolume& v, int64_t k, int label) {
+  int64_t n = 0;
+  for (int64_t j = 0; j < v.grid.size[1]; ++j) {
+    for (int64_t i = 0; i < v.grid.size[0]; ++i) n += v.at(i, j, k) == label;
+  }
+  return n;
+}
+
+const std::vector<int64_t> kKeys = {0, 5, 10, 15, 20};
+
+class FillMethodTest : public ::testing::TestWithParam<SolverMethod> {};
+
+TEST_P(FillMethodTest, TouchingLabelsKeySlicesExactNoGapNoOverlap) {
+  const LabelVolume truth = TouchingHalves();
+  const LabelVolume drawn = KeepSlices(truth, kKeys);
+  FillOptions options;
+  options.key_slices = kKeys;
+  options.solver.method = GetParam();
+  absl::StatusOr<FillResult> result =
+      FillBetweenSlices(drawn, options, ComputeContext{.threads = 2});
+  ASSERT_TRUE(result.ok()) << result.status();
+  const LabelVolume& out = result->labels;
+  ASSERT_EQ(out.grid.size, truth.grid.size);
+
+  // Key slices exactly as drawn.
+  for (int64_t k : kKeys) {
+    for (int64_t j = 0; j < kN; ++j) {
+      for (int64_t i = 0; i < kN; ++i) {
+        ASSERT_EQ(out.at(i, j, k), drawn.at(i, j, k))
+            << i << "," << j << "," << k;
+      }
+    }
+  }
+  // Between key slices: close to the truth for both labels.
+  EXPECT_GT(Dice(out, truth, 1), 0.9);
+  EXPECT_GT(Dice(out, truth, 2), 0.9);
+  // No gap along the touching line: wherever both bracketing key slices hold
+  // a label at a pixel, the interpolated slices hold one too.
+  int64_t gaps = 0;
+  for (size_t s = 0; s + 1 < kKeys.size(); ++s) {
+    for (int64_t k = kKeys[s] + 1; k < kKeys[s + 1]; ++k) {
+      for (int64_t j = 0; j < kN; ++j) {
+        for (int64_t i = 0; i < kN; ++i) {
+          if (drawn.at(i, j, kKeys[s]) != 0 &&
+              drawn.at(i, j, kKeys[s + 1]) != 0 && out.at(i, j, k) == 0) {
+            ++gaps;
+          }
+        }
+      }
+    }
+  }
+  EXPECT_EQ(gaps, 0);
+  // Each side of the touching line keeps its own label (no label leaks over
+  // the line, which lies between columns 19 and 20 on every slice).
+  for (int64_t k = 0; k < kNz; ++k) {
+    for (int64_t j = 0; j < kN; ++j) {
+      for (int64_t i = 0; i < kN; ++i) {
+        const uint16_t v = out.at(i, j, k);
+        if (v == 1) EXPECT_LT(i, 21) << j << "," << k;
+        if (v == 2) EXPECT_GT(i, 18) << j << "," << k;
+      }
+    }
+  }
+  ASSERT_EQ(result->per_label.size(), 2u);
+  EXPECT_EQ(result->per_label[0].key_slices, kKeys);
+}
+
+INSTANTIATE_TEST_SUITE_P(Methods, FillMethodTest,
+                         ::testing::Values(SolverMethod::kLinear,
+                                           SolverMethod::kConjugateGradient,
+                                           SolverMethod::kDirect));
+
+TEST(FillTest, EndCapsCloseWithinOneGap) {
+  // The structure is on slices 2..18; drawn on the key slices 5, 10, 15 and
+  // absent on the key slices 0 and 20.
+  const LabelVolume truth = TouchingHalves();
+  FillOptions options;
+  options.key_slices = kKeys;
+  options.solver.method = SolverMethod::kDirect;
+  absl::StatusOr<FillResult> result = FillBetweenSlices(
+      KeepSlices(truth, kKeys), options, ComputeContext{.threads = 1});
+  ASSERT_TRUE(result.ok()) << result.status();
+  const LabelVolume& out = result->labels;
+  for (int label : {1, 2}) {
+    EXPECT_EQ(CountOnSlice(out, 0, label), 0);
+    EXPECT_EQ(CountOnSlice(out, 1, label), 0) << label;
+    EXPECT_GT(CountOnSlice(out, 4, label), 0) << label;
+    EXPECT_GT(CountOnSlice(out, 16, label), 0) << label;
+    EXPECT_EQ(CountOnSlice(out, 19, label), 0) << label;
+    // Shrinks toward the cap.
+    EXPECT_LT(CountOnSlice(out, 3, label), CountOnSlice(out, 5, label));
+  }
+}
+
+TEST(FillTest, DefaultKeySlicesAreTheDrawnOnesPlusTheNextAtTheirRhythm) {
+  LabelVolume v;
+  v.grid.size = {4, 4, 12};
+  v.data.assign(v.grid.VoxelCount(), 0);
+  v.at(1, 1, 2) = 1;
+  v.at(1, 1, 5) = 1;
+  v.at(1, 1, 8) = 1;
+  v.at(2, 2, 0) = 2;
+  v.at(2, 2, 5) = 2;
+  v.at(2, 2, 11) = 2;
+  v.at(3, 3, 7) = 3;
+  const std::vector<int64_t> annotated = {0, 2, 5, 7, 8, 11};
+  // Every 3rd slice: empty at 11 (and -1 is outside the series).
+  EXPECT_EQ(KeySlicesForLabel(v, 1, annotated, std::nullopt),
+            (std::vector<int64_t>{2, 5, 8, 11}));
+  // Drawn once: the nearest annotated slices.
+  EXPECT_EQ(KeySlicesForLabel(v, 3, annotated, std::nullopt),
+            (std::vector<int64_t>{5, 7, 8}));
+  EXPECT_EQ(KeySlicesForLabel(v, 2, annotated, std::nullopt),
+            (std::vector<int64_t>{0, 5, 11}));
+  // Explicit keys: cut to those bracketing the drawn ones.
+  EXPECT_EQ(KeySlicesForLabel(v, 1, annotated,
+                              std::vector<int64_t>{0, 1, 5, 6, 9, 11}),
+            (std::vector<int64_t>{1, 5, 6}));
+  EXPECT_TRUE(KeySlicesForLabel(v, 4, annotated, std::nullopt).empty());
+}
+
+TEST(FillTest, DefaultDetectionFillsGapsAndKeepsOtherLabelsDrawnSlices) {
+  // Label 1 drawn every 5th slice; label 2 drawn on every slice 0..20 as a
+  // small square far away. Slices without label 1 in between are not drawn
+  // for label 1 and get filled; label 2 stays exactly as drawn.
+  LabelVolume truth = TouchingHalves();
+  for (uint16_t& v : truth.data) v = v == 2 ? 0 : v;
+  LabelVolume drawn = KeepSlices(truth, kKeys);
+  for (int64_t k = 0; k < kNz; ++k) {
+    for (int64_t j = 0; j < 3; ++j) {
+      for (int64_t i = 0; i < 3; ++i) drawn.at(i, j, k) = 2;
+    }
+  }
+  absl::StatusOr<FillResult> result =
+      FillBetweenSlices(drawn, FillOptions{}, ComputeContext{.threads = 1});
+  ASSERT_TRUE(result.ok()) << result.status();
+  EXPECT_GT(Dice(result->labels, truth, 1), 0.85);
+  for (int64_t k = 0; k < kNz; ++k)
+    EXPECT_EQ(CountOnSlice(result->labels, k, 2), 9);
+  EXPECT_EQ(result->per_label[0].key_slices, kKeys);
+}
+
+TEST(FillTest, FactorPutsKeySlicesOnNodes) {
+  const LabelVolume truth = TouchingHalves();
+  const LabelVolume drawn = KeepSlices(truth, kKeys);
+  FillOptions options;
+  options.key_slices = kKeys;
+  options.z_resolution.factor = 3;
+  absl::StatusOr<FillResult> result =
+      FillBetweenSlices(drawn, options, ComputeContext{.threads = 1});
+  ASSERT_TRUE(result.ok()) << result.status();
+  EXPECT_EQ(result->factor, 3);
+  EXPECT_EQ(result->labels.grid.size[2], (kNz - 1) * 3 + 1);
+  EXPECT_DOUBLE_EQ(result->labels.grid.spacing[2], 1.0 / 3);
+  for (int64_t k : kKeys) {
+    for (int64_t j = 0; j < kN; ++j) {
+      for (int64_t i = 0; i < kN; ++i) {
+        ASSERT_EQ(result->labels.at(i, j, 3 * k), drawn.at(i, j, k));
+      }
+    }
+  }
+  EXPECT_GT(CountOnSlice(result->labels, 3 * 7 + 1, 1), 0);
+}
+
+TEST(FillTest, SingleSliceLabelIsKeptWithAWarning) {
+  LabelVolume v = KeepSlices(TouchingHalves(), {10});
+  absl::StatusOr<FillResult> result =
+      FillBetweenSlices(v, FillOptions{}, ComputeContext{.threads = 1});
+  ASSERT_TRUE(result.ok()) << result.status();
+  EXPECT_THAT(
+      result->warnings,
+      ::testing::Contains(HasSubstr("label 1 is drawn on slice 10 only")));
+  EXPECT_EQ(result->labels.data, v.data);
+}
+
+TEST(FillTest, TiesGoToTheSmallerLabel) {
+  // Two labels drawn identically on complementary key slices meet halfway:
+  // label 1 on slice 0, label 2 on slice 4, the same disc; on slice 2 both
+  // fields are equal by symmetry (linear stacking), and label 1 must win
+  // every voxel whatever the order.
+  LabelVolume v;
+  v.grid.size = {20, 20, 5};
+  v.data.assign(v.grid.VoxelCount(), 0);
+  for (int64_t j = 0; j < 20; ++j) {
+    for (int64_t i = 0; i < 20; ++i) {
+      if ((i - 9.5) * (i - 9.5) + (j - 9.5) * (j - 9.5) <= 36) {
+        v.at(i, j, 0) = 1;
+        v.at(i, j, 4) = 2;
+      }
+    }
+  }
+  FillOptions options;
+  options.solver.method = SolverMethod::kLinear;
+  options.key_slices = std::vector<int64_t>{0, 4};
+  absl::StatusOr<FillResult> result =
+      FillBetweenSlices(v, options, ComputeContext{.threads = 1});
+  ASSERT_TRUE(result.ok()) << result.status();
+  EXPECT_GT(CountOnSlice(result->labels, 2, 1), 0);
+  EXPECT_EQ(CountOnSlice(result->labels, 2, 2), 0);
+  EXPECT_EQ(CountOnSlice(result->labels, 1, 2), 0);
+  EXPECT_GT(CountOnSlice(result->labels, 3, 2), 0);
+}
+
+TEST(FillTest, Errors) {
+  const LabelVolume drawn = KeepSlices(TouchingHalves(), kKeys);
+  const ComputeContext context{.threads = 1};
+  LabelVolume empty = drawn;
+  std::fill(empty.data.begin(), empty.data.end(), 0);
+  EXPECT_THAT(FillBetweenSlices(empty, {}, context).status().message(),
+              HasSubstr("empty"));
+  FillOptions options;
+  options.labels = {1, 7};
+  EXPECT_THAT(FillBetweenSlices(drawn, options, context).status().message(),
+              HasSubstr("label 7 is not drawn"));
+  options = {};
+  options.key_slices = std::vector<int64_t>{0, 30};
+  EXPECT_THAT(FillBetweenSlices(drawn, options, context).status().message(),
+              HasSubstr("key slice 30 is outside"));
+  options.key_slices = std::vector<int64_t>{5, 5};
+  EXPECT_THAT(FillBetweenSlices(drawn, options, context).status().message(),
+              HasSubstr("listed twice"));
+  options = {};
+  options.max_output_voxels = 1000;
+  EXPECT_EQ(FillBetweenSlices(drawn, options, context).status().code(),
+            absl::StatusCode::kResourceExhausted);
+  LabelVolume bad = drawn;
+  bad.data.pop_back();
+  EXPECT_FALSE(FillBetweenSlices(bad, {}, context).ok());
+  CancellationToken cancel;
+  cancel.Cancel();
+  EXPECT_EQ(FillBetweenSlices(drawn, {}, ComputeContext{.cancel = &cancel})
+                .status()
+                .code(),
+            absl::StatusCode::kCancelled);
+}
+
+TEST(LabelVolumeTest, FromFloatRejectsNonLabels) {
+  Volume<float> v;
+  v.grid.size = {3, 2, 2};
+  v.data.assign(12, 0.0f);
+  v.data[4] = 3;
+  absl::StatusOr<LabelVolume> ok = LabelVolumeFromFloat(v);
+  ASSERT_TRUE(ok.ok());
+  EXPECT_EQ(ok->data[4], 3);
+  v.data[7] = 2.5f;
+  EXPECT_THAT(LabelVolumeFromFloat(v).status().message(),
+              HasSubstr("voxel (1, 0, 1) holds 2.5"));
+  v.data[7] = -1;
+  EXPECT_FALSE(LabelVolumeFromFloat(v).ok());
+  v.data[7] = 70000;
+  EXPECT_FALSE(LabelVolumeFromFloat(v).ok());
+}
+
+TEST(LabelVolumeTest, CheckSameGridNamesTheDifference) {
+  Grid ref;
+  ref.size = {10, 10, 5};
+  ref.spacing = {0.5, 0.5, 3};
+  ref.origin = {-10, 20, 30};
+  EXPECT_TRUE(CheckSameGrid(ref, ref, "the label map").ok());
+  Grid g = ref;
+  g.origin[2] += 1e-4;  // float rounding of a NIfTI header
+  EXPECT_TRUE(CheckSameGrid(g, ref, "the label map").ok());
+  g = ref;
+  g.size[2] = 6;
+  EXPECT_THAT(CheckSameGrid(g, ref, "the label map").message(),
+              HasSubstr("10 x 10 x 6 voxels"));
+  g = ref;
+  g.spacing[2] = 2.5;
+  EXPECT_THAT(CheckSameGrid(g, ref, "the label map").message(),
+              HasSubstr("z spacing 2.5"));
+  g = ref;
+  g.origin[0] = -9;
+  EXPECT_THAT(CheckSameGrid(g, ref, "the label map").message(),
+              HasSubstr("origin"));
+  g = ref;
+  g.direction = {1, 0, 0, 0, -1, 0, 0, 0, -1};
+  EXPECT_THAT(CheckSameGrid(g, ref, "the label map").message(),
+              HasSubstr("direction"));
+}
+
+TEST(LabelVolumeTest, Uint16LabelMapRoundTrip) {
+  LabelVolume v;
+  v.grid.size = {5, 4, 3};
+  v.grid.spacing = {0.7, 0.7, 2};
+  v.grid.origin = {1, 2, 3};
+  v.data.assign(v.grid.VoxelCount(), 0);
+  v.data[7] = 300;
+  v.data[20] = 65535;
+  const std::string path =
+      (std::filesystem::temp_directory_path() /
+       ("label_fill_test_" + std::to_string(getpid()) + ".nrrd"))
+          .string();
+  ASSERT_TRUE(WriteVolume(v, path).ok());
+  absl::StatusOr<Volume<float>> back = ReadVolumeAsFloat(path);
+  std::filesystem::remove(path);
+  ASSERT_TRUE(back.ok()) << back.status();
+  absl::StatusOr<LabelVolume> labels = LabelVolumeFromFloat(*back);
+  ASSERT_TRUE(labels.ok());
+  EXPECT_EQ(labels->data, v.data);
+  EXPECT_TRUE(CheckSameGrid(labels->grid, v.grid, "x").ok());
+}
+
+}  // namespace
+}  // namespace interslice

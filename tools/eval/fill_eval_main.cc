@@ -1,0 +1,369 @@
+// interslice_fill_eval: drop-k on multi-label segmentations (issue 13).
+//
+// A fully drawn label map (given, or made from the series by HU bands and
+// connected components) keeps every k-th slice as key slices; the slices in
+// between are filled by nearest-slice copy, linear stacking (core/labels with
+// method linear) and the paper's refinement (cg, direct), and compared per
+// label with the withheld slices between the first and last key slice:
+// Dice, HD95 and MSD (tools/eval/metrics.h, 3D surface distances in mm), the
+// number of "gap" voxels (background on a withheld slice at a pixel labelled
+// on both bracketing key slices) and the time of the whole fill.
+//
+// Output in --out: fill_metrics.csv (one row per k, method, label),
+// fill_summary.csv (per k and method: mean Dice/HD95/MSD over labels, gap
+// voxels, seconds) and labels.json (the labels made: band, voxels).
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <map>
+#include <string>
+#include <vector>
+
+#include "CLI/CLI.hpp"
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_format.h"
+#include "absl/strings/str_split.h"
+#include "core/dicom/series_reader.h"
+#include "core/labels/label_fill.h"
+#include "core/volume_io/volume_io.h"
+#include "itkConnectedComponentImageFilter.h"
+#include "itkImage.h"
+#include "itkImportImageFilter.h"
+#include "itkMedianImageFilter.h"
+#include "itkRelabelComponentImageFilter.h"
+#include "nlohmann/json.hpp"
+#include "tools/eval/metrics.h"
+
+namespace interslice::eval {
+namespace {
+
+using Image3f = itk::Image<float, 3>;
+using Image3u = itk::Image<uint32_t, 3>;
+
+Image3f::Pointer ToItk(const Volume<float>& v) {
+  auto image = Image3f::New();
+  Image3f::SizeType size;
+  for (int a = 0; a < 3; ++a) size[a] = v.grid.size[a];
+  image->SetRegions(Image3f::RegionType(size));
+  image->Allocate();
+  std::copy(v.data.begin(), v.data.end(), image->GetBufferPointer());
+  return image;
+}
+
+struct MadeLabel {
+  int label;
+  float lower, upper;
+  int64_t voxels;
+};
+
+// Labels from HU bands: each band (after a 3x3 in-plane median, so that a
+// band is not speckle) split into 3D face-connected components; the largest
+// components of all bands become labels 1..max_labels in order of size.
+// Neighbouring bands touch, so many labels share boundaries.
+LabelVolume MakeLabels(const Volume<float>& image,
+                       const std::vector<float>& edges, int max_labels,
+                       int64_t min_voxels, std::vector<MadeLabel>& made) {
+  auto median = itk::MedianImageFilter<Image3f, Image3f>::New();
+  median->SetInput(ToItk(image));
+  itk::Size<3> radius = {{1, 1, 0}};
+  median->SetRadius(radius);
+  median->Update();
+  const float* smooth = median->GetOutput()->GetBufferPointer();
+  struct Component {
+    int band;
+    uint32_t id;
+    int64_t voxels;
+  };
+  std::vector<Component> components;
+  std::vector<std::vector<uint32_t>> ids(edges.size() - 1);
+  const int64_t n = image.grid.VoxelCount();
+  for (size_t b = 0; b + 1 < edges.size(); ++b) {
+    auto mask = itk::Image<uint8_t, 3>::New();
+    itk::Size<3> size;
+    for (int a = 0; a < 3; ++a) size[a] = image.grid.size[a];
+    mask->SetRegions(itk::ImageRegion<3>(size));
+    mask->Allocate();
+    uint8_t* m = mask->GetBufferPointer();
+    for (int64_t v = 0; v < n; ++v) {
+      m[v] = smooth[v] >= edges[b] && smooth[v] < edges[b + 1];
+    }
+    auto cc = itk::ConnectedComponentImageFilter<itk::Image<uint8_t, 3>,
+                                                 Image3u>::New();
+    cc->SetInput(mask);
+    cc->FullyConnectedOff();
+    auto relabel = itk::RelabelComponentImageFilter<Image3u, Image3u>::New();
+    relabel->SetInput(cc->GetOutput());
+    relabel->SetMinimumObjectSize(min_voxels);
+    relabel->Update();
+    const uint32_t* r = relabel->GetOutput()->GetBufferPointer();
+    ids[b].assign(r, r + n);
+    const auto& sizes = relabel->GetSizeOfObjectsInPixels();
+    for (size_t c = 0; c < sizes.size(); ++c) {
+      components.push_back({static_cast<int>(b), static_cast<uint32_t>(c + 1),
+                            static_cast<int64_t>(sizes[c])});
+    }
+  }
+  std::sort(components.begin(), components.end(),
+            [](const Component& a, const Component& b) {
+              return a.voxels > b.voxels;
+            });
+  if (static_cast<int>(components.size()) > max_labels) {
+    components.resize(max_labels);
+  }
+  LabelVolume labels;
+  labels.grid = image.grid;
+  labels.data.assign(n, 0);
+  for (size_t l = 0; l < components.size(); ++l) {
+    const Component& c = components[l];
+    for (int64_t v = 0; v < n; ++v) {
+      if (ids[c.band][v] == c.id) labels.data[v] = l + 1;
+    }
+    made.push_back({static_cast<int>(l + 1), edges[c.band], edges[c.band + 1],
+                    c.voxels});
+  }
+  return labels;
+}
+
+// Nearest key slice copied onto each slice (ties: the lower key).
+LabelVolume NearestCopy(const LabelVolume& truth,
+                        const std::vector<int64_t>& keys) {
+  LabelVolume out = truth;
+  const int64_t plane = truth.grid.SliceVoxelCount();
+  for (int64_t k = 0; k < truth.grid.size[2]; ++k) {
+    int64_t best = keys.front();
+    for (int64_t key : keys) {
+      if (std::abs(key - k) < std::abs(best - k)) best = key;
+    }
+    std::copy(truth.data.begin() + best * plane,
+              truth.data.begin() + (best + 1) * plane,
+              out.data.begin() + k * plane);
+  }
+  return out;
+}
+
+struct LabelScore {
+  double dice = 0, hd95 = -1, msd = -1;
+};
+
+// Scores of `label` on the slices marked in `withheld`, computed on the
+// bounding box of the label in both volumes grown by 8 voxels (distances
+// are to surfaces inside that box, which holds both surfaces).
+LabelScore Score(const LabelVolume& out, const LabelVolume& truth, int label,
+                 const std::vector<uint8_t>& withheld) {
+  const Grid& g = truth.grid;
+  VoxelBox box{{g.size[0], g.size[1], g.size[2]}, {0, 0, 0}};
+  for (int64_t k = 0; k < g.size[2]; ++k) {
+    for (int64_t j = 0; j < g.size[1]; ++j) {
+      for (int64_t i = 0; i < g.size[0]; ++i) {
+        const int64_t v = g.LinearIndex(i, j, k);
+        if (out.data[v] != label && truth.data[v] != label) continue;
+        const int64_t idx[3] = {i, j, k};
+        for (int a = 0; a < 3; ++a) {
+          box.begin[a] = std::min(box.begin[a], idx[a]);
+          box.end[a] = std::max(box.end[a], idx[a] + 1);
+        }
+      }
+    }
+  }
+  LabelScore score;
+  if (box.end[0] == 0) return score;
+  for (int a = 0; a < 3; ++a) {
+    box.begin[a] = std::max<int64_t>(0, box.begin[a] - 8);
+    box.end[a] = std::min(g.size[a], box.end[a] + 8);
+  }
+  Mask a, b;
+  a.grid = b.grid = CropGrid(g, box);
+  a.data.resize(a.grid.VoxelCount());
+  b.data.resize(a.grid.VoxelCount());
+  std::vector<uint8_t> slices(a.grid.size[2]);
+  for (int64_t k = 0; k < a.grid.size[2]; ++k) {
+    slices[k] = withheld[box.begin[2] + k];
+    for (int64_t j = 0; j < a.grid.size[1]; ++j) {
+      for (int64_t i = 0; i < a.grid.size[0]; ++i) {
+        const int64_t v =
+            g.LinearIndex(box.begin[0] + i, box.begin[1] + j, box.begin[2] + k);
+        a.at(i, j, k) = out.data[v] == label;
+        b.at(i, j, k) = truth.data[v] == label;
+      }
+    }
+  }
+  int64_t in_truth = 0;
+  for (int64_t k = 0; k < a.grid.size[2]; ++k) {
+    if (!slices[k]) continue;
+    for (int64_t p = 0; p < a.grid.SliceVoxelCount(); ++p) {
+      in_truth += b.data[k * a.grid.SliceVoxelCount() + p];
+    }
+  }
+  if (in_truth == 0) {
+    score.dice = -1;  // not on the withheld slices: not scored
+    return score;
+  }
+  score.dice = DiceOnSlices(a, b, slices);
+  const SurfaceDistances d = SurfaceDistancesOnSlices(a, b, slices);
+  score.hd95 = d.hd95;
+  score.msd = d.msd;
+  return score;
+}
+
+int64_t CountGaps(const LabelVolume& out, const LabelVolume& truth,
+                  const std::vector<int64_t>& keys) {
+  const int64_t plane = truth.grid.SliceVoxelCount();
+  int64_t gaps = 0;
+  for (size_t s = 0; s + 1 < keys.size(); ++s) {
+    const uint16_t* a = truth.data.data() + keys[s] * plane;
+    const uint16_t* b = truth.data.data() + keys[s + 1] * plane;
+    for (int64_t k = keys[s] + 1; k < keys[s + 1]; ++k) {
+      const uint16_t* o = out.data.data() + k * plane;
+      for (int64_t p = 0; p < plane; ++p) {
+        gaps += a[p] != 0 && b[p] != 0 && o[p] == 0;
+      }
+    }
+  }
+  return gaps;
+}
+
+int Main(int argc, char** argv) {
+  CLI::App app{"drop-k evaluation of interslice fill on label maps"};
+  std::string series_dir, labels_path, out_dir, ks_text = "2,3,5,8",
+                                                methods_text =
+                                                    "copy,linear,cg,direct";
+  std::string bands_text = "-200,0,40,100,300,3000";
+  int max_labels = 20, threads = 0, margin = FillOptions().margin_pixels;
+  int64_t min_voxels = 2000;
+  app.add_option("--series", series_dir, "Reference DICOM series")->required();
+  app.add_option("--labels", labels_path,
+                 "Fully drawn label map on the series' grid (default: made "
+                 "from HU bands)");
+  app.add_option("--bands", bands_text, "HU band edges for made labels");
+  app.add_option("--max-labels", max_labels, "At most this many made labels");
+  app.add_option("--min-voxels", min_voxels, "Smallest made label, voxels");
+  app.add_option("--ks", ks_text, "Key slice steps");
+  app.add_option("--methods", methods_text, "copy,linear,cg,direct");
+  app.add_option("--threads", threads, "Threads (0 = all)");
+  app.add_option("--margin", margin, "In-plane margin of each label's box");
+  app.add_option("--out", out_dir, "Output folder")->required();
+  CLI11_PARSE(app, argc, argv);
+  SetItkThreads(threads);
+  QuietDicomToolkitLogging();
+  std::filesystem::create_directories(out_dir);
+
+  absl::StatusOr<DicomSeries> series =
+      ReadDicomSeries({series_dir}, {}, ComputeContext{.threads = threads});
+  if (!series.ok()) {
+    std::fprintf(stderr, "%s\n", std::string(series.status().message()).c_str());
+    return 1;
+  }
+  LabelVolume truth;
+  std::vector<MadeLabel> made;
+  if (!labels_path.empty()) {
+    absl::StatusOr<Volume<float>> raw = ReadVolumeAsFloat(labels_path);
+    absl::Status s = raw.status();
+    if (s.ok()) s = CheckSameGrid(raw->grid, series->image.grid, "the label map");
+    absl::StatusOr<LabelVolume> l =
+        s.ok() ? LabelVolumeFromFloat(*raw) : absl::StatusOr<LabelVolume>(s);
+    if (!l.ok()) {
+      std::fprintf(stderr, "%s\n", std::string(l.status().message()).c_str());
+      return 1;
+    }
+    truth = *std::move(l);
+    truth.grid = series->image.grid;
+  } else {
+    std::vector<float> edges;
+    for (absl::string_view e : absl::StrSplit(bands_text, ',')) {
+      float v;
+      if (!absl::SimpleAtof(e, &v)) return 1;
+      edges.push_back(v);
+    }
+    truth = MakeLabels(series->image, edges, max_labels, min_voxels, made);
+    (void)WriteVolume(truth, out_dir + "/truth-labels.nii.gz");
+  }
+  const std::vector<int> labels = LabelsPresent(truth);
+  nlohmann::ordered_json made_json = nlohmann::ordered_json::array();
+  for (const MadeLabel& m : made) {
+    made_json.push_back({{"label", m.label},
+                         {"hu_from", m.lower},
+                         {"hu_to", m.upper},
+                         {"voxels", m.voxels}});
+  }
+  std::ofstream(out_dir + "/labels.json")
+      << nlohmann::ordered_json{{"grid", series->image.grid.size},
+                                {"labels", made_json}}
+             .dump(2)
+      << "\n";
+  std::printf("%zu labels on %lld x %lld x %lld\n", labels.size(),
+              static_cast<long long>(truth.grid.size[0]),
+              static_cast<long long>(truth.grid.size[1]),
+              static_cast<long long>(truth.grid.size[2]));
+
+  std::ofstream metrics(out_dir + "/fill_metrics.csv");
+  metrics << "k,method,label,dice,hd95_mm,msd_mm\n";
+  std::ofstream summary(out_dir + "/fill_summary.csv");
+  summary << "k,method,labels_scored,mean_dice,mean_hd95_mm,mean_msd_mm,"
+             "gap_voxels,seconds\n";
+  const int64_t nz = truth.grid.size[2];
+  for (absl::string_view kt : absl::StrSplit(ks_text, ',')) {
+    int64_t step;
+    if (!absl::SimpleAtoi(kt, &step) || step < 1) return 1;
+    std::vector<int64_t> keys;
+    for (int64_t k = 0; k < nz; k += step) keys.push_back(k);
+    std::vector<uint8_t> withheld(nz, 0);
+    for (int64_t k = 0; k < keys.back(); ++k) withheld[k] = k % step != 0;
+    for (absl::string_view mt : absl::StrSplit(methods_text, ',')) {
+      const std::string method(mt);
+      const auto start = std::chrono::steady_clock::now();
+      LabelVolume out;
+      if (method == "copy") {
+        out = NearestCopy(truth, keys);
+      } else {
+        FillOptions options;
+        options.key_slices = keys;
+        options.margin_pixels = margin;
+        options.solver.method = method == "linear"
+                                    ? SolverMethod::kLinear
+                                    : method == "cg"
+                                          ? SolverMethod::kConjugateGradient
+                                          : SolverMethod::kDirect;
+        absl::StatusOr<FillResult> r = FillBetweenSlices(
+            truth, options, ComputeContext{.threads = threads});
+        if (!r.ok()) {
+          std::fprintf(stderr, "%s\n", std::string(r.status().message()).c_str());
+          return 1;
+        }
+        out = std::move(r->labels);
+      }
+      const double seconds = std::chrono::duration<double>(
+                                 std::chrono::steady_clock::now() - start)
+                                 .count();
+      double sum_dice = 0, sum_hd = 0, sum_msd = 0;
+      int scored = 0;
+      for (int label : labels) {
+        const LabelScore s = Score(out, truth, label, withheld);
+        if (s.dice < 0) continue;
+        metrics << absl::StrFormat("%d,%s,%d,%.4f,%.3f,%.3f\n", step, method,
+                                   label, s.dice, s.hd95, s.msd);
+        sum_dice += s.dice;
+        sum_hd += s.hd95;
+        sum_msd += s.msd;
+        ++scored;
+      }
+      const int64_t gaps = CountGaps(out, truth, keys);
+      const std::string line = absl::StrFormat(
+          "%d,%s,%d,%.4f,%.3f,%.3f,%d,%.2f\n", step, method, scored,
+          sum_dice / std::max(1, scored), sum_hd / std::max(1, scored),
+          sum_msd / std::max(1, scored), gaps, seconds);
+      summary << line;
+      summary.flush();
+      std::printf("%s", line.c_str());
+      std::fflush(stdout);
+    }
+  }
+  return 0;
+}
+
+}  // namespace
+}  // namespace interslice::eval
+
+int main(int argc, char** argv) { return interslice::eval::Main(argc, argv); }
