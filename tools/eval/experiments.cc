@@ -1,5 +1,6 @@
 #include "tools/eval/experiments.h"
 
+
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -17,6 +18,8 @@
 #include "absl/strings/str_split.h"
 #include "core/common/status_macros.h"
 #include "core/dicom/series_reader.h"
+#include "core/morph/morph.h"
+#include "core/stack/stacking.h"
 #include "core/surface/surface.h"
 #include "tools/eval/metrics.h"
 #include "tools/eval/reconstruct.h"
@@ -49,6 +52,7 @@ std::string CsvCell(const json& v) {
 struct Method {
   std::string name;
   bool nearest = false;
+  bool morph = false;  // registration-based stacking (core/morph) first
   SolverOptions solver;
 };
 
@@ -75,6 +79,9 @@ absl::StatusOr<Method> ParseMethod(const std::string& name,
     m.solver.tolerance = o.cg_tolerance;
   } else if (base == "direct") {
     m.solver.method = SolverMethod::kDirect;
+  } else if (base == "morph") {
+    m.morph = true;
+    m.solver.method = SolverMethod::kLinear;
   } else {
     return absl::InvalidArgumentError(absl::StrCat(
         "unknown method '", name,
@@ -228,8 +235,33 @@ absl::Status RunCase(const Case& c, const EvalOptions& o, Recorder& rec) {
                          {"relative_residual", Num(e.relative_residual)},
                          {"energy", Num(e.energy)}});
       };
+      Stacked morphed;
+      const Stacked* source = &stacked;
+      if (method.morph) {
+        const auto tmorph = Clock::now();
+        MorphOptions mo;
+        if (const char* e = std::getenv("MORPH_LEVELS")) mo.levels = std::atoi(e);
+        if (const char* e = std::getenv("MORPH_ITS")) mo.iterations = std::atoi(e);
+        if (const char* e = std::getenv("MORPH_SIGMA")) mo.field_sigma_px = std::atof(e);
+        if (const char* e = std::getenv("MORPH_CLIP")) mo.clip_mm = std::atof(e);
+        if (const char* e = std::getenv("MORPH_DS")) mo.downsample = std::atoi(e);
+        INTERSLICE_ASSIGN_OR_RETURN(
+            MorphedField mf,
+            StackMorph(stacked.maps,
+                       UniformStackPlan(stacked.maps.grid.size[2],
+                                        stacked.maps.grid.spacing[2],
+                                        stacked.factor),
+                       mo, int64_t{1} << 31, context));
+        morphed.field = std::move(mf.stacked.field);
+        morphed.fixed_slices = std::move(mf.stacked.fixed_slices);
+        morphed.factor = mf.stacked.factor;
+        row["morph_seconds"] = Seconds(tmorph);
+        row["morph_mean_displacement_mm"] = mf.statistics.mean_displacement_mm;
+        row["morph_max_displacement_mm"] = mf.statistics.max_displacement_mm;
+        source = &morphed;
+      }
       INTERSLICE_ASSIGN_OR_RETURN(
-          Refined refined, Refine(stacked, method.solver, solve_context));
+          Refined refined, Refine(*source, method.solver, solve_context));
       value = std::move(refined.field);
       const SolverResult& r = refined.result;
       row["iterations"] = r.iterations;
