@@ -124,7 +124,8 @@ void AddRunOptions(CLI::App& app, RunArguments& args) {
                  "in the input's index space (z in sorted slice order)");
   app.add_option("--method", args.method,
                  "direct (exact minimiser), cg (the paper's conjugate "
-                 "gradient) or linear (no refinement)")
+                 "gradient), linear (no refinement) or morph "
+                 "(registration-based stacking + exact solver with fidelity)")
       ->capture_default_str();
   app.add_option("--iterations", args.iterations,
                  "CG iterations (default 15, as in the paper)");
@@ -204,10 +205,12 @@ absl::StatusOr<JobSpec> BuildJobSpec(const RunArguments& args) {
     spec.solver.method = SolverMethod::kConjugateGradient;
   } else if (args.method == "linear") {
     spec.solver.method = SolverMethod::kLinear;
+  } else if (args.method == "morph") {
+    spec.solver.method = SolverMethod::kMorph;
   } else {
     return absl::InvalidArgumentError(
         absl::StrCat("--method: unknown method '", args.method,
-                     "' (choose from direct, cg, linear)"));
+                     "' (choose from direct, cg, linear, morph)"));
   }
   if (args.iterations.has_value()) {
     if (*args.iterations < 0) {

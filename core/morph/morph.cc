@@ -10,6 +10,7 @@
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
 #include "core/common/status_macros.h"
+#include "itkConnectedComponentImageFilter.h"
 #include "itkFastSymmetricForcesDemonsRegistrationFilter.h"
 #include "itkImage.h"
 #include "itkMultiResolutionPDEDeformableRegistration.h"
@@ -228,6 +229,64 @@ absl::StatusOr<MorphedField> StackMorph(const Volume<float>& slice_maps,
   }
   out.statistics.mean_displacement_mm = total / static_cast<double>(gaps);
   return out;
+}
+
+absl::StatusOr<int64_t> RemoveUnsupportedComponents(
+    Volume<float>& field, const std::vector<uint8_t>& fixed_slices,
+    float margin_mm, const ComputeContext& context) {
+  const Index3 n = field.grid.size;
+  if (static_cast<int64_t>(fixed_slices.size()) != n[2] ||
+      static_cast<int64_t>(field.data.size()) != field.grid.VoxelCount())
+    return absl::InvalidArgumentError(
+        "component filter: field and fixed slices do not match");
+  if (!(margin_mm > 0))
+    return absl::InvalidArgumentError("component filter: margin must be > 0");
+  INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
+  using Mask = itk::Image<uint8_t, 3>;
+  using Labels = itk::Image<uint32_t, 3>;
+  Mask::Pointer mask = Mask::New();
+  Mask::RegionType region;
+  region.SetSize({static_cast<itk::SizeValueType>(n[0]),
+                  static_cast<itk::SizeValueType>(n[1]),
+                  static_cast<itk::SizeValueType>(n[2])});
+  mask->SetRegions(region);
+  mask->Allocate();
+  uint8_t* m = mask->GetBufferPointer();
+  const int64_t count = field.grid.VoxelCount();
+  for (int64_t v = 0; v < count; ++v) m[v] = field.data[v] >= 0 ? 1 : 0;
+  Labels::Pointer labels;
+  try {
+    auto cc = itk::ConnectedComponentImageFilter<Mask, Labels>::New();
+    cc->SetInput(mask);
+    cc->SetFullyConnected(false);  // face connectivity
+    if (context.threads > 0) cc->SetNumberOfWorkUnits(context.threads);
+    cc->Update();
+    labels = cc->GetOutput();
+  } catch (const std::exception& e) {
+    return absl::InternalError(
+        absl::StrCat("component filter: ITK: ", e.what()));
+  }
+  const uint32_t* l = labels->GetBufferPointer();
+  uint32_t max_label = 0;
+  for (int64_t v = 0; v < count; ++v) max_label = std::max(max_label, l[v]);
+  std::vector<uint8_t> supported(static_cast<size_t>(max_label) + 1, 0);
+  const int64_t plane = n[0] * n[1];
+  for (int64_t k = 0; k < n[2]; ++k) {
+    if (!fixed_slices[k]) continue;
+    for (int64_t v = k * plane; v < (k + 1) * plane; ++v) supported[l[v]] = 1;
+  }
+  std::vector<uint8_t> removed(supported.size(), 0);
+  int64_t removed_count = 0;
+  for (int64_t v = 0; v < count; ++v) {
+    const uint32_t label = l[v];
+    if (label == 0 || supported[label]) continue;
+    field.data[v] = std::min(field.data[v], -margin_mm);
+    if (!removed[label]) {
+      removed[label] = 1;
+      ++removed_count;
+    }
+  }
+  return removed_count;
 }
 
 }  // namespace interslice

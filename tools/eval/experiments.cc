@@ -12,6 +12,7 @@
 #include <limits>
 #include <set>
 
+#include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
@@ -53,6 +54,7 @@ struct Method {
   std::string name;
   bool nearest = false;
   bool morph = false;  // registration-based stacking (core/morph) first
+  bool component_filter = false;  // RemoveUnsupportedComponents after
   SolverOptions solver;
 };
 
@@ -82,6 +84,21 @@ absl::StatusOr<Method> ParseMethod(const std::string& name,
   } else if (base == "morph") {
     m.morph = true;
     m.solver.method = SolverMethod::kLinear;
+  } else if (absl::StartsWith(base, "morph-fid")) {
+    // morph-fidL: morph, then the direct solver with fidelity L.
+    m.morph = true;
+    m.solver.method = SolverMethod::kDirect;
+    std::string number = base.substr(9);
+    if (absl::EndsWith(number, "c")) {
+      m.component_filter = true;
+      number.pop_back();
+    }
+    if (absl::EndsWith(number, "t")) {
+      m.solver.fidelity_taper = true;
+      number.pop_back();
+    }
+    if (!absl::SimpleAtod(number, &m.solver.fidelity))
+      return absl::InvalidArgumentError("morph-fidL needs a number L");
   } else {
     return absl::InvalidArgumentError(absl::StrCat(
         "unknown method '", name,
@@ -263,6 +280,13 @@ absl::Status RunCase(const Case& c, const EvalOptions& o, Recorder& rec) {
       INTERSLICE_ASSIGN_OR_RETURN(
           Refined refined, Refine(*source, method.solver, solve_context));
       value = std::move(refined.field);
+      if (method.component_filter) {
+        INTERSLICE_ASSIGN_OR_RETURN(
+            const int64_t removed,
+            RemoveUnsupportedComponents(value, stacked.fixed_slices, 1e-3f,
+                                        context));
+        row["components_removed"] = removed;
+      }
       const SolverResult& r = refined.result;
       row["iterations"] = r.iterations;
       row["relative_residual"] = Num(r.relative_residual);
