@@ -58,9 +58,10 @@ struct MorphOptions {
   // (block mean); the displacement is upsampled bilinearly. >= 1.
   int downsample = 4;
   // The refinement that follows the morph in the pipeline (SolverOptions::
-  // fidelity, fidelity_taper): the largest fidelity of {0.1, 0.3, 1, 3} whose
-  // result keeps the crease index (docs/eval, a property of the result
-  // alone, no ground truth) <= 3 on the phantom at every 8th slice.
+  // fidelity, fidelity_taper): the largest tapered fidelity of {0.3, 1, 3}
+  // whose result keeps the crease index (docs/eval; a property of the result
+  // alone, no ground truth) <= 3 on the phantom (bone, every 8th slice);
+  // Dice was not used to choose it. docs/eval/candidates.md has the sweep.
   double fidelity = 0.3;
   bool fidelity_taper = true;
   // RemoveUnsupportedComponents' margin, mm.
