@@ -79,10 +79,12 @@ absl::StatusOr<JobSpec> BuildJobSpec(const RunArguments& args) {
     spec.solver.method = SolverMethod::kConjugateGradient;
   } else if (args.method == "linear") {
     spec.solver.method = SolverMethod::kLinear;
+  } else if (args.method == "morph") {
+    spec.solver.method = SolverMethod::kMorph;
   } else {
     return absl::InvalidArgumentError(
         absl::StrCat("--method: unknown method '", args.method,
-                     "' (choose from direct, cg, linear)"));
+                     "' (choose from direct, cg, linear, morph)"));
   }
   if (args.iterations.has_value()) {
     if (*args.iterations < 0) {

@@ -34,6 +34,9 @@ v1::JobSpec JobSpecToProto(const JobSpec& spec) {
     case SolverMethod::kDirect:
       p.set_method(v1::SOLVER_METHOD_DIRECT);
       break;
+    case SolverMethod::kMorph:
+      p.set_method(v1::SOLVER_METHOD_MORPH);
+      break;
   }
   p.set_max_iterations(spec.solver.max_iterations);
   if (spec.solver.tolerance > 0) p.set_tolerance(spec.solver.tolerance);

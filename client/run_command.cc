@@ -79,7 +79,8 @@ void AddRunOptions(CLI::App& app, RunArguments& args) {
                  "in the input's index space (z in sorted slice order)");
   app.add_option("--method", args.method,
                  "direct (exact minimiser), cg (the paper's conjugate "
-                 "gradient) or linear (no refinement)")
+                 "gradient), linear (no refinement) or morph "
+                 "(registration-based stacking + exact solver with fidelity)")
       ->capture_default_str();
   app.add_option("--iterations", args.iterations,
                  "CG iterations (default 15, as in the paper)");

@@ -80,6 +80,9 @@ absl::StatusOr<JobSpec> JobSpecFromProto(const v1::JobSpec& p) {
     case v1::SOLVER_METHOD_DIRECT:
       spec.solver.method = SolverMethod::kDirect;
       break;
+    case v1::SOLVER_METHOD_MORPH:
+      spec.solver.method = SolverMethod::kMorph;
+      break;
     default:
       return absl::InvalidArgumentError("spec.method: unknown method");
   }

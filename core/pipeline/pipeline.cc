@@ -18,6 +18,7 @@
 #include "core/dicom/series_reader.h"
 #include "core/dicom_out/dicom_writer.h"
 #include "core/dicom_out/encapsulated_stl.h"
+#include "core/morph/morph.h"
 #include "core/sdf/signed_distance.h"
 #include "core/surface/surface.h"
 #include "core/volume_io/volume_io.h"
@@ -285,9 +286,17 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
           "%.3f mm; missing slices?) and strict spacing was asked for",
           plan.min_gap_mm, plan.max_gap_mm, plan.median_gap_mm));
     }
-    INTERSLICE_ASSIGN_OR_RETURN(
-        stacked,
-        StackLinear(slice_maps, plan, spec.max_output_voxels, context));
+    if (spec.solver.method == SolverMethod::kMorph) {
+      INTERSLICE_ASSIGN_OR_RETURN(
+          MorphedField morphed,
+          StackMorph(slice_maps, plan, MorphOptions(), spec.max_output_voxels,
+                     context));
+      stacked = std::move(morphed.stacked);
+    } else {
+      INTERSLICE_ASSIGN_OR_RETURN(
+          stacked,
+          StackLinear(slice_maps, plan, spec.max_output_voxels, context));
+    }
     slice_maps = Volume<float>();
     report.insertion_factor = plan.factor;
     report.max_snap_mm = plan.max_snap_mm;
@@ -297,9 +306,22 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
   // solve
   {
     StageClock clock(report, context, "solve");
+    SolverOptions solver = spec.solver;
+    if (solver.method == SolverMethod::kMorph) {
+      const MorphOptions morph;
+      solver.fidelity = morph.fidelity;
+      solver.fidelity_taper = morph.fidelity_taper;
+    }
     INTERSLICE_ASSIGN_OR_RETURN(
         report.solver,
-        Solve(stacked.field, stacked.fixed_slices, spec.solver, context));
+        Solve(stacked.field, stacked.fixed_slices, solver, context));
+    if (solver.method == SolverMethod::kMorph) {
+      INTERSLICE_RETURN_IF_ERROR(
+          RemoveUnsupportedComponents(stacked.field, stacked.fixed_slices,
+                                      MorphOptions().component_margin_mm,
+                                      context)
+              .status());
+    }
   }
   const Volume<float>& field = stacked.field;
 
@@ -493,7 +515,7 @@ absl::StatusOr<JobReport> JobReportFromJson(const std::string& text) {
     bool known_method = false;
     for (SolverMethod m :
          {SolverMethod::kLinear, SolverMethod::kConjugateGradient,
-          SolverMethod::kDirect}) {
+          SolverMethod::kDirect, SolverMethod::kMorph}) {
       if (SolverMethodName(m) == method) {
         report.solver.method = m;
         known_method = true;

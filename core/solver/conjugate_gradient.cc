@@ -251,7 +251,39 @@ absl::Status ValidateSolveInputs(const Volume<float>& field,
   if (!(options.tolerance >= 0) || !std::isfinite(options.tolerance)) {
     return absl::InvalidArgumentError("tolerance must be >= 0 and finite");
   }
+  if (!(options.fidelity >= 0) || !std::isfinite(options.fidelity)) {
+    return absl::InvalidArgumentError("fidelity must be >= 0 and finite");
+  }
+  if (options.fidelity > 0 && options.method != SolverMethod::kDirect &&
+      options.method != SolverMethod::kMorph) {
+    return absl::InvalidArgumentError(
+        "a fidelity term needs the direct solver");
+  }
   return absl::OkStatus();
+}
+
+// Per-slice fidelity weights (solver.h, SolverOptions::fidelity_taper).
+std::vector<double> FidelityWeights(const std::vector<uint8_t>& fixed,
+                                    double fidelity, bool taper) {
+  const int64_t nz = static_cast<int64_t>(fixed.size());
+  std::vector<double> w(nz, 0.0);
+  int64_t previous = -1;
+  for (int64_t k = 0; k < nz; ++k) {
+    if (fixed[k]) {
+      previous = k;
+      continue;
+    }
+    int64_t next = k + 1;
+    while (next < nz && !fixed[next]) ++next;
+    if (!taper || previous < 0 || next >= nz) {
+      w[k] = fidelity;
+      continue;
+    }
+    const double t = 2.0 * static_cast<double>(std::min(k - previous, next - k)) /
+                     static_cast<double>(next - previous);
+    w[k] = fidelity * t * t;
+  }
+  return w;
 }
 
 }  // namespace
@@ -289,11 +321,18 @@ absl::StatusOr<SolverResult> Solve(Volume<float>& field,
             ConjugateGradient(field, fixed_slices, options, c, context, result);
         break;
       case SolverMethod::kDirect:
+      case SolverMethod::kMorph: {
+        std::vector<double> fidelity;
+        if (options.fidelity > 0) {
+          fidelity = FidelityWeights(fixed_slices, options.fidelity,
+                                     options.fidelity_taper);
+        }
         status = solver_internal::DirectSolve(
             field, fixed_slices,
             CurvatureWeights::For(options.units, field.grid.spacing), c,
-            context, result);
+            fidelity, context, result);
         break;
+      }
     }
   });
   if (!status.ok()) return status;

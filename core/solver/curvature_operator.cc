@@ -34,6 +34,8 @@ std::string_view SolverMethodName(SolverMethod method) {
       return "cg";
     case SolverMethod::kDirect:
       return "direct";
+    case SolverMethod::kMorph:
+      return "morph";
   }
   return "unknown";
 }

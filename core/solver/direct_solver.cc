@@ -11,7 +11,9 @@
 // [-1/4 0 1/2 0 -1/4] (DESIGN.md section 1, here with general weights).
 // Moving the fixed slices to the right-hand side leaves a symmetric positive
 // definite pentadiagonal system in the free slices for every frequency,
-// solved by banded LDL^T in double. Cost: one 2D DCT per slice (forward on
+// solved by banded LDL^T in double. A fidelity term lambda |f - g|^2 on the
+// free voxels adds lambda to the diagonal of every system and lambda g^ (the
+// DCT of g) to its right-hand side. Cost: one 2D DCT per slice (forward on
 // fixed slices, inverse on free ones) plus X*Y pentadiagonal solves.
 #include "core/solver/direct_solver.h"
 
@@ -139,6 +141,7 @@ absl::Status DirectSolve(Volume<float>& field,
                          const std::vector<uint8_t>& fixed,
                          const CurvatureWeights& w,
                          const StencilCoefficients& stencil,
+                         const std::vector<double>& fidelity,
                          const ComputeContext& context, SolverResult& result) {
   const Index3 size = field.grid.size;
   const int64_t nx = size[0], ny = size[1], nz = size[2];
@@ -189,6 +192,26 @@ absl::Status DirectSolve(Volume<float>& field,
                       std::copy(buffer, buffer + plane,
                                 fixed_coefficients.data() + s * plane);
                     });
+  // With a fidelity term, the free slices (g) are transformed in place: each
+  // (q, p) block of them is read by the forward pass of its own systems
+  // before the back substitution overwrites it with the solution.
+  std::vector<double> lambda(n_free, 0.0);
+  bool any_fidelity = false;
+  if (!fidelity.empty()) {
+    for (int64_t u = 0; u < n_free; ++u) {
+      lambda[u] = fidelity[free_slices[u]];
+      any_fidelity = any_fidelity || lambda[u] > 0;
+    }
+  }
+  if (any_fidelity) {
+    tbb::parallel_for(int64_t{0}, n_free, [&](int64_t u) {
+      float* buffer = buffers.local()->data;
+      float* slice = f + free_slices[u] * plane;
+      std::copy(slice, slice + plane, buffer);
+      forward.Execute(buffer);
+      std::copy(buffer, buffer + plane, slice);
+    });
+  }
   context.Report({.stage = "solve", .fraction = 0.2});
 
   // 2. One pentadiagonal solve per frequency, kLanes frequencies at a time.
@@ -231,13 +254,16 @@ absl::Status DirectSolve(Volume<float>& field,
         double* l2 = &ws.l2[u * kLanes];
         double* y = &ws.y[u * kLanes];
         for (int l = 0; l < lanes; ++l) {
-          double rhs = 0;
+          double rhs =
+              lambda[u] > 0
+                  ? lambda[u] * f[free_slices[u] * plane + q * nx + p0 + l]
+                  : 0.0;
           for (const Coupling& c : row.fixed) {
             rhs -= value(c, l) *
                    fixed_coefficients[c.column * plane + q * nx + p0 + l];
           }
           // Entries A[u][u], A[u][u-1] (= A[u-1][u]), A[u][u-2].
-          double a = value(row.band[0], l);
+          double a = value(row.band[0], l) + lambda[u];
           double l1_prev = 0, l2_prevprev = 0;
           if (u >= 1) {
             const double d1 = ws.d[(u - 1) * kLanes + l];

@@ -27,6 +27,13 @@
 // - kDirect: the exact minimiser: a 2D DCT-II in x and y (FFTW) diagonalises
 //   A, leaving one pentadiagonal SPD system along z per in-plane frequency.
 //
+// - kMorph (beyond the paper, issue 14): the field is a registration-based
+//   stacking (core/morph StackMorph, chosen by the pipeline for this
+//   method); Solve() then runs the direct solver exactly as for kDirect,
+//   with the fidelity term of SolverOptions (the pipeline sets
+//   MorphOptions' fidelity and taper) and the pipeline applies core/morph's
+//   component filter afterwards.
+//
 // Fixed slices are never written: their voxels come out bit-identical.
 // Non-convergence is not an error: SolverResult says how far CG got.
 // Results do not depend on the thread count (fixed partitioning, per-slice
@@ -45,11 +52,11 @@
 
 namespace interslice {
 
-enum class SolverMethod { kLinear, kConjugateGradient, kDirect };
+enum class SolverMethod { kLinear, kConjugateGradient, kDirect, kMorph };
 enum class EnergyUnits { kVoxel, kMillimetre };
 
 std::string_view SolverMethodName(
-    SolverMethod method);  // "linear", "cg", "direct"
+    SolverMethod method);  // "linear", "cg", "direct", "morph"
 std::string_view EnergyUnitsName(EnergyUnits units);  // "voxel", "mm"
 
 // Weights of the six terms of E (see above).
@@ -67,6 +74,23 @@ struct SolverOptions {
   // if the residual becomes exactly zero).
   double tolerance = 0;
   EnergyUnits units = EnergyUnits::kVoxel;
+  // Weight lambda >= 0 of a fidelity term added to E:
+  //   E_lambda(f) = E(f) + lambda * sum over free voxels (f - g)^2,
+  // g = the field passed in (e.g. a registration-based stacking, core/morph).
+  // 0 (default) is the paper's energy. lambda > 0 keeps the result close to
+  // g while the curvature term removes its creases at the original slices;
+  // the minimiser is still exact with the direct solver (lambda adds to the
+  // diagonal of every per-frequency pentadiagonal system: the identity
+  // commutes with the DCT). Only kDirect supports it: INVALID_ARGUMENT for
+  // CG. With lambda > 0, SolverResult's residual is that of the curvature
+  // term alone (|P A f|, not zero at the optimum of E_lambda), and energy is
+  // E(f) without the fidelity term.
+  double fidelity = 0;
+  // With fidelity_taper, the weight of a free slice k between fixed slices a
+  // and b is fidelity * (2 min(k - a, b - k) / (b - a))^2: zero next to the
+  // original slices (where piecewise interpolations crease), full mid-gap.
+  // Free slices beyond the first or last fixed slice get the full weight.
+  bool fidelity_taper = false;
 };
 
 struct SolverResult {

@@ -157,8 +157,8 @@ TEST_F(CliTest, RunWritesVolumesMeshAndReport) {
   EXPECT_GT(topo.signed_volume, 0);
 }
 
-TEST_F(CliTest, CgLinearAndDirectAllRun) {
-  for (const char* method : {"linear", "cg", "direct"}) {
+TEST_F(CliTest, CgLinearDirectAndMorphAllRun) {
+  for (const char* method : {"linear", "cg", "direct", "morph"}) {
     const fs::path out = dir_ / method;
     const CommandResult r =
         RunCli("run " + kSmallSeries +

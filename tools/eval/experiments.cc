@@ -1,5 +1,6 @@
 #include "tools/eval/experiments.h"
 
+
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -11,12 +12,15 @@
 #include <limits>
 #include <set>
 
+#include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_split.h"
 #include "core/common/status_macros.h"
 #include "core/dicom/series_reader.h"
+#include "core/morph/morph.h"
+#include "core/stack/stacking.h"
 #include "core/surface/surface.h"
 #include "tools/eval/metrics.h"
 #include "tools/eval/reconstruct.h"
@@ -49,6 +53,8 @@ std::string CsvCell(const json& v) {
 struct Method {
   std::string name;
   bool nearest = false;
+  bool morph = false;  // registration-based stacking (core/morph) first
+  bool component_filter = false;  // RemoveUnsupportedComponents after
   SolverOptions solver;
 };
 
@@ -75,10 +81,38 @@ absl::StatusOr<Method> ParseMethod(const std::string& name,
     m.solver.tolerance = o.cg_tolerance;
   } else if (base == "direct") {
     m.solver.method = SolverMethod::kDirect;
+  } else if (base == "morph-raw") {
+    // The registration-based stacking alone (no refinement).
+    m.morph = true;
+    m.solver.method = SolverMethod::kLinear;
+  } else if (base == "morph") {
+    // The shipped method, as the pipeline runs it (--method morph).
+    const MorphOptions defaults;
+    m.morph = true;
+    m.component_filter = true;
+    m.solver.method = SolverMethod::kMorph;
+    m.solver.fidelity = defaults.fidelity;
+    m.solver.fidelity_taper = defaults.fidelity_taper;
+  } else if (absl::StartsWith(base, "morph-fid")) {
+    // morph-fidL: morph, then the direct solver with fidelity L.
+    m.morph = true;
+    m.solver.method = SolverMethod::kDirect;
+    std::string number = base.substr(9);
+    if (absl::EndsWith(number, "c")) {
+      m.component_filter = true;
+      number.pop_back();
+    }
+    if (absl::EndsWith(number, "t")) {
+      m.solver.fidelity_taper = true;
+      number.pop_back();
+    }
+    if (!absl::SimpleAtod(number, &m.solver.fidelity))
+      return absl::InvalidArgumentError("morph-fidL needs a number L");
   } else {
     return absl::InvalidArgumentError(absl::StrCat(
         "unknown method '", name,
-        "' (nearest, linear, cg15, cgtol, direct, optionally with -mm)"));
+        "' (nearest, linear, cg15, cgtol, direct, morph-raw, morph, "
+        "morph-fidL[t][c]; optionally with -mm)"));
   }
   return m;
 }
@@ -228,16 +262,54 @@ absl::Status RunCase(const Case& c, const EvalOptions& o, Recorder& rec) {
                          {"relative_residual", Num(e.relative_residual)},
                          {"energy", Num(e.energy)}});
       };
+      Stacked morphed;
+      const Stacked* source = &stacked;
+      double morph_seconds = 0;
+      if (method.morph) {
+        const auto tmorph = Clock::now();
+        MorphOptions mo;
+        // Sensitivity runs only (docs/eval): override the registration.
+        if (const char* e = std::getenv("MORPH_LEVELS")) mo.levels = std::atoi(e);
+        if (const char* e = std::getenv("MORPH_ITS")) mo.iterations = std::atoi(e);
+        if (const char* e = std::getenv("MORPH_SIGMA")) mo.field_sigma_px = std::atof(e);
+        if (const char* e = std::getenv("MORPH_CLIP")) mo.clip_mm = std::atof(e);
+        if (const char* e = std::getenv("MORPH_DS")) mo.downsample = std::atoi(e);
+        INTERSLICE_ASSIGN_OR_RETURN(
+            MorphedField mf,
+            StackMorph(stacked.maps,
+                       UniformStackPlan(stacked.maps.grid.size[2],
+                                        stacked.maps.grid.spacing[2],
+                                        stacked.factor),
+                       mo, int64_t{1} << 31, context));
+        morphed.field = std::move(mf.stacked.field);
+        morphed.fixed_slices = std::move(mf.stacked.fixed_slices);
+        morphed.factor = mf.stacked.factor;
+        morph_seconds = Seconds(tmorph);
+        row["morph_seconds"] = morph_seconds;
+        row["morph_mean_displacement_mm"] = mf.statistics.mean_displacement_mm;
+        row["morph_max_displacement_mm"] = mf.statistics.max_displacement_mm;
+        source = &morphed;
+      }
       INTERSLICE_ASSIGN_OR_RETURN(
-          Refined refined, Refine(stacked, method.solver, solve_context));
+          Refined refined, Refine(*source, method.solver, solve_context));
       value = std::move(refined.field);
+      if (method.component_filter) {
+        const auto tfilter = Clock::now();
+        INTERSLICE_ASSIGN_OR_RETURN(
+            const int64_t removed,
+            RemoveUnsupportedComponents(value, stacked.fixed_slices, 1e-3f,
+                                        context));
+        row["components_removed"] = removed;
+        morph_seconds += Seconds(tfilter);
+      }
       const SolverResult& r = refined.result;
       row["iterations"] = r.iterations;
       row["relative_residual"] = Num(r.relative_residual);
       row["initial_energy"] = Num(r.initial_energy);
       row["energy"] = Num(r.energy);
       row["converged"] = r.converged;
-      row["solve_seconds"] = refined.seconds;
+      // For the morph methods: registration + solve (+ component filter).
+      row["solve_seconds"] = refined.seconds + morph_seconds;
       row["max_iterations"] = method.solver.max_iterations;
       row["tolerance"] = method.solver.tolerance;
       row["crease"] = Num(CreaseIndex(value, stacked.fixed_slices));

@@ -27,10 +27,11 @@ try:
 except ImportError:  # only for the per-slice component counts
     ndimage = None
 
-ORDER = ["truth", "nearest", "linear", "cg15", "cgtol", "direct", "direct-mm"]
+ORDER = ["truth", "nearest", "linear", "cg15", "cgtol", "direct", "direct-mm", "morph-raw", "morph"]
 LABEL = {"truth": "ground truth", "nearest": "nearest slice",
          "linear": "linear SBI", "cg15": "CG 15 it.", "cgtol": "CG to tol.",
-         "direct": "exact (voxel)", "direct-mm": "exact (mm)"}
+         "direct": "exact (voxel)", "direct-mm": "exact (mm)",
+         "morph-raw": "morph (raw)", "morph": "morph"}
 
 
 def load_planes(out):

@@ -18,6 +18,7 @@ absl::StatusOr<Stacked> ContourAndStack(const Volume<float>& originals,
       StackedField stacked,
       StackLinear(maps, factor, int64_t{1} << 31, context));
   Stacked out;
+  out.maps = std::move(maps);
   out.field = std::move(stacked.field);
   out.fixed_slices = std::move(stacked.fixed_slices);
   out.factor = stacked.factor;

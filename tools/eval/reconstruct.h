@@ -22,6 +22,7 @@ struct Stacked {
   Volume<float> field;
   std::vector<uint8_t> fixed_slices;
   int factor = 1;
+  Volume<float> maps;  // the 2D distance maps of the originals
 };
 
 // 2D signed distance maps of `originals` (uniformly spaced grey slices,

@@ -14,13 +14,15 @@ import os
 import platform
 import subprocess
 
-ORDER = ["nearest", "linear", "cg15", "cgtol", "direct", "direct-mm"]
+ORDER = ["nearest", "linear", "cg15", "cgtol", "direct", "direct-mm", "morph-raw", "morph"]
 LABEL = {"nearest": "nearest original slice",
          "linear": "linear stacking of 2D distance maps",
          "cg15": "15 CG iterations, voxel units (the paper)",
          "cgtol": "CG to tolerance, voxel units",
          "direct": "exact minimiser, voxel units",
-         "direct-mm": "exact minimiser, mm units"}
+         "direct-mm": "exact minimiser, mm units",
+         "morph-raw": "registration-based stacking alone (candidate)",
+         "morph": "morph: registration + exact solver with fidelity + component filter (`--method morph`)"}
 # DESIGN.md section 5 (reference model on the phantom, 300 HU): Dice on
 # withheld slices for k = 2, 4, 8, thick -> thin, and HD95 (mm) at k = 8.
 DESIGN = {

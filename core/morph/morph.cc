@@ -1,0 +1,292 @@
+#include "core/morph/morph.h"
+
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <exception>
+#include <mutex>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/strings/str_cat.h"
+#include "core/common/status_macros.h"
+#include "itkConnectedComponentImageFilter.h"
+#include "itkFastSymmetricForcesDemonsRegistrationFilter.h"
+#include "itkImage.h"
+#include "itkMultiResolutionPDEDeformableRegistration.h"
+#include "itkVector.h"
+#include "tbb/parallel_for.h"
+#include "tbb/task_arena.h"
+
+namespace interslice {
+namespace {
+
+using Image = itk::Image<float, 2>;
+using Displacement = itk::Vector<float, 2>;
+using Field = itk::Image<Displacement, 2>;
+
+Image::Pointer MakeImage(const std::vector<float>& data, int64_t nx,
+                         int64_t ny) {
+  Image::Pointer image = Image::New();
+  Image::RegionType region;
+  region.SetSize({static_cast<itk::SizeValueType>(nx),
+                  static_cast<itk::SizeValueType>(ny)});
+  image->SetRegions(region);
+  image->Allocate();
+  std::copy(data.begin(), data.end(), image->GetBufferPointer());
+  return image;
+}
+
+// Block mean by `d` (partial blocks at the border averaged over what exists),
+// after clipping to +-clip.
+std::vector<float> ClipAndShrink(const float* in, int64_t nx, int64_t ny,
+                                 int d, float clip, int64_t& mx, int64_t& my) {
+  mx = (nx + d - 1) / d;
+  my = (ny + d - 1) / d;
+  std::vector<float> out(mx * my, 0.0f);
+  std::vector<int> count(mx * my, 0);
+  for (int64_t j = 0; j < ny; ++j)
+    for (int64_t i = 0; i < nx; ++i) {
+      const int64_t c = (i / d) + mx * (j / d);
+      out[c] += std::clamp(in[i + nx * j], -clip, clip);
+      ++count[c];
+    }
+  for (int64_t c = 0; c < mx * my; ++c) out[c] /= static_cast<float>(count[c]);
+  return out;
+}
+
+// Bilinear sample of an nx*ny plane at continuous pixel (x, y), clamped to
+// the border.
+inline float Sample(const float* plane, int64_t nx, int64_t ny, double x,
+                    double y) {
+  x = std::clamp(x, 0.0, static_cast<double>(nx - 1));
+  y = std::clamp(y, 0.0, static_cast<double>(ny - 1));
+  const int64_t i0 = std::min<int64_t>(static_cast<int64_t>(x), nx - 2 < 0 ? 0 : nx - 2);
+  const int64_t j0 = std::min<int64_t>(static_cast<int64_t>(y), ny - 2 < 0 ? 0 : ny - 2);
+  const int64_t i1 = std::min(i0 + 1, nx - 1), j1 = std::min(j0 + 1, ny - 1);
+  const double fx = x - i0, fy = y - j0;
+  const double a = plane[i0 + nx * j0] * (1 - fx) + plane[i1 + nx * j0] * fx;
+  const double b = plane[i0 + nx * j1] * (1 - fx) + plane[i1 + nx * j1] * fx;
+  return static_cast<float>(a * (1 - fy) + b * fy);
+}
+
+absl::Status ValidateOptions(const MorphOptions& o) {
+  if (o.levels < 1 || o.levels > 8)
+    return absl::InvalidArgumentError("morph: levels must be in [1, 8]");
+  if (o.iterations < 0)
+    return absl::InvalidArgumentError("morph: iterations must be >= 0");
+  if (!(o.field_sigma_px > 0) || !std::isfinite(o.field_sigma_px))
+    return absl::InvalidArgumentError("morph: field_sigma_px must be > 0");
+  if (!(o.clip_mm > 0) || !std::isfinite(o.clip_mm))
+    return absl::InvalidArgumentError("morph: clip_mm must be > 0");
+  if (o.downsample < 1 || o.downsample > 16)
+    return absl::InvalidArgumentError("morph: downsample must be in [1, 16]");
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::StatusOr<std::vector<float>> RegisterSlices(const float* fixed,
+                                                  const float* moving,
+                                                  int64_t nx, int64_t ny,
+                                                  const MorphOptions& options) {
+  INTERSLICE_RETURN_IF_ERROR(ValidateOptions(options));
+  if (nx < 1 || ny < 1)
+    return absl::InvalidArgumentError("morph: empty slice");
+  std::vector<float> u(2 * nx * ny, 0.0f);
+  if (options.iterations == 0) return u;
+  const int d = options.downsample;
+  int64_t mx = 0, my = 0;
+  const float clip = static_cast<float>(options.clip_mm);
+  const std::vector<float> f = ClipAndShrink(fixed, nx, ny, d, clip, mx, my);
+  const std::vector<float> m = ClipAndShrink(moving, nx, ny, d, clip, mx, my);
+  // Every level must keep at least 4 pixels per side.
+  int levels = options.levels;
+  while (levels > 1 && (std::min(mx, my) >> (levels - 1)) < 4) --levels;
+
+  using Demons =
+      itk::FastSymmetricForcesDemonsRegistrationFilter<Image, Image, Field>;
+  using MultiResolution =
+      itk::MultiResolutionPDEDeformableRegistration<Image, Image, Field, float>;
+  Field::Pointer field;
+  try {
+    auto demons = Demons::New();
+    demons->SetStandardDeviations(options.field_sigma_px);
+    demons->SetSmoothDisplacementField(true);
+    demons->SetNumberOfWorkUnits(1);
+    auto multi = MultiResolution::New();
+    multi->SetRegistrationFilter(demons);
+    multi->SetNumberOfLevels(static_cast<unsigned>(levels));
+    MultiResolution::NumberOfIterationsType its(levels);
+    its.Fill(static_cast<unsigned>(options.iterations));
+    multi->SetNumberOfIterations(its);
+    multi->GetModifiableFixedImagePyramid()->SetNumberOfWorkUnits(1);
+    multi->GetModifiableMovingImagePyramid()->SetNumberOfWorkUnits(1);
+    multi->GetModifiableFieldExpander()->SetNumberOfWorkUnits(1);
+    multi->SetNumberOfWorkUnits(1);
+    multi->SetFixedImage(MakeImage(f, mx, my));
+    multi->SetMovingImage(MakeImage(m, mx, my));
+    multi->Update();
+    field = multi->GetOutput();
+  } catch (const std::exception& e) {
+    return absl::InternalError(absl::StrCat("morph: ITK registration: ", e.what()));
+  }
+  // Upsample: coarse pixel c covers fine pixels [c d, c d + d); its centre is
+  // at fine coordinate c d + (d - 1) / 2. Displacements scale by d.
+  std::vector<float> cx(mx * my), cy(mx * my);
+  const Displacement* buffer = field->GetBufferPointer();
+  for (int64_t c = 0; c < mx * my; ++c) {
+    cx[c] = buffer[c][0];
+    cy[c] = buffer[c][1];
+  }
+  const double half = (d - 1) / 2.0;
+  for (int64_t j = 0; j < ny; ++j)
+    for (int64_t i = 0; i < nx; ++i) {
+      const double x = (i - half) / d, y = (j - half) / d;
+      u[i + nx * j] = d * Sample(cx.data(), mx, my, x, y);
+      u[nx * ny + i + nx * j] = d * Sample(cy.data(), mx, my, x, y);
+    }
+  return u;
+}
+
+absl::StatusOr<MorphedField> StackMorph(const Volume<float>& slice_maps,
+                                        const StackPlan& plan,
+                                        const MorphOptions& options,
+                                        int64_t max_voxels,
+                                        const ComputeContext& context) {
+  INTERSLICE_RETURN_IF_ERROR(ValidateOptions(options));
+  // The linear stacking fixes the grid, the fixed slices and the checks.
+  MorphedField out;
+  INTERSLICE_ASSIGN_OR_RETURN(
+      out.stacked, StackLinear(slice_maps, plan, max_voxels, context));
+  const Grid& g = slice_maps.grid;
+  const int64_t nx = g.size[0], ny = g.size[1], plane = nx * ny;
+  const int64_t gaps = g.size[2] - 1;
+  out.statistics.gaps = static_cast<int>(std::max<int64_t>(0, gaps));
+  if (gaps < 1 || options.iterations == 0) return out;
+
+  std::vector<double> sum(gaps, 0.0), worst(gaps, 0.0);
+  std::atomic<bool> cancelled{false};
+  absl::Status failure;
+  std::mutex failure_mutex;
+  const double sx = g.spacing[0], sy = g.spacing[1];
+  float* dst = out.stacked.field.data.data();
+  const float* maps = slice_maps.data.data();
+  auto run_gap = [&](int64_t s) {
+    if (cancelled.load()) return;
+    if (!context.CheckCancelled().ok()) {
+      cancelled.store(true);
+      return;
+    }
+    const float* d0 = maps + s * plane;
+    const float* d1 = maps + (s + 1) * plane;
+    absl::StatusOr<std::vector<float>> u =
+        RegisterSlices(d0, d1, nx, ny, options);
+    if (!u.ok()) {
+      std::lock_guard<std::mutex> lock(failure_mutex);
+      if (failure.ok()) failure = u.status();
+      return;
+    }
+    const float* ux = u->data();
+    const float* uy = u->data() + plane;
+    double total = 0, largest = 0;
+    for (int64_t v = 0; v < plane; ++v) {
+      const double len = std::hypot(ux[v] * sx, uy[v] * sy);
+      total += len;
+      largest = std::max(largest, len);
+    }
+    sum[s] = total / static_cast<double>(plane);
+    worst[s] = largest;
+    const int64_t k0 = plan.nodes[s], k1 = plan.nodes[s + 1];
+    for (int64_t k = k0 + 1; k < k1; ++k) {
+      const double t = static_cast<double>(k - k0) / static_cast<double>(k1 - k0);
+      float* slice = dst + k * plane;
+      for (int64_t j = 0; j < ny; ++j)
+        for (int64_t i = 0; i < nx; ++i) {
+          const int64_t v = i + nx * j;
+          const double a = Sample(d0, nx, ny, i - t * ux[v], j - t * uy[v]);
+          const double b =
+              Sample(d1, nx, ny, i + (1 - t) * ux[v], j + (1 - t) * uy[v]);
+          slice[v] = static_cast<float>((1 - t) * a + t * b);
+        }
+    }
+  };
+  tbb::task_arena arena(context.threads > 0 ? context.threads
+                                            : tbb::task_arena::automatic);
+  arena.execute([&] {
+    tbb::parallel_for(int64_t{0}, gaps, [&](int64_t s) {
+      run_gap(s);
+      context.Report({.stage = "stack", .fraction = 0.0});
+    });
+  });
+  if (cancelled.load()) return context.CheckCancelled();
+  if (!failure.ok()) return failure;
+  double total = 0;
+  for (int64_t s = 0; s < gaps; ++s) {
+    total += sum[s];
+    out.statistics.max_displacement_mm =
+        std::max(out.statistics.max_displacement_mm, worst[s]);
+  }
+  out.statistics.mean_displacement_mm = total / static_cast<double>(gaps);
+  return out;
+}
+
+absl::StatusOr<int64_t> RemoveUnsupportedComponents(
+    Volume<float>& field, const std::vector<uint8_t>& fixed_slices,
+    float margin_mm, const ComputeContext& context) {
+  const Index3 n = field.grid.size;
+  if (static_cast<int64_t>(fixed_slices.size()) != n[2] ||
+      static_cast<int64_t>(field.data.size()) != field.grid.VoxelCount())
+    return absl::InvalidArgumentError(
+        "component filter: field and fixed slices do not match");
+  if (!(margin_mm > 0))
+    return absl::InvalidArgumentError("component filter: margin must be > 0");
+  INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
+  using Mask = itk::Image<uint8_t, 3>;
+  using Labels = itk::Image<uint32_t, 3>;
+  Mask::Pointer mask = Mask::New();
+  Mask::RegionType region;
+  region.SetSize({static_cast<itk::SizeValueType>(n[0]),
+                  static_cast<itk::SizeValueType>(n[1]),
+                  static_cast<itk::SizeValueType>(n[2])});
+  mask->SetRegions(region);
+  mask->Allocate();
+  uint8_t* m = mask->GetBufferPointer();
+  const int64_t count = field.grid.VoxelCount();
+  for (int64_t v = 0; v < count; ++v) m[v] = field.data[v] >= 0 ? 1 : 0;
+  Labels::Pointer labels;
+  try {
+    auto cc = itk::ConnectedComponentImageFilter<Mask, Labels>::New();
+    cc->SetInput(mask);
+    cc->SetFullyConnected(false);  // face connectivity
+    if (context.threads > 0) cc->SetNumberOfWorkUnits(context.threads);
+    cc->Update();
+    labels = cc->GetOutput();
+  } catch (const std::exception& e) {
+    return absl::InternalError(
+        absl::StrCat("component filter: ITK: ", e.what()));
+  }
+  const uint32_t* l = labels->GetBufferPointer();
+  uint32_t max_label = 0;
+  for (int64_t v = 0; v < count; ++v) max_label = std::max(max_label, l[v]);
+  std::vector<uint8_t> supported(static_cast<size_t>(max_label) + 1, 0);
+  const int64_t plane = n[0] * n[1];
+  for (int64_t k = 0; k < n[2]; ++k) {
+    if (!fixed_slices[k]) continue;
+    for (int64_t v = k * plane; v < (k + 1) * plane; ++v) supported[l[v]] = 1;
+  }
+  std::vector<uint8_t> removed(supported.size(), 0);
+  int64_t removed_count = 0;
+  for (int64_t v = 0; v < count; ++v) {
+    const uint32_t label = l[v];
+    if (label == 0 || supported[label]) continue;
+    field.data[v] = std::min(field.data[v], -margin_mm);
+    if (!removed[label]) {
+      removed[label] = 1;
+      ++removed_count;
+    }
+  }
+  return removed_count;
+}
+
+}  // namespace interslice

@@ -1,0 +1,119 @@
+// Registration-based stacking of per-slice distance maps ("morph"): shape-
+// based interpolation that follows the structure between key slices instead
+// of blending the maps in place (issue 14). Literature: registration-based
+// interpolation (Penney et al. 2004, "Registration-based interpolation",
+// IEEE TMI 23(7); Frakes et al. 2008, "A new method for registration-based
+// medical image interpolation", IEEE TMI 27(3)).
+//
+// For every pair of neighbouring original slices s, s+1 (distance maps D0,
+// D1, in mm, positive inside), a dense 2D displacement u (pixels) is found by
+// ITK's multi-resolution symmetric-forces demons (Thirion 1998; Vercauteren
+// et al. 2007), fixed = D0 and moving = D1, both clipped to +-clip_mm so the
+// registration is driven by the band around the contours:
+//   D1(x + u(x)) ~ D0(x).
+// An output slice at fraction t in (0, 1) of the gap is
+//   f_t(p) = (1 - t) D0(p - t u(p)) + t D1(p + (1 - t) u(p))
+// (bilinear sampling, clamped at the slice border): both maps are carried
+// along the correspondence to the intermediate position and blended. u is
+// smooth (Gaussian-regularised demons), so evaluating it at p rather than at
+// its pre-image is a first-order approximation. For u = 0 this is exactly
+// linear stacking (core/stack StackLinear); at t = 0 and t = 1 it returns D0
+// and D1, so the original slices are reproduced bit-identically.
+//
+// The field produced is meant to be refined by core/solver with a fidelity
+// term (SolverOptions::fidelity): the curvature energy removes the creases
+// that piecewise morphing leaves at the original slices while staying close
+// to the morph.
+//
+// Parallelism: gaps are registered concurrently (one ITK filter per gap,
+// single-threaded), so results do not depend on the thread count.
+// Cancellation is polled once per gap.
+#ifndef INTERSLICE_CORE_MORPH_MORPH_H_
+#define INTERSLICE_CORE_MORPH_MORPH_H_
+
+#include <cstdint>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "core/common/compute.h"
+#include "core/geometry/volume.h"
+#include "core/stack/stacking.h"
+
+namespace interslice {
+
+struct MorphOptions {
+  // Pyramid levels of the demons registration (each halves the resolution).
+  // >= 1.
+  int levels = 4;
+  // Demons iterations per level, the same at every level. >= 0 (0 gives
+  // u = 0, i.e. linear stacking).
+  int iterations = 50;
+  // Standard deviation of the Gaussian applied to the displacement field
+  // after every demons iteration (the regulariser), in pixels of the level.
+  // > 0.
+  double field_sigma_px = 2.0;
+  // The maps are clipped to [-clip_mm, clip_mm] before registration. > 0.
+  double clip_mm = 4.0;
+  // Registration runs on maps downsampled by this integer factor in-plane
+  // (block mean); the displacement is upsampled bilinearly. >= 1.
+  int downsample = 4;
+  // The refinement that follows the morph in the pipeline (SolverOptions::
+  // fidelity, fidelity_taper): the largest tapered fidelity of {0.3, 1, 3}
+  // whose result keeps the crease index (docs/eval; a property of the result
+  // alone, no ground truth) <= 3 on the phantom (bone, every 8th slice);
+  // Dice was not used to choose it. docs/eval/candidates.md has the sweep.
+  double fidelity = 0.3;
+  bool fidelity_taper = true;
+  // RemoveUnsupportedComponents' margin, mm.
+  float component_margin_mm = 1e-3f;
+};
+
+struct MorphStatistics {
+  // Mean and largest displacement length over all gaps, mm (in-plane).
+  double mean_displacement_mm = 0;
+  double max_displacement_mm = 0;
+  int gaps = 0;
+};
+
+struct MorphedField {
+  StackedField stacked;
+  MorphStatistics statistics;
+};
+
+// Stacks `slice_maps` (one 2D map per original slice, as StackLinear) onto
+// the grid of `plan` by registration-based morphing. The output grid, fixed
+// slices and factor are those StackLinear gives for the same plan.
+// INVALID_ARGUMENT for bad options or a plan that does not match the maps;
+// RESOURCE_EXHAUSTED if the output would exceed max_voxels; CANCELLED /
+// DEADLINE_EXCEEDED from context.cancel.
+absl::StatusOr<MorphedField> StackMorph(const Volume<float>& slice_maps,
+                                        const StackPlan& plan,
+                                        const MorphOptions& options,
+                                        int64_t max_voxels,
+                                        const ComputeContext& context);
+
+// The component filter of the morph method ("a component only where the key
+// slices allow one", issue 14): every connected component (face
+// connectivity, ITK ConnectedComponentImageFilter) of the object field >= 0
+// that has no voxel on an original (fixed) slice is supported by no data:
+// linear stacking can never create one (a blend is positive only where one
+// of its two original slices is), so it is an artefact of the refinement
+// (overshoot) or of the morph. Its voxels are set to min(f, -margin_mm) so
+// that the object and the zero level set lose it; nothing else changes.
+// Returns the number of components removed. INVALID_ARGUMENT for a size
+// mismatch or margin_mm <= 0.
+absl::StatusOr<int64_t> RemoveUnsupportedComponents(
+    Volume<float>& field, const std::vector<uint8_t>& fixed_slices,
+    float margin_mm, const ComputeContext& context);
+
+// Used by StackMorph and exposed for tests: the displacement u (pixels, two
+// planes: ux then uy, each nx*ny, i fastest) registering `moving` onto
+// `fixed` (both nx*ny, i fastest): moving(x + u(x)) ~ fixed(x).
+absl::StatusOr<std::vector<float>> RegisterSlices(const float* fixed,
+                                                  const float* moving,
+                                                  int64_t nx, int64_t ny,
+                                                  const MorphOptions& options);
+
+}  // namespace interslice
+
+#endif  // INTERSLICE_CORE_MORPH_MORPH_H_
