@@ -459,6 +459,22 @@ TEST(DicomNodeTest, FullSpoolAnswersOutOfResourcesAndKeepsNothingUnacked) {
   EXPECT_EQ(staged, 0);
 }
 
+// A series that takes most of the spool quota still becomes its job: its
+// received bytes are handed over to the job's upload, not counted twice.
+TEST(DicomNodeTest, SeriesNearTheQuotaStillBecomesItsJob) {
+  TempDir dir;
+  DicomServer server(
+      dir, "spool",
+      {"--dicom-peers", WritePeers(dir), "--rules", WriteRules(dir, 600, true),
+       "--spool-quota-bytes", "20000000"});  // the phantom is 14.9 MB
+  ASSERT_TRUE(server.up()) << server.Log();
+  CommandResult store = StoreScu(server, {}, PhantomFiles());
+  ASSERT_EQ(store.exit_code, 0) << store.err;
+  ASSERT_TRUE(WaitUntil([&] { return !server.Jobs().empty(); }, 30))
+      << server.Log();
+  EXPECT_EQ(server.PendingInstances(), 0);
+}
+
 int ConnectTo(int port) {
   const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
   sockaddr_in addr{};
