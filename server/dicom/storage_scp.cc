@@ -234,9 +234,23 @@ class Pool : public DcmBaseSCPPool {
       return AssociationScp::setSharedConfig(config);
     }
     OFBool busy() override { return AssociationScp::isConnected(); }
-    OFCondition workerListen(T_ASC_Association* const assoc) override {
-      return AssociationScp::run(assoc);
+    OFCondition setAssociation(T_ASC_Association* assoc) override {
+      handed_over_ = std::chrono::steady_clock::now();
+      return DcmBaseSCPWorker::setAssociation(assoc);
     }
+    OFCondition workerListen(T_ASC_Association* const assoc) override {
+      OFCondition result = AssociationScp::run(assoc);
+      // DCMTK 3.6.7's pool deletes a worker when its thread ends, while
+      // the accepting thread may still be inside OFThread::start() writing
+      // the new thread's id into that worker (a use after free, seen as
+      // heap corruption after associations rejected within microseconds).
+      // A worker therefore lives at least this long after it was handed
+      // its association; start() has long returned by then.
+      std::this_thread::sleep_until(handed_over_ +
+                                    std::chrono::milliseconds(500));
+      return result;
+    }
+    std::chrono::steady_clock::time_point handed_over_;
   };
 
   DcmBaseSCPWorker* createSCPWorker() override {
