@@ -92,6 +92,10 @@ class SeriesAssembler {
   void Stop();
 
   const RuleSet& rules() const { return rules_; }
+  // The most bytes one instance may have: the per-series limit. The
+  // listener cuts off (aborts) a reception that passes it while it streams
+  // in, since no status can answer an instance before all of it arrived.
+  int64_t max_instance_bytes() const { return options_.max_bytes_per_series; }
 
   // A fresh path under incoming/ for an instance about to be received.
   std::string StagingPath();

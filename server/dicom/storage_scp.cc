@@ -140,6 +140,7 @@ class AssociationScp : public DcmThreadSCP {
     stored_ = refused_ = 0;
     released_ = false;
     acknowledged_ = false;
+    receiving_ = cut_off_ = false;
   }
 
   void notifyAssociationAcknowledge() override {
@@ -150,6 +151,20 @@ class AssociationScp : public DcmThreadSCP {
   }
 
   void notifyReleaseRequest() override { released_ = true; }
+
+  // Called while a data set streams in: an instance larger than a whole
+  // series may be is cut off here, by aborting the association, instead of
+  // being written to the end first.
+  void notifyRECEIVEProgress(const unsigned long bytes) override {
+    if (receiving_ && !cut_off_ && static_cast<int64_t>(bytes) > allowance_) {
+      cut_off_ = true;
+      spdlog::warn(
+          "dicom: association {} -> {} aborted: an instance passed {} bytes, "
+          "the limit per series",
+          LogSafe(calling_), LogSafe(called_), allowance_);
+      abortAssociation();
+    }
+  }
 
   void notifyAssociationTermination() override {
     if (!acknowledged_) return;
@@ -175,8 +190,12 @@ class AssociationScp : public DcmThreadSCP {
   OFCondition HandleStore(T_DIMSE_C_StoreRQ& request,
                           const DcmPresentationContextInfo& info) {
     const std::string staged = impl_->assembler->StagingPath();
+    allowance_ = impl_->assembler->max_instance_bytes();
+    receiving_ = true;
     OFCondition cond = receiveSTORERequest(request, info.presentationContextID,
                                            OFString(staged.c_str()));
+    receiving_ = false;
+    if (cut_off_ && cond.good()) cond = DUL_PEERABORTEDASSOCIATION;
     if (cond.bad()) {
       // The association ends (DcmSCP aborts it); nothing was acknowledged.
       ::unlink(staged.c_str());
@@ -217,6 +236,9 @@ class AssociationScp : public DcmThreadSCP {
   int64_t stored_ = 0, refused_ = 0;
   bool released_ = false;
   bool acknowledged_ = false;
+  bool receiving_ = false;
+  bool cut_off_ = false;
+  int64_t allowance_ = 0;
 };
 
 // DcmSCPPool<> default-constructs its workers; ours need the listener's

@@ -475,6 +475,39 @@ TEST(DicomNodeTest, SeriesNearTheQuotaStillBecomesItsJob) {
   EXPECT_EQ(server.PendingInstances(), 0);
 }
 
+// An instance larger than a whole series may be is cut off while it
+// streams in (the association is aborted), not written to the end first.
+TEST(DicomNodeTest, OversizeInstanceIsCutOffWhileStreaming) {
+  TempDir dir;
+  DicomServer server(
+      dir, "spool",
+      {"--dicom-peers", WritePeers(dir), "--rules", WriteRules(dir, 600, false),
+       "--dicom-max-series-bytes", "100000"});  // a phantom slice is 532 KiB
+  ASSERT_TRUE(server.up()) << server.Log();
+  CommandResult r = StoreScu(server, {}, {PhantomFiles().front()});
+  EXPECT_NE(r.exit_code, 0);
+  EXPECT_THAT(r.err, HasSubstr("Peer aborted Association"));
+  EXPECT_TRUE(WaitUntil(
+      [&] {
+        return server.Log().find("aborted: an instance passed 100000 bytes") !=
+               std::string::npos;
+      },
+      10))
+      << server.Log();
+  EXPECT_EQ(server.PendingInstances(), 0);
+  int staged = 0;
+  for (const auto& e : fs::directory_iterator(fs::path(server.spool()) /
+                                              "dicom-in" / "incoming")) {
+    (void)e;
+    ++staged;
+  }
+  EXPECT_EQ(staged, 0);
+  // Others are served as before.
+  CommandResult echo = RunCommand({kEchoScu, "-aet", "STORESCU", "-aec",
+                                   "INTERSLICE", "127.0.0.1", server.port()});
+  EXPECT_EQ(echo.exit_code, 0) << echo.err;
+}
+
 int ConnectTo(int port) {
   const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
   sockaddr_in addr{};
