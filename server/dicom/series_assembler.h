@@ -92,6 +92,10 @@ class SeriesAssembler {
   void Stop();
 
   const RuleSet& rules() const { return rules_; }
+  // The most bytes one instance may have: the per-series limit. The
+  // listener cuts off (aborts) a reception that passes it while it streams
+  // in, since no status can answer an instance before all of it arrived.
+  int64_t max_instance_bytes() const { return options_.max_bytes_per_series; }
 
   // A fresh path under incoming/ for an instance about to be received.
   std::string StagingPath();
@@ -115,6 +119,10 @@ class SeriesAssembler {
   // completed.
   int CompleteStableSeries();
 
+  // Blocking: deletes unmatched series past their retention time (the
+  // background thread calls this every 10 s; tests may too).
+  void SweepUnmatched();
+
   int pending_series();
 
  private:
@@ -133,7 +141,6 @@ class SeriesAssembler {
   // Facts, rule and job for a series taken out of series/ into `dir`.
   void Complete(const std::string& key, const Pending& pending,
                 const std::string& dir);
-  void SweepUnmatched();
   std::string SeriesDir(const std::string& key) const;
 
   const AssemblerOptions options_;

@@ -140,6 +140,7 @@ class AssociationScp : public DcmThreadSCP {
     stored_ = refused_ = 0;
     released_ = false;
     acknowledged_ = false;
+    receiving_ = cut_off_ = false;
   }
 
   void notifyAssociationAcknowledge() override {
@@ -150,6 +151,20 @@ class AssociationScp : public DcmThreadSCP {
   }
 
   void notifyReleaseRequest() override { released_ = true; }
+
+  // Called while a data set streams in: an instance larger than a whole
+  // series may be is cut off here, by aborting the association, instead of
+  // being written to the end first.
+  void notifyRECEIVEProgress(const unsigned long bytes) override {
+    if (receiving_ && !cut_off_ && static_cast<int64_t>(bytes) > allowance_) {
+      cut_off_ = true;
+      spdlog::warn(
+          "dicom: association {} -> {} aborted: an instance passed {} bytes, "
+          "the limit per series",
+          LogSafe(calling_), LogSafe(called_), allowance_);
+      abortAssociation();
+    }
+  }
 
   void notifyAssociationTermination() override {
     if (!acknowledged_) return;
@@ -175,8 +190,12 @@ class AssociationScp : public DcmThreadSCP {
   OFCondition HandleStore(T_DIMSE_C_StoreRQ& request,
                           const DcmPresentationContextInfo& info) {
     const std::string staged = impl_->assembler->StagingPath();
+    allowance_ = impl_->assembler->max_instance_bytes();
+    receiving_ = true;
     OFCondition cond = receiveSTORERequest(request, info.presentationContextID,
                                            OFString(staged.c_str()));
+    receiving_ = false;
+    if (cut_off_ && cond.good()) cond = DUL_PEERABORTEDASSOCIATION;
     if (cond.bad()) {
       // The association ends (DcmSCP aborts it); nothing was acknowledged.
       ::unlink(staged.c_str());
@@ -217,6 +236,9 @@ class AssociationScp : public DcmThreadSCP {
   int64_t stored_ = 0, refused_ = 0;
   bool released_ = false;
   bool acknowledged_ = false;
+  bool receiving_ = false;
+  bool cut_off_ = false;
+  int64_t allowance_ = 0;
 };
 
 // DcmSCPPool<> default-constructs its workers; ours need the listener's
@@ -234,9 +256,23 @@ class Pool : public DcmBaseSCPPool {
       return AssociationScp::setSharedConfig(config);
     }
     OFBool busy() override { return AssociationScp::isConnected(); }
-    OFCondition workerListen(T_ASC_Association* const assoc) override {
-      return AssociationScp::run(assoc);
+    OFCondition setAssociation(T_ASC_Association* assoc) override {
+      handed_over_ = std::chrono::steady_clock::now();
+      return DcmBaseSCPWorker::setAssociation(assoc);
     }
+    OFCondition workerListen(T_ASC_Association* const assoc) override {
+      OFCondition result = AssociationScp::run(assoc);
+      // DCMTK 3.6.7's pool deletes a worker when its thread ends, while
+      // the accepting thread may still be inside OFThread::start() writing
+      // the new thread's id into that worker (a use after free, seen as
+      // heap corruption after associations rejected within microseconds).
+      // A worker therefore lives at least this long after it was handed
+      // its association; start() has long returned by then.
+      std::this_thread::sleep_until(handed_over_ +
+                                    std::chrono::milliseconds(500));
+      return result;
+    }
+    std::chrono::steady_clock::time_point handed_over_;
   };
 
   DcmBaseSCPWorker* createSCPWorker() override {

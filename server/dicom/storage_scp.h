@@ -19,7 +19,9 @@
 // SeriesAssembler fsyncs and renames into its series before the response
 // leaves: success means kept. Spool quota or per-series limits reached:
 // 0xA700 (Refused: out of resources) and the file is deleted. Not DICOM /
-// no UIDs: 0xC000 (Error: cannot understand).
+// no UIDs: 0xC000 (Error: cannot understand). A data set that grows past the
+// per-series byte limit while it streams in is cut off by aborting the
+// association (the peer loses that association only).
 //
 // DCMTK 3.6.7's SCP pool listens on every interface; the HOST part of
 // --dicom-listen is checked but only loopback/any are meaningful (see
