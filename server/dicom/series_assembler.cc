@@ -468,8 +468,13 @@ void SeriesAssembler::Complete(const std::string& key, const Pending& p,
   }
   const std::string origin = absl::StrCat("dicom:", p.calling_ae, "->",
                                           p.called_ae, " rule ", rule->name);
+  // The job's admission reserves these bytes again (its upload is these
+  // files, hard-linked): hand our reservation over first, so that a series
+  // near the quota can still become its own job.
+  if (spool_ != nullptr) spool_->Release(p.bytes);
   absl::StatusOr<std::string> job = submitter_(rule->job, dir, origin);
   if (!job.ok()) {
+    if (spool_ != nullptr) spool_->Add(p.bytes);
     // Back into series/ so that it is tried again after another stable
     // wait (a full queue, a drain) and survives a restart.
     std::lock_guard<std::mutex> lock(mu_);
@@ -499,7 +504,6 @@ void SeriesAssembler::Complete(const std::string& key, const Pending& p,
         LogSafe(rule->name), from, LogSafe(job.status().message()));
     return;
   }
-  if (spool_ != nullptr) spool_->Release(p.bytes);
   fs::remove_all(dir, ec);
   if (metrics_ != nullptr) metrics_->DicomEvent("jobs_created");
   spdlog::info(

@@ -115,6 +115,10 @@ class SeriesAssembler {
   // completed.
   int CompleteStableSeries();
 
+  // Blocking: deletes unmatched series past their retention time (the
+  // background thread calls this every 10 s; tests may too).
+  void SweepUnmatched();
+
   int pending_series();
 
  private:
@@ -133,7 +137,6 @@ class SeriesAssembler {
   // Facts, rule and job for a series taken out of series/ into `dir`.
   void Complete(const std::string& key, const Pending& pending,
                 const std::string& dir);
-  void SweepUnmatched();
   std::string SeriesDir(const std::string& key) const;
 
   const AssemblerOptions options_;
