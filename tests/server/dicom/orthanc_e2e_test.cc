@@ -312,15 +312,17 @@ TEST_F(OrthancEndToEndTest, UnknownPeerIsRefusedAtAdmission) {
 
 TEST_F(OrthancEndToEndTest, DownPeerGetsResultsAfterItComesBackAndARestart) {
   orthanc_->Stop();
-  auto server = StartServer();
+  // Results are kept for 1 s only, except while a delivery is pending.
+  auto server = StartServer({"--retention", "1"});
   const std::string job =
       Submit(*server, {kPhantom.string(), "--send-to", "orthanc"});
   // The job succeeds; its delivery waits.
   const CommandResult watch = Cli(Cat({"watch", job}, server->Flag()));
   ASSERT_EQ(watch.exit_code, 0) << watch.err << server->Log();
   EXPECT_THAT(watch.out, HasSubstr("to orthanc: pending"));
-  // Let it fail a few times, then stop the server with it still pending.
-  std::this_thread::sleep_for(std::chrono::milliseconds(1500));
+  // Let it fail a few times, past the retention time and the ticker's
+  // expiry sweep (every 10 s), then stop the server with it still pending.
+  std::this_thread::sleep_for(std::chrono::seconds(11));
   server->Stop();
   EXPECT_THAT(server->Log(), HasSubstr("delivery to peer orthanc failed"));
   ASSERT_TRUE(orthanc_->Restart().ok());
