@@ -481,11 +481,11 @@ bool HasPendingDelivery(const v1::JobStatus& status) {
 
 void PrintDeliveries(const v1::JobStatus& status) {
   for (const v1::Delivery& d : status.deliveries()) {
-    std::printf("  to %s: %s, %d of %d instance(s) stored, %d attempt(s)%s%s\n",
-                d.peer().c_str(), DeliveryStateName(d.state()),
-                d.instances_sent(), d.instances_total(), d.attempts(),
-                d.last_error().empty() ? "" : "; last error: ",
-                d.last_error().c_str());
+    std::printf(
+        "  to %s: %s, %d of %d instance(s) stored, %d attempt(s)%s%s\n",
+        d.peer().c_str(), DeliveryStateName(d.state()), d.instances_sent(),
+        d.instances_total(), d.attempts(),
+        d.last_error().empty() ? "" : "; last error: ", d.last_error().c_str());
   }
 }
 

@@ -240,9 +240,9 @@ absl::StatusOr<std::shared_ptr<Job>> JobManager::Admit(
           "configured (--dicom-peers)"));
     }
     if (absl::Status s = deliveries_->CheckPeers({source.peer()}); !s.ok()) {
-      return reject(absl::InvalidArgumentError(absl::StrCat(
-          "spec.pacs_source.peer: unknown DICOM peer \"", source.peer(),
-          "\"")));
+      return reject(absl::InvalidArgumentError(
+          absl::StrCat("spec.pacs_source.peer: unknown DICOM peer \"",
+                       source.peer(), "\"")));
     }
     if (source.study_instance_uid().empty() ||
         source.series_instance_uid().empty()) {
@@ -965,16 +965,16 @@ void JobManager::RunOne(const std::shared_ptr<Job>& job) {
                absl::StatusCodeToString(error.code()), message);
 }
 
-absl::Status JobManager::RetrieveFromPeer(
-    const std::shared_ptr<Job>& job, const v1::PacsSeriesSource& source) {
+absl::Status JobManager::RetrieveFromPeer(const std::shared_ptr<Job>& job,
+                                          const v1::PacsSeriesSource& source) {
   const std::string& id = job->id();
   if (deliveries_ == nullptr) {
     return absl::FailedPreconditionError("the server has no DICOM peers");
   }
   std::optional<dicom::DicomPeer> peer = deliveries_->FindPeer(source.peer());
   if (!peer.has_value()) {
-    return absl::FailedPreconditionError(absl::StrCat(
-        "DICOM peer ", source.peer(), " is no longer configured"));
+    return absl::FailedPreconditionError(
+        absl::StrCat("DICOM peer ", source.peer(), " is no longer configured"));
   }
   // A rerun after a restart starts from an empty folder.
   spool_->RemoveUploads(id);
@@ -983,8 +983,8 @@ absl::Status JobManager::RetrieveFromPeer(
   dicom::RetrieveOptions options;
   options.calling_ae_title = deliveries_->options().calling_ae_title;
   options.tls = deliveries_->options().tls;
-  options.max_bytes = std::min(options_.max_upload_bytes,
-                               spool_->quota_bytes());
+  options.max_bytes =
+      std::min(options_.max_upload_bytes, spool_->quota_bytes());
   const auto started = std::chrono::steady_clock::now();
   absl::StatusOr<dicom::RetrieveResult> result = dicom::RetrieveSeries(
       *peer, source.study_instance_uid(), source.series_instance_uid(),
@@ -998,12 +998,12 @@ absl::Status JobManager::RetrieveFromPeer(
   // Accounted like an upload (released when the job ends).
   spool_->Add(result->bytes);
   job->Update([&](JobRecord& r) { r.set_upload_bytes(result->bytes); });
-  spdlog::info("job={} retrieved {} instance(s), {} bytes from peer {} in "
-               "{:.2f} s",
-               id, result->instances, result->bytes, peer->name,
-               std::chrono::duration<double>(std::chrono::steady_clock::now() -
-                                             started)
-                   .count());
+  spdlog::info(
+      "job={} retrieved {} instance(s), {} bytes from peer {} in "
+      "{:.2f} s",
+      id, result->instances, result->bytes, peer->name,
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - started)
+          .count());
   return absl::OkStatus();
 }
 

@@ -37,14 +37,16 @@ Metrics::Metrics() : registry_(std::make_shared<prometheus::Registry>()) {
                    .Add({});
   dicom_sent_ = &prometheus::BuildCounter()
                      .Name("interslice_dicom_instances_sent_total")
-                     .Help("DICOM instances a peer accepted (C-STORE), by "
-                           "peer name")
+                     .Help(
+                         "DICOM instances a peer accepted (C-STORE), by "
+                         "peer name")
                      .Register(*registry_);
   dicom_send_failed_ =
       &prometheus::BuildCounter()
            .Name("interslice_dicom_instances_send_failed_total")
-           .Help("DICOM instances not stored on a peer in a try (refused, "
-                 "or the peer unreachable), by peer name")
+           .Help(
+               "DICOM instances not stored on a peer in a try (refused, "
+               "or the peer unreachable), by peer name")
            .Register(*registry_);
   bytes_out_ = &prometheus::BuildCounter()
                     .Name("interslice_bytes_sent_total")

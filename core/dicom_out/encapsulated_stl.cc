@@ -104,10 +104,10 @@ absl::Status WriteEncapsulatedStl(const DicomSeries& source,
           "STL)"));
     }
   }
-  INTERSLICE_RETURN_IF_ERROR(Check(
-      ds.putAndInsertUint32(DCM_EncapsulatedDocumentLength,
-                            static_cast<Uint32>(st.st_size)),
-      "set EncapsulatedDocumentLength"));
+  INTERSLICE_RETURN_IF_ERROR(
+      Check(ds.putAndInsertUint32(DCM_EncapsulatedDocumentLength,
+                                  static_cast<Uint32>(st.st_size)),
+            "set EncapsulatedDocumentLength"));
 
   // Patient, study, frame of reference: the source's.
   CopyPatientStudyFrameOfReference(src, identity, ds);
@@ -135,8 +135,7 @@ absl::Status WriteEncapsulatedStl(const DicomSeries& source,
   ds.putAndInsertString(DCM_Manufacturer, "interslice");
   ds.putAndInsertString(DCM_ManufacturerModelName, "interslice");
   ds.putAndInsertString(DCM_DeviceSerialNumber, "0");
-  ds.putAndInsertString(DCM_SoftwareVersions,
-                        options.software_version.c_str());
+  ds.putAndInsertString(DCM_SoftwareVersions, options.software_version.c_str());
 
   // Encapsulated Document.
   ds.putAndInsertString(DCM_InstanceNumber, "1");

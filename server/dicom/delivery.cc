@@ -18,8 +18,8 @@
 #include "spdlog/spdlog.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
-#include "dcmtk/dcmnet/diutil.h"
 #include "dcmtk/dcmnet/dimse.h"
+#include "dcmtk/dcmnet/diutil.h"
 #include "dcmtk/dcmnet/dstorscu.h"
 #include "dcmtk/dcmtls/tlslayer.h"
 
@@ -105,8 +105,8 @@ absl::StatusOr<StoreResult> StoreFiles(const DicomPeer& peer,
   if (peer.tls) {
     absl::StatusOr<DicomTlsLayer> layer = MakeDicomTls(options.tls, false);
     if (!layer.ok()) {
-      return absl::FailedPreconditionError(
-          absl::StrCat(PeerLabel(peer), " needs TLS: ", layer.status().message()));
+      return absl::FailedPreconditionError(absl::StrCat(
+          PeerLabel(peer), " needs TLS: ", layer.status().message()));
     }
     tls = *std::move(layer);
   }
@@ -116,8 +116,8 @@ absl::StatusOr<StoreResult> StoreFiles(const DicomPeer& peer,
                          /*checkValues=*/OFFalse);
     if (cond.bad()) {
       return absl::InvalidArgumentError(
-          absl::StrCat("cannot send ", fs::path(file).filename().string(),
-                       ": ", cond.text()));
+          absl::StrCat("cannot send ", fs::path(file).filename().string(), ": ",
+                       cond.text()));
     }
   }
   if (scu.getNumberOfSOPInstances() == 0) return StoreResult{};
@@ -134,8 +134,8 @@ absl::StatusOr<StoreResult> StoreFiles(const DicomPeer& peer,
   if (tls != nullptr) {
     cond = scu.useSecureConnection(tls.get());
     if (cond.bad()) {
-      return absl::InternalError(
-          absl::StrCat("cannot use TLS with ", PeerLabel(peer), ": ", cond.text()));
+      return absl::InternalError(absl::StrCat(
+          "cannot use TLS with ", PeerLabel(peer), ": ", cond.text()));
     }
   }
   // One association per group of at most 128 presentation contexts
@@ -153,8 +153,8 @@ absl::StatusOr<StoreResult> StoreFiles(const DicomPeer& peer,
     cond = scu.sendSOPInstances();
     scu.releaseAssociation();
     if (cond.bad() && cond != NET_EC_NoSOPInstancesToSend) {
-      return absl::UnavailableError(absl::StrCat(
-          "sending to ", PeerLabel(peer), " failed: ", cond.text()));
+      return absl::UnavailableError(absl::StrCat("sending to ", PeerLabel(peer),
+                                                 " failed: ", cond.text()));
     }
   }
   StoreResult result = scu.result;
@@ -164,8 +164,9 @@ absl::StatusOr<StoreResult> StoreFiles(const DicomPeer& peer,
     result.refused += unsent;
     if (result.first_refusal.empty()) {
       result.first_refusal = absl::StrCat(
-          unsent, " instance(s) not sent: the peer accepted no presentation "
-                  "context for their SOP class");
+          unsent,
+          " instance(s) not sent: the peer accepted no presentation "
+          "context for their SOP class");
     }
   }
   return result;
@@ -302,6 +303,7 @@ void DeliveryQueue::Try(Entry& entry) {
   const auto peer =
       std::find_if(peers_.begin(), peers_.end(),
                    [&](const DicomPeer& p) { return p.name == d.peer(); });
+  const auto started = std::chrono::steady_clock::now();
   absl::StatusOr<StoreResult> result =
       peer == peers_.end()
           ? absl::FailedPreconditionError(absl::StrCat(
@@ -325,8 +327,14 @@ void DeliveryQueue::Try(Entry& entry) {
     d.set_state(v1::Delivery::DELIVERED);
     d.clear_last_error();
     d.set_next_attempt_unix_ms(0);
-    spdlog::info("job={} delivered to peer {}: {} instance(s), attempt {}",
-                 entry.job_id, d.peer(), total, d.attempts());
+    const double seconds = std::chrono::duration<double>(
+                               std::chrono::steady_clock::now() - started)
+                               .count();
+    spdlog::info(
+        "job={} delivered to peer {}: {} instance(s) in {:.2f} s ({:.1f} "
+        "instances/s), attempt {}",
+        entry.job_id, d.peer(), total, seconds,
+        seconds > 0 ? total / seconds : 0.0, d.attempts());
     return;
   }
   d.set_last_error(result.ok() ? absl::StrCat(result->refused, " of ", total,
@@ -336,9 +344,10 @@ void DeliveryQueue::Try(Entry& entry) {
   if (now - entry.first_added_unix_ms >= options_.give_up_after.count()) {
     d.set_state(v1::Delivery::FAILED);
     d.set_next_attempt_unix_ms(0);
-    spdlog::warn("job={} delivery to peer {} failed for good after {} "
-                 "attempt(s): {}",
-                 entry.job_id, d.peer(), d.attempts(), d.last_error());
+    spdlog::warn(
+        "job={} delivery to peer {} failed for good after {} "
+        "attempt(s): {}",
+        entry.job_id, d.peer(), d.attempts(), d.last_error());
     return;
   }
   // Exponential backoff, capped.
@@ -350,9 +359,10 @@ void DeliveryQueue::Try(Entry& entry) {
   backoff = std::min<int64_t>(backoff, options_.max_backoff.count());
   d.set_state(v1::Delivery::PENDING);
   d.set_next_attempt_unix_ms(now + backoff);
-  spdlog::warn("job={} delivery to peer {} failed (attempt {}), next try in "
-               "{} ms: {}",
-               entry.job_id, d.peer(), d.attempts(), backoff, d.last_error());
+  spdlog::warn(
+      "job={} delivery to peer {} failed (attempt {}), next try in "
+      "{} ms: {}",
+      entry.job_id, d.peer(), d.attempts(), backoff, d.last_error());
 }
 
 }  // namespace interslice::server::dicom

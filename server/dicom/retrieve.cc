@@ -19,8 +19,8 @@
 #include "dcmtk/dcmdata/dcdeftag.h"
 #include "dcmtk/dcmdata/dcfilefo.h"
 #include "dcmtk/dcmdata/dcuid.h"
-#include "dcmtk/dcmnet/diutil.h"
 #include "dcmtk/dcmnet/dimse.h"
+#include "dcmtk/dcmnet/diutil.h"
 #include "dcmtk/dcmnet/scu.h"
 #include "dcmtk/dcmtls/tlslayer.h"
 
@@ -39,8 +39,8 @@ const char* const kStorageClasses[] = {
 };
 
 bool SyncPath(const std::string& path, bool directory) {
-  const int fd = ::open(path.c_str(), directory ? O_RDONLY | O_DIRECTORY
-                                                : O_RDONLY);
+  const int fd =
+      ::open(path.c_str(), directory ? O_RDONLY | O_DIRECTORY : O_RDONLY);
   if (fd < 0) return false;
   const bool ok = ::fsync(fd) == 0;
   ::close(fd);
@@ -67,8 +67,7 @@ class GetScu : public DcmSCU {
 
  protected:
   OFCondition handleSTORERequest(const T_ASC_PresentationContextID /*presID*/,
-                                 DcmDataset* incoming,
-                                 OFBool& continue_session,
+                                 DcmDataset* incoming, OFBool& continue_session,
                                  Uint16& status) override {
     std::unique_ptr<DcmDataset> dataset(incoming);  // ours to delete
     continue_session = OFTrue;
@@ -91,9 +90,9 @@ class GetScu : public DcmSCU {
     DcmFileFormat file(dataset.get(), /*deepCopy=*/OFFalse);
     // Kept in the transfer syntax it arrived in (the reader decodes it).
     const E_TransferSyntax xfer = dataset->getOriginalXfer();
-    OFCondition cond = file.saveFile(
-        OFFilename(temp.c_str()),
-        xfer == EXS_Unknown ? EXS_LittleEndianExplicit : xfer);
+    OFCondition cond =
+        file.saveFile(OFFilename(temp.c_str()),
+                      xfer == EXS_Unknown ? EXS_LittleEndianExplicit : xfer);
     // The file format borrowed the dataset; take it back before both die.
     file.getAndRemoveDataset();
     std::error_code ec;
@@ -200,9 +199,10 @@ absl::StatusOr<RetrieveResult> RetrieveSeries(
       UID_GETStudyRootQueryRetrieveInformationModel, "");
   if (pc == 0) {
     scu.releaseAssociation();
-    return absl::FailedPreconditionError(absl::StrCat(
-        PeerLabel(peer), " does not offer C-GET (Study Root); the server "
-                         "retrieves with C-GET only"));
+    return absl::FailedPreconditionError(
+        absl::StrCat(PeerLabel(peer),
+                     " does not offer C-GET (Study Root); the server "
+                     "retrieves with C-GET only"));
   }
   DcmDataset query;
   query.putAndInsertString(DCM_QueryRetrieveLevel, "SERIES");
@@ -223,8 +223,8 @@ absl::StatusOr<RetrieveResult> RetrieveSeries(
 
   if (!scu.error.ok()) return scu.error;
   if (cond.bad()) {
-    return absl::UnavailableError(absl::StrCat(
-        "C-GET from ", PeerLabel(peer), " failed: ", cond.text()));
+    return absl::UnavailableError(
+        absl::StrCat("C-GET from ", PeerLabel(peer), " failed: ", cond.text()));
   }
   if (final_status != STATUS_Success && !DICOM_WARNING_STATUS(final_status)) {
     return absl::FailedPreconditionError(

@@ -25,8 +25,8 @@ namespace interslice {
 namespace {
 
 namespace fs = std::filesystem;
-using ::testing::HasSubstr;
 using testing::GetString;
+using ::testing::HasSubstr;
 
 const fs::path kThick = fs::path(INTERSLICE_TEST_DATA_DIR) / "ct-thick";
 constexpr char kTestRoot[] = "1.2.826.0.1.3680043.10.1234";
@@ -80,9 +80,9 @@ DicomSeries* EncapsulatedStlTest::source_ = nullptr;
 TEST_F(EncapsulatedStlTest, PassesDciodvfyAndRoundTripsTheBytes) {
   const DerivedObjects plan = Plan();
   const std::string out = (dir_.path() / kEncapsulatedStlFileName).string();
-  ASSERT_TRUE(WriteEncapsulatedStl(*source_, stl_, plan.surface_stl, Options(),
-                                   out)
-                  .ok());
+  ASSERT_TRUE(
+      WriteEncapsulatedStl(*source_, stl_, plan.surface_stl, Options(), out)
+          .ok());
   testing::ExpectValidIod({out});
 
   auto file = testing::LoadDicom(out);
@@ -103,7 +103,8 @@ TEST_F(EncapsulatedStlTest, PassesDciodvfyAndRoundTripsTheBytes) {
             GetString(*src->getDataset(), DCM_PatientID));
   // Every source image is listed as what the mesh was derived from.
   DcmSequenceOfItems* sources = nullptr;
-  ASSERT_TRUE(ds.findAndGetSequence(DCM_SourceInstanceSequence, sources).good());
+  ASSERT_TRUE(
+      ds.findAndGetSequence(DCM_SourceInstanceSequence, sources).good());
   EXPECT_EQ(sources->card(), source_->slices.size());
 
   // The embedded bytes are the STL file, byte for byte.
@@ -134,13 +135,14 @@ TEST_F(EncapsulatedStlTest, UidsAreStableAcrossRuns) {
   const std::string out1 = (dir_.path() / "a.dcm").string();
   const std::string out2 = (dir_.path() / "b.dcm").string();
   ASSERT_TRUE(
-      WriteEncapsulatedStl(*source_, stl_, a.surface_stl, Options(), out1).ok());
+      WriteEncapsulatedStl(*source_, stl_, a.surface_stl, Options(), out1)
+          .ok());
   ASSERT_TRUE(
-      WriteEncapsulatedStl(*source_, stl_, b.surface_stl, Options(), out2).ok());
-  EXPECT_EQ(GetString(*testing::LoadDicom(out1)->getDataset(),
-                      DCM_SOPInstanceUID),
-            GetString(*testing::LoadDicom(out2)->getDataset(),
-                      DCM_SOPInstanceUID));
+      WriteEncapsulatedStl(*source_, stl_, b.surface_stl, Options(), out2)
+          .ok());
+  EXPECT_EQ(
+      GetString(*testing::LoadDicom(out1)->getDataset(), DCM_SOPInstanceUID),
+      GetString(*testing::LoadDicom(out2)->getDataset(), DCM_SOPInstanceUID));
 }
 
 TEST_F(EncapsulatedStlTest, AsciiOrTruncatedStlIsInvalidArgument) {

@@ -2,6 +2,12 @@
 // a peer that is down and comes back, giving up, unknown peer names.
 #include "server/dicom/delivery.h"
 
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <signal.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
 #include <chrono>
 #include <condition_variable>
 #include <filesystem>
@@ -14,6 +20,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "tests/server/dicom/orthanc_fixture.h"
+#include "tests/server/process.h"
 #include "tests/testing/temp_dir.h"
 
 namespace interslice::server::dicom {
@@ -130,6 +137,76 @@ TEST(StoreFilesTest, UnreadableFileIsInvalidArgument) {
   ASSERT_FALSE(result.ok());
   EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_THAT(result.status().message(), HasSubstr("missing.dcm"));
+}
+
+bool Listening(int port) {
+  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in addr{};
+  addr.sin_family = AF_INET;
+  addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  addr.sin_port = htons(static_cast<uint16_t>(port));
+  const bool ok =
+      ::connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof(addr)) == 0;
+  ::close(fd);
+  return ok;
+}
+
+// Outgoing TLS (server/dicom/tls.h) against DCMTK's own storescp +tls, which
+// requires our certificate signed by the test CA; a CA that did not sign
+// the peer's certificate makes the handshake fail.
+TEST(StoreFilesTest, TlsPeerWithCaCheckedCertificates) {
+  testing::TempDir dir("interslice_store_tls_");
+  const std::string d = dir.str();
+  const testing::CommandResult certs = testing::RunCommand(
+      {"/bin/sh", "-c",
+       "set -e; cd '" + d +
+           "'; "
+           "openssl req -x509 -newkey rsa:2048 -nodes -days 1 -subj /CN=ca "
+           "-keyout ca.key -out ca.pem; "
+           "for who in pacs interslice; do "
+           "openssl req -newkey rsa:2048 -nodes -subj /CN=$who -keyout "
+           "$who.key -out $who.csr; "
+           "openssl x509 -req -in $who.csr -CA ca.pem -CAkey ca.key "
+           "-CAcreateserial -days 1 -out $who.pem; done; "
+           "openssl req -x509 -newkey rsa:2048 -nodes -days 1 -subj "
+           "/CN=rogue -keyout rogue.key -out rogue.pem"},
+      120);
+  ASSERT_EQ(certs.exit_code, 0) << certs.err;
+  const int port = testing::FreeTcpPort();
+  fs::create_directories(dir.path() / "received");
+  const pid_t scp = testing::StartProcess(
+      {"/usr/bin/storescp", "+tls", d + "/pacs.key", d + "/pacs.pem", "+cf",
+       d + "/ca.pem", "-rc", "-od", d + "/received", std::to_string(port)},
+      d + "/storescp.log");
+  for (int i = 0; i < 200 && !Listening(port); ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  DicomPeer peer;
+  peer.name = "secure";
+  peer.ae_title = "STORESCP";
+  peer.host = "127.0.0.1";
+  peer.port = port;
+  peer.tls = true;
+  DeliveryOptions options = FastOptions();
+  options.tls = {d + "/interslice.pem", d + "/interslice.key", d + "/ca.pem"};
+  const std::vector<std::string> files = ListDicomFiles(kThick.string());
+  absl::StatusOr<StoreResult> result = StoreFiles(peer, files, options);
+  EXPECT_TRUE(result.ok()) << result.status()
+                           << testing::ReadFileOrEmpty(d + "/storescp.log");
+  if (result.ok()) EXPECT_EQ(result->accepted, 4);
+  int received = 0;
+  for (const auto& e : fs::directory_iterator(dir.path() / "received")) {
+    received += e.is_regular_file() ? 1 : 0;
+  }
+  EXPECT_EQ(received, 4);
+
+  // Trusting only a CA that did not sign the peer: no association.
+  options.tls.ca_certificates = d + "/rogue.pem";
+  absl::StatusOr<StoreResult> refused = StoreFiles(peer, files, options);
+  EXPECT_FALSE(refused.ok());
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kUnavailable);
+  ::kill(scp, SIGTERM);
+  testing::WaitProcess(scp, 10);
 }
 
 TEST(DeliveryQueueTest, PeerDownThenBackIsDeliveredWithBackoff) {

@@ -30,8 +30,7 @@ size_t Append(char* data, size_t size, size_t n, void* out) {
 bool IsPart10(const fs::path& path) {
   std::ifstream in(path, std::ios::binary);
   char magic[132] = {};
-  return in.read(magic, sizeof(magic)) &&
-         std::string(magic + 128, 4) == "DICM";
+  return in.read(magic, sizeof(magic)) && std::string(magic + 128, 4) == "DICM";
 }
 
 }  // namespace
@@ -93,14 +92,10 @@ absl::StatusOr<std::unique_ptr<Orthanc>> Orthanc::Start(
   };
   nlohmann::json m = nlohmann::json::object();
   for (const OrthancModality& modality : modalities) {
-    m[modality.name] = {{"AET", modality.ae_title},
-                        {"Host", modality.host},
-                        {"Port", modality.port},
-                        {"AllowEcho", true},
-                        {"AllowStore", true},
-                        {"AllowFind", true},
-                        {"AllowGet", true},
-                        {"AllowMove", true}};
+    m[modality.name] = {{"AET", modality.ae_title}, {"Host", modality.host},
+                        {"Port", modality.port},    {"AllowEcho", true},
+                        {"AllowStore", true},       {"AllowFind", true},
+                        {"AllowGet", true},         {"AllowMove", true}};
   }
   config["DicomModalities"] = m;
   o->config_path_ = (fs::path(dir) / "orthanc.json").string();
@@ -123,9 +118,8 @@ absl::Status Orthanc::Launch() {
     std::this_thread::sleep_for(std::chrono::milliseconds(100));
   }
   Stop();
-  return absl::DeadlineExceededError(
-      absl::StrCat("Orthanc's REST API did not answer in 30 s; its log:\n",
-                   log()));
+  return absl::DeadlineExceededError(absl::StrCat(
+      "Orthanc's REST API did not answer in 30 s; its log:\n", log()));
 }
 
 Orthanc::~Orthanc() { Stop(); }
@@ -154,8 +148,7 @@ absl::StatusOr<std::string> Orthanc::Request(const std::string& method,
                                              const std::string& body) const {
   CURL* curl = curl_easy_init();
   if (curl == nullptr) return absl::InternalError("curl_easy_init failed");
-  const std::string url =
-      absl::StrCat("http://127.0.0.1:", http_port_, path);
+  const std::string url = absl::StrCat("http://127.0.0.1:", http_port_, path);
   std::string response;
   curl_easy_setopt(curl, CURLOPT_URL, url.c_str());
   curl_easy_setopt(curl, CURLOPT_WRITEFUNCTION, &Append);
