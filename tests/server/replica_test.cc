@@ -76,8 +76,10 @@ int FreePort() {
 
 class Replica {
  public:
-  Replica(std::string dir, int port)
-      : dir_(std::move(dir)), address_(absl::StrCat("127.0.0.1:", port)) {
+  Replica(std::string dir, int port, std::vector<std::string> extra = {})
+      : dir_(std::move(dir)),
+        address_(absl::StrCat("127.0.0.1:", port)),
+        extra_(std::move(extra)) {
     Start();
   }
   ~Replica() {
@@ -92,11 +94,23 @@ class Replica {
     const std::string port_file = dir_ + "/port";
     std::error_code ec;
     fs::remove(port_file, ec);
-    pid_ = StartProcess(
-        {kServer, "--listen", address_, "--advertise", address_, "--spool",
-         dir_ + "/spool", "--port-file", port_file, "--workers", "1",
-         "--threads-per-job", "1", "--drain-grace", "0"},
-        dir_ + "/server.log");
+    std::vector<std::string> argv = {kServer,
+                                     "--listen",
+                                     address_,
+                                     "--advertise",
+                                     address_,
+                                     "--spool",
+                                     dir_ + "/spool",
+                                     "--port-file",
+                                     port_file,
+                                     "--workers",
+                                     "1",
+                                     "--threads-per-job",
+                                     "1",
+                                     "--drain-grace",
+                                     "0"};
+    argv.insert(argv.end(), extra_.begin(), extra_.end());
+    pid_ = StartProcess(argv, dir_ + "/server.log");
     for (int i = 0;
          i < 500 && !fs::exists(port_file) && WaitProcess(pid_, 0) == -1; ++i) {
       std::this_thread::sleep_for(std::chrono::milliseconds(20));
@@ -115,6 +129,7 @@ class Replica {
  private:
   std::string dir_;
   std::string address_;
+  std::vector<std::string> extra_;
   pid_t pid_ = -1;
 };
 
@@ -315,6 +330,44 @@ TEST(ReplicaTest, AnyReplicaAnswersForAnyJobAndAKilledOneComesBack) {
     const grpc::Status s = FirstStatus(addresses[0], forged, &status);
     EXPECT_EQ(s.error_code(), grpc::NOT_FOUND) << s.error_message();
   }
+}
+
+// Forwarded calls carry the caller's token, and the owner decides who may
+// see the job: its submitter through any replica, another identity nowhere.
+TEST(ReplicaTest, ForwardedCallsActAsTheCaller) {
+  TempDir dir;
+  {
+    std::ofstream tokens(dir / "tokens");
+    tokens << "alice:alice-token\nbob:bob-token\n";
+  }
+  {
+    std::ofstream(dir / "alice") << "alice-token\n";
+    std::ofstream(dir / "bob") << "bob-token\n";
+  }
+  std::vector<std::unique_ptr<Replica>> replicas;
+  for (int i = 0; i < 2; ++i) {
+    fs::create_directories(dir / absl::StrCat("r", i));
+    replicas.push_back(std::make_unique<Replica>(
+        dir / absl::StrCat("r", i), FreePort(),
+        std::vector<std::string>{"--auth-token-file", dir / "tokens"}));
+  }
+  const std::string a = replicas[0]->address();
+  const std::string b = replicas[1]->address();
+  CommandResult submit =
+      Cli(Cat(Cat({"submit"}, kSmallJob),
+              {"--server", a, "--token-file", dir / "alice"}));
+  ASSERT_EQ(submit.exit_code, 0) << submit.err;
+  const std::string id = Trim(submit.out);
+  CommandResult alice = Cli(
+      {"watch", id, "--quiet", "--server", b, "--token-file", dir / "alice"});
+  EXPECT_EQ(alice.exit_code, 0) << alice.err;
+  CommandResult bob =
+      Cli({"watch", id, "--quiet", "--server", b, "--token-file", dir / "bob"});
+  EXPECT_EQ(bob.exit_code, 1);
+  EXPECT_THAT(bob.err, HasSubstr("no such job"));
+  CommandResult nobody = Cli({"watch", id, "--quiet", "--server", b});
+  EXPECT_EQ(nobody.exit_code, 1);
+  EXPECT_THAT(nobody.err, HasSubstr("refused the credentials"));
 }
 
 }  // namespace
