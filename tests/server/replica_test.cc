@@ -370,5 +370,63 @@ TEST(ReplicaTest, ForwardedCallsActAsTheCaller) {
   EXPECT_THAT(nobody.err, HasSubstr("refused the credentials"));
 }
 
+// With TLS, a replica verifies the owner with --peer-tls-ca.
+TEST(ReplicaTest, ForwardingOverTls) {
+  TempDir dir;
+  const std::string script = absl::StrCat(
+      "set -e; cd ", dir / "", "; exec >openssl.log 2>&1\n",
+      "openssl req -x509 -newkey rsa:2048 -nodes -days 2 -subj /CN=test-ca "
+      "-keyout ca.key -out ca.pem\n",
+      "openssl req -newkey rsa:2048 -nodes -subj /CN=replica "
+      "-keyout server.key -out server.csr\n",
+      "printf 'subjectAltName=IP:127.0.0.1\\n' > san.ext\n",
+      "openssl x509 -req -in server.csr -CA ca.pem -CAkey ca.key "
+      "-CAcreateserial -days 2 -extfile san.ext -out server.pem\n");
+  ASSERT_EQ(RunCommand({"/bin/sh", "-c", script}).exit_code, 0)
+      << ReadFileOrEmpty(dir / "openssl.log");
+  const std::vector<std::string> tls = {"--tls-cert", dir / "server.pem",
+                                        "--tls-key", dir / "server.key"};
+  std::vector<std::unique_ptr<Replica>> replicas;
+  for (int i = 0; i < 2; ++i) {
+    fs::create_directories(dir / absl::StrCat("r", i));
+    std::vector<std::string> extra = tls;
+    // Replica 1 trusts no CA for its peers but the system's: forwarding
+    // from it must fail verification.
+    if (i == 0) extra = Cat(extra, {"--peer-tls-ca", dir / "ca.pem"});
+    replicas.push_back(std::make_unique<Replica>(dir / absl::StrCat("r", i),
+                                                 FreePort(), extra));
+  }
+  const std::vector<std::string> ca = {"--tls-ca", dir / "ca.pem"};
+  CommandResult submit =
+      Cli(Cat(Cat({"submit"}, kSmallJob),
+              Cat(ca, {"--server", replicas[1]->address()})));
+  ASSERT_EQ(submit.exit_code, 0) << submit.err;
+  const std::string id = Trim(submit.out);
+  CommandResult through_0 = Cli(
+      Cat({"watch", id, "--quiet", "--server", replicas[0]->address()}, ca));
+  EXPECT_EQ(through_0.exit_code, 0) << through_0.err << replicas[0]->Log();
+  // The other way, the owner's certificate is not trusted.
+  CommandResult submit0 =
+      Cli(Cat(Cat({"submit"}, kSmallJob),
+              Cat(ca, {"--server", replicas[0]->address()})));
+  ASSERT_EQ(submit0.exit_code, 0) << submit0.err;
+  v1::JobStatus status;
+  auto channel = grpc::CreateChannel(
+      replicas[1]->address(),
+      grpc::SslCredentials({ReadFileOrEmpty(dir / "ca.pem"), "", ""}));
+  auto stub = v1::InterSlice::NewStub(channel);
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() +
+                       std::chrono::seconds(30));
+  v1::WatchRequest request;
+  request.set_job_id(Trim(submit0.out));
+  auto reader = stub->Watch(&context, request);
+  while (reader->Read(&status)) {
+  }
+  const grpc::Status s = reader->Finish();
+  EXPECT_EQ(s.error_code(), grpc::UNAVAILABLE) << s.error_message();
+  EXPECT_THAT(s.error_message(), HasSubstr(replicas[0]->address()));
+}
+
 }  // namespace
 }  // namespace interslice::testing
