@@ -269,9 +269,13 @@ std::optional<std::string> Forwarder::Route(
   return owner;
 }
 
-v1::InterSlice::Stub* Forwarder::StubFor(const std::string& owner) {
+std::shared_ptr<v1::InterSlice::Stub> Forwarder::StubFor(
+    const std::string& owner) {
   std::lock_guard<std::mutex> lock(mu_);
-  std::unique_ptr<v1::InterSlice::Stub>& stub = stubs_[owner];
+  if (stubs_.size() >= kMaxChannels && stubs_.count(owner) == 0) {
+    stubs_.clear();
+  }
+  std::shared_ptr<v1::InterSlice::Stub>& stub = stubs_[owner];
   if (!stub) {
     grpc::ChannelArguments args;
     // A restarted owner is used again within a second or so, and a pod that
@@ -284,7 +288,7 @@ v1::InterSlice::Stub* Forwarder::StubFor(const std::string& owner) {
     stub = v1::InterSlice::NewStub(
         grpc::CreateCustomChannel(owner, credentials_, args));
   }
-  return stub.get();
+  return stub;
 }
 
 std::unique_ptr<grpc::ClientContext> Forwarder::ForwardContext(
@@ -306,7 +310,7 @@ grpc::ServerWriteReactor<v1::JobStatus>* Forwarder::Watch(
     grpc::CallbackServerContext* context, const v1::WatchRequest& request,
     const std::string& owner) {
   return new ForwardedStream<v1::WatchRequest, v1::JobStatus>(
-      ForwardContext(context), request, owner, StubFor(owner),
+      ForwardContext(context), request, owner, StubFor(owner).get(),
       &v1::InterSlice::StubInterface::async_interface::Watch);
 }
 
@@ -314,7 +318,7 @@ grpc::ServerWriteReactor<v1::ArtifactChunk>* Forwarder::Fetch(
     grpc::CallbackServerContext* context, const v1::FetchRequest& request,
     const std::string& owner) {
   return new ForwardedStream<v1::FetchRequest, v1::ArtifactChunk>(
-      ForwardContext(context), request, owner, StubFor(owner),
+      ForwardContext(context), request, owner, StubFor(owner).get(),
       &v1::InterSlice::StubInterface::async_interface::Fetch);
 }
 

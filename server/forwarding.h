@@ -88,8 +88,12 @@ class Forwarder {
               const std::string& owner);
 
  private:
-  // One channel per owner, kept (channels reconnect by themselves).
-  v1::InterSlice::Stub* StubFor(const std::string& owner);
+  // One channel per owner, kept (channels reconnect by themselves), at most
+  // kMaxChannels: ids are client text, so names within the replica set
+  // could otherwise grow the cache without bound. Calls in flight keep their
+  // channel alive when it is dropped from the cache.
+  static constexpr size_t kMaxChannels = 64;
+  std::shared_ptr<v1::InterSlice::Stub> StubFor(const std::string& owner);
   // A ClientContext for the forwarded call: the caller's deadline,
   // cancellation and token, and the forwarded mark.
   std::unique_ptr<grpc::ClientContext> ForwardContext(
@@ -98,7 +102,7 @@ class Forwarder {
   const std::shared_ptr<grpc::ChannelCredentials> credentials_;
   mutable std::mutex mu_;
   std::string advertise_;
-  std::map<std::string, std::unique_ptr<v1::InterSlice::Stub>> stubs_;
+  std::map<std::string, std::shared_ptr<v1::InterSlice::Stub>> stubs_;
 };
 
 }  // namespace interslice::server

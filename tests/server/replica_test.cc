@@ -76,8 +76,10 @@ int FreePort() {
 
 class Replica {
  public:
-  Replica(std::string dir, int port)
-      : dir_(std::move(dir)), address_(absl::StrCat("127.0.0.1:", port)) {
+  Replica(std::string dir, int port, std::vector<std::string> extra = {})
+      : dir_(std::move(dir)),
+        address_(absl::StrCat("127.0.0.1:", port)),
+        extra_(std::move(extra)) {
     Start();
   }
   ~Replica() {
@@ -92,11 +94,23 @@ class Replica {
     const std::string port_file = dir_ + "/port";
     std::error_code ec;
     fs::remove(port_file, ec);
-    pid_ = StartProcess(
-        {kServer, "--listen", address_, "--advertise", address_, "--spool",
-         dir_ + "/spool", "--port-file", port_file, "--workers", "1",
-         "--threads-per-job", "1", "--drain-grace", "0"},
-        dir_ + "/server.log");
+    std::vector<std::string> argv = {kServer,
+                                     "--listen",
+                                     address_,
+                                     "--advertise",
+                                     address_,
+                                     "--spool",
+                                     dir_ + "/spool",
+                                     "--port-file",
+                                     port_file,
+                                     "--workers",
+                                     "1",
+                                     "--threads-per-job",
+                                     "1",
+                                     "--drain-grace",
+                                     "0"};
+    argv.insert(argv.end(), extra_.begin(), extra_.end());
+    pid_ = StartProcess(argv, dir_ + "/server.log");
     for (int i = 0;
          i < 500 && !fs::exists(port_file) && WaitProcess(pid_, 0) == -1; ++i) {
       std::this_thread::sleep_for(std::chrono::milliseconds(20));
@@ -115,6 +129,7 @@ class Replica {
  private:
   std::string dir_;
   std::string address_;
+  std::vector<std::string> extra_;
   pid_t pid_ = -1;
 };
 
@@ -315,6 +330,102 @@ TEST(ReplicaTest, AnyReplicaAnswersForAnyJobAndAKilledOneComesBack) {
     const grpc::Status s = FirstStatus(addresses[0], forged, &status);
     EXPECT_EQ(s.error_code(), grpc::NOT_FOUND) << s.error_message();
   }
+}
+
+// Forwarded calls carry the caller's token, and the owner decides who may
+// see the job: its submitter through any replica, another identity nowhere.
+TEST(ReplicaTest, ForwardedCallsActAsTheCaller) {
+  TempDir dir;
+  {
+    std::ofstream tokens(dir / "tokens");
+    tokens << "alice:alice-token\nbob:bob-token\n";
+  }
+  {
+    std::ofstream(dir / "alice") << "alice-token\n";
+    std::ofstream(dir / "bob") << "bob-token\n";
+  }
+  std::vector<std::unique_ptr<Replica>> replicas;
+  for (int i = 0; i < 2; ++i) {
+    fs::create_directories(dir / absl::StrCat("r", i));
+    replicas.push_back(std::make_unique<Replica>(
+        dir / absl::StrCat("r", i), FreePort(),
+        std::vector<std::string>{"--auth-token-file", dir / "tokens"}));
+  }
+  const std::string a = replicas[0]->address();
+  const std::string b = replicas[1]->address();
+  CommandResult submit =
+      Cli(Cat(Cat({"submit"}, kSmallJob),
+              {"--server", a, "--token-file", dir / "alice"}));
+  ASSERT_EQ(submit.exit_code, 0) << submit.err;
+  const std::string id = Trim(submit.out);
+  CommandResult alice = Cli(
+      {"watch", id, "--quiet", "--server", b, "--token-file", dir / "alice"});
+  EXPECT_EQ(alice.exit_code, 0) << alice.err;
+  CommandResult bob =
+      Cli({"watch", id, "--quiet", "--server", b, "--token-file", dir / "bob"});
+  EXPECT_EQ(bob.exit_code, 1);
+  EXPECT_THAT(bob.err, HasSubstr("no such job"));
+  CommandResult nobody = Cli({"watch", id, "--quiet", "--server", b});
+  EXPECT_EQ(nobody.exit_code, 1);
+  EXPECT_THAT(nobody.err, HasSubstr("refused the credentials"));
+}
+
+// With TLS, a replica verifies the owner with --peer-tls-ca.
+TEST(ReplicaTest, ForwardingOverTls) {
+  TempDir dir;
+  const std::string script = absl::StrCat(
+      "set -e; cd ", dir / "", "; exec >openssl.log 2>&1\n",
+      "openssl req -x509 -newkey rsa:2048 -nodes -days 2 -subj /CN=test-ca "
+      "-keyout ca.key -out ca.pem\n",
+      "openssl req -newkey rsa:2048 -nodes -subj /CN=replica "
+      "-keyout server.key -out server.csr\n",
+      "printf 'subjectAltName=IP:127.0.0.1\\n' > san.ext\n",
+      "openssl x509 -req -in server.csr -CA ca.pem -CAkey ca.key "
+      "-CAcreateserial -days 2 -extfile san.ext -out server.pem\n");
+  ASSERT_EQ(RunCommand({"/bin/sh", "-c", script}).exit_code, 0)
+      << ReadFileOrEmpty(dir / "openssl.log");
+  const std::vector<std::string> tls = {"--tls-cert", dir / "server.pem",
+                                        "--tls-key", dir / "server.key"};
+  std::vector<std::unique_ptr<Replica>> replicas;
+  for (int i = 0; i < 2; ++i) {
+    fs::create_directories(dir / absl::StrCat("r", i));
+    std::vector<std::string> extra = tls;
+    // Replica 1 trusts no CA for its peers but the system's: forwarding
+    // from it must fail verification.
+    if (i == 0) extra = Cat(extra, {"--peer-tls-ca", dir / "ca.pem"});
+    replicas.push_back(std::make_unique<Replica>(dir / absl::StrCat("r", i),
+                                                 FreePort(), extra));
+  }
+  const std::vector<std::string> ca = {"--tls-ca", dir / "ca.pem"};
+  CommandResult submit =
+      Cli(Cat(Cat({"submit"}, kSmallJob),
+              Cat(ca, {"--server", replicas[1]->address()})));
+  ASSERT_EQ(submit.exit_code, 0) << submit.err;
+  const std::string id = Trim(submit.out);
+  CommandResult through_0 = Cli(
+      Cat({"watch", id, "--quiet", "--server", replicas[0]->address()}, ca));
+  EXPECT_EQ(through_0.exit_code, 0) << through_0.err << replicas[0]->Log();
+  // The other way, the owner's certificate is not trusted.
+  CommandResult submit0 =
+      Cli(Cat(Cat({"submit"}, kSmallJob),
+              Cat(ca, {"--server", replicas[0]->address()})));
+  ASSERT_EQ(submit0.exit_code, 0) << submit0.err;
+  v1::JobStatus status;
+  auto channel = grpc::CreateChannel(
+      replicas[1]->address(),
+      grpc::SslCredentials({ReadFileOrEmpty(dir / "ca.pem"), "", ""}));
+  auto stub = v1::InterSlice::NewStub(channel);
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() +
+                       std::chrono::seconds(30));
+  v1::WatchRequest request;
+  request.set_job_id(Trim(submit0.out));
+  auto reader = stub->Watch(&context, request);
+  while (reader->Read(&status)) {
+  }
+  const grpc::Status s = reader->Finish();
+  EXPECT_EQ(s.error_code(), grpc::UNAVAILABLE) << s.error_message();
+  EXPECT_THAT(s.error_message(), HasSubstr(replicas[0]->address()));
 }
 
 }  // namespace
