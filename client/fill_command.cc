@@ -69,7 +69,9 @@ absl::StatusOr<std::vector<int64_t>> ParseSliceList(const std::string& text) {
 void AddFillOptions(CLI::App& app, FillArguments& args) {
   app.add_option("segmentation", args.segmentation,
                  "Label map (.nii, .nii.gz, .nrrd; integer labels, 0 = "
-                 "background) on the reference series' grid")
+                 "background) on the reference series' grid, or a DICOM SEG "
+                 "(label = segment number) or RTSTRUCT (label = ROI number) "
+                 "drawn on the reference series")
       ->required();
   app.add_option("--reference", args.reference,
                  "The DICOM series the segmentation was drawn on (folders "
@@ -78,8 +80,9 @@ void AddFillOptions(CLI::App& app, FillArguments& args) {
   app.add_option("--series-uid", args.series_uid,
                  "SeriesInstanceUID of the reference when it holds several");
   app.add_option("--labels", args.labels,
-                 "Labels to fill, e.g. 1,3,7 (default: all); others are "
-                 "copied as drawn");
+                 "Labels to fill, e.g. 1,3,7 (default: all); in a label map "
+                 "the others are copied as drawn, in a SEG/RTSTRUCT only "
+                 "these segments/ROIs are read");
   app.add_option("--key-slices", args.key_slices,
                  "Key slices for every label, e.g. 0,5,12 or 0-40:5 "
                  "(default: per label, the slices where it is drawn)");

@@ -1,6 +1,6 @@
-// `interslice fill`: a segmentation drawn on some slices of a reference
-// DICOM series, filled between its key slices for every label, in-process
-// (core/labels/fill_job.h).
+// `interslice fill`: a segmentation (label map, DICOM SEG or RTSTRUCT) drawn
+// on some slices of a reference DICOM series, filled between its key slices
+// for every label, in-process (core/labels/fill_job.h).
 #ifndef INTERSLICE_CLIENT_FILL_COMMAND_H_
 #define INTERSLICE_CLIENT_FILL_COMMAND_H_
 

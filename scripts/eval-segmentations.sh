@@ -63,8 +63,8 @@ fi
 if [ "$publish" = 1 ] && [ "$default_data" = 1 ]; then
   docs="$repo/docs/eval"
   mkdir -p "$docs"
-  cp "$out/segmentations.md" "$out/fill_summary.csv" "$out/fill_metrics.csv" \
-     "$out/labels.json" "$docs"/
+  cp "$out/segmentations.md" "$out/fill_summary.csv" "$out/fill_metrics.csv" "$docs"/
+  cp "$out/labels.json" "$docs/segmentations_labels.json"
   [ -f "$out/segmentations_dice.png" ] && cp "$out/segmentations_dice.png" "$docs"/
   echo "eval-segmentations.sh: report published to $docs/segmentations.md"
 fi

@@ -89,9 +89,11 @@ absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
   absl::StatusOr<LabelVolume> labels;
   if (LooksLikeDicomFile(spec.segmentation)) {
     absl::StatusOr<SegmentationInput> seg =
-        ReadDicomSegmentation(spec.segmentation, reference_series);
+        ReadDicomLabels(spec.segmentation, reference_series, spec.fill.labels);
     if (!seg.ok()) return seg.status();
-    report.input_kind = seg->fractional ? "seg-fractional" : "seg-binary";
+    report.input_kind = seg->rtstruct     ? "rtstruct"
+                        : seg->fractional ? "seg-fractional"
+                                          : "seg-binary";
     report.segments = seg->segments;
     labels = std::move(seg->labels);
   } else {

@@ -295,7 +295,10 @@ absl::StatusOr<FillResult> FillBetweenSlices(const LabelVolume& input,
   // earlier, i.e. smaller, label keeps the voxel: labels run in ascending
   // order and only a strictly larger value replaces the best).
   const int64_t out_voxels = out_grid.VoxelCount();
-  std::vector<float> best(out_voxels, kNoField), second(out_voxels, kNoField);
+  // The second best is needed only for the meshing fields.
+  std::vector<float> best(out_voxels, kNoField);
+  std::vector<float> second(options.keep_fields ? out_voxels : 0, kNoField);
+  const bool track_second = options.keep_fields;
   std::vector<uint16_t> best_label(out_voxels, 0);
 
   struct Region {
@@ -407,10 +410,10 @@ absl::StatusOr<FillResult> FillBetweenSlices(const LabelVolume& input,
         for (int64_t i = 0; i < bw; ++i) {
           const float v = src[i];
           if (v > best[dst + i]) {
-            second[dst + i] = best[dst + i];
+            if (track_second) second[dst + i] = best[dst + i];
             best[dst + i] = v;
             best_label[dst + i] = static_cast<uint16_t>(label);
-          } else if (v > second[dst + i]) {
+          } else if (track_second && v > second[dst + i]) {
             second[dst + i] = v;
           }
         }

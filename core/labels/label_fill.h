@@ -99,7 +99,9 @@ struct FillOptions {
   int margin_pixels = 6;
   // Keep each label's combined field (for meshing) in FillResult.
   bool keep_fields = false;
-  // Bound on voxels of the output grid, checked before allocation.
+  // Bound on voxels of the output grid, checked before allocation. Memory:
+  // about 8 bytes per output voxel (12 with keep_fields) plus each label's
+  // box of float fields, one label at a time (all boxes with keep_fields).
   int64_t max_output_voxels = int64_t{1} << 30;
 };
 

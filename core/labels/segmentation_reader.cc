@@ -1,10 +1,13 @@
 #include "core/labels/segmentation_reader.h"
 
+#include <algorithm>
 #include <cmath>
 #include <cstring>
 #include <fstream>
+#include <map>
 #include <memory>
 
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "dcmtk/config/osconfig.h"
@@ -13,6 +16,7 @@
 #include "dcmtk/dcmfg/fgplanor.h"
 #include "dcmtk/dcmfg/fgplanpo.h"
 #include "dcmtk/dcmfg/fgseg.h"
+#include "dcmtk/dcmrt/drtstrct.h"
 #include "dcmtk/dcmseg/segdoc.h"
 #include "dcmtk/dcmseg/segment.h"
 #include "dcmtk/dcmseg/segutils.h"
@@ -44,7 +48,8 @@ bool LooksLikeDicomFile(const std::string& path) {
 }
 
 absl::StatusOr<SegmentationInput> ReadDicomSegmentation(
-    const std::string& path, const ReferenceSeries& reference) {
+    const std::string& path, const ReferenceSeries& reference,
+    const std::vector<int>& only) {
   const std::string name = BaseName(path);
   const auto error = [&](const std::string& what) {
     return absl::InvalidArgumentError(absl::StrCat("SEG ", name, ": ", what));
@@ -184,6 +189,10 @@ absl::StatusOr<SegmentationInput> ReadDicomSegmentation(
           "against the reference series",
           f + 1, number, index[0], index[1]));
     }
+    if (!only.empty() &&
+        std::find(only.begin(), only.end(), number) == only.end()) {
+      continue;
+    }
     const DcmIODTypes::Frame* data = seg->getFrame(f);
     if (data == nullptr) {
       return error(absl::StrFormat("frame %d has no pixel data", f + 1));
@@ -216,6 +225,173 @@ absl::StatusOr<SegmentationInput> ReadDicomSegmentation(
     }
   }
   return out;
+}
+
+absl::StatusOr<SegmentationInput> ReadRtStruct(const std::string& path,
+                                               const ReferenceSeries& reference,
+                                               const std::vector<int>& only) {
+  const std::string name = BaseName(path);
+  const auto error = [&](const std::string& what) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("RTSTRUCT ", name, ": ", what));
+  };
+  if (absl::Status s = reference.grid.Validate(); !s.ok()) return s;
+  DcmFileFormat file;
+  if (OFCondition c = file.loadFile(path.c_str()); c.bad()) {
+    return error(absl::StrCat("cannot read: ", c.text()));
+  }
+  DRTStructureSetIOD rt;
+  if (OFCondition c = rt.read(*file.getDataset()); c.bad()) {
+    return error(absl::StrCat("dcmrt cannot read it: ", c.text()));
+  }
+  const Grid& g = reference.grid;
+  SegmentationInput out;
+  out.rtstruct = true;
+  out.labels.grid = g;
+  out.labels.data.assign(g.VoxelCount(), 0);
+
+  // ROI number -> name, after the frame of reference check.
+  std::map<int, std::string> names;
+  DRTStructureSetROISequence& rois = rt.getStructureSetROISequence();
+  for (size_t n = 0; n < rois.getNumberOfItems(); ++n) {
+    DRTStructureSetROISequence::Item& item = rois.getItem(n);
+    OFString number_text, roi_name, frame;
+    item.getROINumber(number_text);
+    item.getROIName(roi_name);
+    item.getReferencedFrameOfReferenceUID(frame);
+    int number = 0;
+    if (!absl::SimpleAtoi(number_text.c_str(), &number) || number < 1 ||
+        number > 65535) {
+      return error(absl::StrCat("ROI '", roi_name.c_str(), "' has number '",
+                                number_text.c_str(),
+                                "'; labels need 1..65535"));
+    }
+    if (!reference.frame_of_reference_uid.empty() && !frame.empty() &&
+        frame.c_str() != reference.frame_of_reference_uid) {
+      return error(absl::StrCat(
+          "ROI '", roi_name.c_str(), "' (", number,
+          ") is in another frame of reference than the reference series"));
+    }
+    names[number] = roi_name.c_str();
+  }
+
+  const int64_t plane = g.SliceVoxelCount();
+  DRTROIContourSequence& contours = rt.getROIContourSequence();
+  for (size_t n = 0; n < contours.getNumberOfItems(); ++n) {
+    DRTROIContourSequence::Item& roi = contours.getItem(n);
+    Sint32 number = 0;
+    if (roi.getReferencedROINumber(number).bad() || number < 1 ||
+        number > 65535) {
+      return error(absl::StrFormat(
+          "ROI contour item %d has no valid ReferencedROINumber", n + 1));
+    }
+    if (!only.empty() &&
+        std::find(only.begin(), only.end(), number) == only.end()) {
+      continue;
+    }
+    const std::string roi_name =
+        names.count(number) ? names[number] : absl::StrCat("#", number);
+    SegmentDescription d;
+    d.number = number;
+    d.label = roi_name;
+    OFString colour;
+    if (roi.getROIDisplayColor(colour, -1).good())
+      d.type.meaning = colour.c_str();
+    out.segments.push_back(d);
+    // Polygons per slice, in continuous in-plane index coordinates.
+    std::map<int64_t, std::vector<std::vector<std::array<double, 2>>>> slices;
+    DRTContourSequence& sequence = roi.getContourSequence();
+    for (size_t c = 0; c < sequence.getNumberOfItems(); ++c) {
+      DRTContourSequence::Item& contour = sequence.getItem(c);
+      OFString type;
+      contour.getContourGeometricType(type);
+      if (type != "CLOSED_PLANAR") continue;
+      OFVector<Float64> data;
+      contour.getContourData(data);
+      if (data.size() < 9 || data.size() % 3 != 0) {
+        return error(
+            absl::StrFormat("ROI '%s' (%d) contour %d has fewer than 3 points",
+                            roi_name, number, c + 1));
+      }
+      std::vector<std::array<double, 2>> polygon;
+      int64_t k = -1;
+      for (size_t p = 0; p < data.size(); p += 3) {
+        const Vec3 index =
+            g.PhysicalToIndex({data[p], data[p + 1], data[p + 2]});
+        const int64_t pk = std::llround(index[2]);
+        if (std::abs(index[2] - static_cast<double>(pk)) > 0.05 || pk < 0 ||
+            pk >= g.size[2] || (k >= 0 && pk != k)) {
+          return error(absl::StrFormat(
+              "ROI '%s' (%d) contour %d is not on a slice plane of the "
+              "reference series (point %d at slice position %.3f)",
+              roi_name, number, c + 1, p / 3 + 1, index[2]));
+        }
+        k = pk;
+        polygon.push_back({index[0], index[1]});
+      }
+      slices[k].push_back(std::move(polygon));
+    }
+    // Even-odd scanline fill of the pixel centres (x = i, y = j).
+    for (const auto& [k, polygons] : slices) {
+      uint16_t* slice = out.labels.data.data() + k * plane;
+      std::vector<double> crossings;
+      for (int64_t j = 0; j < g.size[1]; ++j) {
+        const double y = static_cast<double>(j);
+        crossings.clear();
+        for (const auto& polygon : polygons) {
+          for (size_t e = 0; e < polygon.size(); ++e) {
+            const auto& a = polygon[e];
+            const auto& b = polygon[(e + 1) % polygon.size()];
+            // Half-open rule: an edge counts when y is in [min, max).
+            if ((a[1] <= y) != (b[1] <= y)) {
+              crossings.push_back(a[0] +
+                                  (y - a[1]) / (b[1] - a[1]) * (b[0] - a[0]));
+            }
+          }
+        }
+        std::sort(crossings.begin(), crossings.end());
+        for (size_t c = 0; c + 1 < crossings.size(); c += 2) {
+          const int64_t i0 = std::max<int64_t>(
+              0, static_cast<int64_t>(std::ceil(crossings[c])));
+          const int64_t i1 = std::min<int64_t>(
+              g.size[0] - 1,
+              static_cast<int64_t>(std::ceil(crossings[c + 1])) - 1);
+          for (int64_t i = i0; i <= i1; ++i) {
+            uint16_t& v = slice[i + g.size[0] * j];
+            if (v != 0 && v != number) {
+              return error(absl::StrFormat(
+                  "ROIs '%s' (%d) and '%s' (%d) overlap on slice %d: choose "
+                  "non-overlapping ROIs with --labels",
+                  names.count(v) ? names[v] : "?", v, roi_name, number, k));
+            }
+            v = static_cast<uint16_t>(number);
+          }
+        }
+      }
+    }
+  }
+  return out;
+}
+
+absl::StatusOr<SegmentationInput> ReadDicomLabels(
+    const std::string& path, const ReferenceSeries& reference,
+    const std::vector<int>& only) {
+  DcmFileFormat file;
+  OFString sop_class;
+  if (file.loadFile(path.c_str(), EXS_Unknown, EGL_noChange, 4096).good()) {
+    file.getDataset()->findAndGetOFString(DCM_SOPClassUID, sop_class);
+  }
+  if (sop_class == UID_RTStructureSetStorage) {
+    return ReadRtStruct(path, reference, only);
+  }
+  if (sop_class == UID_SegmentationStorage) {
+    return ReadDicomSegmentation(path, reference, only);
+  }
+  return absl::InvalidArgumentError(
+      absl::StrCat(BaseName(path),
+                   " is a DICOM file but neither a Segmentation nor an "
+                   "RT Structure Set (SOPClassUID '",
+                   sop_class.c_str(), "')"));
 }
 
 }  // namespace interslice

@@ -49,6 +49,7 @@ struct SegmentationInput {
   LabelVolume labels;  // on the reference grid
   std::vector<SegmentDescription> segments;
   bool fractional = false;
+  bool rtstruct = false;
   int64_t frames = 0;
 };
 
@@ -62,8 +63,32 @@ struct ReferenceSeries {
 // True if `path` is a DICOM file (the "DICM" magic at byte 128).
 bool LooksLikeDicomFile(const std::string& path);
 
+// `only`: segment numbers to read (empty = all); frames of other segments
+// are skipped, so that overlaps with them are no error.
 absl::StatusOr<SegmentationInput> ReadDicomSegmentation(
-    const std::string& path, const ReferenceSeries& reference);
+    const std::string& path, const ReferenceSeries& reference,
+    const std::vector<int>& only = {});
+
+// An RTSTRUCT (DCMTK dcmrt) as a label map on the reference grid: label =
+// ROINumber (1..65535), segments[].label = ROIName, cielab unset (the
+// ROIDisplayColor is RGB: kept in `type.meaning` as "R\G\B"). Each
+// CLOSED_PLANAR contour must lie on one slice plane of the reference (all
+// points within 5% of a slice gap of it); the pixels whose centres are
+// inside the contours of an ROI on that slice by the even-odd rule are set
+// (several polygons and holes drawn as inner contours included). Other
+// geometric types (POINT, OPEN_*) are skipped. Errors as for a SEG (file,
+// ROI name and number, contour, slice), plus: a contour off the slice
+// planes, fewer than 3 points, an ROI number outside 1..65535, an ROI whose
+// ReferencedFrameOfReferenceUID is not the reference's.
+absl::StatusOr<SegmentationInput> ReadRtStruct(
+    const std::string& path, const ReferenceSeries& reference,
+    const std::vector<int>& only = {});
+
+// Either of the above, by the file's SOPClassUID; INVALID_ARGUMENT for a
+// DICOM object that is neither.
+absl::StatusOr<SegmentationInput> ReadDicomLabels(
+    const std::string& path, const ReferenceSeries& reference,
+    const std::vector<int>& only = {});
 
 }  // namespace interslice
 

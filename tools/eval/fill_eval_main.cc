@@ -121,8 +121,8 @@ LabelVolume MakeLabels(const Volume<float>& image,
     for (int64_t v = 0; v < n; ++v) {
       if (ids[c.band][v] == c.id) labels.data[v] = l + 1;
     }
-    made.push_back({static_cast<int>(l + 1), edges[c.band], edges[c.band + 1],
-                    c.voxels});
+    made.push_back(
+        {static_cast<int>(l + 1), edges[c.band], edges[c.band + 1], c.voxels});
   }
   return labels;
 }
@@ -227,9 +227,8 @@ int64_t CountGaps(const LabelVolume& out, const LabelVolume& truth,
 
 int Main(int argc, char** argv) {
   CLI::App app{"drop-k evaluation of interslice fill on label maps"};
-  std::string series_dir, labels_path, out_dir, ks_text = "2,3,5,8",
-                                                methods_text =
-                                                    "copy,linear,cg,direct";
+  std::string series_dir, labels_path, out_dir,
+      ks_text = "2,3,5,8", methods_text = "copy,linear,cg,direct";
   std::string bands_text = "-200,0,40,100,300,3000";
   int max_labels = 20, threads = 0, margin = FillOptions().margin_pixels;
   int64_t min_voxels = 2000;
@@ -253,7 +252,8 @@ int Main(int argc, char** argv) {
   absl::StatusOr<DicomSeries> series =
       ReadDicomSeries({series_dir}, {}, ComputeContext{.threads = threads});
   if (!series.ok()) {
-    std::fprintf(stderr, "%s\n", std::string(series.status().message()).c_str());
+    std::fprintf(stderr, "%s\n",
+                 std::string(series.status().message()).c_str());
     return 1;
   }
   LabelVolume truth;
@@ -261,7 +261,8 @@ int Main(int argc, char** argv) {
   if (!labels_path.empty()) {
     absl::StatusOr<Volume<float>> raw = ReadVolumeAsFloat(labels_path);
     absl::Status s = raw.status();
-    if (s.ok()) s = CheckSameGrid(raw->grid, series->image.grid, "the label map");
+    if (s.ok())
+      s = CheckSameGrid(raw->grid, series->image.grid, "the label map");
     absl::StatusOr<LabelVolume> l =
         s.ok() ? LabelVolumeFromFloat(*raw) : absl::StatusOr<LabelVolume>(s);
     if (!l.ok()) {
@@ -321,15 +322,15 @@ int Main(int argc, char** argv) {
         FillOptions options;
         options.key_slices = keys;
         options.margin_pixels = margin;
-        options.solver.method = method == "linear"
-                                    ? SolverMethod::kLinear
-                                    : method == "cg"
-                                          ? SolverMethod::kConjugateGradient
-                                          : SolverMethod::kDirect;
+        options.solver.method = method == "linear" ? SolverMethod::kLinear
+                                : method == "cg"
+                                    ? SolverMethod::kConjugateGradient
+                                    : SolverMethod::kDirect;
         absl::StatusOr<FillResult> r = FillBetweenSlices(
             truth, options, ComputeContext{.threads = threads});
         if (!r.ok()) {
-          std::fprintf(stderr, "%s\n", std::string(r.status().message()).c_str());
+          std::fprintf(stderr, "%s\n",
+                       std::string(r.status().message()).c_str());
           return 1;
         }
         out = std::move(r->labels);

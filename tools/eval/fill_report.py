@@ -43,7 +43,7 @@ def main():
             len(made.get("labels", [])) or len({r["label"] for r in metrics}),
             " x ".join(str(v) for v in grid) if grid else "?",
             " made from the thin CT phantom by HU bands and connected "
-            "components (labels.json)" if made.get("labels") else ""),
+            "components (segmentations_labels.json)" if made.get("labels") else ""),
         ""]
     for title, column, fmt in (("Mean Dice over labels", "mean_dice", "%.4f"),
                                ("Mean HD95 over labels, mm", "mean_hd95_mm", "%.2f"),
