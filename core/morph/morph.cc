@@ -39,8 +39,8 @@ Image::Pointer MakeImage(const std::vector<float>& data, int64_t nx,
 
 // Block mean by `d` (partial blocks at the border averaged over what exists),
 // after clipping to +-clip.
-std::vector<float> ClipAndShrink(const float* in, int64_t nx, int64_t ny,
-                                 int d, float clip, int64_t& mx, int64_t& my) {
+std::vector<float> ClipAndShrink(const float* in, int64_t nx, int64_t ny, int d,
+                                 float clip, int64_t& mx, int64_t& my) {
   mx = (nx + d - 1) / d;
   my = (ny + d - 1) / d;
   std::vector<float> out(mx * my, 0.0f);
@@ -61,8 +61,10 @@ inline float Sample(const float* plane, int64_t nx, int64_t ny, double x,
                     double y) {
   x = std::clamp(x, 0.0, static_cast<double>(nx - 1));
   y = std::clamp(y, 0.0, static_cast<double>(ny - 1));
-  const int64_t i0 = std::min<int64_t>(static_cast<int64_t>(x), nx - 2 < 0 ? 0 : nx - 2);
-  const int64_t j0 = std::min<int64_t>(static_cast<int64_t>(y), ny - 2 < 0 ? 0 : ny - 2);
+  const int64_t i0 =
+      std::min<int64_t>(static_cast<int64_t>(x), nx - 2 < 0 ? 0 : nx - 2);
+  const int64_t j0 =
+      std::min<int64_t>(static_cast<int64_t>(y), ny - 2 < 0 ? 0 : ny - 2);
   const int64_t i1 = std::min(i0 + 1, nx - 1), j1 = std::min(j0 + 1, ny - 1);
   const double fx = x - i0, fy = y - j0;
   const double a = plane[i0 + nx * j0] * (1 - fx) + plane[i1 + nx * j0] * fx;
@@ -91,8 +93,7 @@ absl::StatusOr<std::vector<float>> RegisterSlices(const float* fixed,
                                                   int64_t nx, int64_t ny,
                                                   const MorphOptions& options) {
   INTERSLICE_RETURN_IF_ERROR(ValidateOptions(options));
-  if (nx < 1 || ny < 1)
-    return absl::InvalidArgumentError("morph: empty slice");
+  if (nx < 1 || ny < 1) return absl::InvalidArgumentError("morph: empty slice");
   std::vector<float> u(2 * nx * ny, 0.0f);
   if (options.iterations == 0) return u;
   const int d = options.downsample;
@@ -129,7 +130,8 @@ absl::StatusOr<std::vector<float>> RegisterSlices(const float* fixed,
     multi->Update();
     field = multi->GetOutput();
   } catch (const std::exception& e) {
-    return absl::InternalError(absl::StrCat("morph: ITK registration: ", e.what()));
+    return absl::InternalError(
+        absl::StrCat("morph: ITK registration: ", e.what()));
   }
   // Upsample: coarse pixel c covers fine pixels [c d, c d + d); its centre is
   // at fine coordinate c d + (d - 1) / 2. Displacements scale by d.
@@ -199,7 +201,8 @@ absl::StatusOr<MorphedField> StackMorph(const Volume<float>& slice_maps,
     worst[s] = largest;
     const int64_t k0 = plan.nodes[s], k1 = plan.nodes[s + 1];
     for (int64_t k = k0 + 1; k < k1; ++k) {
-      const double t = static_cast<double>(k - k0) / static_cast<double>(k1 - k0);
+      const double t =
+          static_cast<double>(k - k0) / static_cast<double>(k1 - k0);
       float* slice = dst + k * plane;
       for (int64_t j = 0; j < ny; ++j)
         for (int64_t i = 0; i < nx; ++i) {

@@ -287,10 +287,9 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
           plan.min_gap_mm, plan.max_gap_mm, plan.median_gap_mm));
     }
     if (spec.solver.method == SolverMethod::kMorph) {
-      INTERSLICE_ASSIGN_OR_RETURN(
-          MorphedField morphed,
-          StackMorph(slice_maps, plan, MorphOptions(), spec.max_output_voxels,
-                     context));
+      INTERSLICE_ASSIGN_OR_RETURN(MorphedField morphed,
+                                  StackMorph(slice_maps, plan, MorphOptions(),
+                                             spec.max_output_voxels, context));
       stacked = std::move(morphed.stacked);
     } else {
       INTERSLICE_ASSIGN_OR_RETURN(

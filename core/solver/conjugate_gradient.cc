@@ -279,7 +279,8 @@ std::vector<double> FidelityWeights(const std::vector<uint8_t>& fixed,
       w[k] = fidelity;
       continue;
     }
-    const double t = 2.0 * static_cast<double>(std::min(k - previous, next - k)) /
+    const double t = 2.0 *
+                     static_cast<double>(std::min(k - previous, next - k)) /
                      static_cast<double>(next - previous);
     w[k] = fidelity * t * t;
   }

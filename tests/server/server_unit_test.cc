@@ -78,6 +78,8 @@ TEST(SpecMappingTest, DefaultsMatchTheCli) {
   EXPECT_TRUE(mapped->write_seg);
   EXPECT_EQ(mapped->uid_root, "1.2.3");
   EXPECT_EQ(mapped->multiframe_volume, "stack 1");
+  p.set_method(v1::SOLVER_METHOD_MORPH);
+  EXPECT_EQ(JobSpecFromProto(p)->solver.method, SolverMethod::kMorph);
   p.mutable_derived_series()->add_contents("mask");
   EXPECT_EQ(JobSpecFromProto(p)->output_series,
             std::vector<std::string>{"mask"});

@@ -1,6 +1,5 @@
 #include "tools/eval/experiments.h"
 
-
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -269,18 +268,23 @@ absl::Status RunCase(const Case& c, const EvalOptions& o, Recorder& rec) {
         const auto tmorph = Clock::now();
         MorphOptions mo;
         // Sensitivity runs only (docs/eval): override the registration.
-        if (const char* e = std::getenv("MORPH_LEVELS")) mo.levels = std::atoi(e);
-        if (const char* e = std::getenv("MORPH_ITS")) mo.iterations = std::atoi(e);
-        if (const char* e = std::getenv("MORPH_SIGMA")) mo.field_sigma_px = std::atof(e);
-        if (const char* e = std::getenv("MORPH_CLIP")) mo.clip_mm = std::atof(e);
-        if (const char* e = std::getenv("MORPH_DS")) mo.downsample = std::atoi(e);
+        if (const char* e = std::getenv("MORPH_LEVELS"))
+          mo.levels = std::atoi(e);
+        if (const char* e = std::getenv("MORPH_ITS"))
+          mo.iterations = std::atoi(e);
+        if (const char* e = std::getenv("MORPH_SIGMA"))
+          mo.field_sigma_px = std::atof(e);
+        if (const char* e = std::getenv("MORPH_CLIP"))
+          mo.clip_mm = std::atof(e);
+        if (const char* e = std::getenv("MORPH_DS"))
+          mo.downsample = std::atoi(e);
         INTERSLICE_ASSIGN_OR_RETURN(
             MorphedField mf,
-            StackMorph(stacked.maps,
-                       UniformStackPlan(stacked.maps.grid.size[2],
-                                        stacked.maps.grid.spacing[2],
-                                        stacked.factor),
-                       mo, int64_t{1} << 31, context));
+            StackMorph(
+                stacked.maps,
+                UniformStackPlan(stacked.maps.grid.size[2],
+                                 stacked.maps.grid.spacing[2], stacked.factor),
+                mo, int64_t{1} << 31, context));
         morphed.field = std::move(mf.stacked.field);
         morphed.fixed_slices = std::move(mf.stacked.fixed_slices);
         morphed.factor = mf.stacked.factor;

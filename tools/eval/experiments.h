@@ -27,8 +27,8 @@ struct EvalOptions {
   int cg_max_iterations = 300;  // ...capped at this many iterations
   double top_slab_mm = 24;      // skull-top slab for the failure mode
   int threads = 0;              // 0 = all hardware threads
-  std::vector<std::string> methods = {"nearest", "linear",    "cg15",
-                                      "cgtol",   "direct",    "direct-mm",
+  std::vector<std::string> methods = {"nearest",   "linear", "cg15",
+                                      "cgtol",     "direct", "direct-mm",
                                       "morph-raw", "morph"};
 };
 

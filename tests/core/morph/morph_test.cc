@@ -24,8 +24,8 @@ Volume<float> TwoDiscs(double cx0, double cx1, double cy, double r) {
     const double cx = s == 0 ? cx0 : cx1;
     for (int64_t j = 0; j < kN; ++j)
       for (int64_t i = 0; i < kN; ++i)
-        maps.data[i + kN * (j + kN * s)] = static_cast<float>(
-            0.5 * (r - std::hypot(i - cx, j - cy)));
+        maps.data[i + kN * (j + kN * s)] =
+            static_cast<float>(0.5 * (r - std::hypot(i - cx, j - cy)));
   }
   return maps;
 }
@@ -69,8 +69,8 @@ TEST(StackMorphTest, MovesADiscThatLinearStackingLoses) {
   ASSERT_TRUE(linear.ok()) << linear.status();
   EXPECT_EQ(Inside(linear->field, 2).area, 0);
 
-  auto morphed = StackMorph(maps, plan, SmallOptions(), int64_t{1} << 30,
-                            context);
+  auto morphed =
+      StackMorph(maps, plan, SmallOptions(), int64_t{1} << 30, context);
   ASSERT_TRUE(morphed.ok()) << morphed.status();
   const Volume<float>& f = morphed->stacked.field;
   const double disc = M_PI * 7 * 7;
@@ -92,8 +92,8 @@ TEST(StackMorphTest, OriginalSlicesAreBitIdenticalAndGridMatchesLinear) {
   const StackPlan plan = UniformStackPlan(2, 4.0, 3);
   ComputeContext context;
   auto linear = StackLinear(maps, plan, int64_t{1} << 30, context);
-  auto morphed = StackMorph(maps, plan, SmallOptions(), int64_t{1} << 30,
-                            context);
+  auto morphed =
+      StackMorph(maps, plan, SmallOptions(), int64_t{1} << 30, context);
   ASSERT_TRUE(linear.ok() && morphed.ok());
   const StackedField& m = morphed->stacked;
   EXPECT_EQ(m.field.grid.size, linear->field.grid.size);
@@ -146,10 +146,9 @@ TEST(StackMorphTest, RejectsBadOptionsAndHonoursCancellation) {
                    +[](MorphOptions& o) { o.downsample = 0; }}) {
     MorphOptions o = SmallOptions();
     bad(o);
-    EXPECT_EQ(StackMorph(maps, plan, o, int64_t{1} << 30, context)
-                  .status()
-                  .code(),
-              absl::StatusCode::kInvalidArgument);
+    EXPECT_EQ(
+        StackMorph(maps, plan, o, int64_t{1} << 30, context).status().code(),
+        absl::StatusCode::kInvalidArgument);
   }
   CancellationToken token;
   token.Cancel();
@@ -188,11 +187,11 @@ TEST(RemoveUnsupportedComponentsTest, RemovesOnlyComponentsOffTheKeySlices) {
   EXPECT_EQ(f.at(4, 4, 5), -1e-3f);
   // Outside voxels are untouched.
   EXPECT_EQ(f.at(0, 0, 1), before.at(0, 0, 1));
-  EXPECT_EQ(RemoveUnsupportedComponents(f, std::vector<uint8_t>(8, 1), 1e-3f,
-                                        context)
-                .status()
-                .code(),
-            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(
+      RemoveUnsupportedComponents(f, std::vector<uint8_t>(8, 1), 1e-3f, context)
+          .status()
+          .code(),
+      absl::StatusCode::kInvalidArgument);
 }
 
 }  // namespace

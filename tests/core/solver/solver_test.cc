@@ -473,8 +473,8 @@ TEST(SolverTest, FidelityTermGivesTheExactMinimiserOfTheAugmentedEnergy) {
           ASSERT_EQ(field.data[n], g.data[n]);  // bit-identical
           continue;
         }
-        worst = std::max(worst,
-                         std::abs(af[n] + w * (field.data[n] - g.data[n])));
+        worst =
+            std::max(worst, std::abs(af[n] + w * (field.data[n] - g.data[n])));
         scale = std::max(scale, std::abs(static_cast<double>(af[n])));
       }
     }
