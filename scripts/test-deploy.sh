@@ -108,6 +108,25 @@ free_port() {
 export INTERSLICE_IMAGE="$server_image" ORTHANC_IMAGE="$orthanc_image"
 export INTERSLICE_GRPC_PORT="$(free_port)" INTERSLICE_METRICS_PORT="$(free_port)"
 export ORTHANC_HTTP_PORT="$(free_port)" ORTHANC_DICOM_PORT="$(free_port)"
+export INTERSLICE_DICOM_PORT="$(free_port)"
+# The two containers reach each other by service name on the compose
+# network (interslice, orthanc); the peers file names Orthanc's DICOM port,
+# which is a free port here. The rules are the stack's own
+# (deploy/config/rules.yaml) on a 1.25 mm grid unless INTERSLICE_DEPLOY_FULL=1.
+export INTERSLICE_CONFIG_DIR="$work/config"
+mkdir -p "$INTERSLICE_CONFIG_DIR"
+sed -e "s/host: orthanc, port: 4242/host: orthanc, port: $ORTHANC_DICOM_PORT/" \
+  deploy/config/peers.yaml >"$INTERSLICE_CONFIG_DIR/peers.yaml"
+pacs_spacing=""
+[[ ${INTERSLICE_DEPLOY_FULL:-0} == 1 ]] || pacs_spacing=", spacing: 1.25"
+sed -e "s/volume: none}/volume: none$pacs_spacing}/" deploy/config/rules.yaml \
+  >"$INTERSLICE_CONFIG_DIR/rules.yaml"
+grep -q "port: $ORTHANC_DICOM_PORT" "$INTERSLICE_CONFIG_DIR/peers.yaml" &&
+  grep -q "volume: none$pacs_spacing}" "$INTERSLICE_CONFIG_DIR/rules.yaml" ||
+  { say "FAILED: deploy/config/{peers,rules}.yaml no longer have the expected lines"; exit 1; }
+# The server runs as uid 10001: the mounted files must be readable to it.
+chmod 755 "$work" "$INTERSLICE_CONFIG_DIR"
+chmod 644 "$INTERSLICE_CONFIG_DIR"/*.yaml
 files=(-f deploy/compose.yaml)
 dc() { "${compose[@]}" -p "$project" "${files[@]}" "$@"; }
 container() { # the container of a service
@@ -170,19 +189,70 @@ done
 say "the container's files equal the in-process run's"
 
 # --- PACS loop: Orthanc sends the series to interslice, results come back ----
-# HOOK (issue 10, branches dicom-recv/dicom-send): once the server has
-# --dicom-listen, add it to deploy/compose.yaml's command (port
-# $INTERSLICE_DICOM_PORT), upload data/ct-head-phantom-thick to Orthanc
-# (POST /instances), send it to the modality "interslice" (POST
-# /modalities/interslice/store), wait for the derived series to arrive in
-# Orthanc (GET /series) and compare them with `interslice run
-# --output-series intensity --seg`.
+# The phantom is uploaded to Orthanc (REST), Orthanc stores it on the modality
+# "interslice" (C-STORE to the listener), the rule ct-bone runs the job and
+# the server stores the derived CT series, the SEG and the Encapsulated STL
+# back on Orthanc. They must be in the source's study and be what `interslice
+# run` writes for the same job: the same SOP Instance UIDs (derived from the
+# source instances and the job) and the same pixel data / STL bytes.
+orthanc="http://127.0.0.1:$ORTHANC_HTTP_PORT"
+json() { python3 -c "import json,sys; d=json.load(sys.stdin); $1"; }
 pacs_loop() {
-  if $runtime run --rm "$server_image" --help 2>/dev/null | grep -q -- --dicom-listen; then
-    say "WARNING: the server has --dicom-listen but the PACS loop step is not written yet (fill pacs_loop)"
-  else
-    say "PACS loop: not tested (the DICOM listener of issue 10 is not in this server)"
-  fi
+  local t=$SECONDS f study="" series="" n=0
+  for f in data/ct-head-phantom-thick/*.dcm; do
+    local reply
+    reply="$(curl -fsS -X POST --data-binary "@$f" "$orthanc/instances")" ||
+      { say "FAILED: uploading $f to Orthanc"; exit 1; }
+    study="$(json 'print(d["ParentStudy"])' <<<"$reply")"
+    series="$(json 'print(d["ParentSeries"])' <<<"$reply")"
+    n=$((n + 1))
+  done
+  curl -fsS -X POST "$orthanc/modalities/interslice/store" \
+    -d "{\"Resources\": [\"$series\"], \"Synchronous\": true}" >"$work/store.json" ||
+    { cat "$work/store.json"; $runtime logs "$ctr" | tail -n 20; say "FAILED: Orthanc could not store the series on interslice"; exit 1; }
+  local sent=$SECONDS
+  # The same job in-process (the rule's job keys as command-line options).
+  local pacs_job=(data/ct-head-phantom-thick --threshold 300 --method direct
+    --output-series intensity --seg --mesh stl --volume none)
+  [[ ${INTERSLICE_DEPLOY_FULL:-0} == 1 ]] || pacs_job+=(--spacing 1.25)
+  "$cli" run "${pacs_job[@]}" --out "$work/pacs-local" --quiet
+  local expected=("$work"/pacs-local/series-intensity/*.dcm "$work/pacs-local/seg.dcm"
+                  "$work/pacs-local/surface-stl.dcm")
+  local want=$((n + ${#expected[@]}))
+  local have=0
+  for _ in $(seq 1 600); do
+    have="$(curl -fsS "$orthanc/studies/$study/instances" | json 'print(len(d))')"
+    ((have >= want)) && break
+    sleep 0.5
+  done
+  ((have == want)) || { $runtime logs "$ctr" | tail -n 30; say "FAILED: the study on Orthanc holds $have instances, expected $want (source $n + results ${#expected[@]})"; exit 1; }
+  say "PACS loop: Orthanc sent $n instances, its study holds the $((want - n)) results $((SECONDS - sent)) s later (upload + send $((sent - t)) s)"
+  # Each local result is on Orthanc under its SOP Instance UID, with the same
+  # pixel data (CT, SEG) or encapsulated document (STL).
+  curl -fsS "$orthanc/studies/$study/instances?expand" |
+    json 'print("\n".join(i["MainDicomTags"]["SOPInstanceUID"] + " " + i["ID"] for i in d))' >"$work/orthanc-uids"
+  local file uid id
+  mkdir -p "$work/px"
+  for file in "${expected[@]}"; do
+    uid="$(dcmdump -q +P SOPInstanceUID "$file" | sed -E 's/.*\[([^]]*)\].*/\1/')"
+    id="$(awk -v u="$uid" '$1 == u {print $2}' "$work/orthanc-uids")"
+    [[ -n $id ]] || { say "FAILED: $(basename "$file") (the local run's) is not on Orthanc: different UIDs, so a different job or source"; exit 1; }
+    curl -fsS "$orthanc/instances/$id/file" -o "$work/px/orthanc.dcm"
+    if [[ $file == *surface-stl.dcm ]]; then
+      # The encapsulated document's value is the STL file, padded to even.
+      curl -fsS "$orthanc/instances/$id/content/0042-0011" -o "$work/px/orthanc.stl"
+      cmp -s -n "$(stat -c %s "$work/pacs-local/surface.stl")" "$work/pacs-local/surface.stl" "$work/px/orthanc.stl" ||
+        { say "FAILED: the STL on Orthanc differs from the run's surface.stl"; exit 1; }
+    else
+      local a b
+      a="$(dcmdump -q +P PixelData +W "$work/px" "$file" >/dev/null && cat "$work"/px/*.raw | sha256sum)"
+      rm -f "$work"/px/*.raw
+      b="$(dcmdump -q +P PixelData +W "$work/px" "$work/px/orthanc.dcm" >/dev/null && cat "$work"/px/*.raw | sha256sum)"
+      rm -f "$work"/px/*.raw
+      [[ -n $a && $a == "$b" ]] || { say "FAILED: the pixel data of $(basename "$file") differ between run and Orthanc"; exit 1; }
+    fi
+  done
+  say "PACS loop: the ${#expected[@]} results on Orthanc equal the in-process run's (UIDs, pixel data, STL)"
 }
 pacs_loop
 

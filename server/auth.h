@@ -52,9 +52,11 @@ class Authenticator {
   // verified client certificate's subject (mutual TLS), else "".
   absl::StatusOr<Caller> Identify(const grpc::ServerContextBase& context) const;
 
-  // Whether `caller` may see and act on a job owned by `owner`.
+  // Whether `caller` may see and act on a job owned by `owner`. A server
+  // that authenticates nobody (identity "") has one anonymous user, who sees
+  // every job, including those its DICOM listener made (owner "dicom").
   static bool MayAccess(const Caller& caller, const std::string& owner) {
-    return caller.admin || caller.identity == owner;
+    return caller.admin || caller.identity == owner || caller.identity.empty();
   }
 
  private:

@@ -931,8 +931,10 @@ grpc::ServerUnaryReactor* InterSliceService::List(
     reactor->Finish(ToGrpcStatus(caller.status()));
     return reactor;
   }
-  // Only the caller's own jobs, unless an admin asks.
-  const std::string* owner = caller->admin ? nullptr : &caller->identity;
+  // Only the caller's own jobs, unless an admin asks (or nobody is
+  // authenticated: then every job is the anonymous user's, see MayAccess).
+  const std::string* owner =
+      caller->admin || caller->identity.empty() ? nullptr : &caller->identity;
   for (v1::JobStatus& s : manager_->List(request->include_finished(), owner)) {
     *response->add_jobs() = std::move(s);
   }

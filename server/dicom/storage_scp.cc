@@ -198,6 +198,9 @@ class AssociationScp : public DcmThreadSCP {
     if (cut_off_ && cond.good()) cond = DUL_PEERABORTEDASSOCIATION;
     if (cond.bad()) {
       // The association ends (DcmSCP aborts it); nothing was acknowledged.
+      // DCMTK's reason (network or parsing, no data-set values) says why.
+      spdlog::warn("dicom: receiving an instance from {} failed: {}",
+                   LogSafe(calling_), LogSafe(cond.text()));
       ::unlink(staged.c_str());
       return cond;
     }

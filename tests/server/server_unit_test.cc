@@ -131,6 +131,10 @@ TEST(AuthenticatorTest, MatchesBearerTokensByName) {
   EXPECT_FALSE(Authenticator::MayAccess({"bob", false}, "alice"));
   EXPECT_TRUE(Authenticator::MayAccess({"bob", true}, "alice"));
   EXPECT_TRUE(Authenticator::MayAccess({"", false}, ""));
+  // Without authentication the one anonymous user also sees the jobs the
+  // DICOM listener made (regression: they were invisible to every client).
+  EXPECT_TRUE(Authenticator::MayAccess({"", false}, "dicom"));
+  EXPECT_FALSE(Authenticator::MayAccess({"alice", false}, "dicom"));
 }
 
 TEST(PeerAddressTest, DropsThePort) {
