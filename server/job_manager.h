@@ -221,7 +221,7 @@ class JobManager {
   std::deque<std::shared_ptr<Job>> queue_;
   int uploading_ = 0;  // admitted, upload not complete
   std::string job_id_suffix_;
-  int reserved_ = 0;   // queue slots taken by jobs being persisted
+  int reserved_ = 0;  // queue slots taken by jobs being persisted
   int running_ = 0;
   bool draining_ = false;
   bool stopping_ = false;

@@ -20,7 +20,7 @@ struct ServerOptions {
   // system's roots). With --tls-client-ca, this server's own certificate is
   // presented to them.
   std::string peer_tls_ca;
-  std::string spool;                     // required
+  std::string spool;  // required
   // 0 = from the CPU count (cgroup limits honoured): workers = max(1,
   // cpus / 4), threads_per_job = max(1, cpus / workers).
   int workers = 0;

@@ -973,7 +973,8 @@ grpc::ServerUnaryReactor* InterSliceService::GetServerInfo(
   limits->set_upload_idle_timeout_seconds(
       options_.uploads.idle_timeout_seconds);
   limits->set_upload_timeout_seconds(options_.uploads.total_timeout_seconds);
-  for (const char* s : {"linear", "cg", "direct", "morph"}) response->add_methods(s);
+  for (const char* s : {"linear", "cg", "direct", "morph"})
+    response->add_methods(s);
   for (const char* s : {"nii", "nrrd"}) response->add_volume_formats(s);
   for (const char* s : {"stl", "ply", "obj"}) response->add_mesh_formats(s);
   const auto* descriptor =
