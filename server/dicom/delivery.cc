@@ -14,6 +14,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
+#include "server/dicom/scu.h"
 #include "server/dicom/tls.h"
 #include "spdlog/spdlog.h"
 // osconfig.h must precede every other DCMTK header.
@@ -61,11 +62,6 @@ class CountingStorageScu : public DcmStorageSCU {
   }
 };
 
-std::string PeerLabel(const DicomPeer& peer) {
-  return absl::StrCat("peer ", peer.name, " (", peer.ae_title, "@", peer.host,
-                      ":", peer.port, ")");
-}
-
 }  // namespace
 
 std::vector<std::string> ListDicomFiles(const std::string& dir) {
@@ -89,27 +85,14 @@ absl::StatusOr<StoreResult> StoreFiles(const DicomPeer& peer,
                                        const std::vector<std::string>& files,
                                        const DeliveryOptions& options) {
   CountingStorageScu scu;
-  scu.setAETitle(options.calling_ae_title.c_str());
-  scu.setPeerAETitle(peer.ae_title.c_str());
-  scu.setPeerHostName(peer.host.c_str());
-  scu.setPeerPort(static_cast<Uint16>(peer.port));
-  scu.setMaxReceivePDULength(options.max_pdu_bytes);
-  scu.setACSETimeout(static_cast<Uint32>(options.timeout_seconds));
-  scu.setDIMSETimeout(static_cast<Uint32>(options.timeout_seconds));
-  scu.setDIMSEBlockingMode(DIMSE_NONBLOCKING);
-  scu.setConnectionTimeout(options.timeout_seconds);
+  ConfigureScu(scu, peer, options.calling_ae_title, options.max_pdu_bytes,
+               options.timeout_seconds);
   // Keep sending after a refused instance: the rest may well be accepted,
   // and the refusal is reported.
   scu.setHaltOnUnsuccessfulStoreMode(OFFalse);
-  DicomTlsLayer tls;
-  if (peer.tls) {
-    absl::StatusOr<DicomTlsLayer> layer = MakeDicomTls(options.tls, false);
-    if (!layer.ok()) {
-      return absl::FailedPreconditionError(absl::StrCat(
-          PeerLabel(peer), " needs TLS: ", layer.status().message()));
-    }
-    tls = *std::move(layer);
-  }
+  absl::StatusOr<DicomTlsLayer> tls_or = TlsLayerFor(peer, options.tls);
+  if (!tls_or.ok()) return tls_or.status();
+  DicomTlsLayer tls = *std::move(tls_or);
   for (const std::string& file : files) {
     const OFCondition cond =
         scu.addDicomFile(OFFilename(file.c_str()), ERM_fileOnly,

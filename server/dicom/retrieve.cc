@@ -13,6 +13,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "core/dicom/series_reader.h"
+#include "server/dicom/scu.h"
 #include "server/dicom/tls.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
@@ -45,11 +46,6 @@ bool SyncPath(const std::string& path, bool directory) {
   const bool ok = ::fsync(fd) == 0;
   ::close(fd);
   return ok;
-}
-
-std::string PeerLabel(const DicomPeer& peer) {
-  return absl::StrCat("peer ", peer.name, " (", peer.ae_title, "@", peer.host,
-                      ":", peer.port, ")");
 }
 
 // C-GET with the sub-operations' instances written durably into a folder,
@@ -146,15 +142,8 @@ absl::StatusOr<RetrieveResult> RetrieveSeries(
         "pacs_source needs study_instance_uid and series_instance_uid");
   }
   GetScu scu(dest_dir, options);
-  scu.setAETitle(options.calling_ae_title.c_str());
-  scu.setPeerAETitle(peer.ae_title.c_str());
-  scu.setPeerHostName(peer.host.c_str());
-  scu.setPeerPort(static_cast<Uint16>(peer.port));
-  scu.setMaxReceivePDULength(options.max_pdu_bytes);
-  scu.setACSETimeout(static_cast<Uint32>(options.timeout_seconds));
-  scu.setDIMSETimeout(static_cast<Uint32>(options.timeout_seconds));
-  scu.setDIMSEBlockingMode(DIMSE_NONBLOCKING);
-  scu.setConnectionTimeout(options.timeout_seconds);
+  ConfigureScu(scu, peer, options.calling_ae_title, options.max_pdu_bytes,
+               options.timeout_seconds);
 
   OFList<OFString> model_syntaxes;
   model_syntaxes.push_back(UID_LittleEndianExplicitTransferSyntax);
@@ -169,15 +158,9 @@ absl::StatusOr<RetrieveResult> RetrieveSeries(
     scu.addPresentationContext(sop_class, image_syntaxes, ASC_SC_ROLE_SCP);
   }
 
-  DicomTlsLayer tls;
-  if (peer.tls) {
-    absl::StatusOr<DicomTlsLayer> layer = MakeDicomTls(options.tls, false);
-    if (!layer.ok()) {
-      return absl::FailedPreconditionError(absl::StrCat(
-          PeerLabel(peer), " needs TLS: ", layer.status().message()));
-    }
-    tls = *std::move(layer);
-  }
+  absl::StatusOr<DicomTlsLayer> tls_or = TlsLayerFor(peer, options.tls);
+  if (!tls_or.ok()) return tls_or.status();
+  DicomTlsLayer tls = *std::move(tls_or);
   OFCondition cond = scu.initNetwork();
   if (cond.bad()) {
     return absl::InternalError(

@@ -1,0 +1,36 @@
+// What outgoing associations (C-STORE delivery, C-GET retrieval) share: how
+// a peer is named in messages, how a DcmSCU is pointed at it, and its TLS
+// layer. DCMTK stays out of this header (DcmSCU is only declared).
+#ifndef INTERSLICE_SERVER_DICOM_SCU_H_
+#define INTERSLICE_SERVER_DICOM_SCU_H_
+
+#include <cstdint>
+#include <string>
+
+#include "absl/status/statusor.h"
+#include "server/dicom/peer.h"
+#include "server/dicom/tls.h"
+
+class DcmSCU;
+
+namespace interslice::server::dicom {
+
+// "peer NAME (AE@HOST:PORT)", for errors and logs (no patient data).
+std::string PeerLabel(const DicomPeer& peer);
+
+// Points `scu` at `peer`, calling as `calling_ae_title`: the largest PDU
+// we receive, and `timeout_seconds` for connecting, the association and each
+// DIMSE message (non-blocking DIMSE, so a silent peer cannot hang us).
+void ConfigureScu(DcmSCU& scu, const DicomPeer& peer,
+                  const std::string& calling_ae_title, uint32_t max_pdu_bytes,
+                  int timeout_seconds);
+
+// The requestor TLS layer for `peer` from `files`, or null when the peer
+// does not use TLS. FAILED_PRECONDITION naming the peer when TLS is needed
+// but `files` cannot make a layer.
+absl::StatusOr<DicomTlsLayer> TlsLayerFor(const DicomPeer& peer,
+                                          const DicomTlsFiles& files);
+
+}  // namespace interslice::server::dicom
+
+#endif  // INTERSLICE_SERVER_DICOM_SCU_H_
