@@ -55,13 +55,6 @@ cmake --build "$build" -j"$jobs"
 
 start=$SECONDS
 status=0
-# KNOWN OPEN DEFECT (issue 11, replicas): under the sanitizers' timing, a
-# replica forwarding Watch calls to a replica that is down was seen to abort
-# with "pure virtual method called" (server/forwarding.cc, ForwardedStream)
-# in this test. It passes in the plain suite (scripts/test.sh runs it there);
-# it is left out here until the forwarding proxy's lifetime bug is found and
-# fixed. Remove this exclusion with the fix.
-ctest --test-dir "$build" --output-on-failure -j"$jobs" \
-  -E '^ReplicaTest\.AnyReplicaAnswersForAnyJobAndAKilledOneComesBack$' "$@" || status=1
+ctest --test-dir "$build" --output-on-failure -j"$jobs" "$@" || status=1
 echo "sanitized suite: $((SECONDS - start)) s"
 exit "$status"

@@ -109,6 +109,18 @@ grpc::Status OwnerStatus(const grpc::Status& status, const std::string& owner) {
 // callback that gRPC runs at once cannot deadlock. The server reactor is the
 // last of the pair to finish (it finishes only once the owner's call is
 // done), so its OnDone deletes the pair.
+//
+// Lifetime of the owner's call: reads are started from the caller's
+// OnWriteDone, outside the upstream reactor's own reactions, so the upstream
+// call holds a hold (ClientReadReactor::AddHold) from before StartCall until
+// we know no read will follow: a read came back !ok (the owner's stream
+// ended) or a write to the caller failed (it went away). Without the hold the
+// owner's status could arrive between two reads, gRPC would finish and free
+// the upstream call, and the next StartRead would call into freed memory
+// (the "pure virtual method called" abort, regression test
+// ForwardedStreamTest.OwnerStoppingAtAnyMomentEndsTheCallCleanly). Exactly
+// one of "a read outstanding" and "a write in flight" is true at any time,
+// so the hold is removed exactly once.
 template <typename Request, typename Response>
 class ForwardedStream : public grpc::ServerWriteReactor<Response> {
  public:
@@ -123,6 +135,7 @@ class ForwardedStream : public grpc::ServerWriteReactor<Response> {
         owner_(std::move(owner)),
         upstream_(this) {
     (stub->async()->*start)(client_context_.get(), &request_, &upstream_);
+    upstream_.AddHold();
     upstream_.StartRead(&message_);
     upstream_.StartCall();
   }
@@ -138,9 +151,15 @@ class ForwardedStream : public grpc::ServerWriteReactor<Response> {
         read = !upstream_done_;
       }
     }
-    if (!ok) client_context_->TryCancel();  // OnUpstreamDone follows
+    if (!ok) {
+      // No read is outstanding and none will be started: let the owner's
+      // call finish (OnUpstreamDone follows).
+      client_context_->TryCancel();
+      upstream_.RemoveHold();
+      return;
+    }
     if (read) {
-      upstream_.StartRead(&message_);
+      upstream_.StartRead(&message_);  // safe: the hold keeps the call alive
     } else {
       MaybeFinish();
     }
@@ -166,7 +185,12 @@ class ForwardedStream : public grpc::ServerWriteReactor<Response> {
   };
 
   void OnUpstreamRead(bool ok) {
-    if (!ok) return;  // the owner's call ended: OnUpstreamDone follows
+    if (!ok) {
+      // The owner's stream ended; no read will follow, so the call may
+      // finish (OnUpstreamDone follows).
+      upstream_.RemoveHold();
+      return;
+    }
     {
       std::lock_guard<std::mutex> lock(mu_);
       write_in_flight_ = true;
