@@ -478,7 +478,12 @@ absl::StatusOr<std::vector<std::string>> WriteIntensitySeries(
     // The file meta header names the same SOP instance.
     const std::string path =
         (fs::path(output_dir) / absl::StrFormat("IM%05d.dcm", k + 1)).string();
-    INTERSLICE_RETURN_IF_ERROR(SaveFileAtomically(file, path));
+    INTERSLICE_RETURN_IF_ERROR(SaveFileAtomically(
+        file, path,
+        options.intensity_encoding ==
+                DicomWriteOptions::PixelEncoding::kRleLossless
+            ? EXS_RLELossless
+            : EXS_LittleEndianExplicit));
     paths[static_cast<size_t>(k)] = path;
     return absl::OkStatus();
   };

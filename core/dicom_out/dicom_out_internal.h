@@ -12,6 +12,8 @@
 #include "core/dicom/series_reader.h"
 #include "core/dicom_out/dicom_writer.h"
 #include "core/geometry/volume.h"
+#include "dcmtk/config/osconfig.h"
+#include "dcmtk/dcmdata/dcxfer.h"
 
 class DcmFileFormat;
 class DcmItem;
@@ -78,10 +80,14 @@ std::string FormatDecimalString(double value);
 std::string CurrentDate();
 std::string CurrentTime();
 
-// Saves `file` (Little Endian Explicit) to "<path>.tmp-<random>", syncs it
-// and renames it to `path`. INTERNAL naming `path` on failure; the temporary
+// Saves `file` in `xfer` (default Little Endian Explicit; an encapsulated
+// syntax such as EXS_RLELossless first encodes the pixel data with DCMTK's
+// codec, registered here once) to "<path>.tmp-<random>", syncs it and
+// renames it to `path`. INTERNAL naming `path` on failure; the temporary
 // file never survives a failure.
-absl::Status SaveFileAtomically(DcmFileFormat& file, const std::string& path);
+absl::Status SaveFileAtomically(
+    DcmFileFormat& file, const std::string& path,
+    E_TransferSyntax xfer = EXS_LittleEndianExplicit);
 
 }  // namespace interslice::dicom_out_internal
 

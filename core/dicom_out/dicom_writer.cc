@@ -12,6 +12,7 @@
 #include <cstring>
 #include <filesystem>
 #include <memory>
+#include <mutex>
 #include <random>
 #include <string>
 #include <vector>
@@ -25,6 +26,7 @@
 #include "dcmtk/dcmdata/dcdeftag.h"
 #include "dcmtk/dcmdata/dcfilefo.h"
 #include "dcmtk/dcmdata/dcitem.h"
+#include "dcmtk/dcmdata/dcrleerg.h"
 #include "dcmtk/dcmdata/dcvrda.h"
 #include "dcmtk/dcmdata/dcvrtm.h"
 
@@ -363,13 +365,27 @@ std::string CurrentTime() {
   return std::string(time.c_str());
 }
 
-absl::Status SaveFileAtomically(DcmFileFormat& file, const std::string& path) {
+absl::Status SaveFileAtomically(DcmFileFormat& file, const std::string& path,
+                                E_TransferSyntax xfer) {
+  if (DcmXfer(xfer).isEncapsulated()) {
+    static std::once_flag once;
+    // DCMTK's codec registry is process-wide; registering twice would add
+    // duplicate codecs.
+    std::call_once(once, [] { DcmRLEEncoderRegistration::registerCodecs(); });
+    const OFCondition encoded =
+        file.getDataset()->chooseRepresentation(xfer, nullptr);
+    if (encoded.bad() || !file.getDataset()->canWriteXfer(xfer)) {
+      return absl::InternalError(absl::StrCat(
+          "cannot encode ", path, " as ", DcmXfer(xfer).getXferName(), ": ",
+          encoded.bad() ? encoded.text() : "no codec for its pixel data"));
+    }
+  }
   thread_local std::mt19937_64 random(std::random_device{}());
   const std::string temp =
       absl::StrFormat("%s.tmp-%016x", path, static_cast<uint64_t>(random()));
   const OFCondition cond =
-      file.saveFile(OFFilename(temp.c_str()), EXS_LittleEndianExplicit,
-                    EET_ExplicitLength, EGL_recalcGL, EPD_withoutPadding);
+      file.saveFile(OFFilename(temp.c_str()), xfer, EET_ExplicitLength,
+                    EGL_recalcGL, EPD_withoutPadding);
   if (cond.bad()) {
     std::remove(temp.c_str());
     return absl::InternalError(
