@@ -365,8 +365,9 @@ std::string CurrentTime() {
   return std::string(time.c_str());
 }
 
-absl::Status SaveFileAtomically(DcmFileFormat& file, const std::string& path,
-                                E_TransferSyntax xfer) {
+absl::StatusOr<std::string> SaveFileUnsynced(DcmFileFormat& file,
+                                             const std::string& path,
+                                             E_TransferSyntax xfer) {
   if (DcmXfer(xfer).isEncapsulated()) {
     static std::once_flag once;
     // DCMTK's codec registry is process-wide; registering twice would add
@@ -391,9 +392,21 @@ absl::Status SaveFileAtomically(DcmFileFormat& file, const std::string& path,
     return absl::InternalError(
         absl::StrCat("cannot write ", path, ": ", cond.text()));
   }
+  // Start the writeback now, while other files are encoded; CommitFile's
+  // fsync then waits for little. Advisory: its failure is CommitFile's to
+  // report.
+  const int fd = ::open(temp.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd >= 0) {
+    ::sync_file_range(fd, 0, 0, SYNC_FILE_RANGE_WRITE);
+    ::close(fd);
+  }
+  return temp;
+}
+
+absl::Status CommitFile(const std::string& temp, const std::string& path) {
   // Data on disk before the name: after a crash the target is either the old
   // file or the complete new one.
-  const int fd = ::open(temp.c_str(), O_RDONLY);
+  const int fd = ::open(temp.c_str(), O_RDONLY | O_CLOEXEC);
   const bool synced = fd >= 0 && ::fsync(fd) == 0;
   const int sync_errno = errno;
   if (fd >= 0) ::close(fd);
@@ -409,6 +422,25 @@ absl::Status SaveFileAtomically(DcmFileFormat& file, const std::string& path,
                                             std::strerror(rename_errno)));
   }
   return absl::OkStatus();
+}
+
+absl::Status SyncDirectory(const std::string& dir) {
+  const int fd = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+  const bool synced = fd >= 0 && ::fsync(fd) == 0;
+  const int sync_errno = errno;
+  if (fd >= 0) ::close(fd);
+  if (!synced) {
+    return absl::InternalError(
+        absl::StrCat("cannot sync ", dir, ": ", std::strerror(sync_errno)));
+  }
+  return absl::OkStatus();
+}
+
+absl::Status SaveFileAtomically(DcmFileFormat& file, const std::string& path,
+                                E_TransferSyntax xfer) {
+  absl::StatusOr<std::string> temp = SaveFileUnsynced(file, path, xfer);
+  if (!temp.ok()) return temp.status();
+  return CommitFile(*temp, path);
 }
 
 }  // namespace dicom_out_internal
