@@ -61,9 +61,10 @@ job_args[direct]="--threshold 300 --spacing 0.45 --method direct --volume nii,nr
 job_args[default]="--threshold 300 --spacing 0.45"
 job_args[dicom]="--threshold 300 --spacing 0.45 --method direct --output-series mask,distance,intensity --seg --mesh stl,ply,obj"
 # Options older binaries lack run with the --after binary only.
-declare -A after_only=([default-raw]=1)
-job_names+=(default-raw)
+declare -A after_only=([default-raw]=1 [dicom-rle]=1)
+job_names+=(default-raw dicom-rle)
 job_args[default-raw]="--threshold 300 --spacing 0.45 --volume nii-uncompressed"
+job_args[dicom-rle]="${job_args[dicom]} --dicom-compression rle"
 declare -A job_series
 for j in "${job_names[@]}"; do job_series[$j]="$phantom"; done
 if [ "$large" = 1 ]; then
@@ -129,6 +130,7 @@ desc = {
   "direct": "`--method direct`, nii + nrrd + stl + ply",
   "default": "default (`cg`, nii + stl)",
   "default-raw": "default with `--volume nii-uncompressed` (cg, .nii + stl)",
+  "dicom-rle": "the DICOM job with `--dicom-compression rle`",
   "dicom": "direct + `--output-series mask,distance,intensity --seg` + 3 meshes",
   "large": "large: 100 x 5 mm 512x512 to 0.7 mm, direct, nii + stl",
 }
