@@ -60,6 +60,11 @@ job_names=(direct default dicom)
 job_args[direct]="--threshold 300 --spacing 0.45 --method direct --volume nii,nrrd --mesh stl,ply"
 job_args[default]="--threshold 300 --spacing 0.45"
 job_args[dicom]="--threshold 300 --spacing 0.45 --method direct --output-series mask,distance,intensity --seg --mesh stl,ply,obj"
+# Options older binaries lack run with the --after binary only.
+declare -A after_only=([default-raw]=1 [dicom-rle]=1)
+job_names+=(default-raw dicom-rle)
+job_args[default-raw]="--threshold 300 --spacing 0.45 --volume nii-uncompressed"
+job_args[dicom-rle]="${job_args[dicom]} --dicom-compression rle"
 declare -A job_series
 for j in "${job_names[@]}"; do job_series[$j]="$phantom"; done
 if [ "$large" = 1 ]; then
@@ -103,6 +108,7 @@ for rep in $(seq 1 "$repeat"); do
     # The large job runs once per binary (minutes each).
     if [ "$job" = large ] && [ "$rep" -gt 1 ]; then continue; fi
     for label in "${binaries[@]}"; do
+      if [ -n "${after_only[$job]:-}" ] && [ "$label" != after ]; then continue; fi
       echo "whole_jobs.sh: $label $job run $rep" >&2
       run_one "$label" "$job" "$rep"
     done
@@ -123,6 +129,8 @@ for r in rows:
 desc = {
   "direct": "`--method direct`, nii + nrrd + stl + ply",
   "default": "default (`cg`, nii + stl)",
+  "default-raw": "default with `--volume nii-uncompressed` (cg, .nii + stl)",
+  "dicom-rle": "the DICOM job with `--dicom-compression rle`",
   "dicom": "direct + `--output-series mask,distance,intensity --seg` + 3 meshes",
   "large": "large: 100 x 5 mm 512x512 to 0.7 mm, direct, nii + stl",
 }

@@ -120,6 +120,12 @@ absl::StatusOr<JobSpec> BuildJobSpec(const RunArguments& args) {
       args.output_series, {"mask", "distance", "intensity"}, "--output-series");
   if (!series.ok()) return series.status();
   spec.output_series = *series;
+  if (args.dicom_compression != "none" && args.dicom_compression != "rle") {
+    return absl::InvalidArgumentError(
+        absl::StrCat("--dicom-compression: unknown value '",
+                     args.dicom_compression, "' (choose from none, rle)"));
+  }
+  spec.dicom_compression = args.dicom_compression;
   spec.write_seg = args.seg;
   spec.uid_root = args.uid_root;
   spec.random_uids = args.random_uids;
@@ -143,7 +149,7 @@ absl::StatusOr<JobSpec> BuildJobSpec(const RunArguments& args) {
   if (!mesh.ok()) return mesh.status();
   spec.mesh_formats = *mesh;
   absl::StatusOr<std::vector<std::string>> volume =
-      ParseList(args.volume, {"nii", "nrrd"}, "--volume");
+      ParseList(args.volume, {"nii", "nrrd", "nii-uncompressed"}, "--volume");
   if (!volume.ok()) return volume.status();
   spec.volume_formats = *volume;
   if (args.threads < 0) {

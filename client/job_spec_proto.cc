@@ -51,6 +51,10 @@ v1::JobSpec JobSpecToProto(const JobSpec& spec) {
     p.mutable_derived_series()->set_series_number(spec.series_number_base);
   }
   p.set_multiframe_volume(spec.multiframe_volume);
+  if (spec.dicom_compression == "rle") {
+    p.mutable_derived_series()->set_pixel_compression(
+        v1::DICOM_PIXEL_COMPRESSION_RLE_LOSSLESS);
+  }
   p.mutable_segmentation()->set_enabled(spec.write_seg);
   // Sent as asked: the server says clearly if it cannot serve them.
   for (const std::string& content : spec.output_series) {
@@ -59,7 +63,9 @@ v1::JobSpec JobSpecToProto(const JobSpec& spec) {
   v1::OutputSelection* outputs = p.mutable_outputs();
   for (const std::string& f : spec.volume_formats) {
     outputs->add_volume_formats(f == "nrrd" ? v1::VOLUME_FORMAT_NRRD
-                                            : v1::VOLUME_FORMAT_NIFTI);
+                                : f == "nii-uncompressed"
+                                    ? v1::VOLUME_FORMAT_NIFTI_UNCOMPRESSED
+                                    : v1::VOLUME_FORMAT_NIFTI);
   }
   for (const std::string& f : spec.mesh_formats) {
     outputs->add_mesh_formats(f == "ply"   ? v1::MESH_FORMAT_PLY

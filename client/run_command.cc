@@ -102,6 +102,10 @@ void AddRunOptions(CLI::App& app, RunArguments& args) {
   app.add_flag("--seg", args.seg,
                "Write the mask as a binary DICOM SEG (DIR/seg.dcm; same as "
                "--output-series mask)");
+  app.add_option("--dicom-compression", args.dicom_compression,
+                 "Pixel data of the DICOM intensity series: none (native) "
+                 "or rle (RLE Lossless: the same values, fewer bytes)")
+      ->capture_default_str();
   app.add_option("--uid-root", args.uid_root,
                  "UID root for the new DICOM UIDs (default 2.25 + UUID)");
   app.add_flag("--random-uids", args.random_uids,
@@ -129,7 +133,8 @@ void AddRunOptions(CLI::App& app, RunArguments& args) {
                  "Mesh formats: any of stl,ply,obj, or none")
       ->capture_default_str();
   app.add_option("--volume", args.volume,
-                 "Volume formats: any of nii,nrrd, or none")
+                 "Volume formats: any of nii (.nii.gz), nrrd, "
+                 "nii-uncompressed (.nii: no compression time), or none")
       ->capture_default_str();
   app.add_option("--report", args.report, "Write a JSON report to this file");
   app.add_option("--threads", args.threads, "Worker threads (0 = all cores)")

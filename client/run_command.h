@@ -31,6 +31,7 @@ struct RunArguments {
   bool strict_spacing = false;
   std::string output_series;  // "mask,distance,intensity"
   bool seg = false;
+  std::string dicom_compression = "none";
   std::string uid_root;
   bool random_uids = false;
   std::optional<int64_t> series_number_base;

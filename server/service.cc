@@ -975,7 +975,9 @@ grpc::ServerUnaryReactor* InterSliceService::GetServerInfo(
   limits->set_upload_timeout_seconds(options_.uploads.total_timeout_seconds);
   for (const char* s : {"linear", "cg", "direct", "morph"})
     response->add_methods(s);
-  for (const char* s : {"nii", "nrrd"}) response->add_volume_formats(s);
+  for (const char* s : {"nii", "nrrd", "nii-uncompressed"}) {
+    response->add_volume_formats(s);
+  }
   for (const char* s : {"stl", "ply", "obj"}) response->add_mesh_formats(s);
   const auto* descriptor =
       v1::ServerInfo::descriptor()->file()->FindServiceByName("InterSlice");

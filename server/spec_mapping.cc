@@ -37,6 +37,18 @@ absl::StatusOr<JobSpec> JobSpecFromProto(const v1::JobSpec& p) {
         "spec.derived_series.series_number must be between 0 and 2147483644");
   }
   spec.series_number_base = p.derived_series().series_number();
+  switch (p.derived_series().pixel_compression()) {
+    case v1::DICOM_PIXEL_COMPRESSION_UNSPECIFIED:
+    case v1::DICOM_PIXEL_COMPRESSION_NONE:
+      spec.dicom_compression = "none";
+      break;
+    case v1::DICOM_PIXEL_COMPRESSION_RLE_LOSSLESS:
+      spec.dicom_compression = "rle";
+      break;
+    default:
+      return absl::InvalidArgumentError(
+          "spec.derived_series.pixel_compression: unknown compression");
+  }
   if (!p.derived_series().series_description().empty()) {
     return absl::InvalidArgumentError(
         "spec.derived_series.series_description is not supported; each "
@@ -125,6 +137,8 @@ absl::StatusOr<JobSpec> JobSpecFromProto(const v1::JobSpec& p) {
         add(spec.volume_formats, "nii");
       } else if (f == v1::VOLUME_FORMAT_NRRD) {
         add(spec.volume_formats, "nrrd");
+      } else if (f == v1::VOLUME_FORMAT_NIFTI_UNCOMPRESSED) {
+        add(spec.volume_formats, "nii-uncompressed");
       } else {
         return absl::InvalidArgumentError(
             "spec.outputs.volume_formats: unknown format");
@@ -155,6 +169,7 @@ absl::StatusOr<JobSpec> JobSpecFromProto(const v1::JobSpec& p) {
 std::string MediaTypeForArtifact(const std::string& name) {
   if (absl::EndsWith(name, ".nii.gz")) return "application/gzip";
   if (absl::EndsWith(name, ".nrrd")) return "application/octet-stream";
+  if (absl::EndsWith(name, ".nii")) return "application/octet-stream";
   if (absl::EndsWith(name, ".stl")) return "model/stl";
   if (absl::EndsWith(name, ".ply")) return "application/ply";
   if (absl::EndsWith(name, ".obj")) return "model/obj";

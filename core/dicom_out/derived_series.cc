@@ -2,6 +2,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstdio>
 #include <filesystem>
 #include <limits>
 #include <memory>
@@ -33,6 +34,7 @@ namespace {
 
 namespace fs = std::filesystem;
 using dicom_out_internal::AddReferencedSeries;
+using dicom_out_internal::CommitFile;
 using dicom_out_internal::CopyPatientStudyFrameOfReference;
 using dicom_out_internal::CurrentDate;
 using dicom_out_internal::CurrentTime;
@@ -41,8 +43,9 @@ using dicom_out_internal::kSourceImagePurposeCode;
 using dicom_out_internal::kSourceImagePurposeMeaning;
 using dicom_out_internal::LoadSourceHeader;
 using dicom_out_internal::NearestSourceSlices;
-using dicom_out_internal::SaveFileAtomically;
+using dicom_out_internal::SaveFileUnsynced;
 using dicom_out_internal::SlicePositionAlongNormal;
+using dicom_out_internal::SyncDirectory;
 using dicom_out_internal::ValidateOutputGrid;
 
 // How modality values become stored values: value = stored * slope +
@@ -340,6 +343,8 @@ absl::StatusOr<std::vector<std::string>> WriteIntensitySeries(
 
   const int64_t nx = grid.size[0], ny = grid.size[1], nz = grid.size[2];
   std::vector<std::string> paths(static_cast<size_t>(nz));
+  // Written but not yet committed (see the end).
+  std::vector<std::string> temps(static_cast<size_t>(nz));
   // One instance: slice k, from this worker's copy of the source header
   // `header` (DCMTK loads its large values lazily from the file, so a header is
   // never shared between threads) and its pixel buffer.
@@ -478,14 +483,20 @@ absl::StatusOr<std::vector<std::string>> WriteIntensitySeries(
     // The file meta header names the same SOP instance.
     const std::string path =
         (fs::path(output_dir) / absl::StrFormat("IM%05d.dcm", k + 1)).string();
-    INTERSLICE_RETURN_IF_ERROR(SaveFileAtomically(file, path));
+    INTERSLICE_ASSIGN_OR_RETURN(
+        temps[static_cast<size_t>(k)],
+        SaveFileUnsynced(file, path,
+                         options.intensity_encoding ==
+                                 DicomWriteOptions::PixelEncoding::kRleLossless
+                             ? EXS_RLELossless
+                             : EXS_LittleEndianExplicit));
     paths[static_cast<size_t>(k)] = path;
     return absl::OkStatus();
   };
   // Instances are independent files: they are written in parallel, in
   // contiguous runs of slices, on the calling task arena's threads (RunJob
-  // calls writers inside its arena of ComputeContext::threads). Encoding and
-  // each file's fsync overlap across threads.
+  // calls writers inside its arena of ComputeContext::threads). Each file's
+  // writeback starts as it is saved; the fsyncs come after all are written.
   const int64_t runs = std::min<int64_t>(
       nz, 4 * static_cast<int64_t>(tbb::this_task_arena::max_concurrency()));
   std::vector<absl::Status> run_status(static_cast<size_t>(runs));
@@ -506,9 +517,24 @@ absl::StatusOr<std::vector<std::string>> WriteIntensitySeries(
       }
     }
   });
-  for (absl::Status& status : run_status) {
-    INTERSLICE_RETURN_IF_ERROR(status);
+  absl::Status failed;
+  for (absl::Status& status : run_status) failed.Update(status);
+  if (!failed.ok()) {
+    for (const std::string& temp : temps) {
+      if (!temp.empty()) std::remove(temp.c_str());
+    }
+    return failed;
   }
+  // Every instance is written: make each durable under its name (CommitFile
+  // removes its temporary when it fails), in parallel, then the folder once.
+  std::vector<absl::Status> commit_status(static_cast<size_t>(nz));
+  tbb::parallel_for(int64_t{0}, nz, [&](int64_t k) {
+    commit_status[static_cast<size_t>(k)] = CommitFile(
+        temps[static_cast<size_t>(k)], paths[static_cast<size_t>(k)]);
+  });
+  for (absl::Status& status : commit_status) failed.Update(status);
+  if (failed.ok()) failed = SyncDirectory(output_dir);
+  if (!failed.ok()) return failed;
   return paths;
 }
 

@@ -12,6 +12,7 @@
 #include <cstring>
 #include <filesystem>
 #include <memory>
+#include <mutex>
 #include <random>
 #include <string>
 #include <vector>
@@ -25,6 +26,7 @@
 #include "dcmtk/dcmdata/dcdeftag.h"
 #include "dcmtk/dcmdata/dcfilefo.h"
 #include "dcmtk/dcmdata/dcitem.h"
+#include "dcmtk/dcmdata/dcrleerg.h"
 #include "dcmtk/dcmdata/dcvrda.h"
 #include "dcmtk/dcmdata/dcvrtm.h"
 
@@ -363,21 +365,48 @@ std::string CurrentTime() {
   return std::string(time.c_str());
 }
 
-absl::Status SaveFileAtomically(DcmFileFormat& file, const std::string& path) {
+absl::StatusOr<std::string> SaveFileUnsynced(DcmFileFormat& file,
+                                             const std::string& path,
+                                             E_TransferSyntax xfer) {
+  if (DcmXfer(xfer).isEncapsulated()) {
+    static std::once_flag once;
+    // DCMTK's codec registry is process-wide; registering twice would add
+    // duplicate codecs.
+    std::call_once(once, [] { DcmRLEEncoderRegistration::registerCodecs(); });
+    const OFCondition encoded =
+        file.getDataset()->chooseRepresentation(xfer, nullptr);
+    if (encoded.bad() || !file.getDataset()->canWriteXfer(xfer)) {
+      return absl::InternalError(absl::StrCat(
+          "cannot encode ", path, " as ", DcmXfer(xfer).getXferName(), ": ",
+          encoded.bad() ? encoded.text() : "no codec for its pixel data"));
+    }
+  }
   thread_local std::mt19937_64 random(std::random_device{}());
   const std::string temp =
       absl::StrFormat("%s.tmp-%016x", path, static_cast<uint64_t>(random()));
   const OFCondition cond =
-      file.saveFile(OFFilename(temp.c_str()), EXS_LittleEndianExplicit,
-                    EET_ExplicitLength, EGL_recalcGL, EPD_withoutPadding);
+      file.saveFile(OFFilename(temp.c_str()), xfer, EET_ExplicitLength,
+                    EGL_recalcGL, EPD_withoutPadding);
   if (cond.bad()) {
     std::remove(temp.c_str());
     return absl::InternalError(
         absl::StrCat("cannot write ", path, ": ", cond.text()));
   }
+  // Start the writeback now, while other files are encoded; CommitFile's
+  // fsync then waits for little. Advisory: its failure is CommitFile's to
+  // report.
+  const int fd = ::open(temp.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd >= 0) {
+    ::sync_file_range(fd, 0, 0, SYNC_FILE_RANGE_WRITE);
+    ::close(fd);
+  }
+  return temp;
+}
+
+absl::Status CommitFile(const std::string& temp, const std::string& path) {
   // Data on disk before the name: after a crash the target is either the old
   // file or the complete new one.
-  const int fd = ::open(temp.c_str(), O_RDONLY);
+  const int fd = ::open(temp.c_str(), O_RDONLY | O_CLOEXEC);
   const bool synced = fd >= 0 && ::fsync(fd) == 0;
   const int sync_errno = errno;
   if (fd >= 0) ::close(fd);
@@ -393,6 +422,25 @@ absl::Status SaveFileAtomically(DcmFileFormat& file, const std::string& path) {
                                             std::strerror(rename_errno)));
   }
   return absl::OkStatus();
+}
+
+absl::Status SyncDirectory(const std::string& dir) {
+  const int fd = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+  const bool synced = fd >= 0 && ::fsync(fd) == 0;
+  const int sync_errno = errno;
+  if (fd >= 0) ::close(fd);
+  if (!synced) {
+    return absl::InternalError(
+        absl::StrCat("cannot sync ", dir, ": ", std::strerror(sync_errno)));
+  }
+  return absl::OkStatus();
+}
+
+absl::Status SaveFileAtomically(DcmFileFormat& file, const std::string& path,
+                                E_TransferSyntax xfer) {
+  absl::StatusOr<std::string> temp = SaveFileUnsynced(file, path, xfer);
+  if (!temp.ok()) return temp.status();
+  return CommitFile(*temp, path);
 }
 
 }  // namespace dicom_out_internal

@@ -93,6 +93,16 @@ struct DicomWriteOptions {
       "interslice shape-based interpolation (Csebfalvi et al. 2001)";
   // SoftwareVersions of the creating equipment.
   std::string software_version = "interslice";
+  // Pixel data of the intensity series: kNative (default) = Explicit VR
+  // Little Endian; kRleLossless = encapsulated RLE Lossless
+  // (1.2.840.10008.1.2.5, DCMTK's RLE codec): the same stored values, which
+  // every DICOM decoder restores exactly, in fewer bytes (about 0.6 of
+  // native on the CT phantom, docs/speed/whole-job-notes.md). Only the
+  // intensity series is affected: the SEG's 1-bit frames and the Parametric
+  // Map's Float Pixel Data stay native (DCMTK's RLE encoder takes 8/16-bit
+  // samples only, and Float Pixel Data has no encapsulated transfer syntax).
+  enum class PixelEncoding { kNative, kRleLossless };
+  PixelEncoding intensity_encoding = PixelEncoding::kNative;
 };
 
 // The identity of one derived object: series UID, SOP instance UIDs (one per

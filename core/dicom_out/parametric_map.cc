@@ -507,6 +507,12 @@ absl::Status WriteDistanceMap(const DicomSeries& source,
   DcmFileFormat file;
   DcmDataset& ds = *file.getDataset();
   INTERSLICE_RETURN_IF_ERROR(Check(map.writeDataset(ds), "encode"));
+  // writeDataset copied every frame into the dataset's Float Pixel Data; the
+  // map's own frames (one output volume) are not needed for saving, which
+  // with the fsync is the longest part. Destroying the map here keeps one
+  // copy, not two, alive while the file is written. `map` and `frames` refer
+  // into `created` and are not used after this.
+  created = OFCondition(EC_Normal);
   CopyPatientStudyFrameOfReference(src, identity, ds);
   // Common Instance Reference module (C.12.2): every image of the intensity
   // series the frames derive from.

@@ -163,10 +163,16 @@ absl::Status ValidateJobSpec(const JobSpec& spec) {
     return absl::InvalidArgumentError("mesh adaptivity must be in [0, 1]");
   }
   for (const std::string& f : spec.volume_formats) {
-    if (f != "nii" && f != "nrrd") {
-      return absl::InvalidArgumentError(absl::StrCat(
-          "unknown volume format '", f, "' (choose from nii, nrrd)"));
+    if (f != "nii" && f != "nrrd" && f != "nii-uncompressed") {
+      return absl::InvalidArgumentError(
+          absl::StrCat("unknown volume format '", f,
+                       "' (choose from nii, nrrd, nii-uncompressed)"));
     }
+  }
+  if (spec.dicom_compression != "none" && spec.dicom_compression != "rle") {
+    return absl::InvalidArgumentError(
+        absl::StrCat("unknown DICOM compression '", spec.dicom_compression,
+                     "' (choose from none, rle)"));
   }
   for (const std::string& f : spec.output_series) {
     if (f != "mask" && f != "distance" && f != "intensity") {
@@ -360,6 +366,10 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
     dicom_options.random_uids = spec.random_uids;
     dicom_options.series_number_base = spec.series_number_base;
     dicom_options.derivation_key = DerivationKey(spec, field.grid);
+    if (spec.dicom_compression == "rle") {
+      dicom_options.intensity_encoding =
+          DicomWriteOptions::PixelEncoding::kRleLossless;
+    }
     DerivedObjects objects;
     Volume<float> intensity;
     if (wants_intensity) {
@@ -383,7 +393,9 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
     };
     std::vector<Task> tasks;
     for (const std::string& format : spec.volume_formats) {
-      const std::string ext = format == "nii" ? ".nii.gz" : ".nrrd";
+      const std::string ext = format == "nii"    ? ".nii.gz"
+                              : format == "nrrd" ? ".nrrd"
+                                                 : ".nii";
       const auto distance_path = dir / ("distance" + ext);
       const auto mask_path = dir / ("mask" + ext);
       tasks.push_back({"distance", distance_path, [&, distance_path] {
@@ -409,9 +421,14 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
     if (wants_intensity) {
       const auto path = dir / "series-intensity";
       tasks.push_back({"series-intensity", path, [&, path] {
-                         return WriteIntensityFolder(source, intensity,
-                                                     objects.intensity,
-                                                     dicom_options, path);
+                         absl::Status written = WriteIntensityFolder(
+                             source, intensity, objects.intensity,
+                             dicom_options, path);
+                         // Only this task reads the resampled volume: free
+                         // it (one output volume) while the other outputs
+                         // are still being written.
+                         intensity = Volume<float>();
+                         return written;
                        }});
     }
     if (wants_distance_map) {

@@ -42,6 +42,9 @@ struct JobSpec {
   // Outputs, written into output_dir (created if missing):
   //   volume formats "nii" -> distance.nii.gz, mask.nii.gz;
   //                  "nrrd" -> distance.nrrd, mask.nrrd;
+  //                  "nii-uncompressed" -> distance.nii, mask.nii (no
+  //                  deflate: the float field barely compresses, 86% of
+  //                  raw, and deflating it dominates the write stage);
   //   mesh formats "stl", "ply", "obj" -> surface.<ext>.
   std::vector<std::string> volume_formats = {"nii"};
   std::vector<std::string> mesh_formats = {"stl"};
@@ -61,6 +64,12 @@ struct JobSpec {
   //   them), so either one also writes series-intensity/.
   std::vector<std::string> output_series;
   bool write_seg = false;
+  // Pixel data of the intensity series: "none" (default, native Explicit VR
+  // Little Endian) or "rle" (encapsulated RLE Lossless: the same values in
+  // fewer bytes; see DicomWriteOptions::intensity_encoding). The SEG and the
+  // distance map stay native. UIDs do not depend on it (the same instances,
+  // transcoded losslessly).
+  std::string dicom_compression = "none";
   // UID root for new series/instance UIDs; empty = 2.25 + UUID.
   std::string uid_root;
   // UIDs are derived from the source instances, the job's parameters and the

@@ -97,8 +97,17 @@ absl::Status ConjugateGradient(Volume<float>& field,
   const int64_t plane = size[0] * size[1];
   const int64_t nz = size[2];
   float* f = field.data.data();
-  std::vector<float> r(field.data.size()), d(field.data.size()),
-      q(field.data.size());
+  // Three full-size vectors (f, r, d), not four: q = A d is never stored.
+  // Each pass that needs a slice of A d recomputes it into a per-thread
+  // slice buffer (ApplyOperatorSlice is deterministic, so both passes see the
+  // same values and the iterates are bitwise those of the stored-q
+  // formulation). The extra stencil application costs arithmetic, not
+  // memory traffic: q is no longer written and read back (8 of ~44 bytes
+  // per voxel and iteration), and the job's peak memory drops by one output
+  // volume (docs/speed/whole-job-notes.md).
+  std::vector<float> r(field.data.size()), d(field.data.size());
+  tbb::enumerable_thread_specific<std::vector<float>> scratch(
+      [plane] { return std::vector<float>(plane); });
   std::vector<double> partial(nz), partial2(nz);
 
   auto for_slices = [&](auto&& body) {
@@ -114,7 +123,7 @@ absl::Status ConjugateGradient(Volume<float>& field,
   // true one in float) claims the tolerance is met.
   auto reset_residual = [&]() -> std::pair<double, double> {
     for_slices([&](int64_t k) {
-      float* qk = q.data() + k * plane;
+      float* qk = scratch.local().data();
       solver_internal::ApplyOperatorSlice(f, size, k, c, qk);
       const float* fk = f + k * plane;
       float* rk = r.data() + k * plane;
@@ -152,13 +161,13 @@ absl::Status ConjugateGradient(Volume<float>& field,
 
   for (int it = 1; it <= options.max_iterations; ++it) {
     INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
-    // q = A d and d . q, slice by slice while the slice is in cache.
+    // d . q with q = A d, slice by slice while the slice is in cache.
     for_slices([&](int64_t k) {
-      float* qk = q.data() + k * plane;
       if (fixed[k]) {
         partial[k] = 0;  // d is zero there, and q is not needed there.
         return;
       }
+      float* qk = scratch.local().data();
       solver_internal::ApplyOperatorSlice(d.data(), size, k, c, qk);
       partial[k] = DotProduct(d.data() + k * plane, qk, plane);
     });
@@ -166,14 +175,15 @@ absl::Status ConjugateGradient(Volume<float>& field,
     if (!(dq > 0)) break;  // d == 0 to working precision: nothing left to do.
     const double alpha = rr / dq;
     const float alpha_f = static_cast<float>(alpha);
-    // r -= alpha q; r . r.
+    // r -= alpha q (q recomputed, as above); r . r.
     for_slices([&](int64_t k) {
       if (fixed[k]) {
         partial[k] = 0;
         return;
       }
-      partial[k] = UpdateResidual(r.data() + k * plane, q.data() + k * plane,
-                                  alpha_f, plane);
+      float* qk = scratch.local().data();
+      solver_internal::ApplyOperatorSlice(d.data(), size, k, c, qk);
+      partial[k] = UpdateResidual(r.data() + k * plane, qk, alpha_f, plane);
     });
     const double rr_next = OrderedSum(partial);
     // Along a CG step E drops by alpha r.r (d.r = r.r for CG directions).

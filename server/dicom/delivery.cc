@@ -14,6 +14,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
+#include "core/dicom/series_reader.h"
 #include "server/dicom/scu.h"
 #include "server/dicom/tls.h"
 #include "spdlog/spdlog.h"
@@ -84,6 +85,11 @@ std::vector<std::string> ListDicomFiles(const std::string& dir) {
 absl::StatusOr<StoreResult> StoreFiles(const DicomPeer& peer,
                                        const std::vector<std::string>& files,
                                        const DeliveryOptions& options) {
+  // With DCMTK's decoders registered, DcmStorageSCU proposes a lossless
+  // encapsulated file (an RLE intensity series, --dicom-compression rle)
+  // together with the uncompressed syntaxes, and decompresses it for a peer
+  // that accepts only those; without them it proposes RLE alone.
+  RegisterDicomDecoders();
   CountingStorageScu scu;
   ConfigureScu(scu, peer, options.calling_ae_title, options.max_pdu_bytes,
                options.timeout_seconds);

@@ -28,6 +28,8 @@
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
 #include "dcmtk/dcmdata/dcfilefo.h"
+#include "dcmtk/dcmdata/dcmetinf.h"
+#include "dcmtk/dcmdata/dcuid.h"
 
 namespace interslice {
 namespace {
@@ -364,6 +366,46 @@ TEST_F(DicomOutputTest, UnevenGapsAndMissingSlicesArePlacedByTruePositions) {
     std::string errors;
     EXPECT_EQ(DciodvfyErrors(out / "seg.dcm", &errors), 0) << errors;
   }
+}
+
+// --dicom-compression rle: the intensity series is RLE Lossless and reads
+// (our reader, ITK/GDCM) exactly as the native one; a bad value is a
+// one-line error.
+TEST_F(DicomOutputTest, RleIntensitySeriesReadsAsTheNativeOne) {
+  const std::string common =
+      "run " + kPhantom.string() +
+      " --threshold 300 --roi 150,100,0,350,300,6 --factor 3 --method direct "
+      "--quiet --volume none --mesh none --output-series intensity ";
+  for (const char* mode : {"none", "rle"}) {
+    const CommandResult r =
+        RunCli(common + "--dicom-compression " + mode + " --out " +
+               (dir_ / mode).string() + " --report " +
+               (dir_ / (std::string(mode) + ".json")).string());
+    ASSERT_EQ(r.exit_code, 0) << r.output;
+  }
+  const fs::path rle = dir_ / "rle" / "series-intensity";
+  const std::vector<fs::path> files = SortedFiles(rle);
+  ASSERT_EQ(files.size(), 16u);
+  for (const fs::path& file : files) {
+    DcmFileFormat ff;
+    ASSERT_TRUE(ff.loadFile(OFFilename(file.c_str())).good()) << file;
+    OFString xfer;
+    ff.getMetaInfo()->findAndGetOFString(DCM_TransferSyntaxUID, xfer);
+    EXPECT_EQ(xfer, UID_RLELosslessTransferSyntax) << file;
+  }
+  std::string errors;
+  EXPECT_EQ(DciodvfyErrors(files.front(), &errors), 0) << errors;
+  auto native = ReadDicomSeries({(dir_ / "none").string()}, {}, {});
+  auto compressed = ReadDicomSeries({rle.string()}, {}, {});
+  ASSERT_TRUE(native.ok()) << native.status();
+  ASSERT_TRUE(compressed.ok()) << compressed.status();
+  EXPECT_EQ(compressed->image.data, native->image.data);
+  ExpectItkSeesReportGrid(rle, ReadJson(dir_ / "rle.json"));
+
+  const CommandResult bad = RunCli(common + "--dicom-compression jpeg --out " +
+                                   (dir_ / "x").string());
+  EXPECT_EQ(bad.exit_code, 1);
+  EXPECT_THAT(bad.output, HasSubstr("--dicom-compression"));
 }
 
 // A tilted head CT: the tilt is corrected, reported and summarised, and the

@@ -88,6 +88,29 @@ TEST(SpecMappingTest, DefaultsMatchTheCli) {
             absl::StatusCode::kInvalidArgument);
 }
 
+TEST(SpecMappingTest, UncompressedNiftiAndRleIntensityMap) {
+  v1::JobSpec p;
+  p.set_threshold(300);
+  p.mutable_outputs()->add_volume_formats(v1::VOLUME_FORMAT_NIFTI_UNCOMPRESSED);
+  p.mutable_outputs()->add_volume_formats(v1::VOLUME_FORMAT_NIFTI);
+  absl::StatusOr<JobSpec> spec = JobSpecFromProto(p);
+  ASSERT_TRUE(spec.ok()) << spec.status();
+  EXPECT_EQ(spec->volume_formats,
+            (std::vector<std::string>{"nii-uncompressed", "nii"}));
+  EXPECT_EQ(spec->dicom_compression, "none");
+  p.mutable_derived_series()->set_pixel_compression(
+      v1::DICOM_PIXEL_COMPRESSION_RLE_LOSSLESS);
+  EXPECT_EQ(JobSpecFromProto(p)->dicom_compression, "rle");
+  p.mutable_derived_series()->set_pixel_compression(
+      v1::DICOM_PIXEL_COMPRESSION_NONE);
+  EXPECT_EQ(JobSpecFromProto(p)->dicom_compression, "none");
+  p.mutable_derived_series()->set_pixel_compression(
+      static_cast<v1::DicomPixelCompression>(99));
+  EXPECT_EQ(JobSpecFromProto(p).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(MediaTypeForArtifact("distance.nii"), "application/octet-stream");
+}
+
 TEST(TokenFileTest, OneTokenAloneIsTheDefaultIdentity) {
   auto tokens = ParseTokenFile("  s3cret-token\n");
   ASSERT_TRUE(tokens.ok()) << tokens.status();

@@ -212,6 +212,67 @@ TEST_F(DicomWriterTest, IntensitySeriesRoundTripsThroughOurReader) {
   }
 }
 
+// The RLE Lossless option: each instance is encapsulated RLE, passes
+// dciodvfy, is smaller, and decodes to exactly the native instance's stored
+// values (and the rest of the dataset is the same).
+TEST_F(DicomWriterTest, RleIntensitySeriesDecodesToTheNativePixels) {
+  TempDir dir;
+  const Volume<float> intensity = Intensity();
+  const DerivedObjects objects = Plan();
+  auto native = WriteIntensitySeries(*source_, intensity, objects.intensity,
+                                     Options(), (dir.path() / "n").string());
+  ASSERT_TRUE(native.ok()) << native.status();
+  DicomWriteOptions rle_options = Options();
+  rle_options.intensity_encoding =
+      DicomWriteOptions::PixelEncoding::kRleLossless;
+  auto rle = WriteIntensitySeries(*source_, intensity, objects.intensity,
+                                  rle_options, (dir.path() / "r").string());
+  ASSERT_TRUE(rle.ok()) << rle.status();
+  ASSERT_EQ(rle->size(), native->size());
+  {
+    SCOPED_TRACE("rle intensity");
+    ExpectValidIod(*rle);
+  }
+  RegisterDicomDecoders();  // DCMTK's RLE decoder, to compare the pixels
+  uintmax_t native_bytes = 0, rle_bytes = 0;
+  for (size_t k = 0; k < rle->size(); ++k) {
+    SCOPED_TRACE(k);
+    native_bytes += fs::file_size((*native)[k]);
+    rle_bytes += fs::file_size((*rle)[k]);
+    auto a = Load((*native)[k]);
+    auto b = Load((*rle)[k]);
+    EXPECT_EQ(GetString(*b->getMetaInfo(), DCM_TransferSyntaxUID),
+              UID_RLELosslessTransferSyntax);
+    EXPECT_EQ(b->getDataset()->getOriginalXfer(), EXS_RLELossless);
+    EXPECT_EQ(GetString(*a->getMetaInfo(), DCM_TransferSyntaxUID),
+              UID_LittleEndianExplicitTransferSyntax);
+    EXPECT_EQ(GetString(*b->getDataset(), DCM_SOPInstanceUID),
+              GetString(*a->getDataset(), DCM_SOPInstanceUID));
+    ASSERT_TRUE(b->getDataset()
+                    ->chooseRepresentation(EXS_LittleEndianExplicit, nullptr)
+                    .good());
+    const Uint16* pa = nullptr;
+    const Uint16* pb = nullptr;
+    unsigned long na = 0, nb = 0;
+    ASSERT_TRUE(
+        a->getDataset()->findAndGetUint16Array(DCM_PixelData, pa, &na).good());
+    ASSERT_TRUE(
+        b->getDataset()->findAndGetUint16Array(DCM_PixelData, pb, &nb).good());
+    ASSERT_EQ(na, nb);
+    ASSERT_EQ(na, static_cast<unsigned long>(grid_->size[0] * grid_->size[1]));
+    EXPECT_TRUE(std::equal(pa, pa + na, pb));
+    for (const DcmTagKey& tag :
+         {DCM_Rows, DCM_Columns, DCM_BitsAllocated, DCM_BitsStored,
+          DCM_PixelRepresentation, DCM_RescaleSlope, DCM_RescaleIntercept,
+          DCM_ImagePositionPatient, DCM_InstanceNumber}) {
+      EXPECT_EQ(GetString(*b->getDataset(), tag),
+                GetString(*a->getDataset(), tag))
+          << DcmTag(tag).getTagName();
+    }
+  }
+  EXPECT_LT(rle_bytes, native_bytes);
+}
+
 TEST_F(DicomWriterTest, IntensitySeriesKeepsWindowsAndPixelPadding) {
   TempDir dir;
   // A source whose first slice has two windows with explanations and a

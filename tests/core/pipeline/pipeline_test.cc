@@ -173,6 +173,46 @@ TEST_F(PipelineTest, RejectsBadSpecsWithClearErrors) {
   EXPECT_TRUE(RunJob(spec, {}).ok());
 }
 
+// "nii-uncompressed" writes distance.nii / mask.nii beside (or instead of)
+// the .nii.gz: the same voxels and grid, no gzip stream (a NIfTI-1 single
+// file starts with sizeof_hdr = 348, a gzip stream with 1f 8b).
+TEST_F(PipelineTest, UncompressedNiftiHoldsTheSameVolumes) {
+  JobSpec spec = SmallJob();
+  spec.volume_formats = {"nii", "nii-uncompressed"};
+  auto report = RunJob(spec, {});
+  ASSERT_TRUE(report.ok()) << report.status();
+  int distance_artifacts = 0;
+  for (const Artifact& a : report->artifacts) {
+    distance_artifacts += a.kind == "distance";
+  }
+  EXPECT_EQ(distance_artifacts, 2);
+  for (const char* name : {"distance", "mask"}) {
+    SCOPED_TRACE(name);
+    const fs::path raw = dir_ / (std::string(name) + ".nii");
+    const fs::path gz = dir_ / (std::string(name) + ".nii.gz");
+    std::ifstream in(raw, std::ios::binary);
+    int32_t sizeof_hdr = 0;
+    in.read(reinterpret_cast<char*>(&sizeof_hdr), sizeof(sizeof_hdr));
+    EXPECT_EQ(sizeof_hdr, 348);
+    EXPECT_GT(fs::file_size(raw), 348u + 80u * 80u * 13u - 1u);
+    const auto a = ReadVolumeAsFloat(raw.string());
+    const auto b = ReadVolumeAsFloat(gz.string());
+    ASSERT_TRUE(a.ok()) << a.status();
+    ASSERT_TRUE(b.ok()) << b.status();
+    EXPECT_EQ(a->grid.size, b->grid.size);
+    EXPECT_EQ(a->grid.spacing, b->grid.spacing);
+    EXPECT_EQ(a->grid.origin, b->grid.origin);
+    EXPECT_EQ(a->data, b->data);
+  }
+  spec.volume_formats = {"nii-gz"};
+  EXPECT_THAT(RunJob(spec, {}).status().message(),
+              ::testing::HasSubstr("nii-uncompressed"));
+  spec = SmallJob();
+  spec.dicom_compression = "jpeg";
+  EXPECT_THAT(RunJob(spec, {}).status().message(),
+              ::testing::HasSubstr("DICOM compression 'jpeg'"));
+}
+
 TEST_F(PipelineTest, SameResultWhateverTheThreadCount) {
   JobSpec spec = SmallJob();
   spec.solver.method = SolverMethod::kConjugateGradient;
