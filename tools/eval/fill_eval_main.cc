@@ -228,7 +228,7 @@ int64_t CountGaps(const LabelVolume& out, const LabelVolume& truth,
 int Main(int argc, char** argv) {
   CLI::App app{"drop-k evaluation of interslice fill on label maps"};
   std::string series_dir, labels_path, out_dir,
-      ks_text = "2,3,5,8", methods_text = "copy,linear,cg,direct";
+      ks_text = "2,3,5,8", methods_text = "copy,linear,cg,direct,auto";
   std::string bands_text = "-200,0,40,100,300,3000";
   int max_labels = 20, threads = 0, margin = FillOptions().margin_pixels;
   int64_t min_voxels = 2000;
@@ -240,7 +240,12 @@ int Main(int argc, char** argv) {
   app.add_option("--max-labels", max_labels, "At most this many made labels");
   app.add_option("--min-voxels", min_voxels, "Smallest made label, voxels");
   app.add_option("--ks", ks_text, "Key slice steps");
-  app.add_option("--methods", methods_text, "copy,linear,cg,direct");
+  app.add_option("--methods", methods_text, "copy,linear,cg,direct,auto");
+  int64_t slices = 0;
+  app.add_option("--slices", slices,
+                 "Resample the truth labels to this many slices (nearest "
+                 "slice, z spacing scaled): e.g. 150 for the issue's timing "
+                 "grid; 0 = as read");
   app.add_option("--threads", threads, "Threads (0 = all)");
   app.add_option("--margin", margin, "In-plane margin of each label's box");
   app.add_option("--out", out_dir, "Output folder")->required();
@@ -281,6 +286,26 @@ int Main(int argc, char** argv) {
     truth = MakeLabels(series->image, edges, max_labels, min_voxels, made);
     (void)WriteVolume(truth, out_dir + "/truth-labels.nii.gz");
   }
+  if (slices > 0 && slices != truth.grid.size[2]) {
+    // Nearest-slice resampling: output slice k' takes input slice
+    // round(k' (Z - 1) / (Z' - 1)); the extent in mm is kept.
+    const int64_t nz_in = truth.grid.size[2];
+    const int64_t plane = truth.grid.SliceVoxelCount();
+    LabelVolume resampled;
+    resampled.grid = truth.grid;
+    resampled.grid.size[2] = slices;
+    resampled.grid.spacing[2] =
+        truth.grid.spacing[2] * (nz_in - 1) / std::max<int64_t>(1, slices - 1);
+    resampled.data.resize(resampled.grid.VoxelCount());
+    for (int64_t k = 0; k < slices; ++k) {
+      const int64_t from = std::llround(static_cast<double>(k) * (nz_in - 1) /
+                                        std::max<int64_t>(1, slices - 1));
+      std::copy(truth.data.begin() + from * plane,
+                truth.data.begin() + (from + 1) * plane,
+                resampled.data.begin() + k * plane);
+    }
+    truth = std::move(resampled);
+  }
   const std::vector<int> labels = LabelsPresent(truth);
   nlohmann::ordered_json made_json = nlohmann::ordered_json::array();
   for (const MadeLabel& m : made) {
@@ -302,6 +327,8 @@ int Main(int argc, char** argv) {
   std::ofstream metrics(out_dir + "/fill_metrics.csv");
   metrics << "k,method,label,dice,hd95_mm,msd_mm\n";
   std::ofstream summary(out_dir + "/fill_summary.csv");
+  std::ofstream choices(out_dir + "/fill_choices.csv");
+  choices << "k,label,chosen,copy,linear,blend,direct\n";
   summary << "k,method,labels_scored,mean_dice,mean_hd95_mm,mean_msd_mm,"
              "gap_voxels,seconds\n";
   const int64_t nz = truth.grid.size[2];
@@ -322,6 +349,8 @@ int Main(int argc, char** argv) {
         FillOptions options;
         options.key_slices = keys;
         options.margin_pixels = margin;
+        options.method =
+            method == "auto" ? FillMethod::kAuto : FillMethod::kSolver;
         options.solver.method = method == "linear" ? SolverMethod::kLinear
                                 : method == "cg"
                                     ? SolverMethod::kConjugateGradient
@@ -334,6 +363,19 @@ int Main(int argc, char** argv) {
           return 1;
         }
         out = std::move(r->labels);
+        if (method == "auto") {
+          // The candidate chosen per label and its validation Dice on the
+          // label's own held-out key slices (no truth involved).
+          for (const LabelFillInfo& info : r->per_label) {
+            choices << step << "," << info.label << "," << info.method;
+            for (const auto& [name, dice] : info.validation_dice) {
+              choices << absl::StrFormat(",%.4f", dice);
+            }
+            if (info.validation_dice.empty()) choices << ",,,,";
+            choices << "\n";
+          }
+          choices.flush();
+        }
       }
       const double seconds = std::chrono::duration<double>(
                                  std::chrono::steady_clock::now() - start)

@@ -11,6 +11,7 @@ NAMES = {
     "linear": "linear stacking (per-label 2D SDF)",
     "cg": "paper: 15 CG iterations",
     "direct": "paper: exact minimiser",
+    "auto": "auto (default): per-label choice on held-out key slices",
 }
 
 
@@ -85,6 +86,24 @@ def main():
             " | ".join("%.3f" % per[label][m] if m in per[label] else "-"
                        for m in methods)))
     lines.append("")
+
+    # What auto chose per label (from its own key slices, never the truth).
+    path = os.path.join(args.out, "fill_choices.csv")
+    if os.path.exists(path):
+        rows = list(csv.DictReader(open(path)))
+        cks = sorted({int(r["k"]) for r in rows})
+        chosen = {(int(r["k"]), int(r["label"])): r["chosen"] for r in rows}
+        labels = sorted({int(r["label"]) for r in rows})
+        lines += ["## Candidate chosen by auto per label", "",
+                  "(leave-every-other-key-slice-out on the label's own key "
+                  "slices; fill_choices.csv has each candidate's validation "
+                  "Dice)", "",
+                  "| label | " + " | ".join("k = %d" % k for k in cks) + " |",
+                  "|---|" + "---|" * len(cks)]
+        for label in labels:
+            lines.append("| %d | %s |" % (label, " | ".join(
+                chosen.get((k, label), "-") for k in cks)))
+        lines.append("")
 
     try:
         import matplotlib
