@@ -127,8 +127,8 @@ absl::Status CheckSameGrid(const Grid& grid, const Grid& reference,
 }
 
 std::vector<int> LabelsPresent(const LabelVolume& labels) {
-  std::vector<bool> seen(65536, false);
-  for (uint16_t v : labels.data) seen[v] = true;
+  std::vector<uint8_t> seen(65536, 0);
+  for (uint16_t v : labels.data) seen[v] = 1;
   std::vector<int> out;
   for (int v = 1; v < 65536; ++v) {
     if (seen[v]) out.push_back(v);
@@ -277,10 +277,13 @@ void NearestFixedCopy(const Volume<float>& stacked,
 }
 
 // Leave-every-other-key-slice-out validation of the candidates for one
-// label: key slices 1, 3, 5, ... (short of the last) are held out, the rest
-// stacked (input slice resolution) and each candidate's field compared with
-// the drawn mask on the held-out slices. Returns the pooled Dice per
-// candidate (kCandidates order), or empty with fewer than three key slices.
+// label, in two folds: first the inner key slices 1, 3, 5, ... are held out,
+// then 2, 4, 6, ... (never the first or last); each time the rest are
+// stacked (input slice resolution) and each candidate's field is compared
+// with the drawn mask on the held-out slices. Every inner key slice is held
+// out once, predicted from its two neighbouring key slices (a gap about
+// twice the label's own). Returns the pooled Dice per candidate
+// (kCandidates order), or empty with fewer than three key slices.
 absl::StatusOr<std::vector<double>> ValidateCandidates(
     const LabelVolume& input, int label, const std::vector<int64_t>& key,
     const PlaneBox& box, const Volume<float>& maps, const FillOptions& options,
@@ -289,60 +292,68 @@ absl::StatusOr<std::vector<double>> ValidateCandidates(
   if (n < 3) return std::vector<double>();
   const int64_t bw = box.i1 - box.i0, bh = box.j1 - box.j0;
   const int64_t bplane = bw * bh;
-  std::vector<size_t> kept, held;
-  for (size_t s = 0; s < n; ++s) {
-    if (s % 2 == 1 && s + 1 < n) {
-      held.push_back(s);
-    } else {
-      kept.push_back(s);
-    }
-  }
-  Volume<float> sub;
-  sub.grid = maps.grid;
-  sub.grid.size[2] = static_cast<int64_t>(kept.size());
-  sub.data.resize(sub.grid.VoxelCount());
-  StackPlan plan;
-  plan.factor = 1;
-  plan.spacing_mm = input.grid.spacing[2];
-  for (size_t c = 0; c < kept.size(); ++c) {
-    std::copy(maps.data.begin() + kept[c] * bplane,
-              maps.data.begin() + (kept[c] + 1) * bplane,
-              sub.data.begin() + c * bplane);
-    plan.nodes.push_back(key[kept[c]] - key.front());
-  }
-  plan.output_slices = plan.nodes.back() + 1;
-  INTERSLICE_ASSIGN_OR_RETURN(
-      StackedField linear,
-      StackLinear(sub, plan, options.max_output_voxels, context));
-  Volume<float> copy;
-  NearestFixedCopy(linear.field, linear.fixed_slices, copy);
-  Volume<float> refined = linear.field;
-  SolverOptions solver = options.solver;
-  solver.method = SolverMethod::kDirect;
-  INTERSLICE_RETURN_IF_ERROR(
-      Solve(refined, linear.fixed_slices, solver, context).status());
-
-  // Pooled Dice: 2 |A and B| / (|A| + |B|) summed over the held-out slices.
   std::vector<double> both(4, 0), predicted(4, 0);
   double drawn = 0;
-  for (size_t s : held) {
-    const int64_t z = key[s] - key.front();
-    const float* lin = linear.field.data.data() + z * bplane;
-    const float* ref = refined.data.data() + z * bplane;
-    const float* cpy = copy.data.data() + z * bplane;
-    for (int64_t j = 0; j < bh; ++j) {
-      const uint16_t* row = input.data.data() +
-                            input.grid.LinearIndex(box.i0, box.j0 + j, key[s]);
-      for (int64_t i = 0; i < bw; ++i) {
-        const int64_t p = j * bw + i;
-        const bool truth = row[i] == label;
-        drawn += truth;
-        const float values[4] = {lin[p], ref[p], 0.5f * (lin[p] + cpy[p]),
-                                 cpy[p]};
-        for (int c = 0; c < 4; ++c) {
-          const bool in = values[c] > 0;
-          predicted[c] += in;
-          both[c] += in && truth;
+  for (size_t fold = 1; fold <= 2 && fold + 1 < n; ++fold) {
+    INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
+    std::vector<size_t> kept, held;
+    for (size_t s = 0; s < n; ++s) {
+      if (s >= fold && (s - fold) % 2 == 0 && s + 1 < n) {
+        held.push_back(s);
+      } else {
+        kept.push_back(s);
+      }
+    }
+    Volume<float> sub;
+    sub.grid = maps.grid;
+    sub.grid.size[2] = static_cast<int64_t>(kept.size());
+    sub.data.resize(sub.grid.VoxelCount());
+    StackPlan plan;
+    plan.factor = 1;
+    plan.spacing_mm = input.grid.spacing[2];
+    for (size_t c = 0; c < kept.size(); ++c) {
+      std::copy(maps.data.begin() + kept[c] * bplane,
+                maps.data.begin() + (kept[c] + 1) * bplane,
+                sub.data.begin() + c * bplane);
+      plan.nodes.push_back(key[kept[c]] - key.front());
+    }
+    plan.output_slices = plan.nodes.back() + 1;
+    INTERSLICE_ASSIGN_OR_RETURN(
+        StackedField linear,
+        StackLinear(sub, plan, options.max_output_voxels, context));
+    sub = Volume<float>();
+    Volume<float> refined = linear.field;
+    SolverOptions solver = options.solver;
+    solver.method = SolverMethod::kDirect;
+    INTERSLICE_RETURN_IF_ERROR(
+        Solve(refined, linear.fixed_slices, solver, context).status());
+
+    // Pooled Dice: 2 |A and B| / (|A| + |B|) summed over the held-out
+    // slices of both folds.
+    for (size_t s : held) {
+      const int64_t z = key[s] - key.front();
+      const float* lin = linear.field.data.data() + z * bplane;
+      const float* ref = refined.data.data() + z * bplane;
+      // The nearest-slice copy: the nearer neighbouring key slice (ties:
+      // the lower one), as NearestFixedCopy.
+      const size_t from =
+          key[s + 1] - key[s] < key[s] - key[s - 1] ? s + 1 : s - 1;
+      const float* cpy = maps.data.data() + from * bplane;
+      for (int64_t j = 0; j < bh; ++j) {
+        const uint16_t* row =
+            input.data.data() +
+            input.grid.LinearIndex(box.i0, box.j0 + j, key[s]);
+        for (int64_t i = 0; i < bw; ++i) {
+          const int64_t p = j * bw + i;
+          const bool truth = row[i] == label;
+          drawn += truth;
+          const float values[4] = {lin[p], ref[p], 0.5f * (lin[p] + cpy[p]),
+                                   cpy[p]};
+          for (int c = 0; c < 4; ++c) {
+            const bool in = values[c] > 0;
+            predicted[c] += in;
+            both[c] += in && truth;
+          }
         }
       }
     }

@@ -10,11 +10,12 @@
 //   predicts the label's own held-out key slices. Candidates: nearest-slice
 //   copy (the nearest key slice's distance map), linear stacking, their
 //   mean ("blend"), and the paper's refinement with the exact minimiser
-//   (core/solver kDirect). Selection never sees withheld truth: every
-//   other inner key slice (indices 1, 3, 5, ... short of the last) is left
-//   out, each candidate fills it from the remaining key slices (gaps twice
-//   the label's own), and the candidate with the highest pooled Dice over
-//   those slices wins (ties: linear, refined, blend, copy, in that order).
+//   (core/solver kDirect). Selection never sees withheld truth: in two
+//   folds, every other inner key slice (first 1, 3, 5, ..., then 2, 4,
+//   ...; never the first or last) is left out, each candidate fills it from
+//   the remaining key slices (gaps about twice the label's own), and the
+//   candidate with the highest Dice pooled over all held-out slices wins
+//   (ties: linear, refined, blend, copy, in that order).
 //   A label with fewer than three key slices gets linear stacking. Why:
 //   on the drop-k evaluation (docs/eval/segmentations.md) the refinement
 //   wins on compact structures but flattens 1-2 pixel thin ones, and the

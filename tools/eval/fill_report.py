@@ -51,7 +51,8 @@ def main():
                                ("Mean MSD over labels, mm", "mean_msd_mm", "%.3f"),
                                ("Gap voxels (touching on both key slices, "
                                 "background after the fill)", "gap_voxels", "%s"),
-                               ("Seconds for the whole fill", "seconds", "%s")):
+                               ("Seconds for the whole fill (wall clock)", "seconds", "%s"),
+                               ("CPU seconds for the whole fill (all threads)", "cpu_seconds", "%s")):
         lines += ["## " + title, "",
                   "| method | " + " | ".join("k = %d" % k for k in ks) + " |",
                   "|---|" + "---|" * len(ks)]
@@ -59,7 +60,7 @@ def main():
             cells = []
             for k in ks:
                 r = by.get((k, m))
-                if r is None:
+                if r is None or column not in r:
                     cells.append("-")
                 elif fmt == "%s":
                     cells.append(r[column])
