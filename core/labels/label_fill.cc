@@ -676,9 +676,9 @@ absl::StatusOr<FillResult> FillBetweenSlices(const LabelVolume& input,
   };
 
   // Labels run concurrently, each single-threaded, and are merged strictly
-  // in ascending order as soon as every smaller label is done: the same
-  // result for any thread count, and at most about `threads` label fields
-  // waiting at a time (more only when a large label holds up the merge).
+  // in ascending label order as soon as every smaller label is done: the
+  // same result for any thread count. Fields computed ahead of a smaller
+  // label wait in memory until it is merged.
   const int threads = context.threads > 0
                           ? context.threads
                           : tbb::this_task_arena::max_concurrency();
@@ -699,31 +699,67 @@ absl::StatusOr<FillResult> FillBetweenSlices(const LabelVolume& input,
     absl::Status first_error;
     size_t error_label = labels.size();
     std::atomic<bool> stop{false};
+    // Largest labels first (estimated work: in-plane bounding box of the
+    // drawn pixels times the span of the key slices), so the longest job
+    // does not start last; workers take the next label in that order.
+    std::vector<int64_t> work(labels.size(), 0);
+    {
+      std::vector<PlaneBox> extent(labels.size(), PlaneBox{nx, 0, ny, 0});
+      for (int64_t k = 0; k < nz; ++k) {
+        for (int64_t j = 0; j < ny; ++j) {
+          const uint16_t* row = input.data.data() + (k * ny + j) * nx;
+          for (int64_t i = 0; i < nx; ++i) {
+            const int n = row[i] == 0 ? -1 : label_index[row[i]];
+            if (n < 0) continue;
+            PlaneBox& e = extent[n];
+            e.i0 = std::min(e.i0, i);
+            e.i1 = std::max(e.i1, i + 1);
+            e.j0 = std::min(e.j0, j);
+            e.j1 = std::max(e.j1, j + 1);
+          }
+        }
+      }
+      for (size_t n = 0; n < labels.size(); ++n) {
+        const PlaneBox& e = extent[n];
+        if (keys[n].empty() || e.i1 <= e.i0) continue;
+        work[n] = (e.i1 - e.i0) * (e.j1 - e.j0) *
+                  (keys[n].back() - keys[n].front() + 1);
+      }
+    }
+    std::vector<size_t> order(labels.size());
+    for (size_t n = 0; n < order.size(); ++n) order[n] = n;
+    std::stable_sort(order.begin(), order.end(),
+                     [&](size_t a, size_t b) { return work[a] > work[b]; });
+    std::atomic<size_t> next{0};
     tbb::task_arena arena(threads);
     arena.execute([&] {
       tbb::parallel_for(
-          tbb::blocked_range<size_t>(0, labels.size(), 1),
-          [&](const tbb::blocked_range<size_t>& range) {
-            for (size_t n = range.begin(); n != range.end(); ++n) {
-              if (stop.load(std::memory_order_relaxed)) return;
-              absl::Status s = context.CheckCancelled();
-              if (s.ok()) {
-                s = ComputeLabelField(input, out_grid, factor, options, inner,
-                                      jobs[n]);
-              }
-              std::lock_guard<std::mutex> lock(mu);
-              if (!s.ok()) {
-                if (n < error_label) {
-                  error_label = n;
-                  first_error = std::move(s);
+          tbb::blocked_range<int>(0, threads, 1),
+          [&](const tbb::blocked_range<int>& workers) {
+            for (int w = workers.begin(); w != workers.end(); ++w) {
+              for (size_t q = next.fetch_add(1); q < order.size();
+                   q = next.fetch_add(1)) {
+                const size_t n = order[q];
+                if (stop.load(std::memory_order_relaxed)) return;
+                absl::Status s = context.CheckCancelled();
+                if (s.ok()) {
+                  s = ComputeLabelField(input, out_grid, factor, options, inner,
+                                        jobs[n]);
                 }
-                stop.store(true, std::memory_order_relaxed);
-                return;
-              }
-              done[n] = 1;
-              while (next_merge < labels.size() && done[next_merge]) {
-                merge(next_merge);
-                ++next_merge;
+                std::lock_guard<std::mutex> lock(mu);
+                if (!s.ok()) {
+                  if (n < error_label) {
+                    error_label = n;
+                    first_error = std::move(s);
+                  }
+                  stop.store(true, std::memory_order_relaxed);
+                  return;
+                }
+                done[n] = 1;
+                while (next_merge < labels.size() && done[next_merge]) {
+                  merge(next_merge);
+                  ++next_merge;
+                }
               }
             }
           },

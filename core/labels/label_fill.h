@@ -129,7 +129,9 @@ struct FillOptions {
   bool keep_fields = false;
   // Bound on voxels of the output grid, checked before allocation. Memory:
   // about 8 bytes per output voxel (12 with keep_fields) plus each label's
-  // box of float fields, one label at a time (all boxes with keep_fields).
+  // box of float fields: about 4 boxes per label being computed (auto's
+  // validation), plus finished boxes waiting for a smaller label to be
+  // merged (with several threads; all boxes with keep_fields).
   int64_t max_output_voxels = int64_t{1} << 30;
 };
 

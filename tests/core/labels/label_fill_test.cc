@@ -361,12 +361,12 @@ absl::StatusOr<FillResult> FillWith(const std::string& method,
   return FillBetweenSlices(drawn, options, ComputeContext{.threads = threads});
 }
 
-TEST(AutoFillTest, SphereEveryThirdSliceBeatsLinear) {
+TEST(AutoFillTest, SphereEveryFourthSliceBeatsLinear) {
   // On a compact smooth shape the refinement follows the curvature along z
   // that linear stacking cuts into straight segments; auto must find that
   // from the key slices alone.
   const LabelVolume truth = Ball(15.3, 0);
-  const std::vector<int64_t> keys = EveryNth(3, kSize);
+  const std::vector<int64_t> keys = EveryNth(4, kSize);
   const LabelVolume drawn = KeepSlices(truth, keys);
   absl::StatusOr<FillResult> automatic = FillWith("auto", drawn, keys);
   absl::StatusOr<FillResult> linear = FillWith("linear", drawn, keys);
