@@ -5,6 +5,7 @@
 #include <cmath>
 #include <limits>
 #include <mutex>
+#include <numeric>
 #include <set>
 #include <utility>
 
@@ -292,6 +293,16 @@ absl::StatusOr<std::vector<double>> ValidateCandidates(
   if (n < 3) return std::vector<double>();
   const int64_t bw = box.i1 - box.i0, bh = box.j1 - box.j0;
   const int64_t bplane = bw * bh;
+  // The validation grid holds only the slices at multiples of g, the
+  // greatest common divisor of the key gaps (every key slice is one of
+  // them): g times fewer voxels for the solver than the input grid. For
+  // the refinement to approximate the same continuous energy as on the
+  // input grid, its weights are those of a z step g times the input's
+  // (CurvatureWeights in mm units with the z spacing scaled). Linear
+  // stacking and the copy are the same on either grid.
+  int64_t g = 0;
+  for (size_t s = 1; s < n; ++s) g = std::gcd(g, key[s] - key[s - 1]);
+  g = std::max<int64_t>(1, g);
   std::vector<double> both(4, 0), predicted(4, 0);
   double drawn = 0;
   for (size_t fold = 1; fold <= 2 && fold + 1 < n; ++fold) {
@@ -315,7 +326,7 @@ absl::StatusOr<std::vector<double>> ValidateCandidates(
       std::copy(maps.data.begin() + kept[c] * bplane,
                 maps.data.begin() + (kept[c] + 1) * bplane,
                 sub.data.begin() + c * bplane);
-      plan.nodes.push_back(key[kept[c]] - key.front());
+      plan.nodes.push_back((key[kept[c]] - key.front()) / g);
     }
     plan.output_slices = plan.nodes.back() + 1;
     INTERSLICE_ASSIGN_OR_RETURN(
@@ -325,13 +336,20 @@ absl::StatusOr<std::vector<double>> ValidateCandidates(
     Volume<float> refined = linear.field;
     SolverOptions solver = options.solver;
     solver.method = SolverMethod::kDirect;
+    if (solver.units == EnergyUnits::kVoxel) {
+      refined.grid.spacing = {1, 1, static_cast<double>(g)};
+    } else {
+      refined.grid.spacing = {input.grid.spacing[0], input.grid.spacing[1],
+                              input.grid.spacing[2] * g};
+    }
+    solver.units = EnergyUnits::kMillimetre;
     INTERSLICE_RETURN_IF_ERROR(
         Solve(refined, linear.fixed_slices, solver, context).status());
 
     // Pooled Dice: 2 |A and B| / (|A| + |B|) summed over the held-out
     // slices of both folds.
     for (size_t s : held) {
-      const int64_t z = key[s] - key.front();
+      const int64_t z = (key[s] - key.front()) / g;
       const float* lin = linear.field.data.data() + z * bplane;
       const float* ref = refined.data.data() + z * bplane;
       // The nearest-slice copy: the nearer neighbouring key slice (ties:

@@ -334,6 +334,11 @@ int Main(int argc, char** argv) {
   std::ofstream metrics(out_dir + "/fill_metrics.csv");
   metrics << "k,method,label,dice,hd95_mm,msd_mm\n";
   std::ofstream summary(out_dir + "/fill_summary.csv");
+  std::ofstream timing;
+  if (no_score) {
+    timing.open(out_dir + "/fill_timing.csv");
+    timing << "grid,labels,k,method,threads,seconds,cpu_seconds\n";
+  }
   std::ofstream choices(out_dir + "/fill_choices.csv");
   choices << "k,label,chosen,copy,linear,blend,direct\n";
   summary << "k,method,labels_scored,mean_dice,mean_hd95_mm,mean_msd_mm,"
@@ -403,6 +408,11 @@ int Main(int argc, char** argv) {
                     static_cast<long long>(step), method.c_str(), seconds,
                     cpu_seconds);
         std::fflush(stdout);
+        timing << absl::StrFormat("%dx%dx%d,%d,%d,%s,%d,%.2f,%.2f\n",
+                                  truth.grid.size[0], truth.grid.size[1],
+                                  truth.grid.size[2], labels.size(), step,
+                                  method, threads, seconds, cpu_seconds);
+        timing.flush();
         continue;
       }
       double sum_dice = 0, sum_hd = 0, sum_msd = 0;

@@ -88,6 +88,23 @@ def main():
                        for m in methods)))
     lines.append("")
 
+    # The timing case (fill_timing.csv, from --no-score runs).
+    path = os.path.join(args.out, "fill_timing.csv")
+    if os.path.exists(path):
+        rows = list(csv.DictReader(open(path)))
+        lines += ["## Timing: the labels on a %s grid, every %s-th slice" % (
+                      rows[0]["grid"].replace("x", " x "), rows[0]["k"]) if rows else
+                  "## Timing", "",
+                  "Fastest of 3 fills; wall clock on the shared machine (load "
+                  "average in timing.log) and process CPU time of all threads.", "",
+                  "| method | labels | threads | wall s | CPU s |",
+                  "|---|---|---|---|---|"]
+        for r in rows:
+            lines.append("| %s | %s | %s | %s | %s |" % (
+                NAMES.get(r["method"], r["method"]), r["labels"], r["threads"],
+                r["seconds"], r["cpu_seconds"]))
+        lines.append("")
+
     # What auto chose per label (from its own key slices, never the truth).
     path = os.path.join(args.out, "fill_choices.csv")
     if os.path.exists(path):
