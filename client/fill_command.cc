@@ -87,8 +87,11 @@ void AddFillOptions(CLI::App& app, FillArguments& args) {
                  "Key slices for every label, e.g. 0,5,12 or 0-40:5 "
                  "(default: per label, the slices where it is drawn)");
   app.add_option("--method", args.method,
-                 "direct (exact minimiser), cg (the paper's conjugate "
-                 "gradient) or linear (no refinement)")
+                 "auto (per label, the best of nearest-slice copy, linear "
+                 "stacking, their blend and the exact refinement at "
+                 "predicting the label's own held-out key slices), direct "
+                 "(exact minimiser), cg (the paper's conjugate gradient) or "
+                 "linear (no refinement)")
       ->capture_default_str();
   app.add_option("--iterations", args.iterations,
                  "CG iterations (default 15, as in the paper)");
@@ -138,7 +141,10 @@ absl::StatusOr<FillJobSpec> BuildFillJobSpec(const FillArguments& args) {
     if (!keys.ok()) return keys.status();
     spec.fill.key_slices = *std::move(keys);
   }
-  if (args.method == "direct") {
+  spec.fill.method = FillMethod::kSolver;
+  if (args.method == "auto") {
+    spec.fill.method = FillMethod::kAuto;
+  } else if (args.method == "direct") {
     spec.fill.solver.method = SolverMethod::kDirect;
   } else if (args.method == "cg") {
     spec.fill.solver.method = SolverMethod::kConjugateGradient;
@@ -147,7 +153,7 @@ absl::StatusOr<FillJobSpec> BuildFillJobSpec(const FillArguments& args) {
   } else {
     return absl::InvalidArgumentError(
         absl::StrCat("--method: unknown method '", args.method,
-                     "' (choose from direct, cg, linear)"));
+                     "' (choose from auto, direct, cg, linear)"));
   }
   if (args.iterations.has_value()) {
     if (*args.iterations < 0) {

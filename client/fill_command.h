@@ -24,7 +24,7 @@ struct FillArguments {
   std::string series_uid;
   std::string labels;      // "1,3,7"
   std::string key_slices;  // "0,5,10" or ranges "0-40:5"
-  std::string method = "cg";
+  std::string method = "auto";
   std::optional<int> iterations;
   std::optional<int> factor;
   std::optional<double> spacing;

@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
 # Drop-k on multi-label segmentations (issue 13): keep every k-th slice of a
 # fully drawn label map, fill the rest with nearest-slice copy, linear
-# stacking and the paper's refinement (cg, direct), and score every label on
-# the withheld slices (Dice, HD95, MSD), plus gap voxels and fill time.
+# stacking, the paper's refinement (cg, direct) and the default method auto
+# (per-label choice on held-out key slices), and score every label on the
+# withheld slices (Dice, HD95, MSD), plus gap voxels and fill time (wall
+# clock and CPU).
 #
 #   scripts/eval-segmentations.sh [--series DIR] [--labels FILE] [--ks 2,3,5,8]
 #                                 [--out DIR] [--threads N] [--build-dir DIR]
@@ -58,12 +60,23 @@ if [ "$run" = 1 ]; then
   args=(--series "$series" --ks "$ks" --out "$out" --threads "$threads")
   if [ -n "$labels" ]; then args+=(--labels "$labels"); fi
   "$build/tools/eval/interslice_fill_eval" "${args[@]}" | tee "$out/run.log"
+  # The issue's timing case: the same labels on 150 slices (nearest-slice
+  # resampling), every 5th a key slice, fills timed only (3 runs, fastest).
+  "$build/tools/eval/interslice_fill_eval" --series "$series" \
+    --labels "${labels:-$out/truth-labels.nii.gz}" --slices 150 --ks 5 \
+    --methods linear,direct,auto --threads "$threads" --no-score --repeat 3 \
+    --out "$out/timing" | tee "$out/timing.log"
+  uptime | tee -a "$out/timing.log"
+  [ -f "$out/timing/fill_timing.csv" ] && cp "$out/timing/fill_timing.csv" "$out/"
 fi
 /usr/bin/python3 "$repo/tools/eval/fill_report.py" "$out" --command "$command_line"
 if [ "$publish" = 1 ] && [ "$default_data" = 1 ]; then
   docs="$repo/docs/eval"
   mkdir -p "$docs"
   cp "$out/segmentations.md" "$out/fill_summary.csv" "$out/fill_metrics.csv" "$docs"/
+  for f in fill_choices.csv fill_timing.csv; do
+    [ -f "$out/$f" ] && cp "$out/$f" "$docs"/
+  done
   cp "$out/labels.json" "$docs/segmentations_labels.json"
   [ -f "$out/segmentations_dice.png" ] && cp "$out/segmentations_dice.png" "$docs"/
   echo "eval-segmentations.sh: report published to $docs/segmentations.md"

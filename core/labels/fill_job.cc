@@ -118,7 +118,9 @@ absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
   report.fill_seconds = SecondsSince(start);
   report.output_grid = result.labels.grid;
   report.factor = result.factor;
-  report.method = std::string(SolverMethodName(spec.fill.solver.method));
+  report.method = spec.fill.method == FillMethod::kAuto
+                      ? std::string(FillMethodName(FillMethod::kAuto))
+                      : std::string(SolverMethodName(spec.fill.solver.method));
   report.gap_voxels_closed = result.gap_voxels_closed;
   report.key_voxels_restored = result.key_voxels_restored;
   report.warnings = result.warnings;
@@ -199,6 +201,7 @@ std::string FillJobReportToJson(const FillJobReport& report) {
     labels.push_back({{"label", info.label},
                       {"key_slices", info.key_slices},
                       {"drawn_slices", info.drawn_slices},
+                      {"method", info.method},
                       {"voxels", info.output_voxels},
                       {"iterations", info.solver.iterations},
                       {"relative_residual", info.solver.relative_residual}});

@@ -53,7 +53,7 @@ struct FillJobReport {
          write_seconds = 0;
   Grid input_grid, output_grid;
   int factor = 1;
-  std::string method;  // "linear", "cg", "direct"
+  std::string method;  // "auto", "linear", "cg", "direct"
   // "label-map", "seg-binary" or "seg-fractional"; a SEG's segments.
   std::string input_kind;
   std::vector<SegmentDescription> segments;
@@ -74,7 +74,7 @@ absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
                                          const ComputeContext& context);
 
 // {"stages": {...}, "grid": {...}, "method", "labels": [{"label",
-// "key_slices", "drawn_slices", "voxels", "iterations",
+// "key_slices", "drawn_slices", "method", "voxels", "iterations",
 // "relative_residual"}], "gap_voxels_closed", "key_voxels_restored",
 // "warnings": [...], "artifacts": [...]}.
 std::string FillJobReportToJson(const FillJobReport& report);

@@ -1,8 +1,11 @@
 #include "core/labels/label_fill.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <limits>
+#include <mutex>
+#include <numeric>
 #include <set>
 #include <utility>
 
@@ -11,6 +14,9 @@
 #include "absl/strings/str_join.h"
 #include "core/common/status_macros.h"
 #include "core/sdf/signed_distance.h"
+#include "tbb/blocked_range.h"
+#include "tbb/parallel_for.h"
+#include "tbb/task_arena.h"
 
 namespace interslice {
 namespace {
@@ -49,6 +55,10 @@ double MedianGap(const std::vector<int64_t>& keys) {
 }
 
 }  // namespace
+
+std::string_view FillMethodName(FillMethod method) {
+  return method == FillMethod::kAuto ? "auto" : "solver";
+}
 
 absl::StatusOr<LabelVolume> LabelVolumeFromFloat(const Volume<float>& volume) {
   INTERSLICE_RETURN_IF_ERROR(volume.grid.Validate());
@@ -118,8 +128,8 @@ absl::Status CheckSameGrid(const Grid& grid, const Grid& reference,
 }
 
 std::vector<int> LabelsPresent(const LabelVolume& labels) {
-  std::vector<bool> seen(65536, false);
-  for (uint16_t v : labels.data) seen[v] = true;
+  std::vector<uint8_t> seen(65536, 0);
+  for (uint16_t v : labels.data) seen[v] = 1;
   std::vector<int> out;
   for (int v = 1; v < 65536; ++v) {
     if (seen[v]) out.push_back(v);
@@ -177,6 +187,329 @@ std::vector<int64_t> KeySlicesForLabel(
   if (above >= 0) out.push_back(above);
   return out;
 }
+
+namespace {
+
+// One label's work: its inputs, and its field on its box of the output grid
+// (output slices [z0, z1)) once computed.
+struct LabelJob {
+  int label = 0;
+  std::vector<int64_t> key;  // key slices (input indices)
+  LabelFillInfo info;
+  std::vector<std::string> warnings;
+  PlaneBox box;
+  int64_t z0 = 0, z1 = 0;
+  Volume<float> field;  // empty when the label is left out
+};
+
+// The 2D signed distance maps of `label` on its key slices `key`, in the
+// in-plane box `box` (one map per key slice, in order): the label's 0/1
+// mask at the 0.5 level (core/sdf). The z spacing of the stack (used only by
+// the end caps of core/sdf) is the median key gap.
+absl::StatusOr<Volume<float>> KeySliceDistanceMaps(
+    const LabelVolume& input, int label, const std::vector<int64_t>& key,
+    const PlaneBox& box, const FillOptions& options,
+    const ComputeContext& context) {
+  const Grid& in_grid = input.grid;
+  const int64_t bw = box.i1 - box.i0, bh = box.j1 - box.j0;
+  const int64_t bplane = bw * bh;
+  Volume<float> mask;
+  mask.grid.size = {bw, bh, static_cast<int64_t>(key.size())};
+  mask.grid.spacing = {in_grid.spacing[0], in_grid.spacing[1],
+                       in_grid.spacing[2] * MedianGap(key)};
+  mask.data.assign(mask.grid.VoxelCount(), 0.0f);
+  for (size_t s = 0; s < key.size(); ++s) {
+    for (int64_t j = 0; j < bh; ++j) {
+      const uint16_t* row =
+          input.data.data() + in_grid.LinearIndex(box.i0, box.j0 + j, key[s]);
+      float* dst = mask.data.data() + s * bplane + j * bw;
+      for (int64_t i = 0; i < bw; ++i) dst[i] = row[i] == label ? 1.0f : 0.0f;
+    }
+  }
+  ContourOptions contour;
+  contour.lower = 0.5f;
+  contour.band_radius_mm = options.band_radius_mm;
+  return ComputeSliceDistanceMaps(mask, contour, context);
+}
+
+// Candidates of FillMethod::kAuto, in tie-break order.
+enum class Candidate { kLinear, kRefined, kBlend, kCopy };
+constexpr Candidate kCandidates[] = {Candidate::kLinear, Candidate::kRefined,
+                                     Candidate::kBlend, Candidate::kCopy};
+
+const char* CandidateName(Candidate c) {
+  switch (c) {
+    case Candidate::kLinear:
+      return "linear";
+    case Candidate::kRefined:
+      return "direct";
+    case Candidate::kBlend:
+      return "blend";
+    case Candidate::kCopy:
+      return "copy";
+  }
+  return "?";
+}
+
+// The nearest-slice copy of a stacked field: every free slice takes the
+// map of its nearest fixed slice (ties: the lower one), so `copy` > 0 is
+// exactly the drawn pixels of that key slice. `stacked` holds the maps on
+// its fixed slices.
+void NearestFixedCopy(const Volume<float>& stacked,
+                      const std::vector<uint8_t>& fixed, Volume<float>& copy) {
+  copy = stacked;
+  const int64_t nz = stacked.grid.size[2];
+  const int64_t plane = stacked.grid.SliceVoxelCount();
+  int64_t below = -1;
+  for (int64_t z = 0; z < nz; ++z) {
+    if (fixed[z]) {
+      below = z;
+      continue;
+    }
+    int64_t above = z + 1;
+    while (above < nz && !fixed[above]) ++above;
+    int64_t from = below;
+    if (below < 0 || (above < nz && above - z < z - below)) from = above;
+    if (from < 0 || from >= nz) continue;
+    std::copy(stacked.data.begin() + from * plane,
+              stacked.data.begin() + (from + 1) * plane,
+              copy.data.begin() + z * plane);
+  }
+}
+
+// Leave-every-other-key-slice-out validation of the candidates for one
+// label, in two folds: first the inner key slices 1, 3, 5, ... are held out,
+// then 2, 4, 6, ... (never the first or last); each time the rest are
+// stacked (input slice resolution) and each candidate's field is compared
+// with the drawn mask on the held-out slices. Every inner key slice is held
+// out once, predicted from its two neighbouring key slices (a gap about
+// twice the label's own). Returns the pooled Dice per candidate
+// (kCandidates order), or empty with fewer than three key slices.
+absl::StatusOr<std::vector<double>> ValidateCandidates(
+    const LabelVolume& input, int label, const std::vector<int64_t>& key,
+    const PlaneBox& box, const Volume<float>& maps, const FillOptions& options,
+    const ComputeContext& context) {
+  const size_t n = key.size();
+  if (n < 3) return std::vector<double>();
+  const int64_t bw = box.i1 - box.i0, bh = box.j1 - box.j0;
+  const int64_t bplane = bw * bh;
+  // The validation grid holds only the slices at multiples of g, the
+  // greatest common divisor of the key gaps (every key slice is one of
+  // them): g times fewer voxels for the solver than the input grid. For
+  // the refinement to approximate the same continuous energy as on the
+  // input grid, its weights are those of a z step g times the input's
+  // (CurvatureWeights in mm units with the z spacing scaled). Linear
+  // stacking and the copy are the same on either grid.
+  int64_t g = 0;
+  for (size_t s = 1; s < n; ++s) g = std::gcd(g, key[s] - key[s - 1]);
+  g = std::max<int64_t>(1, g);
+  std::vector<double> both(4, 0), predicted(4, 0);
+  double drawn = 0;
+  for (size_t fold = 1; fold <= 2 && fold + 1 < n; ++fold) {
+    INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
+    std::vector<size_t> kept, held;
+    for (size_t s = 0; s < n; ++s) {
+      if (s >= fold && (s - fold) % 2 == 0 && s + 1 < n) {
+        held.push_back(s);
+      } else {
+        kept.push_back(s);
+      }
+    }
+    Volume<float> sub;
+    sub.grid = maps.grid;
+    sub.grid.size[2] = static_cast<int64_t>(kept.size());
+    sub.data.resize(sub.grid.VoxelCount());
+    StackPlan plan;
+    plan.factor = 1;
+    plan.spacing_mm = input.grid.spacing[2];
+    for (size_t c = 0; c < kept.size(); ++c) {
+      std::copy(maps.data.begin() + kept[c] * bplane,
+                maps.data.begin() + (kept[c] + 1) * bplane,
+                sub.data.begin() + c * bplane);
+      plan.nodes.push_back((key[kept[c]] - key.front()) / g);
+    }
+    plan.output_slices = plan.nodes.back() + 1;
+    INTERSLICE_ASSIGN_OR_RETURN(
+        StackedField linear,
+        StackLinear(sub, plan, options.max_output_voxels, context));
+    sub = Volume<float>();
+    Volume<float> refined = linear.field;
+    SolverOptions solver = options.solver;
+    solver.method = SolverMethod::kDirect;
+    if (solver.units == EnergyUnits::kVoxel) {
+      refined.grid.spacing = {1, 1, static_cast<double>(g)};
+    } else {
+      refined.grid.spacing = {input.grid.spacing[0], input.grid.spacing[1],
+                              input.grid.spacing[2] * g};
+    }
+    solver.units = EnergyUnits::kMillimetre;
+    INTERSLICE_RETURN_IF_ERROR(
+        Solve(refined, linear.fixed_slices, solver, context).status());
+
+    // Pooled Dice: 2 |A and B| / (|A| + |B|) summed over the held-out
+    // slices of both folds.
+    for (size_t s : held) {
+      const int64_t z = (key[s] - key.front()) / g;
+      const float* lin = linear.field.data.data() + z * bplane;
+      const float* ref = refined.data.data() + z * bplane;
+      // The nearest-slice copy: the nearer neighbouring key slice (ties:
+      // the lower one), as NearestFixedCopy.
+      const size_t from =
+          key[s + 1] - key[s] < key[s] - key[s - 1] ? s + 1 : s - 1;
+      const float* cpy = maps.data.data() + from * bplane;
+      for (int64_t j = 0; j < bh; ++j) {
+        const uint16_t* row =
+            input.data.data() +
+            input.grid.LinearIndex(box.i0, box.j0 + j, key[s]);
+        for (int64_t i = 0; i < bw; ++i) {
+          const int64_t p = j * bw + i;
+          const bool truth = row[i] == label;
+          drawn += truth;
+          const float values[4] = {lin[p], ref[p], 0.5f * (lin[p] + cpy[p]),
+                                   cpy[p]};
+          for (int c = 0; c < 4; ++c) {
+            const bool in = values[c] > 0;
+            predicted[c] += in;
+            both[c] += in && truth;
+          }
+        }
+      }
+    }
+  }
+  std::vector<double> dice(4, 0);
+  for (int c = 0; c < 4; ++c) {
+    const double sum = predicted[c] + drawn;
+    dice[c] = sum > 0 ? 2 * both[c] / sum : 1;
+  }
+  return dice;
+}
+
+// Computes `job`'s field (see FillMethod) on its box of the output grid.
+absl::Status ComputeLabelField(const LabelVolume& input, const Grid& out_grid,
+                               int factor, const FillOptions& options,
+                               const ComputeContext& context, LabelJob& job) {
+  const Grid& in_grid = input.grid;
+  const int64_t nx = in_grid.size[0], ny = in_grid.size[1];
+  const int64_t plane = in_grid.SliceVoxelCount();
+  const int label = job.label;
+  LabelFillInfo& info = job.info;
+  info.label = label;
+  info.key_slices = job.key;
+  const std::vector<int64_t>& key = job.key;
+  if (key.empty()) {
+    job.warnings.push_back(absl::StrFormat(
+        "label %d is not drawn on any key slice: left out", label));
+    return absl::OkStatus();
+  }
+  // The box: drawn pixels on the key slices, grown by the margin.
+  PlaneBox box{nx, 0, ny, 0};
+  std::vector<bool> drawn_on(key.size(), false);
+  for (size_t s = 0; s < key.size(); ++s) {
+    const uint16_t* slice = input.data.data() + key[s] * plane;
+    for (int64_t j = 0; j < ny; ++j) {
+      const uint16_t* row = slice + nx * j;
+      for (int64_t i = 0; i < nx; ++i) {
+        if (row[i] != label) continue;
+        drawn_on[s] = true;
+        box.i0 = std::min(box.i0, i);
+        box.i1 = std::max(box.i1, i + 1);
+        box.j0 = std::min(box.j0, j);
+        box.j1 = std::max(box.j1, j + 1);
+      }
+    }
+    if (drawn_on[s]) ++info.drawn_slices;
+  }
+  if (info.drawn_slices == 1) {
+    const int64_t k = key[std::find(drawn_on.begin(), drawn_on.end(), true) -
+                          drawn_on.begin()];
+    job.warnings.push_back(absl::StrFormat(
+        "label %d is drawn on slice %d only: kept as drawn%s", label, k,
+        key.size() > 1 ? ", closing off toward the neighbouring key slices"
+                       : ""));
+  }
+  const int64_t m = options.margin_pixels;
+  box.i0 = std::max<int64_t>(0, box.i0 - m);
+  box.j0 = std::max<int64_t>(0, box.j0 - m);
+  box.i1 = std::min(nx, box.i1 + m);
+  box.j1 = std::min(ny, box.j1 + m);
+
+  INTERSLICE_ASSIGN_OR_RETURN(
+      Volume<float> maps,
+      KeySliceDistanceMaps(input, label, key, box, options, context));
+
+  // Which candidate (FillMethod::kAuto) or the solver's method.
+  SolverMethod refine = options.solver.method;
+  Candidate chosen = Candidate::kRefined;
+  if (options.method == FillMethod::kAuto) {
+    INTERSLICE_ASSIGN_OR_RETURN(
+        std::vector<double> dice,
+        ValidateCandidates(input, label, key, box, maps, options, context));
+    chosen = Candidate::kLinear;
+    if (!dice.empty()) {
+      double best_dice = -1;
+      for (int c = 0; c < 4; ++c) {
+        if (dice[c] > best_dice) {
+          best_dice = dice[c];
+          chosen = kCandidates[c];
+        }
+      }
+      static constexpr Candidate kReport[] = {
+          Candidate::kCopy, Candidate::kLinear, Candidate::kBlend,
+          Candidate::kRefined};
+      for (Candidate c : kReport) {
+        info.validation_dice.emplace_back(CandidateName(c),
+                                          dice[static_cast<int>(c)]);
+      }
+    }
+    refine = chosen == Candidate::kRefined ? SolverMethod::kDirect
+                                           : SolverMethod::kLinear;
+  }
+
+  StackPlan plan;
+  plan.factor = factor;
+  plan.spacing_mm = out_grid.spacing[2];
+  for (int64_t k : key) plan.nodes.push_back((k - key.front()) * factor);
+  plan.output_slices = plan.nodes.back() + 1;
+  INTERSLICE_ASSIGN_OR_RETURN(
+      StackedField stacked,
+      StackLinear(maps, plan, options.max_output_voxels, context));
+  maps = Volume<float>();
+  const bool any_free =
+      std::any_of(stacked.fixed_slices.begin(), stacked.fixed_slices.end(),
+                  [](uint8_t f) { return f == 0; });
+  if (refine != SolverMethod::kLinear && any_free) {
+    SolverOptions solver = options.solver;
+    solver.method = refine;
+    INTERSLICE_ASSIGN_OR_RETURN(
+        info.solver,
+        Solve(stacked.field, stacked.fixed_slices, solver, context));
+  } else {
+    info.solver.method = SolverMethod::kLinear;
+    info.solver.relative_residual = 1;
+  }
+  if (options.method == FillMethod::kAuto) {
+    info.method = CandidateName(chosen);
+    if (chosen == Candidate::kCopy || chosen == Candidate::kBlend) {
+      Volume<float> copy;
+      NearestFixedCopy(stacked.field, stacked.fixed_slices, copy);
+      if (chosen == Candidate::kBlend) {
+        for (size_t v = 0; v < copy.data.size(); ++v) {
+          copy.data[v] = 0.5f * (copy.data[v] + stacked.field.data[v]);
+        }
+      }
+      stacked.field.data = std::move(copy.data);
+    }
+  } else {
+    info.method = std::string(SolverMethodName(options.solver.method));
+  }
+  job.box = box;
+  job.z0 = key.front() * factor;
+  job.z1 = job.z0 + plan.output_slices;
+  job.field = std::move(stacked.field);
+  return absl::OkStatus();
+}
+
+}  // namespace
 
 absl::StatusOr<FillResult> FillBetweenSlices(const LabelVolume& input,
                                              const FillOptions& options,
@@ -307,102 +640,30 @@ absl::StatusOr<FillResult> FillBetweenSlices(const LabelVolume& input,
     Volume<float> field;     // kept only for meshing
   };
   std::vector<Region> regions(labels.size());
-
+  std::vector<LabelJob> jobs(labels.size());
   for (size_t n = 0; n < labels.size(); ++n) {
-    INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
-    const int label = labels[n];
-    LabelFillInfo info;
-    info.label = label;
-    info.key_slices = keys[n];
-    const std::vector<int64_t>& key = keys[n];
-    if (key.empty()) {
-      result.warnings.push_back(absl::StrFormat(
-          "label %d is not drawn on any key slice: left out", label));
-      result.per_label.push_back(std::move(info));
-      continue;
+    jobs[n].label = labels[n];
+    jobs[n].key = keys[n];
+  }
+  // Merges label n into the running best / second best and keeps what the
+  // result needs; the field itself only for meshing.
+  auto merge = [&](size_t n) {
+    LabelJob& job = jobs[n];
+    result.warnings.insert(result.warnings.end(), job.warnings.begin(),
+                           job.warnings.end());
+    if (job.field.data.empty()) {
+      result.per_label.push_back(std::move(job.info));
+      return;
     }
-    // The box: drawn pixels on the key slices, grown by the margin.
-    PlaneBox box{nx, 0, ny, 0};
-    std::vector<bool> drawn_on(key.size(), false);
-    for (size_t s = 0; s < key.size(); ++s) {
-      const uint16_t* slice = input.data.data() + key[s] * plane;
-      for (int64_t j = 0; j < ny; ++j) {
-        for (int64_t i = 0; i < nx; ++i) {
-          if (slice[i + nx * j] != label) continue;
-          drawn_on[s] = true;
-          box.i0 = std::min(box.i0, i);
-          box.i1 = std::max(box.i1, i + 1);
-          box.j0 = std::min(box.j0, j);
-          box.j1 = std::max(box.j1, j + 1);
-        }
-      }
-      if (drawn_on[s]) ++info.drawn_slices;
-    }
-    if (info.drawn_slices == 1) {
-      const int64_t k = key[std::find(drawn_on.begin(), drawn_on.end(), true) -
-                            drawn_on.begin()];
-      result.warnings.push_back(absl::StrFormat(
-          "label %d is drawn on slice %d only: kept as drawn%s", label, k,
-          key.size() > 1 ? ", closing off toward the neighbouring key slices"
-                         : ""));
-    }
-    const int64_t m = options.margin_pixels;
-    box.i0 = std::max<int64_t>(0, box.i0 - m);
-    box.j0 = std::max<int64_t>(0, box.j0 - m);
-    box.i1 = std::min(nx, box.i1 + m);
-    box.j1 = std::min(ny, box.j1 + m);
+    Region& region = regions[n];
+    region.box = job.box;
+    region.z0 = job.z0;
+    region.z1 = job.z1;
+    const PlaneBox& box = job.box;
     const int64_t bw = box.i1 - box.i0, bh = box.j1 - box.j0;
     const int64_t bplane = bw * bh;
-
-    // The key slices of the label as a 0/1 stack; its z spacing (used only
-    // by the end caps of core/sdf) is the median key gap.
-    Volume<float> mask;
-    mask.grid.size = {bw, bh, static_cast<int64_t>(key.size())};
-    mask.grid.spacing = {in_grid.spacing[0], in_grid.spacing[1],
-                         in_grid.spacing[2] * MedianGap(key)};
-    mask.data.assign(mask.grid.VoxelCount(), 0.0f);
-    for (size_t s = 0; s < key.size(); ++s) {
-      for (int64_t j = 0; j < bh; ++j) {
-        const uint16_t* row =
-            input.data.data() + in_grid.LinearIndex(box.i0, box.j0 + j, key[s]);
-        float* dst = mask.data.data() + s * bplane + j * bw;
-        for (int64_t i = 0; i < bw; ++i) dst[i] = row[i] == label ? 1.0f : 0.0f;
-      }
-    }
-    ContourOptions contour;
-    contour.lower = 0.5f;
-    contour.band_radius_mm = options.band_radius_mm;
-    INTERSLICE_ASSIGN_OR_RETURN(
-        Volume<float> maps, ComputeSliceDistanceMaps(mask, contour, context));
-    mask = Volume<float>();
-
-    StackPlan plan;
-    plan.factor = factor;
-    plan.spacing_mm = out_grid.spacing[2];
-    for (int64_t k : key) plan.nodes.push_back((k - key.front()) * factor);
-    plan.output_slices = plan.nodes.back() + 1;
-    INTERSLICE_ASSIGN_OR_RETURN(
-        StackedField stacked,
-        StackLinear(maps, plan, options.max_output_voxels, context));
-    maps = Volume<float>();
-    const bool any_free =
-        std::any_of(stacked.fixed_slices.begin(), stacked.fixed_slices.end(),
-                    [](uint8_t f) { return f == 0; });
-    if (options.solver.method != SolverMethod::kLinear && any_free) {
-      INTERSLICE_ASSIGN_OR_RETURN(
-          info.solver,
-          Solve(stacked.field, stacked.fixed_slices, options.solver, context));
-    } else {
-      info.solver.method = SolverMethod::kLinear;
-      info.solver.relative_residual = 1;
-    }
-
-    // Merge into the running best / second best.
-    Region& region = regions[n];
-    region.box = box;
-    region.z0 = key.front() * factor;
-    region.z1 = region.z0 + plan.output_slices;
-    const float* f = stacked.field.data.data();
+    const int label = job.label;
+    const float* f = job.field.data.data();
     for (int64_t z = region.z0; z < region.z1; ++z) {
       for (int64_t j = 0; j < bh; ++j) {
         const int64_t dst = out_grid.LinearIndex(box.i0, box.j0 + j, z);
@@ -420,7 +681,7 @@ absl::StatusOr<FillResult> FillBetweenSlices(const LabelVolume& input,
       }
     }
     if (options.keep_fields) {
-      region.field = std::move(stacked.field);
+      region.field = std::move(job.field);
       Grid& g = region.field.grid;
       g.spacing = out_grid.spacing;
       g.direction = out_grid.direction;
@@ -428,7 +689,104 @@ absl::StatusOr<FillResult> FillBetweenSlices(const LabelVolume& input,
                                            static_cast<double>(box.j0),
                                            static_cast<double>(region.z0)});
     }
-    result.per_label.push_back(std::move(info));
+    job.field = Volume<float>();
+    result.per_label.push_back(std::move(job.info));
+  };
+
+  // Labels run concurrently, each single-threaded, and are merged strictly
+  // in ascending label order as soon as every smaller label is done: the
+  // same result for any thread count. Fields computed ahead of a smaller
+  // label wait in memory until it is merged.
+  const int threads = context.threads > 0
+                          ? context.threads
+                          : tbb::this_task_arena::max_concurrency();
+  if (threads <= 1 || labels.size() <= 1) {
+    for (size_t n = 0; n < labels.size(); ++n) {
+      INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
+      INTERSLICE_RETURN_IF_ERROR(ComputeLabelField(input, out_grid, factor,
+                                                   options, context, jobs[n]));
+      merge(n);
+    }
+  } else {
+    ComputeContext inner;
+    inner.threads = 1;
+    inner.cancel = context.cancel;
+    std::mutex mu;
+    std::vector<uint8_t> done(labels.size(), 0);
+    size_t next_merge = 0;
+    absl::Status first_error;
+    size_t error_label = labels.size();
+    std::atomic<bool> stop{false};
+    // Largest labels first (estimated work: in-plane bounding box of the
+    // drawn pixels times the span of the key slices), so the longest job
+    // does not start last; workers take the next label in that order.
+    std::vector<int64_t> work(labels.size(), 0);
+    {
+      std::vector<PlaneBox> extent(labels.size(), PlaneBox{nx, 0, ny, 0});
+      for (int64_t k = 0; k < nz; ++k) {
+        for (int64_t j = 0; j < ny; ++j) {
+          const uint16_t* row = input.data.data() + (k * ny + j) * nx;
+          for (int64_t i = 0; i < nx; ++i) {
+            const int n = row[i] == 0 ? -1 : label_index[row[i]];
+            if (n < 0) continue;
+            PlaneBox& e = extent[n];
+            e.i0 = std::min(e.i0, i);
+            e.i1 = std::max(e.i1, i + 1);
+            e.j0 = std::min(e.j0, j);
+            e.j1 = std::max(e.j1, j + 1);
+          }
+        }
+      }
+      for (size_t n = 0; n < labels.size(); ++n) {
+        const PlaneBox& e = extent[n];
+        if (keys[n].empty() || e.i1 <= e.i0) continue;
+        work[n] = (e.i1 - e.i0) * (e.j1 - e.j0) *
+                  (keys[n].back() - keys[n].front() + 1);
+      }
+    }
+    std::vector<size_t> order(labels.size());
+    for (size_t n = 0; n < order.size(); ++n) order[n] = n;
+    std::stable_sort(order.begin(), order.end(),
+                     [&](size_t a, size_t b) { return work[a] > work[b]; });
+    std::atomic<size_t> next{0};
+    tbb::task_arena arena(threads);
+    arena.execute([&] {
+      tbb::parallel_for(
+          tbb::blocked_range<int>(0, threads, 1),
+          [&](const tbb::blocked_range<int>& workers) {
+            for (int w = workers.begin(); w != workers.end(); ++w) {
+              for (size_t q = next.fetch_add(1); q < order.size();
+                   q = next.fetch_add(1)) {
+                const size_t n = order[q];
+                if (stop.load(std::memory_order_relaxed)) return;
+                absl::Status s = context.CheckCancelled();
+                if (s.ok()) {
+                  s = ComputeLabelField(input, out_grid, factor, options, inner,
+                                        jobs[n]);
+                }
+                std::lock_guard<std::mutex> lock(mu);
+                if (!s.ok()) {
+                  if (n < error_label) {
+                    error_label = n;
+                    first_error = std::move(s);
+                  }
+                  stop.store(true, std::memory_order_relaxed);
+                  return;
+                }
+                done[n] = 1;
+                while (next_merge < labels.size() && done[next_merge]) {
+                  merge(next_merge);
+                  ++next_merge;
+                }
+              }
+            }
+          },
+          tbb::simple_partitioner());
+    });
+    if (!first_error.ok()) return first_error;
+    if (next_merge != labels.size()) {
+      return absl::InternalError("fill: not every label was merged");
+    }
   }
   INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
 

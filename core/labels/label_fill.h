@@ -5,6 +5,24 @@
 //   pixel edges, so every drawn pixel is inside and every other one outside)
 //   -> linear stacking onto the output grid (core/stack) -> refinement with
 //   the key slices held fixed (core/solver: cg, direct or none).
+// Method (FillOptions::method):
+// - kAuto (default, beyond the paper): per label, the candidate that best
+//   predicts the label's own held-out key slices. Candidates: nearest-slice
+//   copy (the nearest key slice's distance map), linear stacking, their
+//   mean ("blend"), and the paper's refinement with the exact minimiser
+//   (core/solver kDirect). Selection never sees withheld truth: in two
+//   folds, every other inner key slice (first 1, 3, 5, ..., then 2, 4,
+//   ...; never the first or last) is left out, each candidate fills it from
+//   the remaining key slices (gaps about twice the label's own), and the
+//   candidate with the highest Dice pooled over all held-out slices wins
+//   (ties: linear, refined, blend, copy, in that order).
+//   A label with fewer than three key slices gets linear stacking. Why:
+//   on the drop-k evaluation (docs/eval/segmentations.md) the refinement
+//   wins on compact structures but flattens 1-2 pixel thin ones, and the
+//   nearest-slice copy beats linear stacking on small, thin structures at
+//   large gaps; no single method is best for every label.
+// - kSolver: every label with options.solver.method (linear, cg or direct),
+//   the paper's stages as such.
 // Each label is computed in its own box: the in-plane bounding box of its
 // drawn pixels grown by `margin_pixels`, between its first and last key
 // slice. Outside its box a label's field is -infinity.
@@ -43,6 +61,8 @@
 #include <cstdint>
 #include <optional>
 #include <string>
+#include <string_view>
+#include <utility>
 #include <vector>
 
 #include "absl/status/statusor.h"
@@ -80,14 +100,22 @@ std::vector<int64_t> KeySlicesForLabel(
     const LabelVolume& labels, int label, const std::vector<int64_t>& annotated,
     const std::optional<std::vector<int64_t>>& explicit_keys);
 
+enum class FillMethod { kAuto, kSolver };
+
+// "auto", "solver".
+std::string_view FillMethodName(FillMethod method);
+
 struct FillOptions {
+  FillMethod method = FillMethod::kAuto;
   // Labels to fill; empty = every label present. Labels not filled are
   // copied through where drawn and take precedence over filled ones.
   std::vector<int> labels;
   // Key slices for every label (input slice indices, any order, no
   // duplicates); unset = detected per label.
   std::optional<std::vector<int64_t>> key_slices;
-  // method kLinear stops after stacking. Default: the paper's 15 CG steps.
+  // With FillMethod::kSolver: method kLinear stops after stacking; default
+  // the paper's 15 CG steps. Ignored by kAuto (its refined candidate is
+  // always the exact minimiser, kDirect, with these units).
   SolverOptions solver;
   // Output z resolution: unset = the input grid itself (factor 1); otherwise
   // as ChooseInsertionFactor (input slices land on output slices k * N).
@@ -101,7 +129,9 @@ struct FillOptions {
   bool keep_fields = false;
   // Bound on voxels of the output grid, checked before allocation. Memory:
   // about 8 bytes per output voxel (12 with keep_fields) plus each label's
-  // box of float fields, one label at a time (all boxes with keep_fields).
+  // box of float fields: about 4 boxes per label being computed (auto's
+  // validation), plus finished boxes waiting for a smaller label to be
+  // merged (with several threads; all boxes with keep_fields).
   int64_t max_output_voxels = int64_t{1} << 30;
 };
 
@@ -111,6 +141,12 @@ struct LabelFillInfo {
   int64_t drawn_slices = 0;         // key slices where the label is drawn
   int64_t output_voxels = 0;        // voxels of the label in the result
   SolverResult solver;
+  // What filled the label: "copy", "linear", "blend", "cg" or "direct".
+  std::string method;
+  // kAuto only: pooled Dice of each candidate on the held-out key slices,
+  // in the order copy, linear, blend, direct (empty when not selected by
+  // validation, e.g. fewer than three key slices).
+  std::vector<std::pair<std::string, double>> validation_dice;
   // Field for meshing, on the label's box of the output grid:
   // min(f_L, (f_L - max_{M != L} f_M) / 2), positive exactly where L wins
   // the comparison (before gap closing and key-slice restoration). Empty
@@ -136,6 +172,9 @@ struct FillResult {
 // slice out of range or repeated; bad solver options; RESOURCE_EXHAUSTED when
 // the output would exceed max_output_voxels; CANCELLED / DEADLINE_EXCEEDED
 // from context.cancel (polled per label and inside each stage).
+// Parallelism: labels run concurrently on context.threads workers (each
+// label's stages then single-threaded) and are merged in ascending label
+// order, so the result does not depend on the thread count.
 absl::StatusOr<FillResult> FillBetweenSlices(const LabelVolume& input,
                                              const FillOptions& options,
                                              const ComputeContext& context);

@@ -11,6 +11,7 @@ NAMES = {
     "linear": "linear stacking (per-label 2D SDF)",
     "cg": "paper: 15 CG iterations",
     "direct": "paper: exact minimiser",
+    "auto": "auto (default): per-label choice on held-out key slices",
 }
 
 
@@ -50,7 +51,8 @@ def main():
                                ("Mean MSD over labels, mm", "mean_msd_mm", "%.3f"),
                                ("Gap voxels (touching on both key slices, "
                                 "background after the fill)", "gap_voxels", "%s"),
-                               ("Seconds for the whole fill", "seconds", "%s")):
+                               ("Seconds for the whole fill (wall clock)", "seconds", "%s"),
+                               ("CPU seconds for the whole fill (all threads)", "cpu_seconds", "%s")):
         lines += ["## " + title, "",
                   "| method | " + " | ".join("k = %d" % k for k in ks) + " |",
                   "|---|" + "---|" * len(ks)]
@@ -58,7 +60,7 @@ def main():
             cells = []
             for k in ks:
                 r = by.get((k, m))
-                if r is None:
+                if r is None or column not in r:
                     cells.append("-")
                 elif fmt == "%s":
                     cells.append(r[column])
@@ -85,6 +87,41 @@ def main():
             " | ".join("%.3f" % per[label][m] if m in per[label] else "-"
                        for m in methods)))
     lines.append("")
+
+    # The timing case (fill_timing.csv, from --no-score runs).
+    path = os.path.join(args.out, "fill_timing.csv")
+    if os.path.exists(path):
+        rows = list(csv.DictReader(open(path)))
+        lines += ["## Timing: the labels on a %s grid, every %s-th slice" % (
+                      rows[0]["grid"].replace("x", " x "), rows[0]["k"]) if rows else
+                  "## Timing", "",
+                  "Fastest of 3 fills; wall clock on the shared machine (load "
+                  "average in timing.log) and process CPU time of all threads.", "",
+                  "| method | labels | threads | wall s | CPU s |",
+                  "|---|---|---|---|---|"]
+        for r in rows:
+            lines.append("| %s | %s | %s | %s | %s |" % (
+                NAMES.get(r["method"], r["method"]), r["labels"], r["threads"],
+                r["seconds"], r["cpu_seconds"]))
+        lines.append("")
+
+    # What auto chose per label (from its own key slices, never the truth).
+    path = os.path.join(args.out, "fill_choices.csv")
+    if os.path.exists(path):
+        rows = list(csv.DictReader(open(path)))
+        cks = sorted({int(r["k"]) for r in rows})
+        chosen = {(int(r["k"]), int(r["label"])): r["chosen"] for r in rows}
+        labels = sorted({int(r["label"]) for r in rows})
+        lines += ["## Candidate chosen by auto per label", "",
+                  "(leave-every-other-key-slice-out on the label's own key "
+                  "slices; fill_choices.csv has each candidate's validation "
+                  "Dice)", "",
+                  "| label | " + " | ".join("k = %d" % k for k in cks) + " |",
+                  "|---|" + "---|" * len(cks)]
+        for label in labels:
+            lines.append("| %d | %s |" % (label, " | ".join(
+                chosen.get((k, label), "-") for k in cks)))
+        lines.append("")
 
     try:
         import matplotlib

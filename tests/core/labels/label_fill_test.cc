@@ -1,5 +1,6 @@
 #include "core/labels/label_fill.h"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <filesystem>
@@ -73,14 +74,22 @@ int64_t CountOnSlice(const LabelVolume& v, int64_t k, int label) {
 
 const std::vector<int64_t> kKeys = {0, 5, 10, 15, 20};
 
-class FillMethodTest : public ::testing::TestWithParam<SolverMethod> {};
+// "auto" (FillMethod::kAuto) or a solver method name (FillMethod::kSolver).
+void SetMethod(const std::string& name, FillOptions& options) {
+  options.method = name == "auto" ? FillMethod::kAuto : FillMethod::kSolver;
+  options.solver.method = name == "linear" ? SolverMethod::kLinear
+                          : name == "cg"   ? SolverMethod::kConjugateGradient
+                                           : SolverMethod::kDirect;
+}
+
+class FillMethodTest : public ::testing::TestWithParam<std::string> {};
 
 TEST_P(FillMethodTest, TouchingLabelsKeySlicesExactNoGapNoOverlap) {
   const LabelVolume truth = TouchingHalves();
   const LabelVolume drawn = KeepSlices(truth, kKeys);
   FillOptions options;
   options.key_slices = kKeys;
-  options.solver.method = GetParam();
+  SetMethod(GetParam(), options);
   absl::StatusOr<FillResult> result =
       FillBetweenSlices(drawn, options, ComputeContext{.threads = 2});
   ASSERT_TRUE(result.ok()) << result.status();
@@ -131,9 +140,7 @@ TEST_P(FillMethodTest, TouchingLabelsKeySlicesExactNoGapNoOverlap) {
 }
 
 INSTANTIATE_TEST_SUITE_P(Methods, FillMethodTest,
-                         ::testing::Values(SolverMethod::kLinear,
-                                           SolverMethod::kConjugateGradient,
-                                           SolverMethod::kDirect));
+                         ::testing::Values("auto", "linear", "cg", "direct"));
 
 TEST(FillTest, EndCapsCloseWithinOneGap) {
   // The structure is on slices 2..18; drawn on the key slices 5, 10, 15 and
@@ -141,7 +148,7 @@ TEST(FillTest, EndCapsCloseWithinOneGap) {
   const LabelVolume truth = TouchingHalves();
   FillOptions options;
   options.key_slices = kKeys;
-  options.solver.method = SolverMethod::kDirect;
+  SetMethod("direct", options);
   absl::StatusOr<FillResult> result = FillBetweenSlices(
       KeepSlices(truth, kKeys), options, ComputeContext{.threads = 1});
   ASSERT_TRUE(result.ok()) << result.status();
@@ -255,7 +262,7 @@ TEST(FillTest, TiesGoToTheSmallerLabel) {
     }
   }
   FillOptions options;
-  options.solver.method = SolverMethod::kLinear;
+  SetMethod("linear", options);
   options.key_slices = std::vector<int64_t>{0, 4};
   absl::StatusOr<FillResult> result =
       FillBetweenSlices(v, options, ComputeContext{.threads = 1});
@@ -297,6 +304,172 @@ TEST(FillTest, Errors) {
                 .status()
                 .code(),
             absl::StatusCode::kCancelled);
+}
+
+// A ball of radius `radius` voxels (label 1) centred in a kSize^3 grid, and,
+// with `shell` > 0, only its outer `shell` voxels (a thin spherical shell).
+constexpr int64_t kSize = 41;
+LabelVolume Ball(double radius, double shell, int label = 1) {
+  LabelVolume v;
+  v.grid.size = {kSize, kSize, kSize};
+  v.grid.spacing = {1, 1, 1};
+  v.data.assign(v.grid.VoxelCount(), 0);
+  const double c = (kSize - 1) / 2.0;
+  for (int64_t k = 0; k < kSize; ++k) {
+    for (int64_t j = 0; j < kSize; ++j) {
+      for (int64_t i = 0; i < kSize; ++i) {
+        const double r = std::sqrt((i - c) * (i - c) + (j - c) * (j - c) +
+                                   (k - c) * (k - c));
+        if (r <= radius && (shell <= 0 || r > radius - shell)) {
+          v.at(i, j, k) = label;
+        }
+      }
+    }
+  }
+  return v;
+}
+
+std::vector<int64_t> EveryNth(int64_t n, int64_t nz) {
+  std::vector<int64_t> keys;
+  for (int64_t k = 0; k < nz; k += n) keys.push_back(k);
+  return keys;
+}
+
+// Dice of `label` on the slices that are not key slices.
+double WithheldDice(const LabelVolume& out, const LabelVolume& truth, int label,
+                    const std::vector<int64_t>& keys) {
+  int64_t both = 0, na = 0, nb = 0;
+  const int64_t plane = truth.grid.SliceVoxelCount();
+  for (int64_t k = 0; k < truth.grid.size[2]; ++k) {
+    if (std::find(keys.begin(), keys.end(), k) != keys.end()) continue;
+    for (int64_t p = k * plane; p < (k + 1) * plane; ++p) {
+      na += out.data[p] == label;
+      nb += truth.data[p] == label;
+      both += out.data[p] == label && truth.data[p] == label;
+    }
+  }
+  return na + nb == 0 ? 1.0 : 2.0 * both / (na + nb);
+}
+
+absl::StatusOr<FillResult> FillWith(const std::string& method,
+                                    const LabelVolume& drawn,
+                                    const std::vector<int64_t>& keys,
+                                    int threads = 1) {
+  FillOptions options;
+  SetMethod(method, options);
+  options.key_slices = keys;
+  return FillBetweenSlices(drawn, options, ComputeContext{.threads = threads});
+}
+
+TEST(AutoFillTest, SphereEveryFourthSliceBeatsLinear) {
+  // On a compact smooth shape the refinement follows the curvature along z
+  // that linear stacking cuts into straight segments; auto must find that
+  // from the key slices alone.
+  const LabelVolume truth = Ball(15.3, 0);
+  const std::vector<int64_t> keys = EveryNth(4, kSize);
+  const LabelVolume drawn = KeepSlices(truth, keys);
+  absl::StatusOr<FillResult> automatic = FillWith("auto", drawn, keys);
+  absl::StatusOr<FillResult> linear = FillWith("linear", drawn, keys);
+  ASSERT_TRUE(automatic.ok()) << automatic.status();
+  ASSERT_TRUE(linear.ok()) << linear.status();
+  const double dice_auto = WithheldDice(automatic->labels, truth, 1, keys);
+  const double dice_linear = WithheldDice(linear->labels, truth, 1, keys);
+  EXPECT_GT(dice_auto, dice_linear);
+  ASSERT_EQ(automatic->per_label.size(), 1u);
+  EXPECT_EQ(automatic->per_label[0].validation_dice.size(), 4u);
+  for (int64_t k : keys) {
+    for (int64_t p = 0; p < kSize * kSize; ++p) {
+      ASSERT_EQ(automatic->labels.data[k * kSize * kSize + p],
+                drawn.data[k * kSize * kSize + p]);
+    }
+  }
+}
+
+TEST(AutoFillTest, ThinShellIsNotCollapsed) {
+  // A spherical shell 1.5 voxels thick: its 2D distance maps are ridges
+  // below one pixel high, which the refinement flattens between key slices
+  // (docs/eval/segmentations.md). Auto must keep the shell on every
+  // withheld slice and do at least as well as linear stacking.
+  const LabelVolume truth = Ball(15.3, 1.5);
+  const std::vector<int64_t> keys = EveryNth(4, kSize);
+  const LabelVolume drawn = KeepSlices(truth, keys);
+  absl::StatusOr<FillResult> automatic = FillWith("auto", drawn, keys);
+  absl::StatusOr<FillResult> linear = FillWith("linear", drawn, keys);
+  ASSERT_TRUE(automatic.ok()) << automatic.status();
+  ASSERT_TRUE(linear.ok()) << linear.status();
+  const double dice_auto = WithheldDice(automatic->labels, truth, 1, keys);
+  EXPECT_GE(dice_auto, WithheldDice(linear->labels, truth, 1, keys) - 1e-9);
+  EXPECT_GT(dice_auto, 0.5);
+  // Not collapsed: every withheld slice where the shell's wall is steep
+  // (within 8 slices of the centre; toward the poles the wall turns nearly
+  // flat and no method keeps it between key slices) keeps at least half of
+  // the truth's pixels there.
+  for (int64_t k = kSize / 2 - 8; k <= kSize / 2 + 8; ++k) {
+    const int64_t want = CountOnSlice(truth, k, 1);
+    EXPECT_GT(CountOnSlice(automatic->labels, k, 1), want / 2) << k;
+  }
+}
+
+TEST(AutoFillTest, TouchingBallAndShellNoGapsKeysExactSameForAnyThreads) {
+  // Label 1: a ball; label 2: a shell around it, touching it on every
+  // slice that cuts the ball (a compact and a thin structure).
+  LabelVolume truth = Ball(9.3, 0, 1);
+  const LabelVolume shell = Ball(12.3, 3.0, 2);
+  for (size_t n = 0; n < truth.data.size(); ++n) {
+    if (truth.data[n] == 0) truth.data[n] = shell.data[n];
+  }
+  const std::vector<int64_t> keys = EveryNth(3, kSize);
+  const LabelVolume drawn = KeepSlices(truth, keys);
+  absl::StatusOr<FillResult> one = FillWith("auto", drawn, keys, 1);
+  absl::StatusOr<FillResult> two = FillWith("auto", drawn, keys, 2);
+  ASSERT_TRUE(one.ok()) << one.status();
+  ASSERT_TRUE(two.ok()) << two.status();
+  EXPECT_EQ(one->labels.data, two->labels.data);
+  ASSERT_EQ(one->per_label.size(), 2u);
+  ASSERT_EQ(two->per_label.size(), 2u);
+  for (int n = 0; n < 2; ++n) {
+    EXPECT_EQ(one->per_label[n].label, n + 1);
+    EXPECT_EQ(one->per_label[n].method, two->per_label[n].method);
+    EXPECT_EQ(one->per_label[n].validation_dice,
+              two->per_label[n].validation_dice);
+  }
+  const LabelVolume& out = one->labels;
+  const int64_t plane = kSize * kSize;
+  int64_t gaps = 0;
+  for (size_t s = 0; s + 1 < keys.size(); ++s) {
+    for (int64_t k = keys[s] + 1; k < keys[s + 1]; ++k) {
+      for (int64_t p = 0; p < plane; ++p) {
+        gaps += drawn.data[keys[s] * plane + p] != 0 &&
+                drawn.data[keys[s + 1] * plane + p] != 0 &&
+                out.data[k * plane + p] == 0;
+      }
+    }
+  }
+  EXPECT_EQ(gaps, 0);
+  for (int64_t k : keys) {
+    for (int64_t p = 0; p < plane; ++p) {
+      ASSERT_EQ(out.data[k * plane + p], drawn.data[k * plane + p]);
+    }
+  }
+  EXPECT_GT(WithheldDice(out, truth, 1, keys), 0.85);
+  EXPECT_GT(WithheldDice(out, truth, 2, keys), 0.6);
+}
+
+TEST(AutoFillTest, LabelOnOneKeySliceIsKept) {
+  // Among labels drawn on many slices, one drawn on a single key slice is
+  // neither dropped nor spread: it stays exactly as drawn on that slice.
+  LabelVolume truth = TouchingHalves();
+  const LabelVolume drawn_halves = KeepSlices(truth, kKeys);
+  LabelVolume drawn = drawn_halves;
+  for (int64_t j = 0; j < 3; ++j) {
+    for (int64_t i = 0; i < 3; ++i) drawn.at(i, j, 10) = 3;
+  }
+  absl::StatusOr<FillResult> result =
+      FillWith("auto", drawn, std::vector<int64_t>(kKeys));
+  ASSERT_TRUE(result.ok()) << result.status();
+  EXPECT_EQ(CountOnSlice(result->labels, 10, 3), 9);
+  EXPECT_THAT(result->warnings,
+              ::testing::Contains(HasSubstr("label 3 is drawn on slice 10")));
 }
 
 TEST(LabelVolumeTest, FromFloatRejectsNonLabels) {
