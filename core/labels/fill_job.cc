@@ -184,6 +184,14 @@ absl::Status ValidateFillJobSpec(const FillJobSpec& spec) {
     return absl::InvalidArgumentError(
         "fill: mesh adaptivity must be in [0, 1]");
   }
+  // A malformed UID root fails now, not after the fill.
+  if (!spec.uid_root.empty()) {
+    if (absl::Status s = DeriveDicomUid(spec.uid_root, "check").status();
+        !s.ok()) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("fill: --uid-root: ", s.message()));
+    }
+  }
   return absl::OkStatus();
 }
 

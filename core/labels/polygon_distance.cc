@@ -119,55 +119,37 @@ void Compute(const std::vector<Polygon2D>& polygons, int64_t i0, int64_t j0,
     return;
   }
 
-  // Edge bins over the box grown by the band. A cell is at least `band`
-  // wide, so every edge within `band` of a pixel passes through one of the
-  // 3 x 3 cells around the pixel's cell; an edge is listed in every cell its
-  // bounding box meets. At most 256 x 256 cells whatever the band.
-  const double gx0 = x0 - band, gy0 = y0 - band;
-  const double cell =
-      std::max({band, (x1 - x0 + 2 * band) / 256, (y1 - y0 + 2 * band) / 256});
-  const int64_t cx = static_cast<int64_t>((x1 - x0 + 2 * band) / cell) + 1;
-  const int64_t cy = static_cast<int64_t>((y1 - y0 + 2 * band) / cell) + 1;
-  std::vector<std::vector<uint32_t>> bins(static_cast<size_t>(cx * cy));
-  const auto cell_x = [&](double x) {
-    return std::clamp<int64_t>(
-        static_cast<int64_t>(std::floor((x - gx0) / cell)), 0, cx - 1);
-  };
-  const auto cell_y = [&](double y) {
-    return std::clamp<int64_t>(
-        static_cast<int64_t>(std::floor((y - gy0) / cell)), 0, cy - 1);
-  };
-  for (size_t n = 0; n < edges.size(); ++n) {
-    const Edge& e = edges[n];
-    const double ex0 = std::min(e.ax, e.bx), ex1 = std::max(e.ax, e.bx);
-    const double ey0 = std::min(e.ay, e.by), ey1 = std::max(e.ay, e.by);
-    // Farther than the band from every pixel of the box: never needed.
-    if (ex1 < gx0 || ey1 < gy0 || ex0 > x1 + band || ey0 > y1 + band) continue;
-    for (int64_t b = cell_y(ey0); b <= cell_y(ey1); ++b) {
-      for (int64_t a = cell_x(ex0); a <= cell_x(ex1); ++a) {
-        bins[b * cx + a].push_back(static_cast<uint32_t>(n));
+  // Each edge updates only the pixels of its bounding box grown by the
+  // band: every pixel within the band of the edge lies there, so the
+  // minimum over those updates is exact wherever it is <= band. Cost:
+  // sum over edges of (edge extent + 2 band)^2 / pixel area, instead of
+  // pixels x edges.
+  const double band2 = band * band;
+  std::vector<double> d2(count, std::numeric_limits<double>::infinity());
+  for (const Edge& e : edges) {
+    const double ex0 = std::min(e.ax, e.bx) - band;
+    const double ex1 = std::max(e.ax, e.bx) + band;
+    const double ey0 = std::min(e.ay, e.by) - band;
+    const double ey1 = std::max(e.ay, e.by) + band;
+    if (ex1 < x0 || ey1 < y0 || ex0 > x1 || ey0 > y1) continue;
+    const int64_t c0 =
+        std::max<int64_t>(0, static_cast<int64_t>(std::ceil((ex0 - x0) / sx)));
+    const int64_t c1 = std::min<int64_t>(
+        width - 1, static_cast<int64_t>(std::floor((ex1 - x0) / sx)));
+    const int64_t r0 =
+        std::max<int64_t>(0, static_cast<int64_t>(std::ceil((ey0 - y0) / sy)));
+    const int64_t r1 = std::min<int64_t>(
+        height - 1, static_cast<int64_t>(std::floor((ey1 - y0) / sy)));
+    for (int64_t r = r0; r <= r1; ++r) {
+      const double py = y0 + r * sy;
+      double* row = d2.data() + r * width;
+      for (int64_t c = c0; c <= c1; ++c) {
+        row[c] = std::min(row[c], SegmentDistanceSquared(e, x0 + c * sx, py));
       }
     }
   }
-  const double band2 = band * band;
-  for (int64_t r = 0; r < height; ++r) {
-    const double py = y0 + r * sy;
-    const int64_t b0 = cell_y(py);
-    for (int64_t i = 0; i < width; ++i) {
-      const double px = x0 + i * sx;
-      const int64_t a0 = cell_x(px);
-      double best = std::numeric_limits<double>::infinity();
-      for (int64_t b = std::max<int64_t>(0, b0 - 1);
-           b <= std::min(cy - 1, b0 + 1); ++b) {
-        for (int64_t a = std::max<int64_t>(0, a0 - 1);
-             a <= std::min(cx - 1, a0 + 1); ++a) {
-          for (uint32_t n : bins[b * cx + a]) {
-            best = std::min(best, SegmentDistanceSquared(edges[n], px, py));
-          }
-        }
-      }
-      if (best <= band2) distance[r * width + i] = std::sqrt(best);
-    }
+  for (size_t p = 0; p < count; ++p) {
+    if (d2[p] <= band2) distance[p] = std::sqrt(d2[p]);
   }
 }
 

@@ -44,9 +44,9 @@ struct LabelContours {
 // [j0, j0 + height) to `polygons`, written row by row (i fastest) to `out`
 // (width * height floats). Pixels whose nearest edge is farther than
 // `band_radius_mm` are left untouched (`out` keeps what it held) unless
-// band_radius_mm is +infinity. Cost: edges are binned in cells of the band
-// radius, so each pixel visits only the edges of its 3 x 3 cells: about
-// pixels x (edges within 1.5 bands), not pixels x edges. INVALID_ARGUMENT for
+// band_radius_mm is +infinity. Cost: each edge visits only the pixels of its
+// bounding box grown by the band, about edges x (edge length + 2 band)^2
+// pixels, not pixels x edges (+infinity: pixels x edges). INVALID_ARGUMENT for
 // a polygon with fewer than 3 vertices, non-finite coordinates, spacing <= 0
 // or band_radius_mm <= 0.
 absl::Status PolygonSignedDistance(const std::vector<Polygon2D>& polygons,

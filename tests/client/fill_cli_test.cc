@@ -214,6 +214,12 @@ TEST_F(FillCliTest, BadInputGivesOneLineAndExitCodeOne) {
       {"fill " + good + " --reference " + kPhantom + " --method magic" + out,
        "--method"},
       {"fill " + good + out, "--reference"},
+      {"fill " + good + " --reference " + kPhantom +
+           " --rtstruct --no-rtstruct" + out,
+       "--rtstruct and --no-rtstruct contradict"},
+      {"fill " + good + " --reference " + kPhantom + " --seg --uid-root 1.02" +
+           out,
+       "--uid-root"},
   };
   for (const Case& c : cases) {
     const CommandResult r = RunCli(c.args);
