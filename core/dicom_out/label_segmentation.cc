@@ -7,6 +7,7 @@
 #include <cstdint>
 #include <map>
 #include <memory>
+#include <set>
 #include <string>
 #include <vector>
 
@@ -129,14 +130,22 @@ absl::StatusOr<DerivedObjectIdentity> ReferencedImagesOfSource(
   images.sop_class_uid = source.sop_class_uid;
   images.study_instance_uid = source.study_instance_uid;
   images.frame_of_reference_uid = source.frame_of_reference_uid;
+  std::set<std::string> seen;
   for (size_t k = 0; k < source.slices.size(); ++k) {
-    if (source.slices[k].sop_instance_uid.empty()) {
+    const std::string& uid = source.slices[k].sop_instance_uid;
+    if (uid.empty()) {
       return absl::InvalidArgumentError(absl::StrFormat(
           "reference slice %d has no SOPInstanceUID: a DICOM output cannot "
           "reference it",
           k));
     }
-    images.sop_instance_uids.push_back(source.slices[k].sop_instance_uid);
+    if (!seen.insert(uid).second) {
+      return absl::InvalidArgumentError(absl::StrFormat(
+          "reference slice %d is a frame of an image that holds other slices "
+          "too (multi-frame): its slices cannot be referenced one image each",
+          k));
+    }
+    images.sop_instance_uids.push_back(uid);
   }
   if (images.series_instance_uid.empty() || images.sop_class_uid.empty()) {
     return absl::InvalidArgumentError(

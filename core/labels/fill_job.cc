@@ -68,6 +68,7 @@ absl::Status WriteDicomOutputs(const FillJobSpec& spec,
                                const DicomSeries& source,
                                const SegmentationInput& input,
                                const FillResult& result, bool write_rtstruct,
+                               bool derive_series,
                                const ComputeContext& context,
                                FillJobReport& report) {
   const std::filesystem::path dir(spec.output_dir);
@@ -82,11 +83,12 @@ absl::Status WriteDicomOutputs(const FillJobSpec& spec,
       const DerivedObjects objects,
       PlanDerivedObjects(source, grid.size[2], options));
   DerivedObjectIdentity referenced;
-  if (result.factor == 1) {
+  if (!derive_series) {
     INTERSLICE_ASSIGN_OR_RETURN(referenced, ReferencedImagesOfSource(source));
   } else {
-    // A finer grid has slices the reference series has no image for: the
-    // objects lie on a derived intensity series, as run's do.
+    // A finer grid has slices the reference series has no image for (and a
+    // multi-frame or anonymised reference cannot be referenced image by
+    // image): the objects lie on a derived intensity series, as run's do.
     std::vector<double> positions;
     for (const DicomSliceInfo& slice : source.slices) {
       positions.push_back(slice.position_along_normal);
@@ -213,14 +215,18 @@ absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
   const Grid reference = series->image.grid;
   const ReferenceSeries reference_series{reference, series->series_instance_uid,
                                          series->frame_of_reference_uid};
-  const bool wants_finer = spec.fill.z_resolution.factor.has_value() ||
-                           spec.fill.z_resolution.spacing_mm.has_value();
+  // The DICOM outputs lie on the reference's own images when they are on
+  // its grid and it can be referenced image by image; otherwise on a derived
+  // intensity series, which needs the grey values.
+  const bool derive_series = spec.fill.z_resolution.factor.has_value() ||
+                             spec.fill.z_resolution.spacing_mm.has_value() ||
+                             !ReferencedImagesOfSource(*series).ok();
   // Its geometry, UIDs and files are kept for the DICOM outputs; the grey
-  // values only when a finer grid needs a derived intensity series.
+  // values only for a derived intensity series.
   DicomSeries source = *std::move(series);
   const bool dicom_out_possible =
       spec.write_seg || spec.write_rtstruct != false;
-  if (!dicom_out_possible || !wants_finer) {
+  if (!dicom_out_possible || !derive_series) {
     std::vector<float>().swap(source.image.data);
   }
 
@@ -315,8 +321,9 @@ absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
     }
   }
   if (spec.write_seg || write_rtstruct) {
-    INTERSLICE_RETURN_IF_ERROR(WriteDicomOutputs(
-        spec, source, input, result, write_rtstruct, context, report));
+    INTERSLICE_RETURN_IF_ERROR(WriteDicomOutputs(spec, source, input, result,
+                                                 write_rtstruct, derive_series,
+                                                 context, report));
   }
   report.write_seconds = SecondsSince(start);
   for (LabelFillInfo& info : result.per_label) {

@@ -24,9 +24,11 @@
 //   the input).
 //   Both reference the reference series' images and frame of reference when
 //   the output grid is the reference grid (factor 1). On a finer grid
-//   (--factor/--spacing) they reference a derived intensity series written
-//   beside them, series-intensity/ (the reference resampled onto the output
-//   grid, as `interslice run` writes it). UIDs are derived from the reference
+//   (--factor/--spacing), or for a reference whose slices cannot be
+//   referenced one image each (multi-frame, or without SOP Instance UIDs),
+//   they reference a derived intensity series written beside them,
+//   series-intensity/ (the reference resampled onto the output grid, as
+//   `interslice run` writes it). UIDs are derived from the reference
 //   series, the input labels and the fill parameters (dicom_writer.h
 //   "Identity"): the same fill names its objects the same.
 // An RTSTRUCT's key slices get the exact distance of its polygons
