@@ -132,14 +132,19 @@ void Compute(const std::vector<Polygon2D>& polygons, int64_t i0, int64_t j0,
     const double ey0 = std::min(e.ay, e.by) - band;
     const double ey1 = std::max(e.ay, e.by) + band;
     if (ex1 < x0 || ey1 < y0 || ex0 > x1 || ey0 > y1) continue;
-    const int64_t c0 =
-        std::max<int64_t>(0, static_cast<int64_t>(std::ceil((ex0 - x0) / sx)));
-    const int64_t c1 = std::min<int64_t>(
-        width - 1, static_cast<int64_t>(std::floor((ex1 - x0) / sx)));
-    const int64_t r0 =
-        std::max<int64_t>(0, static_cast<int64_t>(std::ceil((ey0 - y0) / sy)));
-    const int64_t r1 = std::min<int64_t>(
-        height - 1, static_cast<int64_t>(std::floor((ey1 - y0) / sy)));
+    // Clamped as doubles first: far-off vertices must not overflow int64.
+    const auto first = [](double v, int64_t n) {
+      return static_cast<int64_t>(
+          std::clamp(std::ceil(v), 0.0, static_cast<double>(n - 1)));
+    };
+    const auto last = [](double v, int64_t n) {
+      return static_cast<int64_t>(
+          std::clamp(std::floor(v), 0.0, static_cast<double>(n - 1)));
+    };
+    const int64_t c0 = first((ex0 - x0) / sx, width);
+    const int64_t c1 = last((ex1 - x0) / sx, width);
+    const int64_t r0 = first((ey0 - y0) / sy, height);
+    const int64_t r1 = last((ey1 - y0) / sy, height);
     for (int64_t r = r0; r <= r1; ++r) {
       const double py = y0 + r * sy;
       double* row = d2.data() + r * width;

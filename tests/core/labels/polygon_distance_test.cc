@@ -115,6 +115,19 @@ TEST(PolygonDistanceTest, RejectsDegeneratePolygons) {
             absl::StatusCode::kInvalidArgument);
 }
 
+// Regression: a vertex far outside the box (a contour point 1e12 pixels
+// away) must not overflow the pixel ranges of its edges.
+TEST(PolygonDistanceTest, FarVerticesAreClampedToTheBox) {
+  const int64_t w = 16, h = 16;
+  std::vector<float> out(w * h, 99);
+  ASSERT_TRUE(PolygonSignedDistance({{{5, 5}, {1e12, 5}, {5, 1e12}}}, 0, 0, w,
+                                    h, 1, 1, 8, out.data())
+                  .ok());
+  EXPECT_NEAR(out[10 * w + 10], 5, 1e-5);
+  EXPECT_NEAR(out[10 * w + 3], -2, 1e-5);
+  EXPECT_EQ(out[15 * w + 15], 99);  // 10 px from both edges: beyond the band
+}
+
 // A circle drawn as a 720-vertex polygon on key slices 0, 4, 8.
 constexpr double kCx = 31.7, kCy = 32.2, kR = 17.3;
 Polygon2D Circle() {
