@@ -115,6 +115,20 @@ void AddFillOptions(CLI::App& app, FillArguments& args) {
                  "Label map formats (labels.nii.gz, labels.nrrd): any of "
                  "nii,nrrd, or none")
       ->capture_default_str();
+  app.add_flag("--seg", args.seg,
+               "Write the filled labels as a multi-segment DICOM SEG "
+               "(DIR/seg.dcm) with the input's segment names, colours and "
+               "codes");
+  app.add_flag("--rtstruct", args.rtstruct,
+               "Write the filled labels as an RTSTRUCT of closed planar "
+               "contours (DIR/rtstruct.dcm; default for RTSTRUCT input)");
+  app.add_flag("--no-rtstruct", args.no_rtstruct,
+               "No RTSTRUCT, even for RTSTRUCT input");
+  app.add_option("--uid-root", args.uid_root,
+                 "UID root of the DICOM outputs (default 2.25 UUIDs)");
+  app.add_flag("--random-uids", args.random_uids,
+               "Fresh UIDs on every run (default: derived from the input "
+               "and the parameters, so a rerun replaces its objects)");
   app.add_option("--report", args.report, "Write a JSON report to this file");
   app.add_option("--threads", args.threads, "Worker threads (0 = all cores)")
       ->capture_default_str();
@@ -182,6 +196,15 @@ absl::StatusOr<FillJobSpec> BuildFillJobSpec(const FillArguments& args) {
       ParseFormats(args.volume, {"nii", "nrrd"}, "--volume");
   if (!volume.ok()) return volume.status();
   spec.volume_formats = *volume;
+  if (args.rtstruct && args.no_rtstruct) {
+    return absl::InvalidArgumentError(
+        "--rtstruct and --no-rtstruct contradict each other");
+  }
+  spec.write_seg = args.seg;
+  if (args.rtstruct) spec.write_rtstruct = true;
+  if (args.no_rtstruct) spec.write_rtstruct = false;
+  spec.uid_root = args.uid_root;
+  spec.random_uids = args.random_uids;
   if (args.threads < 0) {
     return absl::InvalidArgumentError("--threads must be >= 0");
   }

@@ -34,6 +34,10 @@ struct FillArguments {
   std::string mesh = "stl";
   std::string volume = "nii";
   std::string report;
+  bool seg = false;
+  bool rtstruct = false, no_rtstruct = false;
+  std::string uid_root;
+  bool random_uids = false;
   int threads = 0;
   bool quiet = false;
 };

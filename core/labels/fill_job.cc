@@ -9,6 +9,10 @@
 #include "absl/strings/str_format.h"
 #include "core/common/status_macros.h"
 #include "core/dicom/series_reader.h"
+#include "core/dicom_out/dicom_writer.h"
+#include "core/dicom_out/label_segmentation.h"
+#include "core/dicom_out/rtstruct.h"
+#include "core/labels/label_contours.h"
 #include "core/labels/segmentation_reader.h"
 #include "core/surface/surface.h"
 #include "core/volume_io/volume_io.h"
@@ -32,6 +36,126 @@ int64_t FileSize(const std::string& path) {
 absl::Status Annotate(const absl::Status& status, const std::string& what) {
   return absl::Status(status.code(),
                       absl::StrCat(what, ": ", status.message()));
+}
+
+// A canonical text of what determines the filled labels (the derivation
+// key of the DICOM outputs' UIDs): the fill's parameters and a hash of the
+// input labels (FNV-1a, 64 bit).
+std::string DerivationKey(const FillJobSpec& spec, const LabelVolume& input,
+                          int factor) {
+  uint64_t hash = 1469598103934665603ull;
+  for (uint16_t v : input.data) {
+    hash = (hash ^ (v & 0xff)) * 1099511628211ull;
+    hash = (hash ^ (v >> 8)) * 1099511628211ull;
+  }
+  std::string key = absl::StrFormat(
+      "interslice fill v1\nlabels %016x\nmethod %s %s iterations %d "
+      "tolerance %g\nfactor %d band %g margin %d\nfill",
+      hash, FillMethodName(spec.fill.method),
+      SolverMethodName(spec.fill.solver.method),
+      spec.fill.solver.max_iterations, spec.fill.solver.tolerance, factor,
+      spec.fill.band_radius_mm, spec.fill.margin_pixels);
+  for (int l : spec.fill.labels) absl::StrAppend(&key, " ", l);
+  if (spec.fill.key_slices.has_value()) {
+    absl::StrAppend(&key, "\nkeys");
+    for (int64_t k : *spec.fill.key_slices) absl::StrAppend(&key, " ", k);
+  }
+  return key;
+}
+
+// seg.dcm, rtstruct.dcm and (on a finer grid) the series-intensity/ they
+// reference; see fill_job.h.
+absl::Status WriteDicomOutputs(const FillJobSpec& spec,
+                               const DicomSeries& source,
+                               const SegmentationInput& input,
+                               const FillResult& result, bool write_rtstruct,
+                               bool derive_series,
+                               const ComputeContext& context,
+                               FillJobReport& report) {
+  const std::filesystem::path dir(spec.output_dir);
+  const Grid& grid = result.labels.grid;
+  DicomWriteOptions options;
+  options.uid_root = spec.uid_root;
+  options.random_uids = spec.random_uids;
+  options.derivation_key = DerivationKey(spec, input.labels, result.factor);
+  options.derivation_description =
+      "interslice fill between key slices (Csebfalvi et al. 2001)";
+  INTERSLICE_ASSIGN_OR_RETURN(
+      const DerivedObjects objects,
+      PlanDerivedObjects(source, grid.size[2], options));
+  DerivedObjectIdentity referenced;
+  if (!derive_series) {
+    INTERSLICE_ASSIGN_OR_RETURN(referenced, ReferencedImagesOfSource(source));
+  } else {
+    // A finer grid has slices the reference series has no image for (and a
+    // multi-frame or anonymised reference cannot be referenced image by
+    // image): the objects lie on a derived intensity series, as run's do.
+    std::vector<double> positions;
+    for (const DicomSliceInfo& slice : source.slices) {
+      positions.push_back(slice.position_along_normal);
+    }
+    INTERSLICE_ASSIGN_OR_RETURN(std::optional<float> padding,
+                                SourcePixelPadding(source));
+    INTERSLICE_ASSIGN_OR_RETURN(
+        Volume<float> intensity,
+        ResampleSourceSlices(source.image, positions, grid, padding, context));
+    const std::string folder = (dir / "series-intensity").string();
+    INTERSLICE_ASSIGN_OR_RETURN(
+        std::vector<std::string> written,
+        WriteIntensitySeries(source, intensity, objects.intensity, options,
+                             folder));
+    int64_t bytes = 0;
+    for (const std::string& f : written) bytes += FileSize(f);
+    report.artifacts.push_back({"series-intensity", 0, folder, bytes});
+    referenced = objects.intensity;
+  }
+  if (spec.write_seg) {
+    const std::string path = (dir / "seg.dcm").string();
+    INTERSLICE_RETURN_IF_ERROR(Annotate(
+        WriteLabelSegmentation(source, result.labels, input.segments,
+                               objects.segmentation, referenced, options, path),
+        "writing seg.dcm"));
+    report.artifacts.push_back({"seg", 0, path, FileSize(path)});
+  }
+  if (write_rtstruct) {
+    INTERSLICE_ASSIGN_OR_RETURN(
+        LabelContours contours,
+        ExtractLabelContours(result.labels, {}, context));
+    std::vector<RoiContours> rois;
+    for (auto& [label, slices] : contours.polygons) {
+      RoiContours roi;
+      roi.roi = DefaultLabelSegment(label);
+      for (const LabelSegment& s : input.segments) {
+        if (s.number != label) continue;
+        if (!s.label.empty()) roi.roi.label = s.label;
+        if (s.rgb.has_value() || s.cielab.has_value()) {
+          roi.roi.rgb = s.rgb;
+          roi.roi.cielab = s.cielab;
+        }
+      }
+      for (auto& [k, polygons] : slices) roi.slices[k] = std::move(polygons);
+      rois.push_back(std::move(roi));
+    }
+    // Its own UIDs: the SEG's plan under a key that names the RTSTRUCT.
+    DicomWriteOptions rt_options = options;
+    rt_options.derivation_key += "\nrtstruct";
+    INTERSLICE_ASSIGN_OR_RETURN(
+        const DerivedObjects rt_objects,
+        PlanDerivedObjects(source, grid.size[2], rt_options));
+    DerivedObjectIdentity identity = rt_objects.segmentation;
+    identity.study_instance_uid = objects.segmentation.study_instance_uid;
+    identity.frame_of_reference_uid =
+        objects.segmentation.frame_of_reference_uid;
+    identity.series_number = objects.segmentation.series_number + 2;
+    identity.series_description = "interslice structure set";
+    const std::string path = (dir / "rtstruct.dcm").string();
+    INTERSLICE_RETURN_IF_ERROR(
+        Annotate(WriteRtStructureSet(source, grid, rois, identity, referenced,
+                                     options, path),
+                 "writing rtstruct.dcm"));
+    report.artifacts.push_back({"rtstruct", 0, path, FileSize(path)});
+  }
+  return absl::OkStatus();
 }
 
 }  // namespace
@@ -63,6 +187,14 @@ absl::Status ValidateFillJobSpec(const FillJobSpec& spec) {
     return absl::InvalidArgumentError(
         "fill: mesh adaptivity must be in [0, 1]");
   }
+  // A malformed UID root fails now, not after the fill.
+  if (!spec.uid_root.empty()) {
+    if (absl::Status s = DeriveDicomUid(spec.uid_root, "check").status();
+        !s.ok()) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("fill: --uid-root: ", s.message()));
+    }
+  }
   return absl::OkStatus();
 }
 
@@ -84,37 +216,63 @@ absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
   const Grid reference = series->image.grid;
   const ReferenceSeries reference_series{reference, series->series_instance_uid,
                                          series->frame_of_reference_uid};
-  *series = DicomSeries();  // only its geometry and UIDs are needed
+  // The DICOM outputs lie on the reference's own images when they are on
+  // its grid and it can be referenced image by image; otherwise on a derived
+  // intensity series, which needs the grey values.
+  const bool derive_series = spec.fill.z_resolution.factor.has_value() ||
+                             spec.fill.z_resolution.spacing_mm.has_value() ||
+                             !ReferencedImagesOfSource(*series).ok();
+  // Its geometry, UIDs and files are kept for the DICOM outputs; the grey
+  // values only for a derived intensity series.
+  DicomSeries source = *std::move(series);
+  const bool dicom_out_possible =
+      spec.write_seg || spec.write_rtstruct != false;
+  if (!dicom_out_possible || !derive_series) {
+    std::vector<float>().swap(source.image.data);
+  }
 
-  absl::StatusOr<LabelVolume> labels;
+  SegmentationInput input;
   if (LooksLikeDicomFile(spec.segmentation)) {
     absl::StatusOr<SegmentationInput> seg =
         ReadDicomLabels(spec.segmentation, reference_series, spec.fill.labels);
     if (!seg.ok()) return seg.status();
-    report.input_kind = seg->rtstruct     ? "rtstruct"
-                        : seg->fractional ? "seg-fractional"
-                                          : "seg-binary";
-    report.segments = seg->segments;
-    labels = std::move(seg->labels);
+    input = *std::move(seg);
+    report.input_kind = input.rtstruct     ? "rtstruct"
+                        : input.fractional ? "seg-fractional"
+                                           : "seg-binary";
+    report.segments = input.segments;
   } else {
     absl::StatusOr<Volume<float>> raw = ReadVolumeAsFloat(spec.segmentation);
     if (!raw.ok()) return Annotate(raw.status(), spec.segmentation);
     INTERSLICE_RETURN_IF_ERROR(
         CheckSameGrid(raw->grid, reference, "the label map"));
-    labels = LabelVolumeFromFloat(*raw);
+    absl::StatusOr<LabelVolume> labels = LabelVolumeFromFloat(*raw);
     if (!labels.ok()) return Annotate(labels.status(), spec.segmentation);
+    input.labels = *std::move(labels);
     report.input_kind = "label-map";
   }
   // The label map's grid equals the reference up to rounding; the
   // reference's (DICOM) geometry is the one carried to the outputs.
-  labels->grid = reference;
+  input.labels.grid = reference;
+  const bool write_rtstruct = spec.write_rtstruct.value_or(input.rtstruct);
+  if (!spec.write_seg && !write_rtstruct) {
+    std::vector<float>().swap(source.image.data);
+  }
   report.read_seconds = SecondsSince(start);
 
   start = std::chrono::steady_clock::now();
   FillOptions fill = spec.fill;
   fill.keep_fields = !spec.mesh_formats.empty();
+  if (input.rtstruct) fill.contours = &input.contours;
   INTERSLICE_ASSIGN_OR_RETURN(FillResult result,
-                              FillBetweenSlices(*labels, fill, context));
+                              FillBetweenSlices(input.labels, fill, context));
+  for (const LabelFillInfo& info : result.per_label) {
+    for (int64_t k : info.key_slices) {
+      if (input.contours.Find(info.label, k) != nullptr) {
+        ++report.polygon_key_slices;
+      }
+    }
+  }
   report.fill_seconds = SecondsSince(start);
   report.output_grid = result.labels.grid;
   report.factor = result.factor;
@@ -165,6 +323,11 @@ absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
       report.artifacts.push_back({"surface", label, path, FileSize(path)});
     }
   }
+  if (spec.write_seg || write_rtstruct) {
+    INTERSLICE_RETURN_IF_ERROR(WriteDicomOutputs(spec, source, input, result,
+                                                 write_rtstruct, derive_series,
+                                                 context, report));
+  }
   report.write_seconds = SecondsSince(start);
   for (LabelFillInfo& info : result.per_label) {
     info.field = Volume<float>();
@@ -189,9 +352,11 @@ std::string FillJobReportToJson(const FillJobReport& report) {
   j["method"] = report.method;
   j["input"] = report.input_kind;
   ordered_json segments = ordered_json::array();
-  for (const SegmentDescription& d : report.segments) {
+  for (const LabelSegment& d : report.segments) {
+    const std::array<uint8_t, 3> rgb = SegmentRgb(d);
     segments.push_back({{"number", d.number},
                         {"label", d.label},
+                        {"rgb", rgb},
                         {"category", d.category.meaning},
                         {"type", d.type.meaning}});
   }
@@ -207,6 +372,7 @@ std::string FillJobReportToJson(const FillJobReport& report) {
                       {"relative_residual", info.solver.relative_residual}});
   }
   j["labels"] = labels;
+  j["polygon_key_slices"] = report.polygon_key_slices;
   j["gap_voxels_closed"] = report.gap_voxels_closed;
   j["key_voxels_restored"] = report.key_voxels_restored;
   j["warnings"] = report.warnings;

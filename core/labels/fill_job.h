@@ -13,11 +13,31 @@
 //   mesh formats "stl" / "ply" / "obj" -> label-<L>.<ext>, one watertight
 //   mesh per filled label (LPS mm, from the label's combined field, so
 //   neighbouring labels' meshes meet without overlap); a label with an empty
-//   result writes no mesh.
+//   result writes no mesh;
+//   write_seg -> seg.dcm: the filled label map as a multi-segment DICOM SEG
+//   (core/dicom_out/label_segmentation.h) carrying the input's segment
+//   labels, colours and codes (a label map: "Label N", a colour per label,
+//   generic codes); segment n is the n-th label present, ascending;
+//   write_rtstruct (default: on for RTSTRUCT input) -> rtstruct.dcm: the
+//   filled labels as CLOSED_PLANAR contours per ROI and slice
+//   (core/dicom_out/rtstruct.h; ROI numbers = labels, names and colours from
+//   the input).
+//   Both reference the reference series' images and frame of reference when
+//   the output grid is the reference grid (factor 1). On a finer grid
+//   (--factor/--spacing), or for a reference whose slices cannot be
+//   referenced one image each (multi-frame, or without SOP Instance UIDs),
+//   they reference a derived intensity series written beside them,
+//   series-intensity/ (the reference resampled onto the output grid, as
+//   `interslice run` writes it). UIDs are derived from the reference
+//   series, the input labels and the fill parameters (dicom_writer.h
+//   "Identity"): the same fill names its objects the same.
+// An RTSTRUCT's key slices get the exact distance of its polygons
+// (FillOptions::contours, polygon_distance.h).
 #ifndef INTERSLICE_CORE_LABELS_FILL_JOB_H_
 #define INTERSLICE_CORE_LABELS_FILL_JOB_H_
 
 #include <cstdint>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -37,13 +57,18 @@ struct FillJobSpec {
   std::vector<std::string> volume_formats = {"nii"};
   std::vector<std::string> mesh_formats = {"stl"};
   double mesh_adaptivity = 0;  // OpenVDB adaptivity in [0, 1]
+  bool write_seg = false;
+  std::optional<bool> write_rtstruct;  // unset: on for RTSTRUCT input
+  std::string uid_root;                // DicomWriteOptions::uid_root
+  bool random_uids = false;            // DicomWriteOptions::random_uids
   std::string output_dir;
   int64_t max_input_voxels = int64_t{1} << 31;
 };
 
 struct FillArtifact {
-  std::string kind;  // "labels", "surface"
-  int label = 0;     // surfaces: the label; else 0
+  // "labels", "surface", "seg", "rtstruct", "series-intensity"
+  std::string kind;
+  int label = 0;  // surfaces: the label; else 0
   std::string path;
   int64_t size_bytes = 0;
 };
@@ -54,9 +79,12 @@ struct FillJobReport {
   Grid input_grid, output_grid;
   int factor = 1;
   std::string method;  // "auto", "linear", "cg", "direct"
-  // "label-map", "seg-binary" or "seg-fractional"; a SEG's segments.
+  // "label-map", "seg-binary", "seg-fractional" or "rtstruct"; a SEG's
+  // segments or an RTSTRUCT's ROIs.
   std::string input_kind;
-  std::vector<SegmentDescription> segments;
+  std::vector<LabelSegment> segments;
+  // Key slices whose 2D distance came from the input's polygons (RTSTRUCT).
+  int64_t polygon_key_slices = 0;
   std::vector<LabelFillInfo> per_label;  // fields dropped
   int64_t gap_voxels_closed = 0;
   int64_t key_voxels_restored = 0;

@@ -229,7 +229,18 @@ absl::StatusOr<Volume<float>> KeySliceDistanceMaps(
   ContourOptions contour;
   contour.lower = 0.5f;
   contour.band_radius_mm = options.band_radius_mm;
-  return ComputeSliceDistanceMaps(mask, contour, context);
+  INTERSLICE_ASSIGN_OR_RETURN(Volume<float> maps,
+                              ComputeSliceDistanceMaps(mask, contour, context));
+  mask = Volume<float>();
+  // [seg-io hook] Key slices drawn as polygons (RTSTRUCT): the exact
+  // distance to the polygons replaces the raster's within the band.
+  if (options.contours != nullptr) {
+    INTERSLICE_RETURN_IF_ERROR(OverlayPolygonDistances(
+        *options.contours, label, key, box.i0, box.j0,
+        EffectiveBandRadius(contour, in_grid.spacing[0], in_grid.spacing[1]),
+        maps, context));
+  }
+  return maps;
 }
 
 // Candidates of FillMethod::kAuto, in tie-break order.

@@ -68,6 +68,7 @@
 #include "absl/status/statusor.h"
 #include "core/common/compute.h"
 #include "core/geometry/volume.h"
+#include "core/labels/polygon_distance.h"
 #include "core/solver/solver.h"
 #include "core/stack/stacking.h"
 
@@ -127,6 +128,13 @@ struct FillOptions {
   int margin_pixels = 6;
   // Keep each label's combined field (for meshing) in FillResult.
   bool keep_fields = false;
+  // The input's contours (an RTSTRUCT's polygons, see polygon_distance.h),
+  // not owned, may be null. Where a label has polygons on one of its key
+  // slices, that slice's 2D signed distance is the exact distance to the
+  // polygons within the band (OverlayPolygonDistances) instead of the
+  // distance of the rasterised pixels; the rasterised label map still
+  // decides key slices, boxes, overlaps and the restored key slices.
+  const LabelContours* contours = nullptr;
   // Bound on voxels of the output grid, checked before allocation. Memory:
   // about 8 bytes per output voxel (12 with keep_fields) plus each label's
   // box of float fields: about 4 boxes per label being computed (auto's

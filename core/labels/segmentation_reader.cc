@@ -118,7 +118,7 @@ absl::StatusOr<SegmentationInput> ReadDicomSegmentation(
   for (size_t n = 1; n <= segments; ++n) {
     DcmSegment* segment = seg->getSegment(n);
     if (segment == nullptr) continue;
-    SegmentDescription d;
+    LabelSegment d;
     d.number = static_cast<int>(n);
     OFString label;
     if (segment->getSegmentLabel(label).good()) d.label = label.c_str();
@@ -291,12 +291,18 @@ absl::StatusOr<SegmentationInput> ReadRtStruct(const std::string& path,
     }
     const std::string roi_name =
         names.count(number) ? names[number] : absl::StrCat("#", number);
-    SegmentDescription d;
+    LabelSegment d;
     d.number = number;
     d.label = roi_name;
-    OFString colour;
-    if (roi.getROIDisplayColor(colour, -1).good())
-      d.type.meaning = colour.c_str();
+    Sint32 rgb[3];
+    if (roi.getROIDisplayColor(rgb[0], 0).good() &&
+        roi.getROIDisplayColor(rgb[1], 1).good() &&
+        roi.getROIDisplayColor(rgb[2], 2).good()) {
+      d.rgb = std::array<uint8_t, 3>{
+          static_cast<uint8_t>(std::clamp(rgb[0], 0, 255)),
+          static_cast<uint8_t>(std::clamp(rgb[1], 0, 255)),
+          static_cast<uint8_t>(std::clamp(rgb[2], 0, 255))};
+    }
     out.segments.push_back(d);
     // Polygons per slice, in continuous in-plane index coordinates.
     std::map<int64_t, std::vector<std::vector<std::array<double, 2>>>> slices;
@@ -330,6 +336,11 @@ absl::StatusOr<SegmentationInput> ReadRtStruct(const std::string& path,
         polygon.push_back({index[0], index[1]});
       }
       slices[k].push_back(std::move(polygon));
+    }
+    // Kept for the exact polygon distance of the fill (polygon_distance.h).
+    for (const auto& [k, polygons] : slices) {
+      auto& kept = out.contours.polygons[number][k];
+      kept.insert(kept.end(), polygons.begin(), polygons.end());
     }
     // Even-odd scanline fill of the pixel centres (x = i, y = j).
     for (const auto& [k, polygons] : slices) {

@@ -27,27 +27,22 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "core/dicom_out/label_segmentation.h"
 #include "core/geometry/volume.h"
 #include "core/labels/label_fill.h"
+#include "core/labels/polygon_distance.h"
 
 namespace interslice {
 
-// A coded concept as (CodeValue, CodingSchemeDesignator, CodeMeaning).
-struct CodedConcept {
-  std::string value, scheme, meaning;
-};
-
-// What a SEG says about one segment (label = number).
-struct SegmentDescription {
-  int number = 0;
-  std::string label;                              // SegmentLabel
-  std::optional<std::array<uint16_t, 3>> cielab;  // RecommendedDisplayCIELab
-  CodedConcept category, type;  // SegmentedPropertyCategory/TypeCode
-};
-
+// A segment's or ROI's description is a LabelSegment
+// (core/dicom_out/label_segmentation.h: number, label, colour, codes), so
+// that the fill's DICOM outputs carry it over.
 struct SegmentationInput {
   LabelVolume labels;  // on the reference grid
-  std::vector<SegmentDescription> segments;
+  std::vector<LabelSegment> segments;
+  // RTSTRUCT only: the CLOSED_PLANAR contours of each ROI read, per slice,
+  // in index coordinates of the reference grid (FillOptions::contours).
+  LabelContours contours;
   bool fractional = false;
   bool rtstruct = false;
   int64_t frames = 0;
@@ -70,8 +65,8 @@ absl::StatusOr<SegmentationInput> ReadDicomSegmentation(
     const std::vector<int>& only = {});
 
 // An RTSTRUCT (DCMTK dcmrt) as a label map on the reference grid: label =
-// ROINumber (1..65535), segments[].label = ROIName, cielab unset (the
-// ROIDisplayColor is RGB: kept in `type.meaning` as "R\G\B"). Each
+// ROINumber (1..65535), segments[].label = ROIName, segments[].rgb =
+// ROIDisplayColor (if given), no codes; `contours` holds the polygons. Each
 // CLOSED_PLANAR contour must lie on one slice plane of the reference (all
 // points within 5% of a slice gap of it); the pixels whose centres are
 // inside the contours of an ROI on that slice by the even-odd rule are set

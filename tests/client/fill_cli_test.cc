@@ -5,18 +5,29 @@
 
 #include <algorithm>
 #include <array>
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <map>
+#include <numbers>
 #include <string>
 
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
 #include "core/dicom/series_reader.h"
 #include "core/labels/segmentation_reader.h"
 #include "core/volume_io/volume_io.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "nlohmann/json.hpp"
+#include "tests/core/dicom_out/dicom_test_util.h"
 #include "tests/testing/mesh_checks.h"
+// osconfig.h must precede every other DCMTK header.
+#include "dcmtk/config/osconfig.h"
+#include "dcmtk/dcmdata/dcdeftag.h"
+#include "dcmtk/dcmdata/dcfilefo.h"
+#include "dcmtk/dcmdata/dcuid.h"
 
 namespace interslice {
 namespace {
@@ -203,6 +214,12 @@ TEST_F(FillCliTest, BadInputGivesOneLineAndExitCodeOne) {
       {"fill " + good + " --reference " + kPhantom + " --method magic" + out,
        "--method"},
       {"fill " + good + out, "--reference"},
+      {"fill " + good + " --reference " + kPhantom +
+           " --rtstruct --no-rtstruct" + out,
+       "--rtstruct and --no-rtstruct contradict"},
+      {"fill " + good + " --reference " + kPhantom + " --seg --uid-root 1.02" +
+           out,
+       "--uid-root"},
   };
   for (const Case& c : cases) {
     const CommandResult r = RunCli(c.args);
@@ -295,6 +312,262 @@ TEST_F(FillCliTest, ReadsAndFillsADicomSeg) {
   const nlohmann::json j = nlohmann::json::parse(in);
   EXPECT_EQ(j["input"], "seg-binary");
   EXPECT_EQ(j["segments"].size(), 1u);
+}
+
+// --- DICOM outputs: SEG and RTSTRUCT ---
+
+ReferenceSeries ReferenceOf(const std::string& folder) {
+  absl::StatusOr<DicomSeries> series =
+      ReadDicomSeries({folder}, {}, ComputeContext{.threads = 1});
+  EXPECT_TRUE(series.ok()) << series.status();
+  if (!series.ok()) return {};
+  return {series->image.grid, series->series_instance_uid,
+          series->frame_of_reference_uid};
+}
+
+// Voxels where `a` and `b` differ (after mapping b's values with `map`).
+int64_t CountDiffering(const std::vector<uint16_t>& a,
+                       const std::vector<float>& b,
+                       const std::map<int, int>& map = {}) {
+  EXPECT_EQ(a.size(), b.size());
+  int64_t differ = 0;
+  for (size_t n = 0; n < std::min(a.size(), b.size()); ++n) {
+    int v = a[n];
+    if (auto it = map.find(v); it != map.end()) v = it->second;
+    differ += v != static_cast<int>(b[n]);
+  }
+  return differ;
+}
+
+TEST_F(FillCliTest, WritesSegAndRtStructOfALabelMap) {
+  const std::string labels = (dir_ / "labels.nii.gz").string();
+  ASSERT_TRUE(WriteVolume(*truth_, labels).ok());
+  const fs::path out = dir_ / "out";
+  const fs::path report = dir_ / "report.json";
+  const CommandResult r =
+      RunCli("fill " + labels + " --reference " + kPhantom +
+             " --key-slices 0-27:3 --method linear --mesh none --volume nrrd "
+             "--seg --rtstruct --threads 2 --quiet --out " +
+             out.string() + " --report " + report.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  const std::string seg = (out / "seg.dcm").string();
+  const std::string rt = (out / "rtstruct.dcm").string();
+  ::interslice::testing::ExpectValidIod({seg, rt});
+  absl::StatusOr<Volume<float>> filled =
+      ReadVolumeAsFloat((out / "labels.nrrd").string());
+  ASSERT_TRUE(filled.ok()) << filled.status();
+  int64_t labelled = 0;
+  for (float v : filled->data) labelled += v != 0;
+  ASSERT_GT(labelled, 1000);
+
+  // The SEG references the reference series and reads back exactly.
+  const ReferenceSeries reference = ReferenceOf(kPhantom);
+  auto file = ::interslice::testing::LoadDicom(seg);
+  DcmDataset& ds = *file->getDataset();
+  EXPECT_EQ(::interslice::testing::GetString(ds, DCM_FrameOfReferenceUID),
+            reference.frame_of_reference_uid);
+  DcmItem* series_item = nullptr;
+  ASSERT_TRUE(
+      ds.findAndGetSequenceItem(DCM_ReferencedSeriesSequence, series_item, 0)
+          .good());
+  EXPECT_EQ(
+      ::interslice::testing::GetString(*series_item, DCM_SeriesInstanceUID),
+      reference.series_instance_uid);
+  absl::StatusOr<SegmentationInput> back =
+      ReadDicomSegmentation(seg, reference);
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_EQ(CountDiffering(back->labels.data, filled->data), 0);
+  ASSERT_EQ(back->segments.size(), 2u);
+  EXPECT_EQ(back->segments[0].label, "Label 1");
+  EXPECT_EQ(back->segments[1].label, "Label 2");
+  EXPECT_EQ(back->segments[0].category.value, "85756007");
+  ASSERT_TRUE(back->segments[0].cielab.has_value());
+  ASSERT_TRUE(back->segments[1].cielab.has_value());
+  EXPECT_NE(*back->segments[0].cielab, *back->segments[1].cielab);
+
+  // The RTSTRUCT reads back as the filled labels up to rasterisation.
+  absl::StatusOr<SegmentationInput> contours = ReadRtStruct(rt, reference);
+  ASSERT_TRUE(contours.ok()) << contours.status();
+  const int64_t differ = CountDiffering(contours->labels.data, filled->data);
+  std::printf("RTSTRUCT read back: %lld of %lld labelled voxels differ\n",
+              static_cast<long long>(differ), static_cast<long long>(labelled));
+  EXPECT_LE(differ, labelled / 1000);
+  ASSERT_EQ(contours->segments.size(), 2u);
+  EXPECT_EQ(contours->segments[0].number, 1);
+  EXPECT_EQ(contours->segments[0].label, "Label 1");
+
+  std::ifstream in(report);
+  const nlohmann::json j = nlohmann::json::parse(in);
+  int dicom_artifacts = 0;
+  for (const auto& a : j["artifacts"]) {
+    dicom_artifacts += a["kind"] == "seg" || a["kind"] == "rtstruct";
+  }
+  EXPECT_EQ(dicom_artifacts, 2);
+  EXPECT_EQ(j["polygon_key_slices"], 0);
+}
+
+// An RTSTRUCT drawn on the phantom: two ROIs (a ring, i.e. a polygon with a
+// hole, and a disc), contours on every 3rd slice, growing with the slice.
+std::string WritePhantomRtStruct(const fs::path& dir,
+                                 const ReferenceSeries& reference) {
+  const Grid& g = reference.grid;
+  DcmFileFormat file;
+  DcmDataset* d = file.getDataset();
+  d->putAndInsertString(DCM_SOPClassUID, UID_RTStructureSetStorage);
+  d->putAndInsertString(DCM_SOPInstanceUID, "1.2.826.0.1.3680043.2.1125.7");
+  d->putAndInsertString(DCM_Modality, "RTSTRUCT");
+  d->putAndInsertString(DCM_StructureSetLabel, "test");
+  const auto circle = [&](double ci, double cj, double r, int64_t k) {
+    std::vector<std::string> values;
+    for (int n = 0; n < 120; ++n) {
+      const double t = 2 * std::numbers::pi * n / 120;
+      const Vec3 p = g.IndexToPhysical(
+          {ci + r * std::cos(t), cj + r * std::sin(t), static_cast<double>(k)});
+      for (int c = 0; c < 3; ++c) values.push_back(absl::StrCat(p[c]));
+    }
+    return absl::StrJoin(values, "\\");
+  };
+  struct Roi {
+    int number;
+    const char* name;
+    const char* colour;
+  };
+  for (const Roi& roi :
+       {Roi{4, "ring", "200\\100\\50"}, Roi{9, "disc", "0\\255\\0"}}) {
+    DcmItem* item = nullptr;
+    d->findOrCreateSequenceItem(DCM_StructureSetROISequence, item, -2);
+    item->putAndInsertString(DCM_ROINumber, std::to_string(roi.number).c_str());
+    item->putAndInsertString(DCM_ROIName, roi.name);
+    item->putAndInsertString(DCM_ReferencedFrameOfReferenceUID,
+                             reference.frame_of_reference_uid.c_str());
+    item->putAndInsertString(DCM_ROIGenerationAlgorithm, "MANUAL");
+    DcmItem* contours = nullptr;
+    d->findOrCreateSequenceItem(DCM_ROIContourSequence, contours, -2);
+    contours->putAndInsertString(DCM_ReferencedROINumber,
+                                 std::to_string(roi.number).c_str());
+    contours->putAndInsertString(DCM_ROIDisplayColor, roi.colour);
+    for (int64_t k = 0; k < g.size[2]; k += 3) {
+      std::vector<std::string> polygons;
+      if (roi.number == 4) {
+        polygons = {circle(250.3, 260.6, 60 + 2.1 * k, k),
+                    circle(250.3, 260.6, 25 + 0.7 * k, k)};
+      } else {
+        polygons = {circle(420.2, 140.7, 20 + 1.3 * k, k)};
+      }
+      for (const std::string& data : polygons) {
+        DcmItem* contour = nullptr;
+        contours->findOrCreateSequenceItem(DCM_ContourSequence, contour, -2);
+        contour->putAndInsertString(DCM_ContourGeometricType, "CLOSED_PLANAR");
+        contour->putAndInsertString(DCM_NumberOfContourPoints, "120");
+        contour->putAndInsertString(DCM_ContourData, data.c_str());
+      }
+    }
+  }
+  const std::string path = (dir / "input-rtstruct.dcm").string();
+  EXPECT_TRUE(file.saveFile(path.c_str(), EXS_LittleEndianExplicit).good());
+  return path;
+}
+
+TEST_F(FillCliTest, RtStructInIsFilledFromItsPolygonsAndWrittenBack) {
+  const ReferenceSeries reference = ReferenceOf(kPhantom);
+  const std::string input = WritePhantomRtStruct(dir_, reference);
+  absl::StatusOr<SegmentationInput> drawn = ReadRtStruct(input, reference);
+  ASSERT_TRUE(drawn.ok()) << drawn.status();
+  const fs::path out = dir_ / "out";
+  const fs::path report = dir_ / "report.json";
+  // No --rtstruct: it is the default for RTSTRUCT input.
+  const CommandResult r =
+      RunCli("fill " + input + " --reference " + kPhantom +
+             " --method linear --mesh none --volume nrrd --seg --threads 2 "
+             "--quiet --out " +
+             out.string() + " --report " + report.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  const std::string seg = (out / "seg.dcm").string();
+  const std::string rt = (out / "rtstruct.dcm").string();
+  ::interslice::testing::ExpectValidIod({seg, rt});
+  absl::StatusOr<Volume<float>> filled =
+      ReadVolumeAsFloat((out / "labels.nrrd").string());
+  ASSERT_TRUE(filled.ok()) << filled.status();
+  const int64_t plane = reference.grid.SliceVoxelCount();
+  int64_t labelled = 0;
+  for (int64_t n = 0; n < static_cast<int64_t>(filled->data.size()); ++n) {
+    labelled += filled->data[n] != 0;
+    if ((n / plane) % 3 == 0) {  // key slices exactly as drawn
+      ASSERT_EQ(filled->data[n], drawn->labels.data[n]) << n;
+    }
+  }
+
+  // RTSTRUCT out: ROI numbers, names and colours of the input.
+  absl::StatusOr<SegmentationInput> rois = ReadRtStruct(rt, reference);
+  ASSERT_TRUE(rois.ok()) << rois.status();
+  ASSERT_EQ(rois->segments.size(), 2u);
+  EXPECT_EQ(rois->segments[0].number, 4);
+  EXPECT_EQ(rois->segments[0].label, "ring");
+  EXPECT_EQ(rois->segments[1].number, 9);
+  EXPECT_EQ(rois->segments[1].label, "disc");
+  ASSERT_TRUE(rois->segments[1].rgb.has_value());
+  EXPECT_EQ(*rois->segments[1].rgb, (std::array<uint8_t, 3>{0, 255, 0}));
+  const int64_t differ = CountDiffering(rois->labels.data, filled->data);
+  std::printf("RTSTRUCT read back: %lld of %lld labelled voxels differ\n",
+              static_cast<long long>(differ), static_cast<long long>(labelled));
+  EXPECT_LE(differ, labelled / 1000);
+
+  // SEG out: segments 1, 2 = ROIs 4, 9 with their names; exact labels.
+  absl::StatusOr<SegmentationInput> segments =
+      ReadDicomSegmentation(seg, reference);
+  ASSERT_TRUE(segments.ok()) << segments.status();
+  ASSERT_EQ(segments->segments.size(), 2u);
+  EXPECT_EQ(segments->segments[0].label, "ring");
+  EXPECT_EQ(segments->segments[1].label, "disc");
+  EXPECT_EQ(
+      CountDiffering(segments->labels.data, filled->data, {{1, 4}, {2, 9}}), 0);
+
+  std::ifstream in(report);
+  const nlohmann::json j = nlohmann::json::parse(in);
+  EXPECT_EQ(j["input"], "rtstruct");
+  // Every drawn key slice of both ROIs took its polygons' distance.
+  EXPECT_EQ(j["polygon_key_slices"], 2 * ((reference.grid.size[2] + 2) / 3));
+}
+
+TEST_F(FillCliTest, SegOnAFinerGridReferencesADerivedIntensitySeries) {
+  const std::string small =
+      std::string(INTERSLICE_SOURCE_DIR) + "/tests/data/ct-thick";
+  absl::StatusOr<DicomSeries> series =
+      ReadDicomSeries({small}, {}, ComputeContext{.threads = 1});
+  ASSERT_TRUE(series.ok()) << series.status();
+  Volume<uint16_t> labels;
+  labels.grid = series->image.grid;
+  labels.data.assign(labels.grid.VoxelCount(), 0);
+  for (int64_t k = 0; k < labels.grid.size[2]; ++k) {
+    for (int64_t j = 100; j < 400; ++j) {
+      for (int64_t i = 100; i < 400; ++i) {
+        if (series->image.at(i, j, k) >= 300) labels.at(i, j, k) = 1;
+      }
+    }
+  }
+  const std::string path = (dir_ / "labels.nrrd").string();
+  ASSERT_TRUE(WriteVolume(labels, path).ok());
+  const fs::path out = dir_ / "out";
+  const CommandResult r =
+      RunCli("fill " + path + " --reference " + small +
+             " --factor 2 --method linear --mesh none --volume nrrd --seg "
+             "--quiet --out " +
+             out.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_FALSE(fs::exists(out / "rtstruct.dcm"));  // not by default here
+  const std::string seg = (out / "seg.dcm").string();
+  ::interslice::testing::ExpectValidIod({seg});
+  const ReferenceSeries derived =
+      ReferenceOf((out / "series-intensity").string());
+  absl::StatusOr<Volume<float>> filled =
+      ReadVolumeAsFloat((out / "labels.nrrd").string());
+  ASSERT_TRUE(filled.ok()) << filled.status();
+  ASSERT_EQ(derived.grid.size, filled->grid.size);
+  EXPECT_EQ(derived.frame_of_reference_uid,
+            ReferenceOf(small).frame_of_reference_uid);
+  absl::StatusOr<SegmentationInput> back = ReadDicomSegmentation(seg, derived);
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_EQ(CountDiffering(back->labels.data, filled->data), 0);
 }
 
 }  // namespace

@@ -108,6 +108,14 @@ TEST(RtStructTest, PolygonsWithHolesOnTheirSlices) {
   EXPECT_TRUE(in->rtstruct);
   ASSERT_EQ(in->segments.size(), 2u);
   EXPECT_EQ(in->segments[0].label, "ring");
+  ASSERT_TRUE(in->segments[0].rgb.has_value());
+  EXPECT_EQ(*in->segments[0].rgb, (std::array<uint8_t, 3>{255, 0, 0}));
+  // The polygons are kept, in index coordinates, for the exact distance.
+  ASSERT_EQ(in->contours.polygons.at(4).at(1).size(), 3u);
+  EXPECT_EQ(in->contours.polygons.at(4).at(1)[0][0],
+            (std::array<double, 2>{1.5, 1.5}));
+  EXPECT_EQ(in->contours.Find(9, 3)->size(), 1u);
+  EXPECT_EQ(in->contours.Find(9, 1), nullptr);
   const LabelVolume& v = in->labels;
   // Ring: pixels i in [2, 11] minus the hole [5, 7] -> 10 * 10 - 3 * 3.
   int64_t ring = 0, cap = 0;

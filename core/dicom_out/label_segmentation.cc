@@ -1,0 +1,350 @@
+// WriteLabelSegmentation: a multi-segment binary DICOM SEG of a label map
+// (DCMTK dcmseg).
+#include "core/dicom_out/label_segmentation.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <map>
+#include <memory>
+#include <set>
+#include <string>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "core/common/status_macros.h"
+#include "core/dicom_out/dicom_out_internal.h"
+// osconfig.h must precede every other DCMTK header.
+#include "dcmtk/config/osconfig.h"
+#include "dcmtk/dcmdata/dcdeftag.h"
+#include "dcmtk/dcmdata/dcfilefo.h"
+#include "dcmtk/dcmfg/fgderimg.h"
+#include "dcmtk/dcmfg/fgfracon.h"
+#include "dcmtk/dcmfg/fgpixmsr.h"
+#include "dcmtk/dcmfg/fgplanor.h"
+#include "dcmtk/dcmfg/fgplanpo.h"
+#include "dcmtk/dcmiod/cielabutil.h"
+#include "dcmtk/dcmiod/iodmacro.h"
+#include "dcmtk/dcmseg/segdoc.h"
+#include "dcmtk/dcmseg/segment.h"
+
+namespace interslice {
+namespace {
+
+using dicom_out_internal::AddReferencedImageSeries;
+using dicom_out_internal::CheckReferencedSeries;
+using dicom_out_internal::CopyPatientStudyFrameOfReference;
+using dicom_out_internal::CurrentDate;
+using dicom_out_internal::CurrentTime;
+using dicom_out_internal::FormatDecimalString;
+using dicom_out_internal::LoadSourceHeader;
+using dicom_out_internal::SaveFileAtomically;
+using dicom_out_internal::ValidateOutputGrid;
+
+absl::Status Check(const OFCondition& cond, const std::string& what) {
+  if (cond.good()) return absl::OkStatus();
+  return absl::InternalError(
+      absl::StrCat("DICOM SEG: cannot ", what, ": ", cond.text()));
+}
+
+// HSV (h in [0, 1), s, v in [0, 1]) to RGB in [0, 1] (Foley et al.,
+// "Computer Graphics", 2nd ed., sec. 13.3.4).
+std::array<double, 3> HsvToRgb(double h, double s, double v) {
+  const double h6 = h * 6;
+  const int sector = static_cast<int>(std::floor(h6)) % 6;
+  const double f = h6 - std::floor(h6);
+  const double p = v * (1 - s), q = v * (1 - s * f), t = v * (1 - s * (1 - f));
+  switch (sector) {
+    case 0:
+      return {v, t, p};
+    case 1:
+      return {q, v, p};
+    case 2:
+      return {p, v, t};
+    case 3:
+      return {p, q, v};
+    case 4:
+      return {t, p, v};
+    default:
+      return {v, p, q};
+  }
+}
+
+CodeSequenceMacro Code(const CodedConcept& c) {
+  return CodeSequenceMacro(c.value.c_str(), c.scheme.c_str(),
+                           c.meaning.c_str());
+}
+
+}  // namespace
+
+LabelSegment DefaultLabelSegment(int label) {
+  LabelSegment s;
+  s.number = label;
+  s.label = absl::StrCat("Label ", label);
+  // Hues one golden angle apart never repeat and keep neighbours apart.
+  const double hue = std::fmod(0.61803398875 * label, 1.0);
+  const std::array<double, 3> rgb = HsvToRgb(hue, 0.65, 0.95);
+  s.rgb =
+      std::array<uint8_t, 3>{static_cast<uint8_t>(std::lround(255 * rgb[0])),
+                             static_cast<uint8_t>(std::lround(255 * rgb[1])),
+                             static_cast<uint8_t>(std::lround(255 * rgb[2]))};
+  s.category = {"85756007", "SCT", "Tissue"};
+  s.type = {"85756007", "SCT", "Tissue"};
+  return s;
+}
+
+std::array<uint16_t, 3> SegmentCieLab(const LabelSegment& segment) {
+  if (segment.cielab.has_value()) return *segment.cielab;
+  const std::array<uint8_t, 3> rgb =
+      segment.rgb.has_value() ? *segment.rgb
+                              : *DefaultLabelSegment(segment.number).rgb;
+  double l = 0, a = 0, b = 0;
+  IODCIELabUtil::rgb2DicomLab(l, a, b, rgb[0] / 255.0, rgb[1] / 255.0,
+                              rgb[2] / 255.0);
+  const auto clamp = [](double v) {
+    return static_cast<uint16_t>(std::clamp(std::lround(v), 0L, 65535L));
+  };
+  return {clamp(l), clamp(a), clamp(b)};
+}
+
+std::array<uint8_t, 3> SegmentRgb(const LabelSegment& segment) {
+  if (segment.rgb.has_value()) return *segment.rgb;
+  if (!segment.cielab.has_value()) {
+    return *DefaultLabelSegment(segment.number).rgb;
+  }
+  double r = 0, g = 0, b = 0;
+  IODCIELabUtil::dicomLab2RGB(r, g, b, (*segment.cielab)[0],
+                              (*segment.cielab)[1], (*segment.cielab)[2]);
+  const auto clamp = [](double v) {
+    return static_cast<uint8_t>(std::clamp(std::lround(255 * v), 0L, 255L));
+  };
+  return {clamp(r), clamp(g), clamp(b)};
+}
+
+absl::StatusOr<DerivedObjectIdentity> ReferencedImagesOfSource(
+    const DicomSeries& source) {
+  DerivedObjectIdentity images;
+  images.series_instance_uid = source.series_instance_uid;
+  images.sop_class_uid = source.sop_class_uid;
+  images.study_instance_uid = source.study_instance_uid;
+  images.frame_of_reference_uid = source.frame_of_reference_uid;
+  std::set<std::string> seen;
+  for (size_t k = 0; k < source.slices.size(); ++k) {
+    const std::string& uid = source.slices[k].sop_instance_uid;
+    if (uid.empty()) {
+      return absl::InvalidArgumentError(absl::StrFormat(
+          "reference slice %d has no SOPInstanceUID: a DICOM output cannot "
+          "reference it",
+          k));
+    }
+    if (!seen.insert(uid).second) {
+      return absl::InvalidArgumentError(absl::StrFormat(
+          "reference slice %d is a frame of an image that holds other slices "
+          "too (multi-frame): its slices cannot be referenced one image each",
+          k));
+    }
+    images.sop_instance_uids.push_back(uid);
+  }
+  if (images.series_instance_uid.empty() || images.sop_class_uid.empty()) {
+    return absl::InvalidArgumentError(
+        "the reference series has no SeriesInstanceUID or SOPClassUID: a "
+        "DICOM output cannot reference it");
+  }
+  return images;
+}
+
+absl::Status WriteLabelSegmentation(const DicomSeries& source,
+                                    const Volume<uint16_t>& labels,
+                                    const std::vector<LabelSegment>& segments,
+                                    const DerivedObjectIdentity& identity,
+                                    const DerivedObjectIdentity& referenced,
+                                    const DicomWriteOptions& options,
+                                    const std::string& path) {
+  const Grid& grid = labels.grid;
+  INTERSLICE_RETURN_IF_ERROR(
+      ValidateOutputGrid(source, grid, labels.data.size(), "label map"));
+  INTERSLICE_RETURN_IF_ERROR(
+      CheckReferencedSeries(identity, referenced, grid, "segmentation"));
+
+  // Labels present and, per label, the slices holding it.
+  const int64_t nx = grid.size[0], ny = grid.size[1], nz = grid.size[2];
+  const int64_t plane = nx * ny;
+  std::map<int, std::vector<int64_t>> slices_of;
+  for (int64_t k = 0; k < nz; ++k) {
+    std::vector<bool> seen(65536, false);
+    const uint16_t* s = labels.data.data() + k * plane;
+    for (int64_t p = 0; p < plane; ++p) seen[s[p]] = true;
+    for (int l = 1; l < 65536; ++l) {
+      if (seen[l]) slices_of[l].push_back(k);
+    }
+  }
+  if (slices_of.empty()) {
+    return absl::InvalidArgumentError(
+        "label map: no voxel holds a label, there is no segment to write");
+  }
+  if (slices_of.size() > 65535) {
+    return absl::InvalidArgumentError("label map: more than 65535 labels");
+  }
+
+  INTERSLICE_ASSIGN_OR_RETURN(std::unique_ptr<DcmFileFormat> source_file,
+                              LoadSourceHeader(source));
+  DcmDataset& src = *source_file->getDataset();
+  const IODGeneralEquipmentModule::EquipmentInfo equipment(
+      "interslice", "interslice", "0", options.software_version.c_str());
+  const std::string description = identity.series_description.substr(0, 64);
+  ContentIdentificationMacro content("1", "INTERSLICE", description.c_str(),
+                                     "");
+  DcmSegmentation* raw = nullptr;
+  INTERSLICE_RETURN_IF_ERROR(Check(
+      DcmSegmentation::createBinarySegmentation(raw, static_cast<Uint16>(ny),
+                                                static_cast<Uint16>(nx),
+                                                equipment, content),
+      "create the segmentation"));
+  std::unique_ptr<DcmSegmentation> seg(raw);
+  INTERSLICE_RETURN_IF_ERROR(Check(
+      seg->getStudy().setStudyInstanceUID((identity.study_instance_uid.empty()
+                                               ? source.study_instance_uid
+                                               : identity.study_instance_uid)
+                                              .c_str()),
+      "set StudyInstanceUID"));
+  INTERSLICE_RETURN_IF_ERROR(
+      Check(seg->getFrameOfReference().setFrameOfReferenceUID(
+                (identity.frame_of_reference_uid.empty()
+                     ? source.frame_of_reference_uid
+                     : identity.frame_of_reference_uid)
+                    .c_str()),
+            "set FrameOfReferenceUID"));
+  INTERSLICE_RETURN_IF_ERROR(Check(seg->getSeries().setSeriesInstanceUID(
+                                       identity.series_instance_uid.c_str()),
+                                   "set SeriesInstanceUID"));
+  seg->getSeries().setSeriesNumber(
+      std::to_string(identity.series_number).c_str());
+  seg->getSeries().setSeriesDescription(description.c_str());
+  seg->getSeries().setSeriesDate(CurrentDate().c_str());
+  seg->getSeries().setSeriesTime(CurrentTime().c_str());
+  INTERSLICE_RETURN_IF_ERROR(
+      Check(seg->getSOPCommon().setSOPInstanceUID(
+                identity.sop_instance_uids.front().c_str()),
+            "set SOPInstanceUID"));
+
+  // Segments, in ascending label order.
+  std::map<int, Uint16> segment_of;
+  for (const auto& entry : slices_of) {
+    const int label = entry.first;
+    LabelSegment d = DefaultLabelSegment(label);
+    for (const LabelSegment& s : segments) {
+      if (s.number != label) continue;
+      if (!s.label.empty()) d.label = s.label;
+      d.cielab = s.cielab;
+      d.rgb = s.rgb.has_value() || s.cielab.has_value() ? s.rgb : d.rgb;
+      if (!s.category.value.empty() && !s.category.scheme.empty() &&
+          !s.category.meaning.empty()) {
+        d.category = s.category;
+      }
+      if (!s.type.value.empty() && !s.type.scheme.empty() &&
+          !s.type.meaning.empty()) {
+        d.type = s.type;
+      }
+    }
+    const std::string segment_label = d.label.substr(0, 64);
+    DcmSegment* raw_segment = nullptr;
+    INTERSLICE_RETURN_IF_ERROR(Check(
+        DcmSegment::create(raw_segment, segment_label.c_str(), Code(d.category),
+                           Code(d.type), DcmSegTypes::SAT_SEMIAUTOMATIC,
+                           "interslice fill"),
+        absl::StrFormat("create the segment of label %d", label)));
+    const std::array<uint16_t, 3> lab = SegmentCieLab(d);
+    raw_segment->setRecommendedDisplayCIELabValue(lab[0], lab[1], lab[2]);
+    Uint16 number = 0;
+    const OFCondition cond = seg->addSegment(raw_segment, number);
+    if (cond.bad()) delete raw_segment;  // ownership passes only on success
+    INTERSLICE_RETURN_IF_ERROR(
+        Check(cond, absl::StrFormat("add the segment of label %d", label)));
+    segment_of[label] = number;
+  }
+
+  FGPixelMeasures measures;
+  measures.setPixelSpacing(absl::StrCat(FormatDecimalString(grid.spacing[1]),
+                                        "\\",
+                                        FormatDecimalString(grid.spacing[0]))
+                               .c_str());
+  measures.setSliceThickness(FormatDecimalString(grid.spacing[2]).c_str());
+  measures.setSpacingBetweenSlices(
+      FormatDecimalString(grid.spacing[2]).c_str());
+  INTERSLICE_RETURN_IF_ERROR(
+      Check(seg->addForAllFrames(measures), "add pixel measures"));
+  const Vec3 row = grid.Axis(0), col = grid.Axis(1);
+  std::unique_ptr<FGPlaneOrientationPatient> orientation(
+      FGPlaneOrientationPatient::createMinimal(
+          FormatDecimalString(row[0]).c_str(),
+          FormatDecimalString(row[1]).c_str(),
+          FormatDecimalString(row[2]).c_str(),
+          FormatDecimalString(col[0]).c_str(),
+          FormatDecimalString(col[1]).c_str(),
+          FormatDecimalString(col[2]).c_str()));
+  if (orientation == nullptr) {
+    return absl::InternalError("DICOM SEG: cannot create plane orientation");
+  }
+  INTERSLICE_RETURN_IF_ERROR(
+      Check(seg->addForAllFrames(*orientation), "add plane orientation"));
+  const std::string& dimension_uid = identity.dimension_organization_uid;
+  IODMultiframeDimensionModule& dims = seg->getDimensions();
+  INTERSLICE_RETURN_IF_ERROR(Check(
+      dims.addDimensionIndex(DCM_ReferencedSegmentNumber, dimension_uid.c_str(),
+                             DCM_SegmentIdentificationSequence,
+                             "ReferencedSegmentNumber"),
+      "add the segment dimension"));
+  INTERSLICE_RETURN_IF_ERROR(Check(
+      dims.addDimensionIndex(DCM_ImagePositionPatient, dimension_uid.c_str(),
+                             DCM_PlanePositionSequence, "ImagePositionPatient"),
+      "add the position dimension"));
+
+  std::vector<Uint8> frame(static_cast<size_t>(plane));
+  for (const auto& [label, slices] : slices_of) {
+    const Uint16 number = segment_of[label];
+    for (int64_t k : slices) {
+      const uint16_t* s = labels.data.data() + k * plane;
+      for (int64_t p = 0; p < plane; ++p) frame[p] = s[p] == label;
+      const Vec3 p = grid.IndexToPhysical({0, 0, static_cast<double>(k)});
+      std::unique_ptr<FGPlanePosPatient> position(
+          FGPlanePosPatient::createMinimal(FormatDecimalString(p[0]).c_str(),
+                                           FormatDecimalString(p[1]).c_str(),
+                                           FormatDecimalString(p[2]).c_str()));
+      if (position == nullptr) {
+        return absl::InternalError("DICOM SEG: cannot create plane position");
+      }
+      FGFrameContent frame_content;
+      frame_content.setDimensionIndexValues(number, 0);
+      frame_content.setDimensionIndexValues(static_cast<Uint32>(k + 1), 1);
+      OFVector<ImageSOPInstanceReferenceMacro> references(1);
+      references[0].setReferencedSOPClassUID(referenced.sop_class_uid.c_str());
+      references[0].setReferencedSOPInstanceUID(
+          referenced.sop_instance_uids[static_cast<size_t>(k)].c_str());
+      std::unique_ptr<FGDerivationImage> derivation(
+          DcmSegmentation::createDerivationImageFG(
+              references,
+              options.derivation_description.substr(0, 1024).c_str()));
+      if (derivation == nullptr) {
+        return absl::InternalError("DICOM SEG: cannot create derivation image");
+      }
+      OFVector<FGBase*> per_frame;
+      per_frame.push_back(position.get());
+      per_frame.push_back(&frame_content);
+      per_frame.push_back(derivation.get());
+      INTERSLICE_RETURN_IF_ERROR(
+          Check(seg->addFrame(frame.data(), number, per_frame),
+                absl::StrFormat("add frame (label %d, slice %d)", label, k)));
+    }
+  }
+
+  DcmFileFormat file;
+  DcmDataset& ds = *file.getDataset();
+  INTERSLICE_RETURN_IF_ERROR(Check(seg->writeDataset(ds), "encode"));
+  CopyPatientStudyFrameOfReference(src, identity, ds);
+  AddReferencedImageSeries(referenced, ds);
+  return SaveFileAtomically(file, path);
+}
+
+}  // namespace interslice
