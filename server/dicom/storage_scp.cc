@@ -76,7 +76,11 @@ std::vector<std::string> AcceptedStorageSopClasses() {
           UID_LegacyConvertedEnhancedCTImageStorage,
           UID_MRImageStorage,
           UID_EnhancedMRImageStorage,
-          UID_LegacyConvertedEnhancedMRImageStorage};
+          UID_LegacyConvertedEnhancedMRImageStorage,
+          // Segmentations drawn on a series held in the spool: rules with
+          // `fill` make fill jobs of them (series_assembler.h).
+          UID_SegmentationStorage,
+          UID_RTStructureSetStorage};
 }
 
 struct StorageScp::Impl {
