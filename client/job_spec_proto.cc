@@ -102,7 +102,8 @@ v1::JobSpec FillJobSpecToProto(const FillJobSpec& spec,
       break;
   }
   p.set_max_iterations(spec.fill.solver.max_iterations);
-  if (spec.fill.solver.tolerance > 0) p.set_tolerance(spec.fill.solver.tolerance);
+  if (spec.fill.solver.tolerance > 0)
+    p.set_tolerance(spec.fill.solver.tolerance);
   p.set_energy_units(spec.fill.solver.units == EnergyUnits::kMillimetre
                          ? v1::ENERGY_UNITS_MILLIMETRE
                          : v1::ENERGY_UNITS_VOXEL);

@@ -333,7 +333,8 @@ absl::StatusOr<v1::UploadHeader> PrepareUpload(const RunArguments& args,
 
 // One Interpolate call: uploads `files` after `header`, writes the artifacts
 // to `out` and the report to `report` (if not empty).
-int InterpolateCall(const Connection& connection, const v1::UploadHeader& header,
+int InterpolateCall(const Connection& connection,
+                    const v1::UploadHeader& header,
                     const std::vector<LocalFile>& files, const std::string& out,
                     const std::string& report, bool quiet,
                     double deadline_seconds) {
@@ -427,9 +428,9 @@ int RunFillRemote(const Connection& connection, const FillArguments& args,
   if (!reference.ok()) return Fail(std::string(reference.status().message()));
   const fs::path segmentation = fs::weakly_canonical(spec->segmentation, ec);
   std::vector<LocalFile> files;
-  files.push_back({spec->segmentation,
-                   fs::path(spec->segmentation).filename().string(),
-                   static_cast<int64_t>(fs::file_size(spec->segmentation, ec))});
+  files.push_back(
+      {spec->segmentation, fs::path(spec->segmentation).filename().string(),
+       static_cast<int64_t>(fs::file_size(spec->segmentation, ec))});
   for (LocalFile& f : *reference) {
     // A segmentation kept in the series' folder is not part of the series.
     if (fs::weakly_canonical(f.path, ec) == segmentation) continue;

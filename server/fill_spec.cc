@@ -211,8 +211,8 @@ absl::Status SetFillInputs(const std::string& upload_dir, FillJobSpec* spec) {
   }
   std::sort(spec->reference.begin(), spec->reference.end());
   spec->segmentation.clear();
-  for (const auto& entry : fs::directory_iterator(
-           fs::path(upload_dir) / kSegmentationFolder, ec)) {
+  for (const auto& entry :
+       fs::directory_iterator(fs::path(upload_dir) / kSegmentationFolder, ec)) {
     if (entry.is_regular_file(ec)) spec->segmentation = entry.path().string();
   }
   if (spec->segmentation.empty()) {
@@ -242,7 +242,8 @@ absl::StatusOr<std::string> RunFillJobInSpool(const v1::JobSpec& proto,
 }
 
 absl::StatusOr<FillReportSummary> SummarizeFillReport(const std::string& json) {
-  nlohmann::ordered_json j = nlohmann::ordered_json::parse(json, nullptr, false);
+  nlohmann::ordered_json j =
+      nlohmann::ordered_json::parse(json, nullptr, false);
   const auto bad = [] {
     return absl::InternalError("a fill job's report is not what it should be");
   };

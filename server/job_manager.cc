@@ -995,7 +995,8 @@ void JobManager::RunOne(const std::shared_ptr<Job>& job) {
     }
     if (hashed.ok()) {
       spool_->Add(result_bytes);
-      const std::string json = fill ? fill_report_json : JobReportToJson(*report);
+      const std::string json =
+          fill ? fill_report_json : JobReportToJson(*report);
       // One delivery per destination, of every DICOM file the job wrote.
       std::vector<std::string> dicom_files;
       std::vector<v1::Delivery> deliveries;

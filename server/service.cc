@@ -164,7 +164,8 @@ class UploadSink {
     // reader's error messages quote file names.
     char name[32];
     std::snprintf(name, sizeof(name), "%06d.dcm", index);
-    std::string path = (fs::path(spool_->UploadDir(job_->id())) / name).string();
+    std::string path =
+        (fs::path(spool_->UploadDir(job_->id())) / name).string();
     // A fill job's segmentation goes where server/fill_spec.h expects it, out
     // of the reference series' folder level.
     const v1::JobSpec& spec = stream_.header().spec();

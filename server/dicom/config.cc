@@ -288,7 +288,8 @@ absl::StatusOr<RuleMatch> ParseMatch(const YAML::Node& node,
 // command line's own validation) -> the wire spec.
 absl::StatusOr<v1::JobSpec> ParseJob(const YAML::Node& node,
                                      const Context& ctx) {
-  if (!node) return ctx.Error("job",
+  if (!node)
+    return ctx.Error("job",
                      "missing (every rule needs a job, or a fill for "
                      "segmentations)");
   if (!node.IsMap()) {
@@ -410,6 +411,11 @@ absl::StatusOr<v1::JobSpec> ParseFill(const YAML::Node& node,
   v1::LabelFill* fill = spec.mutable_fill();
   // The server names the received segmentation itself.
   fill->set_segmentation_file("segmentation.dcm");
+  // Outputs: as `interslice fill` (labels.nii.gz and one STL per label)
+  // unless given.
+  v1::OutputSelection* outputs = spec.mutable_outputs();
+  outputs->add_volume_formats(v1::VOLUME_FORMAT_NIFTI);
+  outputs->add_mesh_formats(v1::MESH_FORMAT_STL);
   if (node.IsNull()) return spec;  // `fill:` alone: every default
   if (!node.IsMap()) {
     return ctx.Error("fill",
@@ -437,8 +443,8 @@ absl::StatusOr<v1::JobSpec> ParseFill(const YAML::Node& node,
     return absl::OkStatus();
   };
   std::vector<int64_t> labels, key_slices;
-  for (absl::Status st : {integers("labels", &labels),
-                          integers("key_slices", &key_slices)}) {
+  for (absl::Status st :
+       {integers("labels", &labels), integers("key_slices", &key_slices)}) {
     if (!st.ok()) return st;
   }
   for (int64_t label : labels) {
@@ -495,11 +501,6 @@ absl::StatusOr<v1::JobSpec> ParseFill(const YAML::Node& node,
     if (k == "band") spec.set_band_radius_mm(*v);
     if (k == "adaptivity") spec.set_mesh_adaptivity(*v);
   }
-  // Outputs: as `interslice fill` (labels.nii.gz and one STL per label)
-  // unless given.
-  v1::OutputSelection* outputs = spec.mutable_outputs();
-  outputs->add_volume_formats(v1::VOLUME_FORMAT_NIFTI);
-  outputs->add_mesh_formats(v1::MESH_FORMAT_STL);
   for (const char* key : {"mesh", "volume"}) {
     if (!node[key]) continue;
     const std::string field = absl::StrCat("fill.", key);
@@ -733,9 +734,9 @@ absl::StatusOr<RuleSet> LoadRulesFile(const std::string& path,
       return ctx.Error("",
                        absl::StrCat("expected a mapping, got ", KindName(r)));
     }
-    keys = CheckKeys(r, ctx, "",
-                     {"name", "match", "job", "fill", "send_to",
-                      "complete_on_release"});
+    keys = CheckKeys(
+        r, ctx, "",
+        {"name", "match", "job", "fill", "send_to", "complete_on_release"});
     if (!keys.ok()) return keys;
     if (r["name"]) {
       if (!r["name"].IsScalar()) {

@@ -115,16 +115,16 @@ std::optional<SegmentationRef> ReadSegmentationRef(const std::string& dir) {
       if (ds->findAndGetSequenceItem(DCM_ReferencedFrameOfReferenceSequence,
                                      frame, 0)
               .good() &&
-          frame->findAndGetSequenceItem(DCM_RTReferencedStudySequence, study,
-                                        0)
+          frame->findAndGetSequenceItem(DCM_RTReferencedStudySequence, study, 0)
               .good()) {
         const std::string referenced =
             GetString(study, DCM_ReferencedSOPInstanceUID);
         if (!referenced.empty() && referenced != own_study) {
           ref.study_uids.push_back(referenced);
         }
-        if (study->findAndGetSequenceItem(DCM_RTReferencedSeriesSequence,
-                                          series, 0)
+        if (study
+                ->findAndGetSequenceItem(DCM_RTReferencedSeriesSequence, series,
+                                         0)
                 .good()) {
           ref.series_uid = GetString(series, DCM_SeriesInstanceUID);
         }
@@ -553,7 +553,18 @@ void SeriesAssembler::Complete(const std::string& key, const Pending& p,
         LogSafe(rule->name), from, LogSafe(job.status().message()));
     return;
   }
-  fs::remove_all(dir, ec);
+  const bool fill_rules =
+      std::any_of(rules_.rules.begin(), rules_.rules.end(),
+                  [](const Rule& r) { return r.job.has_fill(); });
+  if (fill_rules) {
+    // A segmentation drawn on this series may follow: held (with the
+    // unmatched series, for the retention time), counted in the quota
+    // again although the job's copy shares its disk blocks.
+    if (spool_ != nullptr) spool_->Add(p.bytes);
+    KeepUnmatched(key, dir);
+  } else {
+    fs::remove_all(dir, ec);
+  }
   if (metrics_ != nullptr) metrics_->DicomEvent("jobs_created");
   spdlog::info(
       "dicom: job={} made by rule {} for a series from {} ({} "
@@ -644,8 +655,8 @@ void SeriesAssembler::CompleteFill(const std::string& key, const Pending& p,
           pending ? " (still being received)" : " (not received yet)");
     }
     const auto waited = now - *again.waiting_since;
-    if (waited < std::chrono::duration<double>(
-                     options_.unmatched_retention_seconds)) {
+    if (waited <
+        std::chrono::duration<double>(options_.unmatched_retention_seconds)) {
       PutBack(key, again, dir);
       return;
     }

@@ -31,16 +31,16 @@
 // ReferencedFrameOfReferenceSequence > RTReferencedStudySequence >
 // RTReferencedSeriesSequence), received by the same called AE in the same
 // study, must be held in the spool:
-//   - in unmatched/ (complete, no rule matched it; the newest copy): the fill
-//     job is made on it at once (its files hard-linked; the folder stays for
-//     other segmentations until its retention ends);
+//   - in unmatched/ (complete and no rule matched it, or, when the rule set
+//     has fill rules, complete and its job made: such series are kept there
+//     too; the newest copy): the fill job is made on it at once (its files
+//     hard-linked; the folder stays for other segmentations until its
+//     retention ends);
 //   - still in series/ (not complete yet), or not received (yet): the
 //     segmentation waits in series/, tried again after every stable wait,
 //     until it has waited unmatched_retention_seconds; then it goes to
 //     unmatched/ (logged). The wait starts over after a restart.
-// A series that matched a job rule is consumed by its job and is not held:
-// a segmentation drawn on it waits in vain. Give such series no job rule,
-// or send them again.
+// Without fill rules, a series whose job was made is deleted at once.
 //
 // Logs name AE titles, rule names, counts and the rule set file, never
 // patient data or UIDs.

@@ -120,8 +120,8 @@ std::vector<UploadFile> SeriesFiles(const std::string& dir) {
   std::vector<UploadFile> files;
   for (const auto& e : fs::directory_iterator(dir)) {
     if (e.path().extension() == ".dcm") {
-      files.push_back({e.path().string(),
-                       "series/" + e.path().filename().string()});
+      files.push_back(
+          {e.path().string(), "series/" + e.path().filename().string()});
     }
   }
   std::sort(files.begin(), files.end(),
@@ -258,11 +258,11 @@ TEST(FillServerTest, LabelMapFilledByTheServerEqualsInProcess) {
   ServerProcess server(dir);
 
   // One call: `interslice fill --server` writes the same files.
-  CommandResult r = Cli(Cat({"fill", labels, "--reference", kSeries, "--method",
-                             "direct", "--volume", "nii,nrrd", "--mesh", "stl",
-                             "--out", dir / "remote", "--report",
-                             dir / "remote.json"},
-                            server.Server()));
+  CommandResult r =
+      Cli(Cat({"fill", labels, "--reference", kSeries, "--method", "direct",
+               "--volume", "nii,nrrd", "--mesh", "stl", "--out", dir / "remote",
+               "--report", dir / "remote.json"},
+              server.Server()));
   ASSERT_EQ(r.exit_code, 0) << r.err << server.Log();
   ExpectSameResults(dir / "local", dir / "remote");
   // The report is `interslice fill --report`'s, paths in the output folder.
@@ -294,7 +294,8 @@ TEST(FillServerTest, LabelMapFilledByTheServerEqualsInProcess) {
   ASSERT_EQ(status.state(), v1::JOB_STATE_SUCCEEDED)
       << status.error_message() << server.Log();
   std::vector<std::string> kinds;
-  for (const v1::ArtifactInfo& a : status.artifacts()) kinds.push_back(a.kind());
+  for (const v1::ArtifactInfo& a : status.artifacts())
+    kinds.push_back(a.kind());
   EXPECT_THAT(kinds, ::testing::Contains("labels"));
   EXPECT_THAT(kinds, ::testing::Contains("surface"));
   r = Cli(Cat({"fetch", id, "--out", dir / "fetched"}, server.Server()));
@@ -306,10 +307,10 @@ TEST(FillServerTest, LabelMapFilledByTheServerEqualsInProcess) {
 // uploaded with the series it references, every 5th slice a key slice.
 TEST(FillServerTest, DicomSegFilledByTheServerEqualsInProcess) {
   TempDir dir;
-  CommandResult r = Cli({"run", kSeries, "--threshold", "300", "--roi",
-                         "200,40,0,296,136,4", "--method", "direct", "--factor",
-                         "5", "--seg", "--volume", "nrrd", "--mesh", "none",
-                         "--quiet", "--out", dir / "run"});
+  CommandResult r =
+      Cli({"run", kSeries, "--threshold", "300", "--roi", "200,40,0,296,136,4",
+           "--method", "direct", "--factor", "5", "--seg", "--volume", "nrrd",
+           "--mesh", "none", "--quiet", "--out", dir / "run"});
   ASSERT_EQ(r.exit_code, 0) << r.err;
   const std::string seg = dir / "run/seg.dcm";
   const std::string reference = dir / "run/series-intensity";
@@ -382,16 +383,16 @@ TEST(FillServerTest, BadFillSpecsAreRefusedWithTheReason) {
   {
     v1::JobSpec s = good;
     s.set_threshold(300);
-    cases.push_back({"threshold", s, files,
-                     "spec.threshold is not used by fill jobs"});
+    cases.push_back(
+        {"threshold", s, files, "spec.threshold is not used by fill jobs"});
   }
   {
     v1::JobSpec s = good;
     s.set_method(v1::SOLVER_METHOD_MORPH);
     cases.push_back({"morph", s, files, "MORPH is not available"});
   }
-  cases.push_back({"segmentation only", good, {files.back()},
-                   "file_count must be >= 2"});
+  cases.push_back(
+      {"segmentation only", good, {files.back()}, "file_count must be >= 2"});
   {
     // Two files under the segmentation's name.
     std::vector<UploadFile> twice = files;
@@ -409,10 +410,9 @@ TEST(FillServerTest, BadFillSpecsAreRefusedWithTheReason) {
 
   // Accepted, but label 9 is not drawn: the job fails naming it, and the
   // client says so in one line.
-  CommandResult r =
-      Cli(Cat({"fill", labels, "--reference", kSeries, "--labels", "1,9",
-               "--mesh", "none", "--out", dir / "out"},
-              server.Server()));
+  CommandResult r = Cli(Cat({"fill", labels, "--reference", kSeries, "--labels",
+                             "1,9", "--mesh", "none", "--out", dir / "out"},
+                            server.Server()));
   EXPECT_EQ(r.exit_code, 1);
   EXPECT_THAT(r.err, HasSubstr("9"));
   EXPECT_THAT(r.err, HasSubstr("interslice: error:"));

@@ -10,10 +10,10 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
 #include <filesystem>
 #include <fstream>
-#include <algorithm>
 #include <functional>
 #include <sstream>
 #include <thread>
@@ -641,16 +641,17 @@ class DicomFillTest : public ::testing::Test {
   // A 16-slice series and a binary SEG drawn on it (`interslice run --seg`
   // on a region of tests/data/ct-thick), and the in-process fill of it.
   void SetUp() override {
-    const std::string small = std::string(INTERSLICE_SOURCE_DIR) +
-                              "/tests/data/ct-thick";
-    CommandResult run = RunCommand(
-        {kCli, "run", small, "--threshold", "300", "--roi",
-         "200,40,0,296,136,4", "--method", "direct", "--factor", "5", "--seg",
-         "--volume", "nrrd", "--mesh", "none", "--quiet", "--out",
-         dir_ / "run"},
-        300);
+    const std::string small =
+        std::string(INTERSLICE_SOURCE_DIR) + "/tests/data/ct-thick";
+    CommandResult run =
+        RunCommand({kCli, "run", small, "--threshold", "300", "--roi",
+                    "200,40,0,296,136,4", "--method", "direct", "--factor", "5",
+                    "--seg", "--volume", "nrrd", "--mesh", "none", "--quiet",
+                    "--out", dir_ / "run"},
+                   300);
     ASSERT_EQ(run.exit_code, 0) << run.err;
-    for (const auto& e : fs::directory_iterator(dir_ / "run/series-intensity")) {
+    for (const auto& e :
+         fs::directory_iterator(dir_ / "run/series-intensity")) {
       series_.push_back(e.path().string());
     }
     std::sort(series_.begin(), series_.end());
@@ -659,8 +660,7 @@ class DicomFillTest : public ::testing::Test {
     CommandResult local = RunCommand(
         {kCli, "fill", seg_, "--reference", dir_ / "run/series-intensity",
          "--key-slices", "0-15:5", "--method", "direct", "--volume", "nrrd",
-         "--mesh", "stl", "--threads", "1", "--quiet", "--out",
-         dir_ / "local"},
+         "--mesh", "stl", "--threads", "1", "--quiet", "--out", dir_ / "local"},
         300);
     ASSERT_EQ(local.exit_code, 0) << local.err;
   }
@@ -695,10 +695,10 @@ class DicomFillTest : public ::testing::Test {
     CommandResult watch = RunCommand(
         Cat({kCli, "watch", jobs[0], "--quiet"}, server.Client()), 300);
     ASSERT_EQ(watch.exit_code, 0) << watch.err << server.Log();
-    CommandResult fetch = RunCommand(
-        Cat({kCli, "fetch", jobs[0], "--out", dir_ / "remote"},
-            server.Client()),
-        120);
+    CommandResult fetch =
+        RunCommand(Cat({kCli, "fetch", jobs[0], "--out", dir_ / "remote"},
+                       server.Client()),
+                   120);
     ASSERT_EQ(fetch.exit_code, 0) << fetch.err;
     int compared = 0;
     for (const auto& e : fs::directory_iterator(dir_ / "local")) {
@@ -724,41 +724,86 @@ class DicomFillTest : public ::testing::Test {
 };
 
 TEST_F(DicomFillTest, SegAfterItsSeriesMakesTheFillJob) {
-  DicomServer server(dir_, "spool",
-                     {"--dicom-peers", WritePeers(dir_), "--rules",
-                      WriteFillRules()});
+  DicomServer server(
+      dir_, "spool",
+      {"--dicom-peers", WritePeers(dir_), "--rules", WriteFillRules()});
   ASSERT_TRUE(server.up()) << server.Log();
   CommandResult store = StoreScu(server, {}, series_);
   ASSERT_EQ(store.exit_code, 0) << store.err;
   // No rule takes the CT series: it is held (unmatched) for the retention.
   ASSERT_TRUE(WaitUntil([&] { return server.PendingInstances() == 0; }, 30));
   ASSERT_TRUE(WaitUntil(
-      [&] { return server.Log().find("no rule of rule set") !=
-                   std::string::npos; },
+      [&] {
+        return server.Log().find("no rule of rule set") != std::string::npos;
+      },
       30))
       << server.Log();
   EXPECT_TRUE(server.Jobs().empty());
-  store = StoreScu(server, {}, {seg_});
+  // -R: propose only the SEG's own SOP class (storescu's default list
+  // has no SEG).
+  store = StoreScu(server, {"-R"}, {seg_});
   ASSERT_EQ(store.exit_code, 0) << store.err << server.Log();
   ExpectFillJob(server);
 }
 
 TEST_F(DicomFillTest, SegBeforeItsSeriesWaitsForIt) {
-  DicomServer server(dir_, "spool",
-                     {"--dicom-peers", WritePeers(dir_), "--rules",
-                      WriteFillRules()});
+  DicomServer server(
+      dir_, "spool",
+      {"--dicom-peers", WritePeers(dir_), "--rules", WriteFillRules()});
   ASSERT_TRUE(server.up()) << server.Log();
-  CommandResult store = StoreScu(server, {}, {seg_});
+  CommandResult store = StoreScu(server, {"-R"}, {seg_});
   ASSERT_EQ(store.exit_code, 0) << store.err;
   ASSERT_TRUE(WaitUntil(
-      [&] { return server.Log().find("waits for the series it references") !=
-                   std::string::npos; },
+      [&] {
+        return server.Log().find("waits for the series it references") !=
+               std::string::npos;
+      },
       30))
       << server.Log();
   EXPECT_TRUE(server.Jobs().empty());
   store = StoreScu(server, {}, series_);
   ASSERT_EQ(store.exit_code, 0) << store.err;
   ExpectFillJob(server);
+}
+
+// With fill rules, a series whose own job was made is held too: a SEG drawn
+// on it still makes its fill job.
+TEST_F(DicomFillTest, SeriesTakenByAJobRuleIsStillHeldForItsSeg) {
+  const std::string rules = dir_ / "both-rules.yaml";
+  WriteFile(rules,
+            "stable_seconds: 1\n"
+            "rules:\n"
+            "  - name: ct\n"
+            "    match: {modality: CT}\n"
+            "    job: {threshold: 300, mesh: none, volume: [nii]}\n"
+            "  - name: fill-seg\n"
+            "    match: {modality: SEG}\n"
+            "    fill: {key_slices: [0, 5, 10, 15], method: direct, "
+            "volume: [nrrd], mesh: [stl]}\n");
+  DicomServer server(dir_, "spool",
+                     {"--dicom-peers", WritePeers(dir_), "--rules", rules});
+  ASSERT_TRUE(server.up()) << server.Log();
+  CommandResult store = StoreScu(server, {}, series_);
+  ASSERT_EQ(store.exit_code, 0) << store.err;
+  ASSERT_TRUE(WaitUntil([&] { return server.Jobs().size() == 1; }, 60))
+      << server.Log();
+  store = StoreScu(server, {"-R"}, {seg_});
+  ASSERT_EQ(store.exit_code, 0) << store.err << server.Log();
+  std::vector<std::string> jobs;
+  ASSERT_TRUE(WaitUntil(
+      [&] {
+        jobs = server.Jobs();
+        return jobs.size() == 2;
+      },
+      60))
+      << server.Log();
+  for (const std::string& id : jobs) {
+    CommandResult watch =
+        RunCommand(Cat({kCli, "watch", id, "--quiet"}, server.Client()), 300);
+    EXPECT_EQ(watch.exit_code, 0) << watch.err << server.Log();
+  }
+  EXPECT_THAT(server.Log(), HasSubstr("(fill) made by rule fill-seg"));
+  EXPECT_THAT(server.Log(), HasSubstr("made by rule ct "));
 }
 
 }  // namespace
