@@ -28,12 +28,14 @@ int RunCli(int argc, char** argv) {
   FillArguments fill_args;
   CLI::App* fill = app.add_subcommand(
       "fill",
-      "Fill a segmentation (label map) between its key slices for every "
-      "label, in this process");
+      "Fill a segmentation (label map, DICOM SEG or RTSTRUCT) between its "
+      "key slices for every label, in this process (or on a server with "
+      "--server)");
   AddFillOptions(*fill, fill_args);
 #ifdef INTERSLICE_WITH_SERVER
   RemoteCommands remote;
   remote.Register(app);
+  remote.RegisterFill(*fill, fill_args);
 #endif
 
   // CLI11 reports an unknown command only as "a subcommand is required".
@@ -65,6 +67,9 @@ int RunCli(int argc, char** argv) {
     return 1;
   }
   if (run->parsed()) return ExecuteRun(run_args);
+#ifdef INTERSLICE_WITH_SERVER
+  if (const int rc = remote.ExecuteFill(); rc >= 0) return rc;
+#endif
   if (fill->parsed()) return ExecuteFill(fill_args);
 #ifdef INTERSLICE_WITH_SERVER
   if (const int rc = remote.Execute(); rc >= 0) return rc;

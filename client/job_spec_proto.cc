@@ -75,4 +75,56 @@ v1::JobSpec JobSpecToProto(const JobSpec& spec) {
   return p;
 }
 
+v1::JobSpec FillJobSpecToProto(const FillJobSpec& spec,
+                               const std::string& segmentation_file) {
+  v1::JobSpec p;
+  p.set_series_instance_uid(spec.series_instance_uid);
+  v1::LabelFill* fill = p.mutable_fill();
+  fill->set_segmentation_file(segmentation_file);
+  for (int label : spec.fill.labels) fill->add_labels(label);
+  if (spec.fill.key_slices.has_value()) {
+    for (int64_t k : *spec.fill.key_slices) fill->add_key_slices(k);
+  }
+  if (spec.fill.band_radius_mm > 0) {
+    p.set_band_radius_mm(spec.fill.band_radius_mm);
+  }
+  if (spec.fill.z_resolution.factor.has_value()) {
+    p.set_insertion_factor(*spec.fill.z_resolution.factor);
+  } else if (spec.fill.z_resolution.spacing_mm.has_value()) {
+    p.set_slice_spacing_mm(*spec.fill.z_resolution.spacing_mm);
+  }
+  switch (spec.fill.solver.method) {
+    case SolverMethod::kLinear:
+      p.set_method(v1::SOLVER_METHOD_LINEAR);
+      break;
+    case SolverMethod::kConjugateGradient:
+      p.set_method(v1::SOLVER_METHOD_CONJUGATE_GRADIENT);
+      break;
+    case SolverMethod::kDirect:
+      p.set_method(v1::SOLVER_METHOD_DIRECT);
+      break;
+    case SolverMethod::kMorph:
+      p.set_method(v1::SOLVER_METHOD_MORPH);  // the server refuses it
+      break;
+  }
+  p.set_max_iterations(spec.fill.solver.max_iterations);
+  if (spec.fill.solver.tolerance > 0)
+    p.set_tolerance(spec.fill.solver.tolerance);
+  p.set_energy_units(spec.fill.solver.units == EnergyUnits::kMillimetre
+                         ? v1::ENERGY_UNITS_MILLIMETRE
+                         : v1::ENERGY_UNITS_VOXEL);
+  p.set_mesh_adaptivity(spec.mesh_adaptivity);
+  v1::OutputSelection* outputs = p.mutable_outputs();
+  for (const std::string& f : spec.volume_formats) {
+    outputs->add_volume_formats(f == "nrrd" ? v1::VOLUME_FORMAT_NRRD
+                                            : v1::VOLUME_FORMAT_NIFTI);
+  }
+  for (const std::string& f : spec.mesh_formats) {
+    outputs->add_mesh_formats(f == "ply"   ? v1::MESH_FORMAT_PLY
+                              : f == "obj" ? v1::MESH_FORMAT_OBJ
+                                           : v1::MESH_FORMAT_STL);
+  }
+  return p;
+}
+
 }  // namespace interslice::client

@@ -15,6 +15,7 @@
 #include "CLI/CLI.hpp"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "client/fill_command.h"
 #include "client/job_spec_proto.h"
 #include "client/progress_display.h"
 #include "grpc/health/v1/health.grpc.pb.h"
@@ -330,23 +331,25 @@ absl::StatusOr<v1::UploadHeader> PrepareUpload(const RunArguments& args,
   return header;
 }
 
-int RunInterpolate(const Connection& connection, const RunArguments& args,
-                   double deadline_seconds) {
-  std::vector<LocalFile> files;
-  absl::StatusOr<v1::UploadHeader> header = PrepareUpload(args, 0, "", &files);
-  if (!header.ok()) return Fail(std::string(header.status().message()));
+// One Interpolate call: uploads `files` after `header`, writes the artifacts
+// to `out` and the report to `report` (if not empty).
+int InterpolateCall(const Connection& connection,
+                    const v1::UploadHeader& header,
+                    const std::vector<LocalFile>& files, const std::string& out,
+                    const std::string& report, bool quiet,
+                    double deadline_seconds) {
   std::error_code ec;
-  fs::create_directories(args.out, ec);
-  if (ec) return Fail("cannot create output folder " + args.out);
+  fs::create_directories(out, ec);
+  if (ec) return Fail("cannot create output folder " + out);
 
   auto stub = v1::InterSlice::NewStub(connection.channel());
   grpc::ClientContext context;
   connection.Authorize(context);
   if (deadline_seconds > 0) SetTimeout(context, deadline_seconds);
   auto stream = stub->Interpolate(&context);
-  if (Upload(*stream, *header, files)) stream->WritesDone();
+  if (Upload(*stream, header, files)) stream->WritesDone();
 
-  ProgressDisplay display(stderr, !args.quiet);
+  ProgressDisplay display(stderr, !quiet);
   v1::InterpolateResponse response;
   ArtifactFile artifact;
   absl::Status local = absl::OkStatus();
@@ -362,7 +365,7 @@ int RunInterpolate(const Connection& connection, const RunArguments& args,
       const v1::ArtifactChunk& chunk = response.artifact();
       if (chunk.has_info()) {
         if (artifact.open()) local = artifact.Commit();
-        if (local.ok()) local = artifact.Begin(args.out, chunk.info(), 0);
+        if (local.ok()) local = artifact.Begin(out, chunk.info(), 0);
       }
       if (local.ok()) local = artifact.Append(chunk.data());
     } else if (response.has_summary()) {
@@ -380,24 +383,68 @@ int RunInterpolate(const Connection& connection, const RunArguments& args,
     return Fail(DescribeRpcError(status, connection.address()));
   }
   if (!have_summary) return Fail("the server ended the call without a summary");
-  if (!args.report.empty()) {
-    if (absl::Status s =
-            WriteReport(summary.report_json(), args.out, args.report);
+  if (!report.empty()) {
+    if (absl::Status s = WriteReport(summary.report_json(), out, report);
         !s.ok()) {
       return Fail(std::string(s.message()));
     }
   }
-  if (!args.quiet) {
+  if (!quiet) {
     std::printf("interslice: wrote %d file(s) to %s (job %s on %s)\n",
-                summary.artifacts_size(), args.out.c_str(), job_id.c_str(),
+                summary.artifacts_size(), out.c_str(), job_id.c_str(),
                 connection.address().c_str());
     for (const v1::ArtifactInfo& a : summary.artifacts()) {
       std::printf("  %-9s %s (%lld bytes)\n", a.kind().c_str(),
-                  (fs::path(args.out) / a.name()).string().c_str(),
+                  (fs::path(out) / a.name()).string().c_str(),
                   static_cast<long long>(a.size_bytes()));
     }
   }
   return 0;
+}
+
+int RunInterpolate(const Connection& connection, const RunArguments& args,
+                   double deadline_seconds) {
+  std::vector<LocalFile> files;
+  absl::StatusOr<v1::UploadHeader> header = PrepareUpload(args, 0, "", &files);
+  if (!header.ok()) return Fail(std::string(header.status().message()));
+  return InterpolateCall(connection, *header, files, args.out, args.report,
+                         args.quiet, deadline_seconds);
+}
+
+// `interslice fill --server`: the segmentation (uploaded under its own file
+// name, which spec.fill.segmentation_file names) and the reference series'
+// files (under "series/<relative path>", so no name can equal the
+// segmentation's), in one Interpolate call.
+int RunFillRemote(const Connection& connection, const FillArguments& args,
+                  double deadline_seconds) {
+  absl::StatusOr<FillJobSpec> spec = BuildFillJobSpec(args);
+  if (!spec.ok()) return Fail(std::string(spec.status().message()));
+  std::error_code ec;
+  if (!fs::is_regular_file(spec->segmentation, ec)) {
+    return Fail("no such segmentation file: " + spec->segmentation);
+  }
+  absl::StatusOr<std::vector<LocalFile>> reference =
+      CollectFiles(spec->reference);
+  if (!reference.ok()) return Fail(std::string(reference.status().message()));
+  const fs::path segmentation = fs::weakly_canonical(spec->segmentation, ec);
+  std::vector<LocalFile> files;
+  files.push_back(
+      {spec->segmentation, fs::path(spec->segmentation).filename().string(),
+       static_cast<int64_t>(fs::file_size(spec->segmentation, ec))});
+  for (LocalFile& f : *reference) {
+    // A segmentation kept in the series' folder is not part of the series.
+    if (fs::weakly_canonical(f.path, ec) == segmentation) continue;
+    f.name = "series/" + f.name;
+    files.push_back(std::move(f));
+  }
+  v1::UploadHeader header;
+  *header.mutable_spec() = FillJobSpecToProto(*spec, files.front().name);
+  header.set_file_count(static_cast<int>(files.size()));
+  int64_t total = 0;
+  for (const LocalFile& f : files) total += f.size;
+  header.set_total_bytes(total);
+  return InterpolateCall(connection, header, files, args.out, args.report,
+                         args.quiet, deadline_seconds);
 }
 
 int RunSubmit(const Connection& connection, const RunArguments& args,
@@ -812,6 +859,26 @@ void RemoteCommands::Register(CLI::App& app) {
   health_ = app.add_subcommand(
       "health", "Check the server's health (exit 0 only when SERVING)");
   AddConnectionOptions(*health_, connection_);
+}
+
+void RemoteCommands::RegisterFill(CLI::App& fill, FillArguments& args) {
+  fill_ = &fill;
+  fill_args_ = &args;
+  AddConnectionOptions(fill, connection_);
+  fill.add_option("--deadline", deadline_seconds_,
+                  "With --server: give up (and cancel the job) after this "
+                  "many seconds");
+}
+
+int RemoteCommands::ExecuteFill() {
+  if (fill_ == nullptr || !fill_->parsed() ||
+      fill_->get_option("--server")->count() == 0) {
+    return -1;
+  }
+  if (deadline_seconds_ < 0) return Fail("--deadline must be >= 0");
+  absl::StatusOr<Connection> connection = Connection::Open(connection_);
+  if (!connection.ok()) return Fail(std::string(connection.status().message()));
+  return RunFillRemote(*connection, *fill_args_, deadline_seconds_);
 }
 
 int RemoteCommands::Execute() {

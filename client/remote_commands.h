@@ -6,6 +6,7 @@
 
 #include <string>
 
+#include "client/fill_command.h"
 #include "client/grpc_channel.h"
 #include "client/run_command.h"
 
@@ -21,6 +22,14 @@ class RemoteCommands {
   void Register(CLI::App& app);
   // The exit code of the command that was parsed, or -1 if none of these.
   int Execute();
+  // Adds --server (and the other connection options) and --deadline to
+  // `fill`: with --server the fill runs on that server (one Interpolate
+  // call) and writes the same files as in-process. `fill` and `args` must
+  // outlive this object's use.
+  void RegisterFill(CLI::App& fill, FillArguments& args);
+  // The exit code of a `fill` given --server, or -1 (not parsed, or no
+  // --server: the caller runs it in-process).
+  int ExecuteFill();
 
  private:
   ConnectionOptions connection_;
@@ -41,6 +50,8 @@ class RemoteCommands {
   CLI::App* list_ = nullptr;
   CLI::App* info_ = nullptr;
   CLI::App* health_ = nullptr;
+  CLI::App* fill_ = nullptr;
+  FillArguments* fill_args_ = nullptr;
 };
 
 // Whether an artifact name sent by a server is safe to use as a local path:

@@ -11,6 +11,7 @@
 #include "core/pipeline/pipeline.h"
 #include "server/dicom/delivery.h"
 #include "server/dicom/retrieve.h"
+#include "server/fill_spec.h"
 #include "server/hashing.h"
 #include "server/log_safe.h"
 #include "server/spec_mapping.h"
@@ -276,7 +277,21 @@ absl::StatusOr<std::shared_ptr<Job>> JobManager::Admit(
                      " bytes) exceeds the server's spool quota of ",
                      spool_->quota_bytes(), " bytes")));
   }
-  absl::StatusOr<JobSpec> spec = JobSpecFromProto(header.spec());
+  const bool fill = IsFillJob(header.spec());
+  absl::StatusOr<JobSpec> spec = JobSpec();
+  if (fill) {
+    absl::StatusOr<FillJobSpec> fill_spec = FillJobSpecFromProto(header.spec());
+    if (!fill_spec.ok()) return reject(fill_spec.status());
+    // The segmentation and at least one file of its reference series.
+    if (header.file_count() < 2) {
+      return reject(absl::InvalidArgumentError(absl::StrCat(
+          "a fill job uploads its segmentation and the reference series' "
+          "files: file_count must be >= 2 (got ",
+          header.file_count(), ")")));
+    }
+  } else {
+    spec = JobSpecFromProto(header.spec());
+  }
   if (!spec.ok()) return reject(spec.status());
   if (!header.spec().send_to().empty()) {
     if (deliveries_ == nullptr) {
@@ -289,7 +304,9 @@ absl::StatusOr<std::shared_ptr<Job>> JobManager::Admit(
     if (absl::Status s = deliveries_->CheckPeers(names); !s.ok()) {
       return reject(s);
     }
-    if (spec->output_series.empty() && !spec->write_seg) {
+    // A fill job's DICOM results (*.dcm artifacts, when it writes any) are
+    // delivered; one that writes none makes a delivery of 0 instances.
+    if (!fill && spec->output_series.empty() && !spec->write_seg) {
       return reject(absl::InvalidArgumentError(
           "spec.send_to needs DICOM results: ask for derived series "
           "(output_series) or a segmentation"));
@@ -408,10 +425,19 @@ absl::Status JobManager::Enqueue(const std::shared_ptr<Job>& job) {
 
 absl::StatusOr<std::string> JobManager::SubmitLocalFiles(
     const v1::JobSpec& spec, const std::string& files_dir,
-    const std::string& owner, const std::string& origin) {
+    const std::string& owner, const std::string& origin,
+    const std::string& segmentation_file) {
+  if (IsFillJob(spec) == segmentation_file.empty()) {
+    return absl::InvalidArgumentError(
+        "a fill job on received files needs exactly its segmentation file");
+  }
   std::vector<fs::path> files;
   int64_t bytes = 0;
   std::error_code ec;
+  if (!segmentation_file.empty()) {
+    bytes += static_cast<int64_t>(fs::file_size(segmentation_file, ec));
+    if (ec) return absl::InternalError("cannot read a received segmentation");
+  }
   for (const auto& entry : fs::directory_iterator(files_dir, ec)) {
     if (entry.path().extension() != ".dcm" || !entry.is_regular_file(ec)) {
       continue;
@@ -424,7 +450,8 @@ absl::StatusOr<std::string> JobManager::SubmitLocalFiles(
   }
   v1::UploadHeader header;
   *header.mutable_spec() = spec;
-  header.set_file_count(static_cast<int32_t>(files.size()));
+  header.set_file_count(static_cast<int32_t>(files.size()) +
+                        (segmentation_file.empty() ? 0 : 1));
   header.set_total_bytes(bytes);
   absl::StatusOr<std::shared_ptr<Job>> job =
       Admit(header, /*ephemeral=*/false, std::nullopt, owner);
@@ -440,6 +467,18 @@ absl::StatusOr<std::string> JobManager::SubmitLocalFiles(
       Abandon(*job);
       return absl::ResourceExhaustedError(
           "cannot place a received series into a job's upload folder");
+    }
+  }
+  if (!segmentation_file.empty()) {
+    const fs::path target =
+        fs::path(upload) / SegmentationUploadPath(segmentation_file);
+    fs::create_directories(target.parent_path(), ec);
+    if (!ec) fs::create_hard_link(segmentation_file, target, ec);
+    if (ec) fs::copy_file(segmentation_file, target, ec);
+    if (ec) {
+      Abandon(*job);
+      return absl::ResourceExhaustedError(
+          "cannot place a received segmentation into a job's upload folder");
     }
   }
   (*job)->Update(
@@ -732,9 +771,12 @@ void JobManager::WorkerLoop() {
 void JobManager::RunOne(const std::shared_ptr<Job>& job) {
   const std::string& id = job->id();
   absl::StatusOr<JobSpec> spec_or;
+  bool fill = false;
   {
     std::lock_guard<std::mutex> lock(job->mu_);
-    spec_or = JobSpecFromProto(job->record_.spec());
+    fill = IsFillJob(job->record_.spec());
+    // A fill job's spec is checked where it runs (RunFillJobInSpool).
+    spec_or = fill ? JobSpec() : JobSpecFromProto(job->record_.spec());
     job->started_ = std::chrono::steady_clock::now();
   }
   job->Update([](JobRecord& r) {
@@ -753,6 +795,9 @@ void JobManager::RunOne(const std::shared_ptr<Job>& job) {
 
   absl::StatusOr<JobReport> report =
       spec_or.ok() ? absl::InternalError("not run") : spec_or.status();
+  // Fill jobs: their report's JSON (FillJobReportToJson), summarized below
+  // into `report`'s stages and artifacts.
+  absl::StatusOr<std::string> fill_json = absl::InternalError("not run");
   // A series named on a DICOM peer is retrieved into the upload folder
   // first; then the job runs as if it had been uploaded.
   v1::PacsSeriesSource pacs_source;
@@ -802,6 +847,40 @@ void JobManager::RunOne(const std::shared_ptr<Job>& job) {
     absl::Status early = job->token_.Check();
     if (!early.ok()) {
       report = early;
+    } else if (fill) {
+      v1::JobSpec proto;
+      {
+        std::lock_guard<std::mutex> lock(job->mu_);
+        proto = job->record_.spec();
+      }
+      if (options_.isolate_jobs) {
+        spool::v1::WorkerRequest request;
+        *request.mutable_spec() = proto;
+        {
+          std::lock_guard<std::mutex> lock(job->mu_);
+          request.set_deadline_unix_ms(job->record_.deadline_unix_ms());
+        }
+        request.set_input_dir(spec.inputs.front());
+        request.set_output_dir(spec.output_dir);
+        request.set_max_output_voxels(spec.max_output_voxels);
+        request.set_threads(options_.threads_per_job);
+        request.set_server_pid(::getpid());
+        WorkerOutcome outcome;
+        fill_json =
+            RunInWorkerProcess(request, context, options_.worker, &outcome);
+        if (outcome.crashed) {
+          spdlog::error(
+              "job={} worker process crashed (signal {}) during stage {}; "
+              "the job failed, the server carries on",
+              id, outcome.signal,
+              outcome.last_stage.empty() ? "start" : outcome.last_stage);
+        }
+      } else {
+        fill_json =
+            RunFillJobInSpool(proto, spec.inputs.front(), spec.output_dir,
+                              spec.max_output_voxels, context);
+      }
+      if (!fill_json.ok()) report = fill_json.status();
     } else if (options_.isolate_jobs) {
       spool::v1::WorkerRequest request;
       {
@@ -827,6 +906,22 @@ void JobManager::RunOne(const std::shared_ptr<Job>& job) {
     } else {
       report = RunJob(spec, context);
       if (report.ok()) report->peak_rss_bytes = PeakRssBytes();
+    }
+  }
+
+  // A fill job's report becomes the stages and artifacts handled below; its
+  // own JSON is what clients get.
+  std::string fill_report_json;
+  if (fill && fill_json.ok()) {
+    absl::StatusOr<FillReportSummary> summary = SummarizeFillReport(*fill_json);
+    if (summary.ok()) {
+      JobReport r;
+      r.stages = std::move(summary->stages);
+      r.artifacts = std::move(summary->artifacts);
+      report = std::move(r);
+      fill_report_json = std::move(summary->report_json);
+    } else {
+      report = summary.status();
     }
   }
 
@@ -900,7 +995,8 @@ void JobManager::RunOne(const std::shared_ptr<Job>& job) {
     }
     if (hashed.ok()) {
       spool_->Add(result_bytes);
-      const std::string json = JobReportToJson(*report);
+      const std::string json =
+          fill ? fill_report_json : JobReportToJson(*report);
       // One delivery per destination, of every DICOM file the job wrote.
       std::vector<std::string> dicom_files;
       std::vector<v1::Delivery> deliveries;

@@ -165,10 +165,13 @@ class JobManager {
   // hard-linked into the job's upload folder (`files_dir` is left as it
   // is; the caller deletes it). `origin` is recorded in the job's status.
   // Returns the job id.
-  absl::StatusOr<std::string> SubmitLocalFiles(const v1::JobSpec& spec,
-                                               const std::string& files_dir,
-                                               const std::string& owner,
-                                               const std::string& origin);
+  // A fill job (spec.fill set) needs `segmentation_file`, the received SEG
+  // or RTSTRUCT (hard-linked to where server/fill_spec.h expects it; left as
+  // it is); the series in `files_dir` is its reference. Other jobs: empty.
+  absl::StatusOr<std::string> SubmitLocalFiles(
+      const v1::JobSpec& spec, const std::string& files_dir,
+      const std::string& owner, const std::string& origin,
+      const std::string& segmentation_file = "");
   // Blocking. The upload failed: delete everything.
   void Abandon(const std::shared_ptr<Job>& job);
   // Blocking. An Interpolate call ended: cancel the job if it still runs and

@@ -24,6 +24,7 @@
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_split.h"
 #include "core/dicom/series_reader.h"
+#include "server/fill_spec.h"
 #include "server/spec_mapping.h"
 
 extern char** environ;
@@ -117,7 +118,7 @@ void InjectFault(const Fault& fault, const std::string& stage,
 
 }  // namespace
 
-absl::StatusOr<JobReport> RunJobInWorkerProcess(
+absl::StatusOr<std::string> RunInWorkerProcess(
     const spool::v1::WorkerRequest& request, const ComputeContext& context,
     const WorkerOptions& options, WorkerOutcome* outcome) {
   WorkerOutcome local;
@@ -253,14 +254,7 @@ absl::StatusOr<JobReport> RunJobInWorkerProcess(
     const absl::Status job(static_cast<absl::StatusCode>(result.code()),
                            result.message());
     if (!job.ok()) return job;
-    absl::StatusOr<JobReport> report = JobReportFromJson(result.report_json());
-    if (!report.ok()) {
-      return absl::InternalError(
-          absl::StrCat("the job's worker process sent an unreadable report: ",
-                       report.status().message()));
-    }
-    report->peak_rss_bytes = out.peak_rss_bytes;
-    return report;
+    return result.report_json();
   }
   if (out.crashed) {
     return absl::InternalError(absl::StrFormat(
@@ -278,6 +272,24 @@ absl::StatusOr<JobReport> RunJobInWorkerProcess(
   return absl::InternalError(absl::StrFormat(
       "the job's worker process ended without a result (exit code %d%s)",
       out.exit_code, protocol_error ? ", protocol error" : ""));
+}
+
+absl::StatusOr<JobReport> RunJobInWorkerProcess(
+    const spool::v1::WorkerRequest& request, const ComputeContext& context,
+    const WorkerOptions& options, WorkerOutcome* outcome) {
+  WorkerOutcome local;
+  WorkerOutcome& out = outcome != nullptr ? *outcome : local;
+  absl::StatusOr<std::string> json =
+      RunInWorkerProcess(request, context, options, &out);
+  if (!json.ok()) return json.status();
+  absl::StatusOr<JobReport> report = JobReportFromJson(*json);
+  if (!report.ok()) {
+    return absl::InternalError(
+        absl::StrCat("the job's worker process sent an unreadable report: ",
+                     report.status().message()));
+  }
+  report->peak_rss_bytes = out.peak_rss_bytes;
+  return report;
 }
 
 void InjectTestFault(const std::string& stage, float threshold) {
@@ -338,7 +350,9 @@ int RunJobWorker(int in_fd, int out_fd) {
   };
 
   QuietDicomToolkitLogging();
-  absl::StatusOr<JobSpec> spec = JobSpecFromProto(request.spec());
+  const bool fill = IsFillJob(request.spec());
+  absl::StatusOr<JobSpec> spec =
+      fill ? JobSpec() : JobSpecFromProto(request.spec());
   if (!spec.ok()) return finish(spec.status(), "");
   spec->inputs = {request.input_dir()};
   spec->output_dir = request.output_dir();
@@ -368,6 +382,13 @@ int RunJobWorker(int in_fd, int out_fd) {
     WriteFrame(protocol_fd, event);
     InjectFault(fault, e.stage, spec->lower_threshold);
   };
+  if (fill) {
+    absl::StatusOr<std::string> json = RunFillJobInSpool(
+        request.spec(), request.input_dir(), request.output_dir(),
+        request.max_output_voxels(), context);
+    if (!json.ok()) return finish(json.status(), "");
+    return finish(absl::OkStatus(), *json);
+  }
   absl::StatusOr<JobReport> report = RunJob(*spec, context);
   if (!report.ok()) return finish(report.status(), "");
   report->peak_rss_bytes = PeakRssBytes();

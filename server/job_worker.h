@@ -57,7 +57,16 @@ absl::StatusOr<JobReport> RunJobInWorkerProcess(
     const spool::v1::WorkerRequest& request, const ComputeContext& context,
     const WorkerOptions& options, WorkerOutcome* outcome);
 
-// The worker side: reads one WorkerRequest from `in_fd`, runs the job and
+// The same for any job, interpolation or fill (request.spec.fill set):
+// returns the report JSON the worker sent (JobReportToJson or
+// FillJobReportToJson), unparsed.
+absl::StatusOr<std::string> RunInWorkerProcess(
+    const spool::v1::WorkerRequest& request, const ComputeContext& context,
+    const WorkerOptions& options, WorkerOutcome* outcome);
+
+// The worker side: reads one WorkerRequest from `in_fd`, runs the job (an
+// interpolation, or a fill when request.spec.fill is set: server/fill_spec.h)
+// and
 // writes its events to `out_fd`. Returns the process exit code (0 when the
 // job's result, OK or not, was delivered). main() calls it for
 // `--job-worker`.

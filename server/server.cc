@@ -204,8 +204,10 @@ absl::StatusOr<std::unique_ptr<dicom::SeriesAssembler>> StartDicomAssembler(
   return dicom::SeriesAssembler::Open(
       a, std::move(rules), spool, metrics,
       [manager](const v1::JobSpec& spec, const std::string& dir,
-                const std::string& origin) {
-        return manager->SubmitLocalFiles(spec, dir, "dicom", origin);
+                const std::string& origin,
+                const std::string& segmentation_file) {
+        return manager->SubmitLocalFiles(spec, dir, "dicom", origin,
+                                         segmentation_file);
       });
 }
 

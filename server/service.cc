@@ -12,6 +12,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "core/dicom/series_reader.h"
+#include "server/fill_spec.h"
 #include "server/log_safe.h"
 #include "server/status_map.h"
 #include "spdlog/spdlog.h"
@@ -109,7 +110,8 @@ class UploadSink {
       return absl::OkStatus();
     }
     if (step.open_file) {
-      INTERSLICE_SINK_RETURN_IF_ERROR(OpenFile(step.file_index));
+      INTERSLICE_SINK_RETURN_IF_ERROR(
+          OpenFile(step.file_index, message.chunk().file_name()));
     }
     if (!step.data.empty()) {
       INTERSLICE_SINK_RETURN_IF_ERROR(Write(step.offset, step.data));
@@ -121,6 +123,13 @@ class UploadSink {
   // The client half-closed: the upload must be complete.
   absl::Status Finish() {
     INTERSLICE_SINK_RETURN_IF_ERROR(stream_.Finish());
+    if (IsFillJob(stream_.header().spec()) && !has_segmentation_) {
+      // The client's file names may carry patient data: not echoed.
+      return absl::InvalidArgumentError(absl::StrCat(
+          "spec.fill.segmentation_file names none of the ",
+          stream_.header().file_count(),
+          " uploaded files (compared exactly with FileChunk.file_name)"));
+    }
     FsyncDir(spool_->UploadDir(job_->id()));
     metrics_->BytesIn(static_cast<double>(stream_.bytes_received()));
     absl::Status s = manager_->Enqueue(job_);
@@ -149,14 +158,31 @@ class UploadSink {
     }
   }
 
-  absl::Status OpenFile(int index) {
+  absl::Status OpenFile(int index, const std::string& client_name) {
     CloseFile();
     // Index-based names: the client's names may carry patient data, and the
     // reader's error messages quote file names.
     char name[32];
     std::snprintf(name, sizeof(name), "%06d.dcm", index);
-    const std::string path =
+    std::string path =
         (fs::path(spool_->UploadDir(job_->id())) / name).string();
+    // A fill job's segmentation goes where server/fill_spec.h expects it, out
+    // of the reference series' folder level.
+    const v1::JobSpec& spec = stream_.header().spec();
+    if (IsFillJob(spec) && client_name == spec.fill().segmentation_file()) {
+      if (has_segmentation_) {
+        return absl::InvalidArgumentError(
+            "two uploaded files carry the name given as "
+            "spec.fill.segmentation_file");
+      }
+      has_segmentation_ = true;
+      const fs::path target = fs::path(spool_->UploadDir(job_->id())) /
+                              SegmentationUploadPath(client_name);
+      std::error_code ec;
+      fs::create_directories(target.parent_path(), ec);
+      if (ec) return absl::InternalError("cannot create an upload folder");
+      path = target.string();
+    }
     fd_ = ::open(path.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0600);
     if (fd_ < 0) return absl::InternalError("cannot create an upload file");
     return absl::OkStatus();
@@ -196,6 +222,7 @@ class UploadSink {
   Spool* const spool_;
   Metrics* const metrics_;
   UploadStream stream_;
+  bool has_segmentation_ = false;  // a fill job's segmentation arrived
   const bool ephemeral_;
   const std::optional<std::chrono::steady_clock::time_point> deadline_;
   const std::string owner_;

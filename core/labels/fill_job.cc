@@ -204,6 +204,7 @@ absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
   FillJobReport report;
 
   auto start = std::chrono::steady_clock::now();
+  context.Report({.stage = "read"});
   DicomReadOptions read_options;
   read_options.series_instance_uid = spec.series_instance_uid;
   read_options.max_voxels = spec.max_input_voxels;
@@ -261,6 +262,7 @@ absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
   report.read_seconds = SecondsSince(start);
 
   start = std::chrono::steady_clock::now();
+  context.Report({.stage = "fill"});
   FillOptions fill = spec.fill;
   fill.keep_fields = !spec.mesh_formats.empty();
   if (input.rtstruct) fill.contours = &input.contours;
@@ -286,6 +288,7 @@ absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
   start = std::chrono::steady_clock::now();
   std::vector<std::pair<int, Mesh>> meshes;
   if (!spec.mesh_formats.empty()) {
+    context.Report({.stage = "mesh"});
     SurfaceOptions surface;
     surface.adaptivity = spec.mesh_adaptivity;
     for (const LabelFillInfo& info : result.per_label) {
@@ -302,6 +305,7 @@ absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
   report.mesh_seconds = SecondsSince(start);
 
   start = std::chrono::steady_clock::now();
+  context.Report({.stage = "write"});
   std::error_code ec;
   std::filesystem::create_directories(spec.output_dir, ec);
   if (ec || !std::filesystem::is_directory(spec.output_dir)) {

@@ -97,7 +97,9 @@ absl::Status ValidateFillJobSpec(const FillJobSpec& spec);
 
 // Runs the job. Errors from reading (the label map, the reference series),
 // CheckSameGrid, FillBetweenSlices, meshing and writing, each naming the
-// file or label.
+// file or label. Progress: context.progress hears "read", "fill" (then the
+// stages FillBetweenSlices reports), "mesh" (when meshes are asked for) and
+// "write", each at fraction 0 when it begins.
 absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
                                          const ComputeContext& context);
 

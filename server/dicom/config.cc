@@ -17,6 +17,7 @@
 #include "client/job_spec_proto.h"
 #include "client/run_command.h"
 #include "re2/re2.h"
+#include "server/fill_spec.h"
 
 namespace interslice::server::dicom {
 namespace {
@@ -287,7 +288,10 @@ absl::StatusOr<RuleMatch> ParseMatch(const YAML::Node& node,
 // command line's own validation) -> the wire spec.
 absl::StatusOr<v1::JobSpec> ParseJob(const YAML::Node& node,
                                      const Context& ctx) {
-  if (!node) return ctx.Error("job", "missing (every rule needs a job)");
+  if (!node)
+    return ctx.Error("job",
+                     "missing (every rule needs a job, or a fill for "
+                     "segmentations)");
   if (!node.IsMap()) {
     return ctx.Error("job",
                      absl::StrCat("expected a mapping, got ", KindName(node)));
@@ -397,6 +401,147 @@ absl::StatusOr<v1::JobSpec> ParseJob(const YAML::Node& node,
   return client::JobSpecToProto(*spec);
 }
 
+// The `fill` mapping (a rule for SEG / RTSTRUCT series) -> the wire spec of
+// a fill job, checked as the server checks an uploaded one
+// (FillJobSpecFromProto). Keys as `interslice fill`'s options; lists are YAML
+// lists (labels and key_slices of integers) or "a,b" text (mesh, volume).
+absl::StatusOr<v1::JobSpec> ParseFill(const YAML::Node& node,
+                                      const Context& ctx) {
+  v1::JobSpec spec;
+  v1::LabelFill* fill = spec.mutable_fill();
+  // The server names the received segmentation itself.
+  fill->set_segmentation_file("segmentation.dcm");
+  // Outputs: as `interslice fill` (labels.nii.gz and one STL per label)
+  // unless given.
+  v1::OutputSelection* outputs = spec.mutable_outputs();
+  outputs->add_volume_formats(v1::VOLUME_FORMAT_NIFTI);
+  outputs->add_mesh_formats(v1::MESH_FORMAT_STL);
+  if (node.IsNull()) return spec;  // `fill:` alone: every default
+  if (!node.IsMap()) {
+    return ctx.Error("fill",
+                     absl::StrCat("expected a mapping, got ", KindName(node)));
+  }
+  absl::Status keys =
+      CheckKeys(node, ctx, "fill",
+                {"labels", "key_slices", "method", "iterations", "tolerance",
+                 "factor", "spacing", "band", "mesh", "volume", "adaptivity"});
+  if (!keys.ok()) return keys;
+  auto integers = [&](const char* key,
+                      std::vector<int64_t>* out) -> absl::Status {
+    if (!node[key]) return absl::OkStatus();
+    const std::string field = absl::StrCat("fill.", key);
+    if (!node[key].IsSequence()) {
+      return ctx.Error(field, absl::StrCat("expected a list of integers, got ",
+                                           KindName(node[key])));
+    }
+    for (size_t i = 0; i < node[key].size(); ++i) {
+      absl::StatusOr<int64_t> v =
+          GetInteger(node[key][i], ctx, absl::StrCat(field, "[", i, "]"));
+      if (!v.ok()) return v.status();
+      out->push_back(*v);
+    }
+    return absl::OkStatus();
+  };
+  std::vector<int64_t> labels, key_slices;
+  for (absl::Status st :
+       {integers("labels", &labels), integers("key_slices", &key_slices)}) {
+    if (!st.ok()) return st;
+  }
+  for (int64_t label : labels) {
+    if (label < 1 || label > 65535) {
+      return ctx.Error("fill.labels",
+                       absl::StrCat(label, " is not a label (1..65535)"));
+    }
+    fill->add_labels(static_cast<int>(label));
+  }
+  for (int64_t k : key_slices) fill->add_key_slices(k);
+  if (node["method"]) {
+    absl::StatusOr<std::string> v =
+        GetString(node["method"], ctx, "fill.method");
+    if (!v.ok()) return v.status();
+    if (*v == "direct") {
+      spec.set_method(v1::SOLVER_METHOD_DIRECT);
+    } else if (*v == "cg") {
+      spec.set_method(v1::SOLVER_METHOD_CONJUGATE_GRADIENT);
+    } else if (*v == "linear") {
+      spec.set_method(v1::SOLVER_METHOD_LINEAR);
+    } else {
+      return ctx.Error("fill.method",
+                       absl::StrCat("unknown method '", *v,
+                                    "' (choose from direct, cg, linear)"));
+    }
+  }
+  if (node["iterations"]) {
+    absl::StatusOr<int64_t> v =
+        GetInteger(node["iterations"], ctx, "fill.iterations");
+    if (!v.ok()) return v.status();
+    if (*v < 0 || *v > std::numeric_limits<int>::max()) {
+      return ctx.Error("fill.iterations", "out of range");
+    }
+    spec.set_max_iterations(static_cast<int>(*v));
+  }
+  if (node["factor"] && node["spacing"]) {
+    return ctx.Error("fill.factor",
+                     "factor and spacing are alternatives; give one");
+  }
+  if (node["factor"]) {
+    absl::StatusOr<int64_t> v = GetInteger(node["factor"], ctx, "fill.factor");
+    if (!v.ok()) return v.status();
+    if (*v < 1 || *v > 1024) return ctx.Error("fill.factor", "must be 1..1024");
+    spec.set_insertion_factor(static_cast<int>(*v));
+  }
+  for (const char* key : {"tolerance", "spacing", "band", "adaptivity"}) {
+    if (!node[key]) continue;
+    absl::StatusOr<double> v =
+        GetNumber(node[key], ctx, absl::StrCat("fill.", key));
+    if (!v.ok()) return v.status();
+    const std::string k = key;
+    if (k == "tolerance") spec.set_tolerance(*v);
+    if (k == "spacing") spec.set_slice_spacing_mm(*v);
+    if (k == "band") spec.set_band_radius_mm(*v);
+    if (k == "adaptivity") spec.set_mesh_adaptivity(*v);
+  }
+  for (const char* key : {"mesh", "volume"}) {
+    if (!node[key]) continue;
+    const std::string field = absl::StrCat("fill.", key);
+    absl::StatusOr<std::vector<std::string>> v =
+        GetStringList(node[key], ctx, field);
+    if (!v.ok()) return v.status();
+    const bool mesh = std::string(key) == "mesh";
+    if (mesh) {
+      outputs->clear_mesh_formats();
+    } else {
+      outputs->clear_volume_formats();
+    }
+    for (const std::string& f : *v) {
+      if (f == "none") continue;
+      if (mesh && (f == "stl" || f == "ply" || f == "obj")) {
+        outputs->add_mesh_formats(f == "ply"   ? v1::MESH_FORMAT_PLY
+                                  : f == "obj" ? v1::MESH_FORMAT_OBJ
+                                               : v1::MESH_FORMAT_STL);
+      } else if (!mesh && (f == "nii" || f == "nrrd")) {
+        outputs->add_volume_formats(f == "nrrd" ? v1::VOLUME_FORMAT_NRRD
+                                                : v1::VOLUME_FORMAT_NIFTI);
+      } else {
+        return ctx.Error(field, absl::StrCat("unknown value '", f, "'"));
+      }
+    }
+  }
+  absl::StatusOr<FillJobSpec> checked = FillJobSpecFromProto(spec);
+  if (!checked.ok()) {
+    // "spec.fill.labels: 0 is ..." -> field "fill.labels", "0 is ...".
+    std::string message(checked.status().message());
+    std::string field = "fill";
+    const size_t colon = message.find(": ");
+    if (absl::StartsWith(message, "spec.fill.") && colon != std::string::npos) {
+      field = message.substr(5, colon - 5);
+      message = message.substr(colon + 2);
+    }
+    return ctx.Error(field, message);
+  }
+  return spec;
+}
+
 }  // namespace
 
 absl::StatusOr<std::string> NormalizeAeTitle(const std::string& text) {
@@ -450,6 +595,9 @@ bool RuleMatch::Matches(const SeriesFacts& f) const {
 
 const Rule* RuleSet::FirstMatch(const SeriesFacts& facts) const {
   for (const Rule& rule : rules) {
+    // Fill rules are for segmentations only, and segmentations for fill
+    // rules only: a SEG is never thresholded, a CT never read as labels.
+    if (rule.job.has_fill() != facts.segmentation) continue;
     if (rule.match.Matches(facts)) return &rule;
   }
   return nullptr;
@@ -587,7 +735,8 @@ absl::StatusOr<RuleSet> LoadRulesFile(const std::string& path,
                        absl::StrCat("expected a mapping, got ", KindName(r)));
     }
     keys = CheckKeys(
-        r, ctx, "", {"name", "match", "job", "send_to", "complete_on_release"});
+        r, ctx, "",
+        {"name", "match", "job", "fill", "send_to", "complete_on_release"});
     if (!keys.ok()) return keys;
     if (r["name"]) {
       if (!r["name"].IsScalar()) {
@@ -602,7 +751,13 @@ absl::StatusOr<RuleSet> LoadRulesFile(const std::string& path,
     absl::StatusOr<RuleMatch> match = ParseMatch(r["match"], ctx);
     if (!match.ok()) return match.status();
     rule.match = *std::move(match);
-    absl::StatusOr<v1::JobSpec> job = ParseJob(r["job"], ctx);
+    if (r["job"] && r["fill"]) {
+      return ctx.Error("fill",
+                       "a rule has either a job (series) or a fill "
+                       "(segmentations), not both");
+    }
+    absl::StatusOr<v1::JobSpec> job =
+        r["fill"] ? ParseFill(r["fill"], ctx) : ParseJob(r["job"], ctx);
     if (!job.ok()) return job.status();
     rule.job = *std::move(job);
     if (r["send_to"]) {

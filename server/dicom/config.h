@@ -19,6 +19,9 @@
 //             seg: true, mesh: [stl]}
 //       send_to: [orthanc]            # peer names; optional
 //       complete_on_release: false    # optional; see Rule
+//     - name: fill-seg                # a SEG or RTSTRUCT arrives: fill it
+//       match: {modality: SEG}
+//       fill: {method: direct, labels: [1, 2], mesh: [stl], volume: [nii]}
 //
 // Every error is INVALID_ARGUMENT with one line naming the file, the peer or
 // rule (name and 1-based index) and the field, e.g.
@@ -72,6 +75,9 @@ struct SeriesFacts {
   // absent with fewer than two slices or no geometry.
   std::optional<double> slice_spacing_mm;
   int64_t slice_count = 0;  // frames in all instances
+  // The first instance is a DICOM SEG or RTSTRUCT (a segmentation drawn on
+  // another series): only fill rules match it.
+  bool segmentation = false;
   std::string calling_ae;
   std::string called_ae;
 };
@@ -94,6 +100,12 @@ struct Rule {
   // as the command line maps them (client/run_command.h BuildJobSpec), with
   // the same defaults (so mesh: stl and volume: nii unless given). send_to
   // is filled from the rule's send_to.
+  // A fill rule (key `fill` instead of `job`: the `interslice fill` options
+  // labels, key_slices, method, iterations, tolerance, factor, spacing, band,
+  // mesh, volume, adaptivity) has job.fill set: it matches SEG and RTSTRUCT
+  // series only (and other rules never match them); its job fills the
+  // segmentation on the series it references, which must be held in the
+  // spool (series_assembler.h).
   v1::JobSpec job;
   std::vector<std::string> send_to;
   // true: the series is complete as soon as the association that sent it
@@ -105,7 +117,8 @@ struct RuleSet {
   std::string path;  // the file, for logs ("rule set <path>")
   double stable_seconds = 30;
   std::vector<Rule> rules;
-  // The first rule whose match holds, or null.
+  // The first rule whose match holds, or null. Only fill rules are tried
+  // for a segmentation (facts.segmentation), only the others for a series.
   const Rule* FirstMatch(const SeriesFacts& facts) const;
 };
 

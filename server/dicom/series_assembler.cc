@@ -8,12 +8,15 @@
 #include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <optional>
 
+#include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
 #include "dcmtk/dcmdata/dcfilefo.h"
+#include "dcmtk/dcmdata/dcuid.h"
 #include "nlohmann/json.hpp"
 #include "server/hashing.h"
 #include "server/job_manager.h"
@@ -73,6 +76,68 @@ std::string GetString(DcmItem* item, const DcmTagKey& tag) {
   return "";
 }
 
+// What a segmentation references: its first SEG or RTSTRUCT instance (in
+// name order), the referenced SeriesInstanceUID and the studies to look in.
+struct SegmentationRef {
+  std::string file;
+  std::string series_uid;
+  std::vector<std::string> study_uids;  // the instance's own first
+};
+
+std::optional<SegmentationRef> ReadSegmentationRef(const std::string& dir) {
+  std::error_code ec;
+  std::vector<std::string> files;
+  for (const auto& entry : fs::directory_iterator(dir, ec)) {
+    if (entry.path().extension() == ".dcm") files.push_back(entry.path());
+  }
+  std::sort(files.begin(), files.end());
+  for (const std::string& file : files) {
+    DcmFileFormat ff;
+    if (ff.loadFileUntilTag(file.c_str(), EXS_Unknown, EGL_noChange,
+                            DCM_MaxReadLength, ERM_autoDetect, DCM_PixelData)
+            .bad()) {
+      continue;
+    }
+    DcmDataset* ds = ff.getDataset();
+    const std::string sop_class = GetString(ds, DCM_SOPClassUID);
+    SegmentationRef ref;
+    ref.file = file;
+    const std::string own_study = GetString(ds, DCM_StudyInstanceUID);
+    if (!own_study.empty()) ref.study_uids.push_back(own_study);
+    if (sop_class == UID_SegmentationStorage) {
+      DcmItem* series = nullptr;
+      if (ds->findAndGetSequenceItem(DCM_ReferencedSeriesSequence, series, 0)
+              .good()) {
+        ref.series_uid = GetString(series, DCM_SeriesInstanceUID);
+      }
+    } else if (sop_class == UID_RTStructureSetStorage) {
+      DcmItem *frame = nullptr, *study = nullptr, *series = nullptr;
+      if (ds->findAndGetSequenceItem(DCM_ReferencedFrameOfReferenceSequence,
+                                     frame, 0)
+              .good() &&
+          frame->findAndGetSequenceItem(DCM_RTReferencedStudySequence, study, 0)
+              .good()) {
+        const std::string referenced =
+            GetString(study, DCM_ReferencedSOPInstanceUID);
+        if (!referenced.empty() && referenced != own_study) {
+          ref.study_uids.push_back(referenced);
+        }
+        if (study
+                ->findAndGetSequenceItem(DCM_RTReferencedSeriesSequence, series,
+                                         0)
+                .good()) {
+          ref.series_uid = GetString(series, DCM_SeriesInstanceUID);
+        }
+      }
+    } else {
+      continue;
+    }
+    if (ref.series_uid.empty() || ref.study_uids.empty()) return std::nullopt;
+    return ref;
+  }
+  return std::nullopt;
+}
+
 }  // namespace
 
 SeriesFacts ReadSeriesFacts(const std::string& dir) {
@@ -95,6 +160,9 @@ SeriesFacts ReadSeriesFacts(const std::string& dir) {
     DcmDataset* ds = ff.getDataset();
     if (first) {
       first = false;
+      const std::string sop_class = GetString(ds, DCM_SOPClassUID);
+      facts.segmentation = sop_class == UID_SegmentationStorage ||
+                           sop_class == UID_RTStructureSetStorage;
       facts.modality = GetString(ds, DCM_Modality);
       facts.series_description = GetString(ds, DCM_SeriesDescription);
       facts.protocol_name = GetString(ds, DCM_ProtocolName);
@@ -455,10 +523,7 @@ void SeriesAssembler::Complete(const std::string& key, const Pending& p,
   const std::string from =
       absl::StrCat(LogSafe(p.calling_ae), " -> ", LogSafe(p.called_ae));
   if (rule == nullptr) {
-    const std::string kept = (fs::path(options_.root) / "unmatched" /
-                              absl::StrCat(key, "-", UnixMillisNow()))
-                                 .string();
-    fs::rename(dir, kept, ec);
+    KeepUnmatched(key, dir);
     spdlog::warn(
         "dicom: no rule of rule set {} matched a series from {} ({} "
         "instance(s), modality {}); kept for {} s, then removed",
@@ -468,48 +533,159 @@ void SeriesAssembler::Complete(const std::string& key, const Pending& p,
   }
   const std::string origin = absl::StrCat("dicom:", p.calling_ae, "->",
                                           p.called_ae, " rule ", rule->name);
+  if (rule->job.has_fill()) {
+    CompleteFill(key, p, dir, *rule, origin);
+    return;
+  }
   // The job's admission reserves these bytes again (its upload is these
   // files, hard-linked): hand our reservation over first, so that a series
   // near the quota can still become its own job.
   if (spool_ != nullptr) spool_->Release(p.bytes);
-  absl::StatusOr<std::string> job = submitter_(rule->job, dir, origin);
+  absl::StatusOr<std::string> job = submitter_(rule->job, dir, origin, "");
   if (!job.ok()) {
     if (spool_ != nullptr) spool_->Add(p.bytes);
     // Back into series/ so that it is tried again after another stable
     // wait (a full queue, a drain) and survives a restart.
-    std::lock_guard<std::mutex> lock(mu_);
-    const std::string back = SeriesDir(key);
-    if (!fs::exists(back, ec) && ::rename(dir.c_str(), back.c_str()) == 0) {
-      Pending again = p;
-      again.last_arrival = std::chrono::steady_clock::now();
-      again.release_requested = false;
-      pending_[key] = again;
-    } else {
-      // New instances arrived meanwhile: merge ours into their folder.
-      for (const auto& f : fs::directory_iterator(dir, ec)) {
-        if (f.path().extension() != ".dcm") continue;
-        fs::rename(f.path(), fs::path(back) / f.path().filename(), ec);
-      }
-      fs::remove_all(dir, ec);
-      auto it = pending_.find(key);
-      if (it != pending_.end()) {
-        it->second.instances += p.instances;
-        it->second.bytes += p.bytes;
-      }
-    }
-    submitted_.erase(key);
+    PutBack(key, p, dir);
     spdlog::warn(
         "dicom: rule {} matched a series from {} but its job could "
         "not be made ({}); trying again after another stable wait",
         LogSafe(rule->name), from, LogSafe(job.status().message()));
     return;
   }
-  fs::remove_all(dir, ec);
+  const bool fill_rules =
+      std::any_of(rules_.rules.begin(), rules_.rules.end(),
+                  [](const Rule& r) { return r.job.has_fill(); });
+  if (fill_rules) {
+    // A segmentation drawn on this series may follow: held (with the
+    // unmatched series, for the retention time), counted in the quota
+    // again although the job's copy shares its disk blocks.
+    if (spool_ != nullptr) spool_->Add(p.bytes);
+    KeepUnmatched(key, dir);
+  } else {
+    fs::remove_all(dir, ec);
+  }
   if (metrics_ != nullptr) metrics_->DicomEvent("jobs_created");
   spdlog::info(
       "dicom: job={} made by rule {} for a series from {} ({} "
       "instance(s))",
       *job, LogSafe(rule->name), from, p.instances);
+}
+
+void SeriesAssembler::PutBack(const std::string& key, const Pending& p,
+                              const std::string& dir) {
+  std::error_code ec;
+  std::lock_guard<std::mutex> lock(mu_);
+  const std::string back = SeriesDir(key);
+  if (!fs::exists(back, ec) && ::rename(dir.c_str(), back.c_str()) == 0) {
+    Pending again = p;
+    again.last_arrival = std::chrono::steady_clock::now();
+    again.release_requested = false;
+    pending_[key] = again;
+  } else {
+    // New instances arrived meanwhile: merge ours into their folder.
+    for (const auto& f : fs::directory_iterator(dir, ec)) {
+      if (f.path().extension() != ".dcm") continue;
+      fs::rename(f.path(), fs::path(back) / f.path().filename(), ec);
+    }
+    fs::remove_all(dir, ec);
+    auto it = pending_.find(key);
+    if (it != pending_.end()) {
+      it->second.instances += p.instances;
+      it->second.bytes += p.bytes;
+      if (!it->second.waiting_since) it->second.waiting_since = p.waiting_since;
+    }
+  }
+  submitted_.erase(key);
+}
+
+void SeriesAssembler::KeepUnmatched(const std::string& key,
+                                    const std::string& dir) {
+  std::error_code ec;
+  const std::string kept = (fs::path(options_.root) / "unmatched" /
+                            absl::StrCat(key, "-", UnixMillisNow()))
+                               .string();
+  fs::rename(dir, kept, ec);
+}
+
+void SeriesAssembler::CompleteFill(const std::string& key, const Pending& p,
+                                   const std::string& dir, const Rule& rule,
+                                   const std::string& origin) {
+  std::error_code ec;
+  const std::string from =
+      absl::StrCat(LogSafe(p.calling_ae), " -> ", LogSafe(p.called_ae));
+  std::optional<SegmentationRef> ref = ReadSegmentationRef(dir);
+  if (!ref.has_value()) {
+    KeepUnmatched(key, dir);
+    spdlog::warn(
+        "dicom: rule {} matched a segmentation from {} that names no "
+        "referenced series; kept for {} s, then removed",
+        LogSafe(rule.name), from, options_.unmatched_retention_seconds);
+    return;
+  }
+  // The referenced series, by the keys it would have been filed under.
+  std::string held;
+  bool pending = false;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    for (const std::string& study : ref->study_uids) {
+      const std::string series_key = Key(p.called_ae, study, ref->series_uid);
+      if (pending_.count(series_key) > 0) pending = true;
+      for (const auto& entry :
+           fs::directory_iterator(fs::path(options_.root) / "unmatched", ec)) {
+        const std::string name = entry.path().filename().string();
+        // <key>-<ms>: the newest copy (names sort by time within a key
+        // only when the times have as many digits, which holds for years).
+        if (absl::StartsWith(name, series_key + "-") &&
+            entry.path().string() > held) {
+          held = entry.path().string();
+        }
+      }
+    }
+  }
+  if (held.empty()) {
+    Pending again = p;
+    const auto now = std::chrono::steady_clock::now();
+    if (!again.waiting_since) {
+      again.waiting_since = now;
+      spdlog::info(
+          "dicom: a segmentation from {} (rule {}) waits for the series it "
+          "references{}",
+          from, LogSafe(rule.name),
+          pending ? " (still being received)" : " (not received yet)");
+    }
+    const auto waited = now - *again.waiting_since;
+    if (waited <
+        std::chrono::duration<double>(options_.unmatched_retention_seconds)) {
+      PutBack(key, again, dir);
+      return;
+    }
+    KeepUnmatched(key, dir);
+    spdlog::warn(
+        "dicom: a segmentation from {} (rule {}) waited {} s for the series "
+        "it references in vain; kept for {} s, then removed",
+        from, LogSafe(rule.name), options_.unmatched_retention_seconds,
+        options_.unmatched_retention_seconds);
+    return;
+  }
+  if (spool_ != nullptr) spool_->Release(p.bytes);
+  absl::StatusOr<std::string> job =
+      submitter_(rule.job, held, origin, ref->file);
+  if (!job.ok()) {
+    if (spool_ != nullptr) spool_->Add(p.bytes);
+    PutBack(key, p, dir);
+    spdlog::warn(
+        "dicom: rule {} matched a segmentation from {} but its fill job "
+        "could not be made ({}); trying again after another stable wait",
+        LogSafe(rule.name), from, LogSafe(job.status().message()));
+    return;
+  }
+  fs::remove_all(dir, ec);
+  if (metrics_ != nullptr) metrics_->DicomEvent("jobs_created");
+  spdlog::info(
+      "dicom: job={} (fill) made by rule {} for a segmentation from {} on a "
+      "series held in the spool",
+      *job, LogSafe(rule.name), from);
 }
 
 void SeriesAssembler::SweepUnmatched() {

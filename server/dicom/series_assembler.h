@@ -25,6 +25,23 @@
 // job later (logged), never touching the running one. Instances of an
 // aborted association stay with their series.
 //
+// Segmentations (issue 13): a SEG or RTSTRUCT series is matched against the
+// fill rules only (config.h). When one matches, the series its first
+// instance references (SEG: ReferencedSeriesSequence; RTSTRUCT:
+// ReferencedFrameOfReferenceSequence > RTReferencedStudySequence >
+// RTReferencedSeriesSequence), received by the same called AE in the same
+// study, must be held in the spool:
+//   - in unmatched/ (complete and no rule matched it, or, when the rule set
+//     has fill rules, complete and its job made: such series are kept there
+//     too; the newest copy): the fill job is made on it at once (its files
+//     hard-linked; the folder stays for other segmentations until its
+//     retention ends);
+//   - still in series/ (not complete yet), or not received (yet): the
+//     segmentation waits in series/, tried again after every stable wait,
+//     until it has waited unmatched_retention_seconds; then it goes to
+//     unmatched/ (logged). The wait starts over after a restart.
+// Without fill rules, a series whose job was made is deleted at once.
+//
 // Logs name AE titles, rule names, counts and the rule set file, never
 // patient data or UIDs.
 #ifndef INTERSLICE_SERVER_DICOM_SERIES_ASSEMBLER_H_
@@ -37,6 +54,7 @@
 #include <map>
 #include <memory>
 #include <mutex>
+#include <optional>
 #include <set>
 #include <string>
 #include <thread>
@@ -67,10 +85,12 @@ struct AssemblerOptions {
 // Makes the job for a complete series: `files_dir` holds its instances (the
 // callee hard-links or copies them; the assembler deletes the folder after
 // success). Returns the job id. Any error leaves the series to be tried
-// again later (e.g. a full queue).
+// again later (e.g. a full queue). A fill job (spec.fill set) gets the
+// referenced series' folder as `files_dir` (kept as it is) and the SEG or
+// RTSTRUCT file as `segmentation_file`; other jobs get "".
 using JobSubmitter = std::function<absl::StatusOr<std::string>(
     const v1::JobSpec& spec, const std::string& files_dir,
-    const std::string& origin)>;
+    const std::string& origin, const std::string& segmentation_file)>;
 
 // The identity of a received instance (from its header).
 struct InstanceIds {
@@ -132,6 +152,9 @@ class SeriesAssembler {
     int64_t bytes = 0;
     std::chrono::steady_clock::time_point last_arrival;
     bool release_requested = false;
+    // A segmentation waiting for its referenced series: since when (the
+    // first try); unset otherwise.
+    std::optional<std::chrono::steady_clock::time_point> waiting_since;
   };
 
   SeriesAssembler(const AssemblerOptions& options, RuleSet rules, Spool* spool,
@@ -141,6 +164,16 @@ class SeriesAssembler {
   // Facts, rule and job for a series taken out of series/ into `dir`.
   void Complete(const std::string& key, const Pending& pending,
                 const std::string& dir);
+  // The fill rule `rule` matched the segmentation series in `dir`.
+  void CompleteFill(const std::string& key, const Pending& pending,
+                    const std::string& dir, const Rule& rule,
+                    const std::string& origin);
+  // Back into series/ to be tried again after another stable wait (merged
+  // with instances that arrived meanwhile).
+  void PutBack(const std::string& key, const Pending& pending,
+               const std::string& dir);
+  // Moves a completed folder to unmatched/ (kept for the retention time).
+  void KeepUnmatched(const std::string& key, const std::string& dir);
   std::string SeriesDir(const std::string& key) const;
 
   const AssemblerOptions options_;

@@ -71,12 +71,16 @@ bool PortTaken(int port) {
 }  // namespace
 
 std::vector<std::string> AcceptedStorageSopClasses() {
+  // SEG and RTSTRUCT: segmentations drawn on a series held in the spool;
+  // rules with `fill` make fill jobs of them (series_assembler.h).
   return {UID_CTImageStorage,
           UID_EnhancedCTImageStorage,
           UID_LegacyConvertedEnhancedCTImageStorage,
           UID_MRImageStorage,
           UID_EnhancedMRImageStorage,
-          UID_LegacyConvertedEnhancedMRImageStorage};
+          UID_LegacyConvertedEnhancedMRImageStorage,
+          UID_SegmentationStorage,
+          UID_RTStructureSetStorage};
 }
 
 struct StorageScp::Impl {

@@ -346,6 +346,75 @@ TEST_F(ConfigTest, OtherRuleErrors) {
               HasSubstr("rules: missing"));
 }
 
+// Fill rules (issue 13): the `interslice fill` options, checked as the
+// server checks an uploaded fill spec; they match segmentations only, and
+// job rules never match a segmentation.
+TEST_F(ConfigTest, FillRules) {
+  absl::StatusOr<RuleSet> set = LoadRulesFile(
+      Write("fill.yaml",
+            "rules:\n"
+            "  - name: everything\n"
+            "    job: {threshold: 300}\n"
+            "  - name: seg\n"
+            "    match: {modality: SEG}\n"
+            "    fill: {labels: [1, 3], key_slices: [0, 5, 10], method: "
+            "direct, factor: 2, mesh: [ply], volume: [nii, nrrd]}\n"
+            "    send_to: [orthanc]\n"
+            "  - name: any-segmentation\n"
+            "    fill:\n"),
+      Peers());
+  ASSERT_TRUE(set.ok()) << set.status();
+  ASSERT_EQ(set->rules.size(), 3u);
+  const v1::JobSpec& fill = set->rules[1].job;
+  ASSERT_TRUE(fill.has_fill());
+  EXPECT_THAT(fill.fill().labels(), ::testing::ElementsAre(1, 3));
+  EXPECT_THAT(fill.fill().key_slices(), ::testing::ElementsAre(0, 5, 10));
+  EXPECT_EQ(fill.method(), v1::SOLVER_METHOD_DIRECT);
+  EXPECT_EQ(fill.insertion_factor(), 2);
+  EXPECT_THAT(fill.outputs().mesh_formats(),
+              ::testing::ElementsAre(v1::MESH_FORMAT_PLY));
+  EXPECT_EQ(fill.outputs().volume_formats_size(), 2);
+  EXPECT_THAT(fill.send_to(), ::testing::ElementsAre("orthanc"));
+  EXPECT_FALSE(fill.has_threshold());
+  // Defaults as `interslice fill`: NIfTI labels and STL meshes.
+  const v1::JobSpec& plain = set->rules[2].job;
+  ASSERT_TRUE(plain.has_fill());
+  EXPECT_THAT(plain.outputs().volume_formats(),
+              ::testing::ElementsAre(v1::VOLUME_FORMAT_NIFTI));
+  EXPECT_THAT(plain.outputs().mesh_formats(),
+              ::testing::ElementsAre(v1::MESH_FORMAT_STL));
+
+  SeriesFacts ct;
+  ct.modality = "CT";
+  SeriesFacts seg;
+  seg.modality = "SEG";
+  seg.segmentation = true;
+  SeriesFacts rtstruct;
+  rtstruct.modality = "RTSTRUCT";
+  rtstruct.segmentation = true;
+  ASSERT_NE(set->FirstMatch(ct), nullptr);
+  EXPECT_EQ(set->FirstMatch(ct)->name, "everything");
+  ASSERT_NE(set->FirstMatch(seg), nullptr);
+  EXPECT_EQ(set->FirstMatch(seg)->name, "seg");
+  ASSERT_NE(set->FirstMatch(rtstruct), nullptr);
+  EXPECT_EQ(set->FirstMatch(rtstruct)->name, "any-segmentation");
+
+  EXPECT_THAT(RuleError("  - {name: a, job: {threshold: 1}, fill: {}}\n"),
+              HasSubstr("rule 'a' (#1): fill: a rule has either a job"));
+  EXPECT_THAT(RuleError("  - {name: a, fill: {labels: [0]}}\n"),
+              HasSubstr("fill.labels: 0 is not a label (1..65535)"));
+  EXPECT_THAT(RuleError("  - {name: a, fill: {key_slices: [1, 1]}}\n"),
+              HasSubstr("fill.key_slices: slice 1 is repeated"));
+  EXPECT_THAT(RuleError("  - {name: a, fill: {method: morph}}\n"),
+              HasSubstr("fill.method: unknown method 'morph'"));
+  EXPECT_THAT(RuleError("  - {name: a, fill: {threshold: 3}}\n"),
+              HasSubstr("fill.threshold: unknown key"));
+  EXPECT_THAT(RuleError("  - {name: a, fill: {mesh: [vrml]}}\n"),
+              HasSubstr("fill.mesh: unknown value 'vrml'"));
+  EXPECT_THAT(RuleError("  - {name: a, fill: {labels: 3}}\n"),
+              HasSubstr("fill.labels: expected a list of integers"));
+}
+
 // The documented examples parse, so that they cannot rot.
 TEST_F(ConfigTest, DocumentedExamplesParse) {
   const std::string dir = std::string(INTERSLICE_SOURCE_DIR) + "/docs/examples";

@@ -10,6 +10,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
 #include <filesystem>
 #include <fstream>
@@ -629,6 +630,180 @@ TEST(DicomNodeTest, DocumentedExamplesStartAServer) {
                       examples + "/rules.yaml", "--dicom-ae", "INTERSLICE",
                       "--dicom-ae", "INTERSLICE_3D"});
   ASSERT_TRUE(server.up()) << server.Log();
+}
+
+// Segmentations in the PACS loop (issue 13): a series no rule takes is held
+// in the spool; a DICOM SEG drawn on it, sent afterwards (or before it),
+// makes a fill job by the `fill` rule whose artifacts equal
+// `interslice fill` on the same files with the same options.
+class DicomFillTest : public ::testing::Test {
+ protected:
+  // A 16-slice series and a binary SEG drawn on it (`interslice run --seg`
+  // on a region of tests/data/ct-thick), and the in-process fill of it.
+  void SetUp() override {
+    const std::string small =
+        std::string(INTERSLICE_SOURCE_DIR) + "/tests/data/ct-thick";
+    CommandResult run =
+        RunCommand({kCli, "run", small, "--threshold", "300", "--roi",
+                    "200,40,0,296,136,4", "--method", "direct", "--factor", "5",
+                    "--seg", "--volume", "nrrd", "--mesh", "none", "--quiet",
+                    "--out", dir_ / "run"},
+                   300);
+    ASSERT_EQ(run.exit_code, 0) << run.err;
+    for (const auto& e :
+         fs::directory_iterator(dir_ / "run/series-intensity")) {
+      series_.push_back(e.path().string());
+    }
+    std::sort(series_.begin(), series_.end());
+    ASSERT_EQ(series_.size(), 16u);
+    seg_ = dir_ / "run/seg.dcm";
+    CommandResult local = RunCommand(
+        {kCli, "fill", seg_, "--reference", dir_ / "run/series-intensity",
+         "--key-slices", "0-15:5", "--method", "direct", "--volume", "nrrd",
+         "--mesh", "stl", "--threads", "1", "--quiet", "--out", dir_ / "local"},
+        300);
+    ASSERT_EQ(local.exit_code, 0) << local.err;
+  }
+
+  std::string WriteFillRules() {
+    const std::string path = dir_ / "fill-rules.yaml";
+    WriteFile(path,
+              "stable_seconds: 1\n"
+              "rules:\n"
+              "  - name: mr-only\n"
+              "    match: {modality: MR}\n"
+              "    job: {threshold: 1}\n"
+              "  - name: fill-seg\n"
+              "    match: {modality: SEG}\n"
+              "    fill: {key_slices: [0, 5, 10, 15], method: direct, "
+              "volume: [nrrd], mesh: [stl]}\n");
+    return path;
+  }
+
+  // Waits for the one job, checks it succeeded and that its artifacts are
+  // the in-process fill's.
+  void ExpectFillJob(const DicomServer& server) {
+    std::vector<std::string> jobs;
+    ASSERT_TRUE(WaitUntil(
+        [&] {
+          jobs = server.Jobs();
+          return !jobs.empty();
+        },
+        60))
+        << server.Log();
+    ASSERT_EQ(jobs.size(), 1u);
+    CommandResult watch = RunCommand(
+        Cat({kCli, "watch", jobs[0], "--quiet"}, server.Client()), 300);
+    ASSERT_EQ(watch.exit_code, 0) << watch.err << server.Log();
+    CommandResult fetch =
+        RunCommand(Cat({kCli, "fetch", jobs[0], "--out", dir_ / "remote"},
+                       server.Client()),
+                   120);
+    ASSERT_EQ(fetch.exit_code, 0) << fetch.err;
+    int compared = 0;
+    for (const auto& e : fs::directory_iterator(dir_ / "local")) {
+      const std::string name = e.path().filename().string();
+      ASSERT_TRUE(fs::exists(fs::path(dir_ / "remote") / name)) << name;
+      EXPECT_TRUE(ReadFileOrEmpty(e.path().string()) ==
+                  ReadFileOrEmpty(dir_ / ("remote/" + name)))
+          << name << " differs";
+      ++compared;
+    }
+    EXPECT_GE(compared, 2);  // labels.nrrd, label-1.stl
+    EXPECT_THAT(server.Log(), HasSubstr("(fill) made by rule fill-seg"));
+    EXPECT_THAT(
+        ReadFileOrEmpty(server.spool() + "/jobs/" + jobs[0] + "/job.pb"),
+        HasSubstr("dicom:STORESCU->INTERSLICE rule fill-seg"));
+    // The SEG was not left waiting.
+    EXPECT_EQ(server.PendingInstances(), 0);
+  }
+
+  TempDir dir_;
+  std::vector<std::string> series_;
+  std::string seg_;
+};
+
+TEST_F(DicomFillTest, SegAfterItsSeriesMakesTheFillJob) {
+  DicomServer server(
+      dir_, "spool",
+      {"--dicom-peers", WritePeers(dir_), "--rules", WriteFillRules()});
+  ASSERT_TRUE(server.up()) << server.Log();
+  CommandResult store = StoreScu(server, {}, series_);
+  ASSERT_EQ(store.exit_code, 0) << store.err;
+  // No rule takes the CT series: it is held (unmatched) for the retention.
+  ASSERT_TRUE(WaitUntil([&] { return server.PendingInstances() == 0; }, 30));
+  ASSERT_TRUE(WaitUntil(
+      [&] {
+        return server.Log().find("no rule of rule set") != std::string::npos;
+      },
+      30))
+      << server.Log();
+  EXPECT_TRUE(server.Jobs().empty());
+  // -R: propose only the SEG's own SOP class (storescu's default list
+  // has no SEG).
+  store = StoreScu(server, {"-R"}, {seg_});
+  ASSERT_EQ(store.exit_code, 0) << store.err << server.Log();
+  ExpectFillJob(server);
+}
+
+TEST_F(DicomFillTest, SegBeforeItsSeriesWaitsForIt) {
+  DicomServer server(
+      dir_, "spool",
+      {"--dicom-peers", WritePeers(dir_), "--rules", WriteFillRules()});
+  ASSERT_TRUE(server.up()) << server.Log();
+  CommandResult store = StoreScu(server, {"-R"}, {seg_});
+  ASSERT_EQ(store.exit_code, 0) << store.err;
+  ASSERT_TRUE(WaitUntil(
+      [&] {
+        return server.Log().find("waits for the series it references") !=
+               std::string::npos;
+      },
+      30))
+      << server.Log();
+  EXPECT_TRUE(server.Jobs().empty());
+  store = StoreScu(server, {}, series_);
+  ASSERT_EQ(store.exit_code, 0) << store.err;
+  ExpectFillJob(server);
+}
+
+// With fill rules, a series whose own job was made is held too: a SEG drawn
+// on it still makes its fill job.
+TEST_F(DicomFillTest, SeriesTakenByAJobRuleIsStillHeldForItsSeg) {
+  const std::string rules = dir_ / "both-rules.yaml";
+  WriteFile(rules,
+            "stable_seconds: 1\n"
+            "rules:\n"
+            "  - name: ct\n"
+            "    match: {modality: CT}\n"
+            "    job: {threshold: 300, mesh: none, volume: [nii]}\n"
+            "  - name: fill-seg\n"
+            "    match: {modality: SEG}\n"
+            "    fill: {key_slices: [0, 5, 10, 15], method: direct, "
+            "volume: [nrrd], mesh: [stl]}\n");
+  DicomServer server(dir_, "spool",
+                     {"--dicom-peers", WritePeers(dir_), "--rules", rules});
+  ASSERT_TRUE(server.up()) << server.Log();
+  CommandResult store = StoreScu(server, {}, series_);
+  ASSERT_EQ(store.exit_code, 0) << store.err;
+  ASSERT_TRUE(WaitUntil([&] { return server.Jobs().size() == 1; }, 60))
+      << server.Log();
+  store = StoreScu(server, {"-R"}, {seg_});
+  ASSERT_EQ(store.exit_code, 0) << store.err << server.Log();
+  std::vector<std::string> jobs;
+  ASSERT_TRUE(WaitUntil(
+      [&] {
+        jobs = server.Jobs();
+        return jobs.size() == 2;
+      },
+      60))
+      << server.Log();
+  for (const std::string& id : jobs) {
+    CommandResult watch =
+        RunCommand(Cat({kCli, "watch", id, "--quiet"}, server.Client()), 300);
+    EXPECT_EQ(watch.exit_code, 0) << watch.err << server.Log();
+  }
+  EXPECT_THAT(server.Log(), HasSubstr("(fill) made by rule fill-seg"));
+  EXPECT_THAT(server.Log(), HasSubstr("made by rule ct "));
 }
 
 }  // namespace

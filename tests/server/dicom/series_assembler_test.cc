@@ -59,7 +59,8 @@ class AssemblerTest : public ::testing::Test {
     absl::StatusOr<std::unique_ptr<SeriesAssembler>> a = SeriesAssembler::Open(
         options, std::move(rules), nullptr, nullptr,
         [this](const v1::JobSpec& spec, const std::string& dir,
-               const std::string& origin) -> absl::StatusOr<std::string> {
+               const std::string& origin,
+               const std::string&) -> absl::StatusOr<std::string> {
           if (fail_next_) {
             fail_next_ = false;
             return absl::ResourceExhaustedError("queue full");
