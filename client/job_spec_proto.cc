@@ -93,20 +93,26 @@ v1::JobSpec FillJobSpecToProto(const FillJobSpec& spec,
   } else if (spec.fill.z_resolution.spacing_mm.has_value()) {
     p.set_slice_spacing_mm(*spec.fill.z_resolution.spacing_mm);
   }
-  switch (spec.fill.solver.method) {
-    case SolverMethod::kLinear:
-      p.set_method(v1::SOLVER_METHOD_LINEAR);
-      break;
-    case SolverMethod::kConjugateGradient:
-      p.set_method(v1::SOLVER_METHOD_CONJUGATE_GRADIENT);
-      break;
-    case SolverMethod::kDirect:
-      p.set_method(v1::SOLVER_METHOD_DIRECT);
-      break;
-    case SolverMethod::kMorph:
-      p.set_method(v1::SOLVER_METHOD_MORPH);  // the server refuses it
-      break;
-  }
+  p.set_uid_root(spec.uid_root);
+  p.set_random_uids(spec.random_uids);
+  fill->set_seg(spec.write_seg);
+  if (spec.write_rtstruct.has_value()) fill->set_rtstruct(*spec.write_rtstruct);
+  // Unset method = the fill's default (auto).
+  if (spec.fill.method == FillMethod::kSolver)
+    switch (spec.fill.solver.method) {
+      case SolverMethod::kLinear:
+        p.set_method(v1::SOLVER_METHOD_LINEAR);
+        break;
+      case SolverMethod::kConjugateGradient:
+        p.set_method(v1::SOLVER_METHOD_CONJUGATE_GRADIENT);
+        break;
+      case SolverMethod::kDirect:
+        p.set_method(v1::SOLVER_METHOD_DIRECT);
+        break;
+      case SolverMethod::kMorph:
+        p.set_method(v1::SOLVER_METHOD_MORPH);  // the server refuses it
+        break;
+    }
   p.set_max_iterations(spec.fill.solver.max_iterations);
   if (spec.fill.solver.tolerance > 0)
     p.set_tolerance(spec.fill.solver.tolerance);

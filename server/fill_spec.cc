@@ -37,8 +37,6 @@ absl::StatusOr<FillJobSpec> FillJobSpecFromProto(const v1::JobSpec& p) {
     return NotForFill("derived_series");
   }
   if (p.segmentation().ByteSizeLong() > 0) return NotForFill("segmentation");
-  if (!p.uid_root().empty()) return NotForFill("uid_root");
-  if (p.random_uids()) return NotForFill("random_uids");
   if (p.has_pacs_source()) return NotForFill("pacs_source");
 
   const v1::LabelFill& f = p.fill();
@@ -94,8 +92,18 @@ absl::StatusOr<FillJobSpec> FillJobSpecFromProto(const v1::JobSpec& p) {
     default:
       break;
   }
+  spec.uid_root = p.uid_root();
+  spec.random_uids = p.random_uids();
+  spec.write_seg = f.seg();
+  if (f.has_rtstruct()) spec.write_rtstruct = f.rtstruct();
+  // Unset = the fill's own default (auto, per label); a method given applies
+  // to every label.
+  spec.fill.method = p.method() == v1::SOLVER_METHOD_UNSPECIFIED
+                         ? FillMethod::kAuto
+                         : FillMethod::kSolver;
   switch (p.method()) {
     case v1::SOLVER_METHOD_UNSPECIFIED:
+      break;
     case v1::SOLVER_METHOD_CONJUGATE_GRADIENT:
       spec.fill.solver.method = SolverMethod::kConjugateGradient;
       break;

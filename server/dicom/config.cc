@@ -416,15 +416,18 @@ absl::StatusOr<v1::JobSpec> ParseFill(const YAML::Node& node,
   v1::OutputSelection* outputs = spec.mutable_outputs();
   outputs->add_volume_formats(v1::VOLUME_FORMAT_NIFTI);
   outputs->add_mesh_formats(v1::MESH_FORMAT_STL);
+  // What came in as DICOM goes back as DICOM: the filled labels as a SEG
+  // (and as an RTSTRUCT when the input was one, the fill's own default).
+  fill->set_seg(true);
   if (node.IsNull()) return spec;  // `fill:` alone: every default
   if (!node.IsMap()) {
     return ctx.Error("fill",
                      absl::StrCat("expected a mapping, got ", KindName(node)));
   }
-  absl::Status keys =
-      CheckKeys(node, ctx, "fill",
-                {"labels", "key_slices", "method", "iterations", "tolerance",
-                 "factor", "spacing", "band", "mesh", "volume", "adaptivity"});
+  absl::Status keys = CheckKeys(
+      node, ctx, "fill",
+      {"labels", "key_slices", "method", "iterations", "tolerance", "factor",
+       "spacing", "band", "mesh", "volume", "adaptivity", "seg", "rtstruct"});
   if (!keys.ok()) return keys;
   auto integers = [&](const char* key,
                       std::vector<int64_t>* out) -> absl::Status {
@@ -459,16 +462,30 @@ absl::StatusOr<v1::JobSpec> ParseFill(const YAML::Node& node,
     absl::StatusOr<std::string> v =
         GetString(node["method"], ctx, "fill.method");
     if (!v.ok()) return v.status();
-    if (*v == "direct") {
+    if (*v == "auto") {
+      spec.clear_method();
+    } else if (*v == "direct") {
       spec.set_method(v1::SOLVER_METHOD_DIRECT);
     } else if (*v == "cg") {
       spec.set_method(v1::SOLVER_METHOD_CONJUGATE_GRADIENT);
     } else if (*v == "linear") {
       spec.set_method(v1::SOLVER_METHOD_LINEAR);
     } else {
-      return ctx.Error("fill.method",
-                       absl::StrCat("unknown method '", *v,
-                                    "' (choose from direct, cg, linear)"));
+      return ctx.Error(
+          "fill.method",
+          absl::StrCat("unknown method '", *v,
+                       "' (choose from auto, direct, cg, linear)"));
+    }
+  }
+  for (const char* key : {"seg", "rtstruct"}) {
+    if (!node[key]) continue;
+    absl::StatusOr<bool> v =
+        GetBool(node[key], ctx, absl::StrCat("fill.", key));
+    if (!v.ok()) return v.status();
+    if (std::string(key) == "seg") {
+      fill->set_seg(*v);
+    } else {
+      fill->set_rtstruct(*v);
     }
   }
   if (node["iterations"]) {

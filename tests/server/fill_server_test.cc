@@ -190,6 +190,7 @@ FillJobReport RunLocally(const std::string& segmentation,
   spec.segmentation = segmentation;
   spec.reference = {reference};
   spec.output_dir = out;
+  spec.fill.method = FillMethod::kSolver;  // as the server for DIRECT
   spec.fill.solver.method = SolverMethod::kDirect;
   if (!key_slices.empty()) spec.fill.key_slices = key_slices;
   spec.volume_formats = {"nii", "nrrd"};

@@ -8,6 +8,7 @@
 
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "server/fill_spec.h"
 
 namespace interslice::server::dicom {
 namespace {
@@ -358,7 +359,8 @@ TEST_F(ConfigTest, FillRules) {
             "  - name: seg\n"
             "    match: {modality: SEG}\n"
             "    fill: {labels: [1, 3], key_slices: [0, 5, 10], method: "
-            "direct, factor: 2, mesh: [ply], volume: [nii, nrrd]}\n"
+            "direct, factor: 2, mesh: [ply], volume: [nii, nrrd], seg: "
+            "false, rtstruct: true}\n"
             "    send_to: [orthanc]\n"
             "  - name: any-segmentation\n"
             "    fill:\n"),
@@ -376,9 +378,26 @@ TEST_F(ConfigTest, FillRules) {
   EXPECT_EQ(fill.outputs().volume_formats_size(), 2);
   EXPECT_THAT(fill.send_to(), ::testing::ElementsAre("orthanc"));
   EXPECT_FALSE(fill.has_threshold());
-  // Defaults as `interslice fill`: NIfTI labels and STL meshes.
+  EXPECT_FALSE(fill.fill().seg());
+  ASSERT_TRUE(fill.fill().has_rtstruct());
+  EXPECT_TRUE(fill.fill().rtstruct());
+  // Defaults as `interslice fill` (NIfTI labels, STL meshes, the auto
+  // method), and a SEG back for what came in as DICOM.
   const v1::JobSpec& plain = set->rules[2].job;
   ASSERT_TRUE(plain.has_fill());
+  EXPECT_TRUE(plain.fill().seg());
+  EXPECT_FALSE(plain.fill().has_rtstruct());
+  EXPECT_EQ(plain.method(), v1::SOLVER_METHOD_UNSPECIFIED);
+  absl::StatusOr<FillJobSpec> wire = FillJobSpecFromProto(plain);
+  ASSERT_TRUE(wire.ok()) << wire.status();
+  EXPECT_EQ(wire->fill.method, FillMethod::kAuto);
+  EXPECT_TRUE(wire->write_seg);
+  EXPECT_FALSE(wire->write_rtstruct.has_value());
+  absl::StatusOr<FillJobSpec> direct = FillJobSpecFromProto(fill);
+  ASSERT_TRUE(direct.ok()) << direct.status();
+  EXPECT_EQ(direct->fill.method, FillMethod::kSolver);
+  EXPECT_EQ(direct->fill.solver.method, SolverMethod::kDirect);
+  EXPECT_EQ(direct->write_rtstruct, std::optional<bool>(true));
   EXPECT_THAT(plain.outputs().volume_formats(),
               ::testing::ElementsAre(v1::VOLUME_FORMAT_NIFTI));
   EXPECT_THAT(plain.outputs().mesh_formats(),
