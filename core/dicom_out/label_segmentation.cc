@@ -147,6 +147,33 @@ absl::StatusOr<DerivedObjectIdentity> ReferencedImagesOfSource(
     }
     images.sop_instance_uids.push_back(uid);
   }
+  // A frame that names image k is placed where image k is: only when every
+  // image lies on its slot of the regular grid the outputs are written on.
+  // The reader's grid is regular and orthogonal; a series with uneven gaps
+  // or a gantry tilt has images elsewhere (their true positions), and frames
+  // on the grid naming them would be drawn displaced by viewers that place
+  // frames by reference.
+  const Grid& grid = source.image.grid;
+  if (grid.size[2] != static_cast<int64_t>(source.slices.size())) {
+    return absl::InvalidArgumentError(
+        absl::StrFormat("the reference grid has %d slices for %d images",
+                        grid.size[2], source.slices.size()));
+  }
+  const double tolerance_mm =
+      0.01 + 0.01 * std::min(grid.spacing[0], grid.spacing[1]);
+  for (size_t k = 0; k < source.slices.size(); ++k) {
+    const Vec3 slot = grid.IndexToPhysical({0.0, 0.0, static_cast<double>(k)});
+    const Vec3& at = source.slices[k].image_position;
+    const double off =
+        std::hypot(at[0] - slot[0], at[1] - slot[1], at[2] - slot[2]);
+    if (off > tolerance_mm) {
+      return absl::InvalidArgumentError(absl::StrFormat(
+          "reference slice %d lies %.3f mm from its place on the regular "
+          "grid (uneven gaps or gantry tilt): its image cannot be referenced "
+          "as the frame's",
+          k, off));
+    }
+  }
   if (images.series_instance_uid.empty() || images.sop_class_uid.empty()) {
     return absl::InvalidArgumentError(
         "the reference series has no SeriesInstanceUID or SOPClassUID: a "

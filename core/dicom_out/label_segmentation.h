@@ -55,8 +55,11 @@ std::array<uint8_t, 3> SegmentRgb(const LabelSegment& segment);
 // The reference series as the images a derived object lies on (one per
 // slice, with the source's SOP Class and Instance UIDs and series UID).
 // INVALID_ARGUMENT if a slice has no SOP Instance UID (an anonymised source
-// cannot be referenced) or two slices share one (frames of a multi-frame
-// image); callers then derive an intensity series to reference instead.
+// cannot be referenced), two slices share one (frames of a multi-frame
+// image), or an image does not lie on its slot of the source's regular grid
+// (ImagePositionPatient more than 0.01 mm + 1% of the pixel spacing away:
+// uneven gaps, gantry tilt); callers then derive an intensity series to
+// reference instead.
 absl::StatusOr<DerivedObjectIdentity> ReferencedImagesOfSource(
     const DicomSeries& source);
 

@@ -48,20 +48,45 @@ TEST(LabelSegmentTest, ReferencedImagesNeedOneInstancePerSlice) {
   DicomSeries source;
   source.series_instance_uid = "1.2.3";
   source.sop_class_uid = "1.2.840.10008.5.1.4.1.1.2";
+  source.image.grid.size = {4, 4, 2};
+  source.image.grid.spacing = {0.5, 0.5, 5};
+  source.image.grid.origin = {-1, 2, 10};
   source.slices.resize(2);
   source.slices[0].sop_instance_uid = "1.2.3.1";
   source.slices[1].sop_instance_uid = "1.2.3.2";
+  source.slices[0].image_position = {-1, 2, 10};
+  source.slices[1].image_position = {-1, 2, 15.004};  // within rounding
   absl::StatusOr<DerivedObjectIdentity> images =
       ReferencedImagesOfSource(source);
   ASSERT_TRUE(images.ok()) << images.status();
   EXPECT_EQ(images->sop_instance_uids,
             (std::vector<std::string>{"1.2.3.1", "1.2.3.2"}));
+  // An image off its slot of the regular grid (an uneven gap) cannot be the
+  // image a frame on the grid names.
+  source.slices[1].image_position = {-1, 2, 16.2};
+  EXPECT_THAT(ReferencedImagesOfSource(source).status().message(),
+              HasSubstr("reference slice 1 lies 1.200 mm from its place"));
+  source.slices[1].image_position = {-1, 2, 15};
   source.slices[1].sop_instance_uid = "1.2.3.1";  // two frames of one image
   EXPECT_THAT(ReferencedImagesOfSource(source).status().message(),
               HasSubstr("multi-frame"));
   source.slices[1].sop_instance_uid = "";
   EXPECT_THAT(ReferencedImagesOfSource(source).status().message(),
               HasSubstr("no SOPInstanceUID"));
+}
+
+// The real tilted CT: the reader resamples it onto an orthogonal grid, so its
+// images are not where the grid's slices are and the fill's DICOM outputs
+// must lie on a derived intensity series; the regular thick CT's images are
+// referenced directly (LabelWritersTest's fixture).
+TEST(LabelSegmentTest, TiltedSeriesImagesAreNotReferencedAsGridSlices) {
+  QuietDicomToolkitLogging();
+  absl::StatusOr<DicomSeries> tilted = ReadDicomSeries(
+      {(fs::path(INTERSLICE_TEST_DATA_DIR) / "ct-tilt").string()}, {}, {});
+  ASSERT_TRUE(tilted.ok()) << tilted.status();
+  ASSERT_NE(tilted->gantry_tilt_degrees, 0);
+  EXPECT_THAT(ReferencedImagesOfSource(*tilted).status().message(),
+              HasSubstr("gantry tilt"));
 }
 
 class LabelWritersTest : public ::testing::Test {
