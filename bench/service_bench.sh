@@ -20,7 +20,7 @@ work=$(mktemp -d /tmp/interslice-bench-XXXXXX)
 trap 'kill $server_pid 2>/dev/null || true; wait 2>/dev/null || true; rm -rf "$work"' EXIT
 
 "$server" --listen 127.0.0.1:0 --spool "$work/spool" --port-file "$work/port" \
-  --max-queued 64 --log-level warn >"$work/server.log" 2>&1 &
+  --max-queued 64 --max-uploads-per-peer 64 --log-level warn >"$work/server.log" 2>&1 &
 server_pid=$!
 for _ in $(seq 100); do [[ -s $work/port ]] && break; sleep 0.05; done
 addr=127.0.0.1:$(head -1 "$work/port")

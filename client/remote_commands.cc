@@ -8,6 +8,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <memory>
 #include <string_view>
 #include <thread>
 #include <vector>
@@ -190,6 +191,23 @@ class ArtifactFile {
     std::error_code ec;
     fs::create_directories(fs::path(final_).parent_path(), ec);
     if (ec) return absl::PermissionDeniedError("cannot create " + final_);
+    // The digest is computed from the bytes as they arrive (no second read
+    // of the file); a resumed fetch first hashes the part already on disk.
+    hash_ = std::make_unique<Sha256>();
+    if (offset > 0) {
+      std::ifstream in(part_, std::ios::binary);
+      std::vector<char> buffer(1 << 16);
+      int64_t left = offset;
+      while (in && left > 0) {
+        in.read(buffer.data(),
+                static_cast<std::streamsize>(
+                    std::min<int64_t>(left, buffer.size())));
+        hash_->Update(buffer.data(), static_cast<size_t>(in.gcount()));
+        left -= in.gcount();
+      }
+      if (left != 0) return absl::DataLossError("cannot read " + part_);
+    }
+    bytes_ = offset;
     out_.open(part_, offset > 0 ? std::ios::binary | std::ios::app
                                 : std::ios::binary | std::ios::trunc);
     if (!out_) return absl::PermissionDeniedError("cannot write " + part_);
@@ -198,14 +216,16 @@ class ArtifactFile {
   absl::Status Append(const std::string& data) {
     out_.write(data.data(), static_cast<std::streamsize>(data.size()));
     if (!out_) return absl::ResourceExhaustedError("cannot write " + part_);
+    hash_->Update(data.data(), data.size());
+    bytes_ += static_cast<int64_t>(data.size());
     return absl::OkStatus();
   }
   absl::Status Commit() {
     out_.close();
     std::error_code ec;
     const auto size = fs::file_size(part_, ec);
-    if (ec || static_cast<int64_t>(size) != info_.size_bytes() ||
-        HashFile(part_) != info_.sha256()) {
+    if (!out_ || ec || static_cast<int64_t>(size) != info_.size_bytes() ||
+        bytes_ != info_.size_bytes() || hash_->Finish() != info_.sha256()) {
       return absl::DataLossError(absl::StrCat(
           info_.name(), ": size or SHA-256 does not match the server's"));
     }
@@ -220,6 +240,8 @@ class ArtifactFile {
   v1::ArtifactInfo info_;
   std::string final_, part_;
   std::ofstream out_;
+  std::unique_ptr<Sha256> hash_;
+  int64_t bytes_ = 0;
 };
 
 // Whether `path` already holds the artifact: a regular file of its size and

@@ -2,7 +2,12 @@
 
 #include <openssl/evp.h>
 
+#include <algorithm>
+#include <atomic>
+#include <filesystem>
 #include <fstream>
+#include <thread>
+#include <utility>
 #include <vector>
 
 #include "absl/strings/str_cat.h"
@@ -42,6 +47,33 @@ absl::StatusOr<std::string> Sha256OfFile(const std::string& path) {
   }
   if (in.bad()) return absl::DataLossError("read error while hashing a file");
   return hash.Finish();
+}
+
+std::vector<absl::StatusOr<std::string>> Sha256OfFiles(
+    const std::vector<std::string>& paths, int threads) {
+  std::vector<absl::StatusOr<std::string>> shas(
+      paths.size(), absl::InternalError("not hashed"));
+  std::vector<std::pair<int64_t, size_t>> by_size;  // (-size, index)
+  for (size_t n = 0; n < paths.size(); ++n) {
+    std::error_code ec;
+    const auto size = std::filesystem::file_size(paths[n], ec);
+    by_size.push_back({ec ? 0 : -static_cast<int64_t>(size), n});
+  }
+  std::sort(by_size.begin(), by_size.end());
+  std::atomic<size_t> next{0};
+  auto work = [&] {
+    for (size_t k = next++; k < by_size.size(); k = next++) {
+      const size_t n = by_size[k].second;
+      shas[n] = Sha256OfFile(paths[n]);
+    }
+  };
+  const int extra = std::min<int>(std::max(threads, 1),
+                                  static_cast<int>(paths.size())) - 1;
+  std::vector<std::thread> pool;
+  for (int t = 0; t < extra; ++t) pool.emplace_back(work);
+  work();
+  for (std::thread& t : pool) t.join();
+  return shas;
 }
 
 std::string HexString(std::string_view bytes) {

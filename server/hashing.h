@@ -5,6 +5,7 @@
 #include <memory>
 #include <string>
 #include <string_view>
+#include <vector>
 
 #include "absl/status/statusor.h"
 
@@ -27,6 +28,12 @@ class Sha256 {
 
 // SHA-256 of a whole file (32 raw bytes).
 absl::StatusOr<std::string> Sha256OfFile(const std::string& path);
+
+// SHA-256 of each file (32 raw bytes or the error of Sha256OfFile), in the
+// order of `paths`, hashed on up to `threads` threads (< 1: one), largest
+// files first so that one big file does not start last.
+std::vector<absl::StatusOr<std::string>> Sha256OfFiles(
+    const std::vector<std::string>& paths, int threads);
 
 std::string HexString(std::string_view bytes);
 

@@ -954,44 +954,60 @@ void JobManager::RunOne(const std::shared_ptr<Job>& job) {
     for (const StageTiming& s : report->stages) {
       metrics_->StageSeconds(s.stage, s.seconds);
     }
-    std::vector<v1::ArtifactInfo> artifacts;
-    int64_t result_bytes = 0;
-    absl::Status hashed = absl::OkStatus();
+    // Every file of every artifact, in report order (a derived DICOM series
+    // is a folder: each of its files becomes an artifact named
+    // "<folder>/<file>", one level, the only nesting), then hashed.
+    struct ArtifactFile {
+      std::string name, kind;
+      fs::path path;
+    };
+    std::vector<ArtifactFile> files;
     for (Artifact& a : report->artifacts) {
       const fs::path top(a.path);
-      // A derived DICOM series is a folder: each of its files becomes an
-      // artifact named "<folder>/<file>" (one level, the only nesting).
-      std::vector<std::pair<std::string, fs::path>> files;
+      std::vector<ArtifactFile> entries;
       std::error_code ec;
       if (fs::is_directory(top, ec)) {
         for (const auto& entry : fs::directory_iterator(top, ec)) {
           if (!entry.is_regular_file(ec)) continue;
-          files.push_back(
+          entries.push_back(
               {top.filename().string() + "/" + entry.path().filename().string(),
-               entry.path()});
+               a.kind, entry.path()});
         }
-        std::sort(files.begin(), files.end());
+        std::sort(entries.begin(), entries.end(),
+                  [](const ArtifactFile& x, const ArtifactFile& y) {
+                    return x.name < y.name;
+                  });
       } else {
-        files.push_back({top.filename().string(), top});
+        entries.push_back({top.filename().string(), a.kind, top});
       }
-      for (const auto& [name, path] : files) {
-        absl::StatusOr<std::string> sha = Sha256OfFile(path.string());
-        if (!sha.ok()) {
-          hashed = sha.status();
-          break;
-        }
-        const int64_t size = static_cast<int64_t>(fs::file_size(path, ec));
-        v1::ArtifactInfo info;
-        info.set_name(name);
-        info.set_kind(a.kind);
-        info.set_media_type(MediaTypeForArtifact(name));
-        info.set_size_bytes(size);
-        info.set_sha256(*sha);
-        artifacts.push_back(info);
-        result_bytes += size;
-      }
-      if (!hashed.ok()) break;
+      files.insert(files.end(), entries.begin(), entries.end());
       a.path = top.filename().string();  // the report names files, not paths
+    }
+    std::vector<std::string> paths;
+    for (const ArtifactFile& f : files) paths.push_back(f.path.string());
+    // Hashing re-reads every output (~0.25 s per 400 MB in one thread): as
+    // many threads as the job had, so it scales like the job's writing.
+    const std::vector<absl::StatusOr<std::string>> shas =
+        Sha256OfFiles(paths, options_.threads_per_job);
+    std::vector<v1::ArtifactInfo> artifacts;
+    int64_t result_bytes = 0;
+    absl::Status hashed = absl::OkStatus();
+    for (size_t n = 0; n < files.size(); ++n) {
+      if (!shas[n].ok()) {
+        hashed = shas[n].status();
+        break;
+      }
+      std::error_code ec;
+      const int64_t size =
+          static_cast<int64_t>(fs::file_size(files[n].path, ec));
+      v1::ArtifactInfo info;
+      info.set_name(files[n].name);
+      info.set_kind(files[n].kind);
+      info.set_media_type(MediaTypeForArtifact(files[n].name));
+      info.set_size_bytes(size);
+      info.set_sha256(*shas[n]);
+      artifacts.push_back(info);
+      result_bytes += size;
     }
     if (hashed.ok()) {
       spool_->Add(result_bytes);
