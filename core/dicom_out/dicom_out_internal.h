@@ -3,6 +3,7 @@
 #ifndef INTERSLICE_CORE_DICOM_OUT_DICOM_OUT_INTERNAL_H_
 #define INTERSLICE_CORE_DICOM_OUT_DICOM_OUT_INTERNAL_H_
 
+#include <cstdint>
 #include <memory>
 #include <string>
 #include <vector>
@@ -17,6 +18,7 @@
 
 class DcmFileFormat;
 class DcmItem;
+class DcmSegmentation;
 
 namespace interslice::dicom_out_internal {
 
@@ -103,6 +105,36 @@ absl::StatusOr<std::string> SaveFileUnsynced(
     E_TransferSyntax xfer = EXS_LittleEndianExplicit);
 absl::Status CommitFile(const std::string& temp, const std::string& path);
 absl::Status SyncDirectory(const std::string& dir);
+
+// The set-up both SEG writers (segmentation.cc: run's binary SEG;
+// label_segmentation.cc: fill's multi-segment SEG) share. A binary
+// DcmSegmentation of `grid`'s rows and columns with interslice as its
+// equipment; the identity's study, frame of reference (each falling back to
+// the source's when empty), series and SOP instance UIDs, series number,
+// description (<= 64 characters), date and time; the geometry all frames
+// share (Pixel Measures, Plane Orientation) and the two dimensions: segment,
+// then ImagePositionPatient (DICOM PS3.3 C.8.20.2.3). INTERNAL naming the
+// step DCMTK refused.
+absl::StatusOr<std::unique_ptr<DcmSegmentation>> CreateBinarySegmentation(
+    const DicomSeries& source, const Grid& grid,
+    const DerivedObjectIdentity& identity, const DicomWriteOptions& options);
+
+// Adds `frame` (nx*ny bytes, each 0 or 1) as the frame of segment
+// `segment_number` on slice k of `grid`: its plane position, its dimension
+// index values (segment, k + 1) and a derivation naming image k of
+// `referenced`, the image a viewer overlays it on.
+absl::Status AddSegmentationFrame(DcmSegmentation& seg, const Grid& grid,
+                                  int64_t k, uint16_t segment_number,
+                                  const DerivedObjectIdentity& referenced,
+                                  const std::string& derivation_description,
+                                  const uint8_t* frame);
+
+// Encodes `seg`, copies patient and study data from `source_header`, lists
+// `referenced` as the referenced series and saves the file atomically.
+absl::Status SaveSegmentation(DcmSegmentation& seg, DcmItem& source_header,
+                              const DerivedObjectIdentity& identity,
+                              const DerivedObjectIdentity& referenced,
+                              const std::string& path);
 
 }  // namespace interslice::dicom_out_internal
 

@@ -20,11 +20,6 @@
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
 #include "dcmtk/dcmdata/dcfilefo.h"
-#include "dcmtk/dcmfg/fgderimg.h"
-#include "dcmtk/dcmfg/fgfracon.h"
-#include "dcmtk/dcmfg/fgpixmsr.h"
-#include "dcmtk/dcmfg/fgplanor.h"
-#include "dcmtk/dcmfg/fgplanpo.h"
 #include "dcmtk/dcmiod/cielabutil.h"
 #include "dcmtk/dcmiod/iodmacro.h"
 #include "dcmtk/dcmseg/segdoc.h"
@@ -33,14 +28,11 @@
 namespace interslice {
 namespace {
 
-using dicom_out_internal::AddReferencedImageSeries;
+using dicom_out_internal::AddSegmentationFrame;
 using dicom_out_internal::CheckReferencedSeries;
-using dicom_out_internal::CopyPatientStudyFrameOfReference;
-using dicom_out_internal::CurrentDate;
-using dicom_out_internal::CurrentTime;
-using dicom_out_internal::FormatDecimalString;
+using dicom_out_internal::CreateBinarySegmentation;
 using dicom_out_internal::LoadSourceHeader;
-using dicom_out_internal::SaveFileAtomically;
+using dicom_out_internal::SaveSegmentation;
 using dicom_out_internal::ValidateOutputGrid;
 
 absl::Status Check(const OFCondition& cond, const std::string& what) {
@@ -218,43 +210,9 @@ absl::Status WriteLabelSegmentation(const DicomSeries& source,
   INTERSLICE_ASSIGN_OR_RETURN(std::unique_ptr<DcmFileFormat> source_file,
                               LoadSourceHeader(source));
   DcmDataset& src = *source_file->getDataset();
-  const IODGeneralEquipmentModule::EquipmentInfo equipment(
-      "interslice", "interslice", "0", options.software_version.c_str());
-  const std::string description = identity.series_description.substr(0, 64);
-  ContentIdentificationMacro content("1", "INTERSLICE", description.c_str(),
-                                     "");
-  DcmSegmentation* raw = nullptr;
-  INTERSLICE_RETURN_IF_ERROR(Check(
-      DcmSegmentation::createBinarySegmentation(raw, static_cast<Uint16>(ny),
-                                                static_cast<Uint16>(nx),
-                                                equipment, content),
-      "create the segmentation"));
-  std::unique_ptr<DcmSegmentation> seg(raw);
-  INTERSLICE_RETURN_IF_ERROR(Check(
-      seg->getStudy().setStudyInstanceUID((identity.study_instance_uid.empty()
-                                               ? source.study_instance_uid
-                                               : identity.study_instance_uid)
-                                              .c_str()),
-      "set StudyInstanceUID"));
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(seg->getFrameOfReference().setFrameOfReferenceUID(
-                (identity.frame_of_reference_uid.empty()
-                     ? source.frame_of_reference_uid
-                     : identity.frame_of_reference_uid)
-                    .c_str()),
-            "set FrameOfReferenceUID"));
-  INTERSLICE_RETURN_IF_ERROR(Check(seg->getSeries().setSeriesInstanceUID(
-                                       identity.series_instance_uid.c_str()),
-                                   "set SeriesInstanceUID"));
-  seg->getSeries().setSeriesNumber(
-      std::to_string(identity.series_number).c_str());
-  seg->getSeries().setSeriesDescription(description.c_str());
-  seg->getSeries().setSeriesDate(CurrentDate().c_str());
-  seg->getSeries().setSeriesTime(CurrentTime().c_str());
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(seg->getSOPCommon().setSOPInstanceUID(
-                identity.sop_instance_uids.front().c_str()),
-            "set SOPInstanceUID"));
+  INTERSLICE_ASSIGN_OR_RETURN(
+      std::unique_ptr<DcmSegmentation> seg,
+      CreateBinarySegmentation(source, grid, identity, options));
 
   // Segments, in ascending label order.
   std::map<int, Uint16> segment_of;
@@ -292,86 +250,18 @@ absl::Status WriteLabelSegmentation(const DicomSeries& source,
     segment_of[label] = number;
   }
 
-  FGPixelMeasures measures;
-  measures.setPixelSpacing(absl::StrCat(FormatDecimalString(grid.spacing[1]),
-                                        "\\",
-                                        FormatDecimalString(grid.spacing[0]))
-                               .c_str());
-  measures.setSliceThickness(FormatDecimalString(grid.spacing[2]).c_str());
-  measures.setSpacingBetweenSlices(
-      FormatDecimalString(grid.spacing[2]).c_str());
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(seg->addForAllFrames(measures), "add pixel measures"));
-  const Vec3 row = grid.Axis(0), col = grid.Axis(1);
-  std::unique_ptr<FGPlaneOrientationPatient> orientation(
-      FGPlaneOrientationPatient::createMinimal(
-          FormatDecimalString(row[0]).c_str(),
-          FormatDecimalString(row[1]).c_str(),
-          FormatDecimalString(row[2]).c_str(),
-          FormatDecimalString(col[0]).c_str(),
-          FormatDecimalString(col[1]).c_str(),
-          FormatDecimalString(col[2]).c_str()));
-  if (orientation == nullptr) {
-    return absl::InternalError("DICOM SEG: cannot create plane orientation");
-  }
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(seg->addForAllFrames(*orientation), "add plane orientation"));
-  const std::string& dimension_uid = identity.dimension_organization_uid;
-  IODMultiframeDimensionModule& dims = seg->getDimensions();
-  INTERSLICE_RETURN_IF_ERROR(Check(
-      dims.addDimensionIndex(DCM_ReferencedSegmentNumber, dimension_uid.c_str(),
-                             DCM_SegmentIdentificationSequence,
-                             "ReferencedSegmentNumber"),
-      "add the segment dimension"));
-  INTERSLICE_RETURN_IF_ERROR(Check(
-      dims.addDimensionIndex(DCM_ImagePositionPatient, dimension_uid.c_str(),
-                             DCM_PlanePositionSequence, "ImagePositionPatient"),
-      "add the position dimension"));
-
   std::vector<Uint8> frame(static_cast<size_t>(plane));
   for (const auto& [label, slices] : slices_of) {
     const Uint16 number = segment_of[label];
     for (int64_t k : slices) {
       const uint16_t* s = labels.data.data() + k * plane;
       for (int64_t p = 0; p < plane; ++p) frame[p] = s[p] == label;
-      const Vec3 p = grid.IndexToPhysical({0, 0, static_cast<double>(k)});
-      std::unique_ptr<FGPlanePosPatient> position(
-          FGPlanePosPatient::createMinimal(FormatDecimalString(p[0]).c_str(),
-                                           FormatDecimalString(p[1]).c_str(),
-                                           FormatDecimalString(p[2]).c_str()));
-      if (position == nullptr) {
-        return absl::InternalError("DICOM SEG: cannot create plane position");
-      }
-      FGFrameContent frame_content;
-      frame_content.setDimensionIndexValues(number, 0);
-      frame_content.setDimensionIndexValues(static_cast<Uint32>(k + 1), 1);
-      OFVector<ImageSOPInstanceReferenceMacro> references(1);
-      references[0].setReferencedSOPClassUID(referenced.sop_class_uid.c_str());
-      references[0].setReferencedSOPInstanceUID(
-          referenced.sop_instance_uids[static_cast<size_t>(k)].c_str());
-      std::unique_ptr<FGDerivationImage> derivation(
-          DcmSegmentation::createDerivationImageFG(
-              references,
-              options.derivation_description.substr(0, 1024).c_str()));
-      if (derivation == nullptr) {
-        return absl::InternalError("DICOM SEG: cannot create derivation image");
-      }
-      OFVector<FGBase*> per_frame;
-      per_frame.push_back(position.get());
-      per_frame.push_back(&frame_content);
-      per_frame.push_back(derivation.get());
       INTERSLICE_RETURN_IF_ERROR(
-          Check(seg->addFrame(frame.data(), number, per_frame),
-                absl::StrFormat("add frame (label %d, slice %d)", label, k)));
+          AddSegmentationFrame(*seg, grid, k, number, referenced,
+                               options.derivation_description, frame.data()));
     }
   }
-
-  DcmFileFormat file;
-  DcmDataset& ds = *file.getDataset();
-  INTERSLICE_RETURN_IF_ERROR(Check(seg->writeDataset(ds), "encode"));
-  CopyPatientStudyFrameOfReference(src, identity, ds);
-  AddReferencedImageSeries(referenced, ds);
-  return SaveFileAtomically(file, path);
+  return SaveSegmentation(*seg, src, identity, referenced, path);
 }
 
 }  // namespace interslice

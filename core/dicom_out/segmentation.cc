@@ -27,6 +27,9 @@ namespace interslice {
 namespace {
 
 using dicom_out_internal::AddReferencedImageSeries;
+using dicom_out_internal::AddSegmentationFrame;
+using dicom_out_internal::CreateBinarySegmentation;
+using dicom_out_internal::SaveSegmentation;
 using dicom_out_internal::CheckReferencedSeries;
 using dicom_out_internal::CopyPatientStudyFrameOfReference;
 using dicom_out_internal::CurrentDate;
@@ -52,30 +55,14 @@ absl::Status ValidateCode(const CodedConcept& code, const char* what) {
 
 }  // namespace
 
-absl::Status WriteSegmentation(const DicomSeries& source,
-                               const Volume<uint8_t>& mask,
-                               const DerivedObjectIdentity& identity,
-                               const DerivedObjectIdentity& referenced,
-                               const SegmentDescription& segment,
-                               const DicomWriteOptions& options,
-                               const std::string& path) {
-  const Grid& grid = mask.grid;
-  INTERSLICE_RETURN_IF_ERROR(
-      ValidateOutputGrid(source, grid, mask.data.size(), "segmentation mask"));
-  INTERSLICE_RETURN_IF_ERROR(
-      CheckReferencedSeries(identity, referenced, grid, "segmentation"));
-  if (segment.label.empty()) {
-    return absl::InvalidArgumentError("segment label is empty");
-  }
-  INTERSLICE_RETURN_IF_ERROR(ValidateCode(segment.category, "category"));
-  INTERSLICE_RETURN_IF_ERROR(ValidateCode(segment.type, "type"));
-  INTERSLICE_ASSIGN_OR_RETURN(std::unique_ptr<DcmFileFormat> source_file,
-                              LoadSourceHeader(source));
-  DcmDataset& src = *source_file->getDataset();
+namespace dicom_out_internal {
+
+absl::StatusOr<std::unique_ptr<DcmSegmentation>> CreateBinarySegmentation(
+    const DicomSeries& source, const Grid& grid,
+    const DerivedObjectIdentity& identity, const DicomWriteOptions& options) {
   const std::string& series_uid = identity.series_instance_uid;
   const std::string& sop_uid = identity.sop_instance_uids.front();
   const std::string& dimension_uid = identity.dimension_organization_uid;
-
   // The segmentation's creator is interslice (Enhanced General Equipment
   // needs all four values; a software tool has no serial number).
   const IODGeneralEquipmentModule::EquipmentInfo equipment(
@@ -91,7 +78,8 @@ absl::Status WriteSegmentation(const DicomSeries& source,
             "create the segmentation"));
   std::unique_ptr<DcmSegmentation> seg(raw);
 
-  // Identity. Patient/study data are copied into the written dataset below;
+  // Identity. Patient/study data are copied into the written dataset by
+  // SaveSegmentation;
   // the type 1 UIDs are set here because dcmseg checks them while writing.
   INTERSLICE_RETURN_IF_ERROR(Check(
       seg->getStudy().setStudyInstanceUID((identity.study_instance_uid.empty()
@@ -118,26 +106,6 @@ absl::Status WriteSegmentation(const DicomSeries& source,
   INTERSLICE_RETURN_IF_ERROR(
       Check(seg->getSOPCommon().setSOPInstanceUID(sop_uid.c_str()),
             "set SOPInstanceUID"));
-
-  // The one segment.
-  DcmSegment* raw_segment = nullptr;
-  INTERSLICE_RETURN_IF_ERROR(Check(
-      DcmSegment::create(raw_segment, segment.label.c_str(),
-                         CodeSequenceMacro(segment.category.value.c_str(),
-                                           segment.category.scheme.c_str(),
-                                           segment.category.meaning.c_str()),
-                         CodeSequenceMacro(segment.type.value.c_str(),
-                                           segment.type.scheme.c_str(),
-                                           segment.type.meaning.c_str()),
-                         DcmSegTypes::SAT_AUTOMATIC,
-                         segment.algorithm_name.c_str()),
-      "create the segment"));
-  Uint16 segment_number = 0;
-  {
-    const OFCondition cond = seg->addSegment(raw_segment, segment_number);
-    if (cond.bad()) delete raw_segment;  // ownership passes only on success
-    INTERSLICE_RETURN_IF_ERROR(Check(cond, "add the segment"));
-  }
 
   // Geometry shared by all frames.
   FGPixelMeasures measures;
@@ -178,52 +146,121 @@ absl::Status WriteSegmentation(const DicomSeries& source,
                              DCM_PlanePositionSequence, "ImagePositionPatient"),
       "add the position dimension"));
 
+  return seg;
+}
+
+absl::Status AddSegmentationFrame(DcmSegmentation& seg, const Grid& grid,
+                                  int64_t k, uint16_t segment_number,
+                                  const DerivedObjectIdentity& referenced,
+                                  const std::string& derivation_description,
+                                  const uint8_t* frame) {
+  const Vec3 p = grid.IndexToPhysical({0, 0, static_cast<double>(k)});
+  std::unique_ptr<FGPlanePosPatient> position(
+      FGPlanePosPatient::createMinimal(FormatDecimalString(p[0]).c_str(),
+                                       FormatDecimalString(p[1]).c_str(),
+                                       FormatDecimalString(p[2]).c_str()));
+  if (position == nullptr) {
+    return absl::InternalError("DICOM SEG: cannot create plane position");
+  }
+  FGFrameContent frame_content;
+  frame_content.setDimensionIndexValues(segment_number, 0);
+  frame_content.setDimensionIndexValues(static_cast<Uint32>(k + 1), 1);
+
+  // Frame k lies on image k of the referenced series: that image is what it
+  // was derived from and what a viewer overlays it on.
+  OFVector<ImageSOPInstanceReferenceMacro> references(1);
+  references[0].setReferencedSOPClassUID(referenced.sop_class_uid.c_str());
+  references[0].setReferencedSOPInstanceUID(
+      referenced.sop_instance_uids[static_cast<size_t>(k)].c_str());
+  std::unique_ptr<FGDerivationImage> derivation(
+      DcmSegmentation::createDerivationImageFG(
+          references, derivation_description.substr(0, 1024).c_str()));
+  if (derivation == nullptr) {
+    return absl::InternalError("DICOM SEG: cannot create derivation image");
+  }
+
+  OFVector<FGBase*> per_frame;
+  per_frame.push_back(position.get());
+  per_frame.push_back(&frame_content);
+  per_frame.push_back(derivation.get());
+  // addFrame packs the bytes into its own bit-packed copy; it takes a
+  // non-const pointer only by its signature.
+  return Check(seg.addFrame(const_cast<Uint8*>(frame), segment_number,
+                            per_frame),
+               absl::StrCat("add the frame of segment ", segment_number,
+                            " on slice ", k)
+                   .c_str());
+}
+
+absl::Status SaveSegmentation(DcmSegmentation& seg, DcmItem& source_header,
+                              const DerivedObjectIdentity& identity,
+                              const DerivedObjectIdentity& referenced,
+                              const std::string& path) {
+  DcmFileFormat file;
+  DcmDataset& ds = *file.getDataset();
+  INTERSLICE_RETURN_IF_ERROR(Check(seg.writeDataset(ds), "encode"));
+  CopyPatientStudyFrameOfReference(source_header, identity, ds);
+  AddReferencedImageSeries(referenced, ds);
+  return SaveFileAtomically(file, path);
+}
+
+}  // namespace dicom_out_internal
+
+absl::Status WriteSegmentation(const DicomSeries& source,
+                               const Volume<uint8_t>& mask,
+                               const DerivedObjectIdentity& identity,
+                               const DerivedObjectIdentity& referenced,
+                               const SegmentDescription& segment,
+                               const DicomWriteOptions& options,
+                               const std::string& path) {
+  const Grid& grid = mask.grid;
+  INTERSLICE_RETURN_IF_ERROR(
+      ValidateOutputGrid(source, grid, mask.data.size(), "segmentation mask"));
+  INTERSLICE_RETURN_IF_ERROR(
+      CheckReferencedSeries(identity, referenced, grid, "segmentation"));
+  if (segment.label.empty()) {
+    return absl::InvalidArgumentError("segment label is empty");
+  }
+  INTERSLICE_RETURN_IF_ERROR(ValidateCode(segment.category, "category"));
+  INTERSLICE_RETURN_IF_ERROR(ValidateCode(segment.type, "type"));
+  INTERSLICE_ASSIGN_OR_RETURN(std::unique_ptr<DcmFileFormat> source_file,
+                              LoadSourceHeader(source));
+  DcmDataset& src = *source_file->getDataset();
+
+  INTERSLICE_ASSIGN_OR_RETURN(
+      std::unique_ptr<DcmSegmentation> seg,
+      CreateBinarySegmentation(source, grid, identity, options));
+
+  // The one segment.
+  DcmSegment* raw_segment = nullptr;
+  INTERSLICE_RETURN_IF_ERROR(Check(
+      DcmSegment::create(raw_segment, segment.label.c_str(),
+                         CodeSequenceMacro(segment.category.value.c_str(),
+                                           segment.category.scheme.c_str(),
+                                           segment.category.meaning.c_str()),
+                         CodeSequenceMacro(segment.type.value.c_str(),
+                                           segment.type.scheme.c_str(),
+                                           segment.type.meaning.c_str()),
+                         DcmSegTypes::SAT_AUTOMATIC,
+                         segment.algorithm_name.c_str()),
+      "create the segment"));
+  Uint16 segment_number = 0;
+  {
+    const OFCondition cond = seg->addSegment(raw_segment, segment_number);
+    if (cond.bad()) delete raw_segment;  // ownership passes only on success
+    INTERSLICE_RETURN_IF_ERROR(Check(cond, "add the segment"));
+  }
+
   const int64_t nx = grid.size[0], ny = grid.size[1], nz = grid.size[2];
   std::vector<Uint8> frame(static_cast<size_t>(nx * ny));
   for (int64_t k = 0; k < nz; ++k) {
     const uint8_t* slice = &mask.data[static_cast<size_t>(nx * ny * k)];
     for (size_t i = 0; i < frame.size(); ++i) frame[i] = slice[i] != 0;
-
-    const Vec3 p = grid.IndexToPhysical({0, 0, static_cast<double>(k)});
-    std::unique_ptr<FGPlanePosPatient> position(
-        FGPlanePosPatient::createMinimal(FormatDecimalString(p[0]).c_str(),
-                                         FormatDecimalString(p[1]).c_str(),
-                                         FormatDecimalString(p[2]).c_str()));
-    if (position == nullptr) {
-      return absl::InternalError("DICOM SEG: cannot create plane position");
-    }
-    FGFrameContent frame_content;
-    frame_content.setDimensionIndexValues(segment_number, 0);
-    frame_content.setDimensionIndexValues(static_cast<Uint32>(k + 1), 1);
-
-    // Frame k lies on image k of the intensity series: that image is what
-    // it was derived from and what a viewer overlays it on.
-    OFVector<ImageSOPInstanceReferenceMacro> references(1);
-    references[0].setReferencedSOPClassUID(referenced.sop_class_uid.c_str());
-    references[0].setReferencedSOPInstanceUID(
-        referenced.sop_instance_uids[static_cast<size_t>(k)].c_str());
-    std::unique_ptr<FGDerivationImage> derivation(
-        DcmSegmentation::createDerivationImageFG(
-            references,
-            options.derivation_description.substr(0, 1024).c_str()));
-    if (derivation == nullptr) {
-      return absl::InternalError("DICOM SEG: cannot create derivation image");
-    }
-
-    OFVector<FGBase*> per_frame;
-    per_frame.push_back(position.get());
-    per_frame.push_back(&frame_content);
-    per_frame.push_back(derivation.get());
-    INTERSLICE_RETURN_IF_ERROR(Check(
-        seg->addFrame(frame.data(), segment_number, per_frame), "add a frame"));
+    INTERSLICE_RETURN_IF_ERROR(AddSegmentationFrame(
+        *seg, grid, k, segment_number, referenced,
+        options.derivation_description, frame.data()));
   }
-
-  DcmFileFormat file;
-  DcmDataset& ds = *file.getDataset();
-  INTERSLICE_RETURN_IF_ERROR(Check(seg->writeDataset(ds), "encode"));
-  CopyPatientStudyFrameOfReference(src, identity, ds);
-  AddReferencedImageSeries(referenced, ds);
-  return SaveFileAtomically(file, path);
+  return SaveSegmentation(*seg, src, identity, referenced, path);
 }
 
 }  // namespace interslice
