@@ -843,45 +843,9 @@ void JobManager::RunOne(const std::shared_ptr<Job>& job) {
       });
       if (in_process) InjectTestFault(e.stage, threshold);
     };
-    // A deadline that passed while queued fails fast, without reading.
-    absl::Status early = job->token_.Check();
-    if (!early.ok()) {
-      report = early;
-    } else if (fill) {
-      v1::JobSpec proto;
-      {
-        std::lock_guard<std::mutex> lock(job->mu_);
-        proto = job->record_.spec();
-      }
-      if (options_.isolate_jobs) {
-        spool::v1::WorkerRequest request;
-        *request.mutable_spec() = proto;
-        {
-          std::lock_guard<std::mutex> lock(job->mu_);
-          request.set_deadline_unix_ms(job->record_.deadline_unix_ms());
-        }
-        request.set_input_dir(spec.inputs.front());
-        request.set_output_dir(spec.output_dir);
-        request.set_max_output_voxels(spec.max_output_voxels);
-        request.set_threads(options_.threads_per_job);
-        request.set_server_pid(::getpid());
-        WorkerOutcome outcome;
-        fill_json =
-            RunInWorkerProcess(request, context, options_.worker, &outcome);
-        if (outcome.crashed) {
-          spdlog::error(
-              "job={} worker process crashed (signal {}) during stage {}; "
-              "the job failed, the server carries on",
-              id, outcome.signal,
-              outcome.last_stage.empty() ? "start" : outcome.last_stage);
-        }
-      } else {
-        fill_json =
-            RunFillJobInSpool(proto, spec.inputs.front(), spec.output_dir,
-                              spec.max_output_voxels, context);
-      }
-      if (!fill_json.ok()) report = fill_json.status();
-    } else if (options_.isolate_jobs) {
+    // The request a supervised worker process runs (fill and interpolation
+    // jobs alike), and the one log line a crashed worker gets.
+    auto worker_request = [&] {
       spool::v1::WorkerRequest request;
       {
         std::lock_guard<std::mutex> lock(job->mu_);
@@ -893,16 +857,42 @@ void JobManager::RunOne(const std::shared_ptr<Job>& job) {
       request.set_max_output_voxels(spec.max_output_voxels);
       request.set_threads(options_.threads_per_job);
       request.set_server_pid(::getpid());
-      WorkerOutcome outcome;
-      report =
-          RunJobInWorkerProcess(request, context, options_.worker, &outcome);
-      if (outcome.crashed) {
-        spdlog::error(
-            "job={} worker process crashed (signal {}) during stage {}; the "
-            "job failed, the server carries on",
-            id, outcome.signal,
-            outcome.last_stage.empty() ? "start" : outcome.last_stage);
+      return request;
+    };
+    auto log_crash = [&id](const WorkerOutcome& outcome) {
+      if (!outcome.crashed) return;
+      spdlog::error(
+          "job={} worker process crashed (signal {}) during stage {}; the "
+          "job failed, the server carries on",
+          id, outcome.signal,
+          outcome.last_stage.empty() ? "start" : outcome.last_stage);
+    };
+    // A deadline that passed while queued fails fast, without reading.
+    absl::Status early = job->token_.Check();
+    if (!early.ok()) {
+      report = early;
+    } else if (fill) {
+      if (options_.isolate_jobs) {
+        WorkerOutcome outcome;
+        fill_json = RunInWorkerProcess(worker_request(), context,
+                                       options_.worker, &outcome);
+        log_crash(outcome);
+      } else {
+        v1::JobSpec proto;
+        {
+          std::lock_guard<std::mutex> lock(job->mu_);
+          proto = job->record_.spec();
+        }
+        fill_json =
+            RunFillJobInSpool(proto, spec.inputs.front(), spec.output_dir,
+                              spec.max_output_voxels, context);
       }
+      if (!fill_json.ok()) report = fill_json.status();
+    } else if (options_.isolate_jobs) {
+      WorkerOutcome outcome;
+      report = RunJobInWorkerProcess(worker_request(), context,
+                                     options_.worker, &outcome);
+      log_crash(outcome);
     } else {
       report = RunJob(spec, context);
       if (report.ok()) report->peak_rss_bytes = PeakRssBytes();
