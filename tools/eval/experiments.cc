@@ -54,6 +54,9 @@ struct Method {
   bool nearest = false;
   bool morph = false;  // registration-based stacking (core/morph) first
   bool component_filter = false;  // RemoveUnsupportedComponents after
+  // The morph's trajectory (MorphOptions::trajectory, cubic_values).
+  MorphTrajectory trajectory = MorphTrajectory::kPiecewiseLinear;
+  bool cubic_values = true;
   SolverOptions solver;
 };
 
@@ -65,6 +68,32 @@ absl::StatusOr<Method> ParseMethod(const std::string& name,
   if (absl::EndsWith(name, "-mm")) {
     m.solver.units = EnergyUnits::kMillimetre;
     base = name.substr(0, name.size() - 3);
+  }
+  // morph-smooth[pos]...: the same methods on the cubic (C1 in z)
+  // trajectory; "pos" interpolates only the trajectory by the cubic and
+  // blends the values linearly. "morph-smooth" alone is the cubic morph with
+  // the component filter and no refinement (it needs none for the crease).
+  if (absl::StartsWith(base, "morph-smooth")) {
+    m.trajectory = MorphTrajectory::kCubic;
+    std::string rest = base.substr(12);
+    if (absl::StartsWith(rest, "pos")) {
+      m.cubic_values = false;
+      rest = rest.substr(3);
+    }
+    if (rest.empty()) {
+      m.morph = true;
+      m.component_filter = true;
+      m.solver.method = SolverMethod::kLinear;
+      return m;
+    }
+    if (rest == "-raw" || absl::StartsWith(rest, "-fid")) {
+      base = absl::StrCat("morph", rest);
+    } else {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "unknown method '", name,
+          "' (morph-smooth[pos], morph-smooth[pos]-raw, "
+          "morph-smooth[pos]-fidL[t][c])"));
+    }
   }
   if (base == "nearest") {
     m.nearest = true;
@@ -111,7 +140,8 @@ absl::StatusOr<Method> ParseMethod(const std::string& name,
     return absl::InvalidArgumentError(absl::StrCat(
         "unknown method '", name,
         "' (nearest, linear, cg15, cgtol, direct, morph-raw, morph, "
-        "morph-fidL[t][c]; optionally with -mm)"));
+        "morph-fidL[t][c], morph-smooth[pos][-raw|-fidL[t][c]]; optionally "
+        "with -mm)"));
   }
   return m;
 }
@@ -267,6 +297,8 @@ absl::Status RunCase(const Case& c, const EvalOptions& o, Recorder& rec) {
       if (method.morph) {
         const auto tmorph = Clock::now();
         MorphOptions mo;
+        mo.trajectory = method.trajectory;
+        mo.cubic_values = method.cubic_values;
         // Sensitivity runs only (docs/eval): override the registration.
         if (const char* e = std::getenv("MORPH_LEVELS"))
           mo.levels = std::atoi(e);
