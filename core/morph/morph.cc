@@ -86,6 +86,10 @@ absl::Status ValidateOptions(const MorphOptions& o) {
   if (o.trajectory != MorphTrajectory::kPiecewiseLinear &&
       o.trajectory != MorphTrajectory::kCubic)
     return absl::InvalidArgumentError("morph: unknown trajectory");
+  if (o.values != MorphValues::kLinear &&
+      o.values != MorphValues::kCatmullRom &&
+      o.values != MorphValues::kSmoothstep)
+    return absl::InvalidArgumentError("morph: unknown value interpolation");
   return absl::OkStatus();
 }
 
@@ -285,8 +289,13 @@ absl::StatusOr<MorphedField> StackMorph(const Volume<float>& slice_maps,
           const double x1 = x0 + u_x, y1 = y0 + u_y;  // on key slice s+1
           const double a0 = Sample(d0, nx, ny, x0, y0);
           const double a1 = Sample(d1, nx, ny, x1, y1);
-          if (!options.cubic_values) {
+          if (options.values == MorphValues::kLinear) {
             slice[v] = static_cast<float>((1 - t) * a0 + t * a1);
+            continue;
+          }
+          if (options.values == MorphValues::kSmoothstep) {
+            // Zero value tangents: h00 + h01 = 1, a convex blend.
+            slice[v] = static_cast<float>(h00 * a0 + h01 * a1);
             continue;
           }
           // Value tangents: chord slopes along the trajectory, reaching key

@@ -76,14 +76,29 @@ enum class MorphTrajectory {
   kCubic,
 };
 
+// kCubic only: the interpolation of the values a_s, a_{s+1} carried along
+// the trajectory (see above).
+enum class MorphValues {
+  // (1 - t) a_s + t a_{s+1}, as kPiecewiseLinear: C1 trajectory, but the
+  // value still creases at the key slices.
+  kLinear,
+  // Cubic Hermite with Catmull-Rom tangents through a_{s-1} .. a_{s+2}: C1;
+  // may overshoot the key values.
+  kCatmullRom,
+  // a_s + (a_{s+1} - a_s) (3t^2 - 2t^3) (the Hermite cubic with zero
+  // tangents, "smoothstep"): C1, and a convex blend of the two key values
+  // like the linear one, so it never overshoots them (no object where
+  // neither key slice has one along the trajectory).
+  kSmoothstep,
+};
+
 struct MorphOptions {
   // The trajectory through the key slices. The default is the shipped
   // method's (docs/eval/candidates.md compares them).
   MorphTrajectory trajectory = MorphTrajectory::kPiecewiseLinear;
-  // kCubic only: interpolate the values carried along the trajectory by the
-  // cubic too (true) or blend them linearly in t as kPiecewiseLinear does
-  // (false: C1 trajectory, but the value still creases at the key slices).
-  bool cubic_values = true;
+  // kCubic only: how the values carried along the trajectory are
+  // interpolated between the key slices.
+  MorphValues values = MorphValues::kCatmullRom;
   // Pyramid levels of the demons registration (each halves the resolution).
   // >= 1.
   int levels = 4;

@@ -54,9 +54,9 @@ struct Method {
   bool nearest = false;
   bool morph = false;  // registration-based stacking (core/morph) first
   bool component_filter = false;  // RemoveUnsupportedComponents after
-  // The morph's trajectory (MorphOptions::trajectory, cubic_values).
+  // The morph's trajectory and values (MorphOptions::trajectory, values).
   MorphTrajectory trajectory = MorphTrajectory::kPiecewiseLinear;
-  bool cubic_values = true;
+  MorphValues values = MorphValues::kCatmullRom;
   SolverOptions solver;
 };
 
@@ -69,16 +69,19 @@ absl::StatusOr<Method> ParseMethod(const std::string& name,
     m.solver.units = EnergyUnits::kMillimetre;
     base = name.substr(0, name.size() - 3);
   }
-  // morph-smooth[pos]...: the same methods on the cubic (C1 in z)
-  // trajectory; "pos" interpolates only the trajectory by the cubic and
-  // blends the values linearly. "morph-smooth" alone is the cubic morph with
+  // morph-smooth[pos|ss]...: the same methods on the cubic (C1 in z)
+  // trajectory, values by Catmull-Rom; "pos" blends the values linearly
+  // (only the trajectory is C1), "ss" by smoothstep. "morph-smooth" alone is the cubic morph with
   // the component filter and no refinement (it needs none for the crease).
   if (absl::StartsWith(base, "morph-smooth")) {
     m.trajectory = MorphTrajectory::kCubic;
     std::string rest = base.substr(12);
     if (absl::StartsWith(rest, "pos")) {
-      m.cubic_values = false;
+      m.values = MorphValues::kLinear;
       rest = rest.substr(3);
+    } else if (absl::StartsWith(rest, "ss")) {
+      m.values = MorphValues::kSmoothstep;
+      rest = rest.substr(2);
     }
     if (rest.empty()) {
       m.morph = true;
@@ -91,8 +94,8 @@ absl::StatusOr<Method> ParseMethod(const std::string& name,
     } else {
       return absl::InvalidArgumentError(absl::StrCat(
           "unknown method '", name,
-          "' (morph-smooth[pos], morph-smooth[pos]-raw, "
-          "morph-smooth[pos]-fidL[t][c])"));
+          "' (morph-smooth[pos|ss], morph-smooth[pos|ss]-raw, "
+          "morph-smooth[pos|ss]-fidL[t][c])"));
     }
   }
   if (base == "nearest") {
@@ -140,7 +143,7 @@ absl::StatusOr<Method> ParseMethod(const std::string& name,
     return absl::InvalidArgumentError(absl::StrCat(
         "unknown method '", name,
         "' (nearest, linear, cg15, cgtol, direct, morph-raw, morph, "
-        "morph-fidL[t][c], morph-smooth[pos][-raw|-fidL[t][c]]; optionally "
+        "morph-fidL[t][c], morph-smooth[pos|ss][-raw|-fidL[t][c]]; optionally "
         "with -mm)"));
   }
   return m;
@@ -298,7 +301,7 @@ absl::Status RunCase(const Case& c, const EvalOptions& o, Recorder& rec) {
         const auto tmorph = Clock::now();
         MorphOptions mo;
         mo.trajectory = method.trajectory;
-        mo.cubic_values = method.cubic_values;
+        mo.values = method.values;
         // Sensitivity runs only (docs/eval): override the registration.
         if (const char* e = std::getenv("MORPH_LEVELS"))
           mo.levels = std::atoi(e);

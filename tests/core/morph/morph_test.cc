@@ -234,6 +234,22 @@ TEST(StackMorphCubicTest, ZeroDisplacementIsCatmullRomOfTheValues) {
   for (int64_t s = 0; s < 4; ++s)
     for (int64_t v = 0; v < kN * kN; ++v)
       ASSERT_EQ(f.data[4 * s * kN * kN + v], maps.data[s * kN * kN + v]);
+  // Smoothstep values: the convex blend a0 + (a1 - a0)(3t^2 - 2t^3).
+  o.values = MorphValues::kSmoothstep;
+  auto smooth = StackMorph(maps, plan, o, int64_t{1} << 30, context);
+  ASSERT_TRUE(smooth.ok()) << smooth.status();
+  for (int64_t i : {10, 25, 30, 40, 50})
+    for (int64_t s = 0; s < 3; ++s)
+      for (int64_t q = 1; q < 4; ++q) {
+        const double t = q / 4.0, a0 = key(s, i, 30), a1 = key(s + 1, i, 30);
+        EXPECT_NEAR(smooth->stacked.field.at(i, 30, 4 * s + q),
+                    a0 + (a1 - a0) * (3 * t * t - 2 * t * t * t), 1e-4);
+      }
+  o.values = static_cast<MorphValues>(9);
+  EXPECT_EQ(StackMorph(maps, plan, o, int64_t{1} << 30, context)
+                .status()
+                .code(),
+            absl::StatusCode::kInvalidArgument);
 }
 
 TEST(StackMorphCubicTest, ConstantVelocityGivesTheLinearMotion) {
@@ -311,7 +327,7 @@ TEST(StackMorphCubicTest, ResultDoesNotDependOnThreadCount) {
   ASSERT_TRUE(a.ok() && b.ok());
   EXPECT_EQ(a->stacked.field.data, b->stacked.field.data);
   MorphOptions linear_values = CubicOptions();
-  linear_values.cubic_values = false;
+  linear_values.values = MorphValues::kLinear;
   auto c = StackMorph(maps, plan, linear_values, int64_t{1} << 30, one);
   auto d = StackMorph(maps, plan, linear_values, int64_t{1} << 30, two);
   ASSERT_TRUE(c.ok() && d.ok());
