@@ -285,7 +285,7 @@ absl::StatusOr<MorphedField> StackMorph(const Volume<float>& slice_maps,
           // h(t): displacement from key slice s along the trajectory.
           const double h_x = h10 * vs_x + h01 * u_x + h11 * ve_x;
           const double h_y = h10 * vs_y + h01 * u_y + h11 * ve_y;
-          const double x0 = i - h_x, y0 = j - h_y;  // on key slice s
+          const double x0 = i - h_x, y0 = j - h_y;    // on key slice s
           const double x1 = x0 + u_x, y1 = y0 + u_y;  // on key slice s+1
           const double a0 = Sample(d0, nx, ny, x0, y0);
           const double a1 = Sample(d1, nx, ny, x1, y1);
@@ -302,13 +302,11 @@ absl::StatusOr<MorphedField> StackMorph(const Volume<float>& slice_maps,
           // slices s-1 and s+2 through the neighbouring gaps' fields.
           double m0 = a1 - a0, m1 = a1 - a0;
           if (has_prev)
-            m0 = w_prev *
-                 (a1 - Sample(dm, nx, ny, x0 - px[v], y0 - py[v]));
+            m0 = w_prev * (a1 - Sample(dm, nx, ny, x0 - px[v], y0 - py[v]));
           if (has_next)
-            m1 = w_next *
-                 (Sample(dp, nx, ny, x1 + qx[v], y1 + qy[v]) - a0);
-          slice[v] = static_cast<float>(h00 * a0 + h10 * m0 + h01 * a1 +
-                                        h11 * m1);
+            m1 = w_next * (Sample(dp, nx, ny, x1 + qx[v], y1 + qy[v]) - a0);
+          slice[v] =
+              static_cast<float>(h00 * a0 + h10 * m0 + h01 * a1 + h11 * m1);
         }
     }
   };

@@ -20,10 +20,11 @@
 // linear stacking (core/stack StackLinear); at t = 0 and t = 1 it returns D0
 // and D1, so the original slices are reproduced bit-identically.
 //
-// The field produced is meant to be refined by core/solver with a fidelity
-// term (SolverOptions::fidelity): the curvature energy removes the creases
-// that piecewise morphing leaves at the original slices while staying close
-// to the morph.
+// With the piecewise trajectory the field is meant to be refined by
+// core/solver with a fidelity term (SolverOptions::fidelity,
+// MorphOptions::refine): the curvature energy removes the creases that
+// piecewise morphing leaves at the original slices while staying close to
+// the morph.
 //
 // MorphTrajectory::kCubic (issue 14, "smooth in z by construction") removes
 // the crease without a refinement: the gap registrations are composed into
@@ -43,11 +44,11 @@
 // (uniform gaps; for uneven gaps of L_{s-1}, L_s output slices the chord
 // slopes (u_{s-1} + u_s) / (L_{s-1} + L_s) and (a_{s+1} - a_{s-1}) /
 // (L_{s-1} + L_s) per output slice, scaled by the gap's L; one-sided, v = u
-// and m = a_{s+1} - a_s within the gap, at the first and last key slice). A constant velocity (u_{s-1} = u_s) gives h(t) = t u_s,
-// i.e. exactly the piecewise-linear trajectory; the cubic value
-// interpolation can overshoot the key-slice values (Catmull-Rom is not
-// monotone). At t = 0 and 1 the key slices are reproduced bit-identically
-// (they are never rewritten).
+// and m = a_{s+1} - a_s within the gap, at the first and last key slice). A
+// constant velocity (u_{s-1} = u_s) gives h(t) = t u_s, i.e. exactly the
+// piecewise-linear trajectory; the cubic value interpolation can overshoot the
+// key-slice values (Catmull-Rom is not monotone). At t = 0 and 1 the key slices
+// are reproduced bit-identically (they are never rewritten).
 //
 // Parallelism: gaps are registered concurrently (one ITK filter per gap,
 // single-threaded); the cubic needs the neighbouring gaps' fields, so all
@@ -93,9 +94,12 @@ enum class MorphValues {
 };
 
 struct MorphOptions {
-  // The trajectory through the key slices. The default is the shipped
-  // method's (docs/eval/candidates.md compares them).
-  MorphTrajectory trajectory = MorphTrajectory::kPiecewiseLinear;
+  // The trajectory through the key slices. The default is what
+  // --method morph runs: the cubic, which on the phantom (bone and soft
+  // tissue, every 2nd / 4th / 8th slice and thick -> thin) is more accurate
+  // than the refined piecewise morph everywhere and has crease index <= 1.9
+  // without any refinement (docs/eval/candidates.md, "Smooth-in-z morph").
+  MorphTrajectory trajectory = MorphTrajectory::kCubic;
   // kCubic only: how the values carried along the trajectory are
   // interpolated between the key slices.
   MorphValues values = MorphValues::kCatmullRom;
@@ -114,8 +118,15 @@ struct MorphOptions {
   // Registration runs on maps downsampled by this integer factor in-plane
   // (block mean); the displacement is upsampled bilinearly. >= 1.
   int downsample = 4;
-  // The refinement that follows the morph in the pipeline (SolverOptions::
-  // fidelity, fidelity_taper): the largest tapered fidelity of {0.3, 1, 3}
+  // Whether the pipeline refines the morph by the direct solver with the
+  // fidelity below. The piecewise trajectory needs it to remove its crease
+  // at the key slices (crease index 4-14 -> <= 3, at a cost in accuracy);
+  // the cubic one has no crease to remove, and the refinement only costs it
+  // accuracy (docs/eval/candidates.md), so the default does not refine.
+  bool refine = false;
+  // The refinement (only with refine; SolverOptions::fidelity,
+  // fidelity_taper), chosen for the piecewise trajectory: the largest
+  // tapered fidelity of {0.3, 1, 3}
   // whose result keeps the crease index (docs/eval; a property of the result
   // alone, no ground truth) <= 3 on the phantom (bone, every 8th slice);
   // Dice was not used to choose it. docs/eval/candidates.md has the sweep.

@@ -71,8 +71,9 @@ absl::StatusOr<Method> ParseMethod(const std::string& name,
   }
   // morph-smooth[pos|ss]...: the same methods on the cubic (C1 in z)
   // trajectory, values by Catmull-Rom; "pos" blends the values linearly
-  // (only the trajectory is C1), "ss" by smoothstep. "morph-smooth" alone is the cubic morph with
-  // the component filter and no refinement (it needs none for the crease).
+  // (only the trajectory is C1), "ss" by smoothstep. "morph-smooth" alone is
+  // the cubic morph with the component filter and no refinement (it needs none
+  // for the crease).
   if (absl::StartsWith(base, "morph-smooth")) {
     m.trajectory = MorphTrajectory::kCubic;
     std::string rest = base.substr(12);
@@ -92,10 +93,10 @@ absl::StatusOr<Method> ParseMethod(const std::string& name,
     if (rest == "-raw" || absl::StartsWith(rest, "-fid")) {
       base = absl::StrCat("morph", rest);
     } else {
-      return absl::InvalidArgumentError(absl::StrCat(
-          "unknown method '", name,
-          "' (morph-smooth[pos|ss], morph-smooth[pos|ss]-raw, "
-          "morph-smooth[pos|ss]-fidL[t][c])"));
+      return absl::InvalidArgumentError(
+          absl::StrCat("unknown method '", name,
+                       "' (morph-smooth[pos|ss], morph-smooth[pos|ss]-raw, "
+                       "morph-smooth[pos|ss]-fidL[t][c])"));
     }
   }
   if (base == "nearest") {
@@ -117,12 +118,18 @@ absl::StatusOr<Method> ParseMethod(const std::string& name,
     m.morph = true;
     m.solver.method = SolverMethod::kLinear;
   } else if (base == "morph") {
-    // The shipped method, as the pipeline runs it (--method morph).
+    // The shipped method, as the pipeline runs it (--method morph): the
+    // default trajectory and values, the refinement only if the defaults
+    // ask for it, then the component filter. (The piecewise morph shipped
+    // before is morph-fid0.3tc.)
     const MorphOptions defaults;
     m.morph = true;
     m.component_filter = true;
-    m.solver.method = SolverMethod::kMorph;
-    m.solver.fidelity = defaults.fidelity;
+    m.trajectory = defaults.trajectory;
+    m.values = defaults.values;
+    m.solver.method =
+        defaults.refine ? SolverMethod::kMorph : SolverMethod::kLinear;
+    m.solver.fidelity = defaults.refine ? defaults.fidelity : 0;
     m.solver.fidelity_taper = defaults.fidelity_taper;
   } else if (absl::StartsWith(base, "morph-fid")) {
     // morph-fidL: morph, then the direct solver with fidelity L.

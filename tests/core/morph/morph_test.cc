@@ -51,8 +51,11 @@ Blob Inside(const Volume<float>& field, int64_t k) {
   return b;
 }
 
+// The piecewise-linear trajectory (the tests written for it); the cubic
+// tests below use CubicOptions.
 MorphOptions SmallOptions() {
   MorphOptions o;
+  o.trajectory = MorphTrajectory::kPiecewiseLinear;
   o.downsample = 1;
   o.levels = 4;
   o.iterations = 60;
@@ -69,22 +72,36 @@ TEST(StackMorphTest, MovesADiscThatLinearStackingLoses) {
   ASSERT_TRUE(linear.ok()) << linear.status();
   EXPECT_EQ(Inside(linear->field, 2).area, 0);
 
-  auto morphed =
-      StackMorph(maps, plan, SmallOptions(), int64_t{1} << 30, context);
-  ASSERT_TRUE(morphed.ok()) << morphed.status();
-  const Volume<float>& f = morphed->stacked.field;
-  const double disc = M_PI * 7 * 7;
-  for (int64_t k = 1; k <= 3; ++k) {
-    const Blob b = Inside(f, k);
-    SCOPED_TRACE(k);
-    // The disc travels with the correspondence: its centre moves by k/4 of
-    // the 18 px and it keeps (nearly) its area.
-    EXPECT_NEAR(b.cx, 20 + 18.0 * k / 4, 1.5);
-    EXPECT_NEAR(b.cy, 32, 1.0);
-    EXPECT_NEAR(b.area, disc, 0.25 * disc);
+  // Both trajectories (with one gap the cubic's tangents are one-sided, so
+  // its trajectory is the straight one too).
+  for (MorphTrajectory trajectory :
+       {MorphTrajectory::kPiecewiseLinear, MorphTrajectory::kCubic}) {
+    MorphOptions options = SmallOptions();
+    options.trajectory = trajectory;
+    auto morphed = StackMorph(maps, plan, options, int64_t{1} << 30, context);
+    ASSERT_TRUE(morphed.ok()) << morphed.status();
+    const Volume<float>& f = morphed->stacked.field;
+    const double disc = M_PI * 7 * 7;
+    for (int64_t k = 1; k <= 3; ++k) {
+      const Blob b = Inside(f, k);
+      SCOPED_TRACE(k);
+      // The disc travels with the correspondence: its centre moves by k/4 of
+      // the 18 px and it keeps (nearly) its area.
+      EXPECT_NEAR(b.cx, 20 + 18.0 * k / 4, 1.5);
+      EXPECT_NEAR(b.cy, 32, 1.0);
+      EXPECT_NEAR(b.area, disc, 0.25 * disc);
+    }
+    EXPECT_GT(morphed->statistics.mean_displacement_mm, 0);
+    EXPECT_NEAR(morphed->statistics.max_displacement_mm, 9.0, 2.0);
   }
-  EXPECT_GT(morphed->statistics.mean_displacement_mm, 0);
-  EXPECT_NEAR(morphed->statistics.max_displacement_mm, 9.0, 2.0);
+}
+
+TEST(StackMorphTest, DefaultIsTheCubicTrajectoryWithoutRefinement) {
+  // What --method morph runs (docs/eval/candidates.md).
+  const MorphOptions defaults;
+  EXPECT_EQ(defaults.trajectory, MorphTrajectory::kCubic);
+  EXPECT_EQ(defaults.values, MorphValues::kCatmullRom);
+  EXPECT_FALSE(defaults.refine);
 }
 
 TEST(StackMorphTest, OriginalSlicesAreBitIdenticalAndGridMatchesLinear) {
@@ -92,16 +109,18 @@ TEST(StackMorphTest, OriginalSlicesAreBitIdenticalAndGridMatchesLinear) {
   const StackPlan plan = UniformStackPlan(2, 4.0, 3);
   ComputeContext context;
   auto linear = StackLinear(maps, plan, int64_t{1} << 30, context);
-  auto morphed =
-      StackMorph(maps, plan, SmallOptions(), int64_t{1} << 30, context);
-  ASSERT_TRUE(linear.ok() && morphed.ok());
-  const StackedField& m = morphed->stacked;
-  EXPECT_EQ(m.field.grid.size, linear->field.grid.size);
-  EXPECT_EQ(m.fixed_slices, linear->fixed_slices);
-  const int64_t plane = kN * kN;
-  for (int64_t k : {0, 3}) {
-    for (int64_t v = 0; v < plane; ++v) {
-      ASSERT_EQ(m.field.data[k * plane + v], linear->field.data[k * plane + v]);
+  for (const MorphOptions& options : {SmallOptions(), MorphOptions()}) {
+    auto morphed = StackMorph(maps, plan, options, int64_t{1} << 30, context);
+    ASSERT_TRUE(linear.ok() && morphed.ok());
+    const StackedField& m = morphed->stacked;
+    EXPECT_EQ(m.field.grid.size, linear->field.grid.size);
+    EXPECT_EQ(m.fixed_slices, linear->fixed_slices);
+    const int64_t plane = kN * kN;
+    for (int64_t k : {0, 3}) {
+      for (int64_t v = 0; v < plane; ++v) {
+        ASSERT_EQ(m.field.data[k * plane + v],
+                  linear->field.data[k * plane + v]);
+      }
     }
   }
 }
@@ -221,10 +240,10 @@ TEST(StackMorphCubicTest, ZeroDisplacementIsCatmullRomOfTheValues) {
       const double m1 = s < 2 ? (key(s + 2, i, j) - a0) / 2 : a1 - a0;
       for (int64_t q = 1; q < 4; ++q) {
         const double t = q / 4.0;
-        const double expected =
-            (2 * t * t * t - 3 * t * t + 1) * a0 +
-            (t * t * t - 2 * t * t + t) * m0 +
-            (3 * t * t - 2 * t * t * t) * a1 + (t * t * t - t * t) * m1;
+        const double expected = (2 * t * t * t - 3 * t * t + 1) * a0 +
+                                (t * t * t - 2 * t * t + t) * m0 +
+                                (3 * t * t - 2 * t * t * t) * a1 +
+                                (t * t * t - t * t) * m1;
         EXPECT_NEAR(f.at(i, j, 4 * s + q), expected, 1e-4)
             << "i " << i << " gap " << s << " t " << t;
       }
@@ -246,10 +265,9 @@ TEST(StackMorphCubicTest, ZeroDisplacementIsCatmullRomOfTheValues) {
                     a0 + (a1 - a0) * (3 * t * t - 2 * t * t * t), 1e-4);
       }
   o.values = static_cast<MorphValues>(9);
-  EXPECT_EQ(StackMorph(maps, plan, o, int64_t{1} << 30, context)
-                .status()
-                .code(),
-            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(
+      StackMorph(maps, plan, o, int64_t{1} << 30, context).status().code(),
+      absl::StatusCode::kInvalidArgument);
 }
 
 TEST(StackMorphCubicTest, ConstantVelocityGivesTheLinearMotion) {
@@ -259,8 +277,8 @@ TEST(StackMorphCubicTest, ConstantVelocityGivesTheLinearMotion) {
   const Volume<float> maps = Discs({17, 23, 29, 35, 41}, 32, 8);
   const StackPlan plan = UniformStackPlan(5, 4.0, 4);
   ComputeContext context;
-  auto cubic = StackMorph(maps, plan, CubicOptions(), int64_t{1} << 30,
-                          context);
+  auto cubic =
+      StackMorph(maps, plan, CubicOptions(), int64_t{1} << 30, context);
   auto piecewise =
       StackMorph(maps, plan, SmallOptions(), int64_t{1} << 30, context);
   ASSERT_TRUE(cubic.ok() && piecewise.ok());
@@ -292,8 +310,8 @@ TEST(StackMorphCubicTest, AcceleratingDiscHasNoCreaseAtTheKeySlices) {
   const Volume<float> maps = Discs({14, 18, 26, 38}, 32, 8);
   const StackPlan plan = UniformStackPlan(4, 4.0, 4);
   ComputeContext context;
-  auto cubic = StackMorph(maps, plan, CubicOptions(), int64_t{1} << 30,
-                          context);
+  auto cubic =
+      StackMorph(maps, plan, CubicOptions(), int64_t{1} << 30, context);
   auto piecewise =
       StackMorph(maps, plan, SmallOptions(), int64_t{1} << 30, context);
   ASSERT_TRUE(cubic.ok() && piecewise.ok());
@@ -354,10 +372,9 @@ TEST(StackMorphCubicTest, UnevenPlanKeepsKeySlicesAndRejectsBadTrajectory) {
                 maps.data[s * plane + v]);
   MorphOptions bad = CubicOptions();
   bad.trajectory = static_cast<MorphTrajectory>(7);
-  EXPECT_EQ(StackMorph(maps, *plan, bad, int64_t{1} << 30, context)
-                .status()
-                .code(),
-            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(
+      StackMorph(maps, *plan, bad, int64_t{1} << 30, context).status().code(),
+      absl::StatusCode::kInvalidArgument);
   CancellationToken token;
   token.Cancel();
   context.cancel = &token;
