@@ -174,7 +174,7 @@ absl::StatusOr<MorphedField> StackMorph(const Volume<float>& slice_maps,
   const int64_t gaps = g.size[2] - 1;
   out.statistics.gaps = static_cast<int>(std::max<int64_t>(0, gaps));
   // With u = 0 the piecewise morph is the linear stacking; the cubic one
-  // still interpolates the values by Catmull-Rom, so it goes on.
+  // still interpolates the values by options.values, so it goes on.
   if (gaps < 1 || (options.iterations == 0 && !cubic)) return out;
 
   std::vector<double> sum(gaps, 0.0), worst(gaps, 0.0);

@@ -29,8 +29,8 @@
 // MorphTrajectory::kCubic (issue 14, "smooth in z by construction") removes
 // the crease without a refinement: the gap registrations are composed into
 // one trajectory per pixel through all key slices, interpolated in z by a
-// cubic Hermite spline with Catmull-Rom tangents (Catmull & Rom 1974; the
-// non-uniform three-point tangent for uneven gaps), and the values carried
+// cubic Hermite spline with Catmull-Rom tangents (Catmull & Rom 1974; chord
+// slopes over the two gaps for uneven gaps), and the values carried
 // along it are interpolated the same way, so the field is C1 across the key
 // slices (up to the first-order evaluation of the fields at p, as above).
 // Inside the gap between key slices s, s+1 (registration u_s, output slice
@@ -54,6 +54,9 @@
 // single-threaded); the cubic needs the neighbouring gaps' fields, so all
 // gaps are registered before any slice is written. Results do not depend
 // on the thread count. Cancellation is polled once per gap and phase.
+// Memory: kCubic holds every gap's displacement (2 floats per pixel per gap,
+// e.g. 73 MB for 35 gaps of 512x512) until the slices are written; the
+// piecewise trajectory holds one per running gap.
 #ifndef INTERSLICE_CORE_MORPH_MORPH_H_
 #define INTERSLICE_CORE_MORPH_MORPH_H_
 
@@ -107,7 +110,8 @@ struct MorphOptions {
   // >= 1.
   int levels = 4;
   // Demons iterations per level, the same at every level. >= 0 (0 gives
-  // u = 0, i.e. linear stacking).
+  // u = 0: linear stacking for kPiecewiseLinear; for kCubic the values of
+  // each pixel interpolated in z in place).
   int iterations = 50;
   // Standard deviation of the Gaussian applied to the displacement field
   // after every demons iteration (the regulariser), in pixels of the level.
@@ -126,10 +130,10 @@ struct MorphOptions {
   bool refine = false;
   // The refinement (only with refine; SolverOptions::fidelity,
   // fidelity_taper), chosen for the piecewise trajectory: the largest
-  // tapered fidelity of {0.3, 1, 3}
-  // whose result keeps the crease index (docs/eval; a property of the result
-  // alone, no ground truth) <= 3 on the phantom (bone, every 8th slice);
-  // Dice was not used to choose it. docs/eval/candidates.md has the sweep.
+  // tapered fidelity of {0.3, 1, 3} whose result keeps the crease index
+  // (docs/eval; a property of the result alone, no ground truth) <= 3 on the
+  // phantom (bone, every 8th slice); Dice was not used to choose it.
+  // docs/eval/candidates.md has the sweep.
   double fidelity = 0.3;
   bool fidelity_taper = true;
   // RemoveUnsupportedComponents' margin, mm.
@@ -153,8 +157,8 @@ struct MorphedField {
 // slices and factor are those StackLinear gives for the same plan.
 // Distances stay in mm, displacements in pixels; uneven plans (gaps of
 // different numbers of output slices) are handled with t measured in output
-// slices. INVALID_ARGUMENT for bad options (including an unknown trajectory)
-// or a plan that does not match the maps;
+// slices. INVALID_ARGUMENT for bad options (including an unknown trajectory
+// or value interpolation) or a plan that does not match the maps;
 // RESOURCE_EXHAUSTED if the output would exceed max_voxels; CANCELLED /
 // DEADLINE_EXCEEDED from context.cancel.
 absl::StatusOr<MorphedField> StackMorph(const Volume<float>& slice_maps,
