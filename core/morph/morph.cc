@@ -83,6 +83,13 @@ absl::Status ValidateOptions(const MorphOptions& o) {
     return absl::InvalidArgumentError("morph: clip_mm must be > 0");
   if (o.downsample < 1 || o.downsample > 16)
     return absl::InvalidArgumentError("morph: downsample must be in [1, 16]");
+  if (o.trajectory != MorphTrajectory::kPiecewiseLinear &&
+      o.trajectory != MorphTrajectory::kCubic)
+    return absl::InvalidArgumentError("morph: unknown trajectory");
+  if (o.values != MorphValues::kLinear &&
+      o.values != MorphValues::kCatmullRom &&
+      o.values != MorphValues::kSmoothstep)
+    return absl::InvalidArgumentError("morph: unknown value interpolation");
   return absl::OkStatus();
 }
 
@@ -157,6 +164,7 @@ absl::StatusOr<MorphedField> StackMorph(const Volume<float>& slice_maps,
                                         int64_t max_voxels,
                                         const ComputeContext& context) {
   INTERSLICE_RETURN_IF_ERROR(ValidateOptions(options));
+  const bool cubic = options.trajectory == MorphTrajectory::kCubic;
   // The linear stacking fixes the grid, the fixed slices and the checks.
   MorphedField out;
   INTERSLICE_ASSIGN_OR_RETURN(
@@ -165,21 +173,31 @@ absl::StatusOr<MorphedField> StackMorph(const Volume<float>& slice_maps,
   const int64_t nx = g.size[0], ny = g.size[1], plane = nx * ny;
   const int64_t gaps = g.size[2] - 1;
   out.statistics.gaps = static_cast<int>(std::max<int64_t>(0, gaps));
-  if (gaps < 1 || options.iterations == 0) return out;
+  // With u = 0 the piecewise morph is the linear stacking; the cubic one
+  // still interpolates the values by options.values, so it goes on.
+  if (gaps < 1 || (options.iterations == 0 && !cubic)) return out;
 
   std::vector<double> sum(gaps, 0.0), worst(gaps, 0.0);
+  // kCubic keeps every gap's field: a gap's slices need its neighbours'.
+  std::vector<std::vector<float>> fields(cubic ? gaps : 0);
   std::atomic<bool> cancelled{false};
   absl::Status failure;
   std::mutex failure_mutex;
   const double sx = g.spacing[0], sy = g.spacing[1];
   float* dst = out.stacked.field.data.data();
   const float* maps = slice_maps.data.data();
-  auto run_gap = [&](int64_t s) {
-    if (cancelled.load()) return;
+  auto poll = [&]() {
+    if (cancelled.load()) return false;
     if (!context.CheckCancelled().ok()) {
       cancelled.store(true);
-      return;
+      return false;
     }
+    return true;
+  };
+  // Phase 1: register every gap (and, piecewise, write its slices at once:
+  // nothing else needs its field).
+  auto register_gap = [&](int64_t s) {
+    if (!poll()) return;
     const float* d0 = maps + s * plane;
     const float* d1 = maps + (s + 1) * plane;
     absl::StatusOr<std::vector<float>> u =
@@ -199,6 +217,10 @@ absl::StatusOr<MorphedField> StackMorph(const Volume<float>& slice_maps,
     }
     sum[s] = total / static_cast<double>(plane);
     worst[s] = largest;
+    if (cubic) {
+      fields[s] = *std::move(u);
+      return;
+    }
     const int64_t k0 = plan.nodes[s], k1 = plan.nodes[s + 1];
     for (int64_t k = k0 + 1; k < k1; ++k) {
       const double t =
@@ -214,16 +236,97 @@ absl::StatusOr<MorphedField> StackMorph(const Volume<float>& slice_maps,
         }
     }
   };
+  // Phase 2 (kCubic): the slices of gap s from the fields of gaps s-1, s,
+  // s+1 and the maps of key slices s-1 .. s+2 (see morph.h for the
+  // formulas). Cubic Hermite interpolation with Catmull-Rom tangents
+  // (Catmull & Rom 1974): the tangent at a key slice is the chord slope over
+  // its two gaps, the same from both sides, which makes the trajectory and
+  // the value C1 there. t and the tangents are in units of this gap; for
+  // uneven gaps the per-output-slice chord slope is scaled by its length.
+  auto write_cubic_gap = [&](int64_t s) {
+    if (!poll()) return;
+    const bool has_prev = s > 0, has_next = s + 1 < gaps;
+    const double len = static_cast<double>(plan.nodes[s + 1] - plan.nodes[s]);
+    const double len_prev =
+        has_prev ? static_cast<double>(plan.nodes[s] - plan.nodes[s - 1]) : 0;
+    const double len_next =
+        has_next ? static_cast<double>(plan.nodes[s + 2] - plan.nodes[s + 1])
+                 : 0;
+    // Scale of the chord slopes into this gap's units.
+    const double w_prev = has_prev ? len / (len_prev + len) : 0;
+    const double w_next = has_next ? len / (len + len_next) : 0;
+    const float* d0 = maps + s * plane;
+    const float* d1 = maps + (s + 1) * plane;
+    const float* dm = has_prev ? maps + (s - 1) * plane : nullptr;
+    const float* dp = has_next ? maps + (s + 2) * plane : nullptr;
+    const float* ux = fields[s].data();
+    const float* uy = ux + plane;
+    const float* px = has_prev ? fields[s - 1].data() : nullptr;
+    const float* py = has_prev ? px + plane : nullptr;
+    const float* qx = has_next ? fields[s + 1].data() : nullptr;
+    const float* qy = has_next ? qx + plane : nullptr;
+    const int64_t k0 = plan.nodes[s], k1 = plan.nodes[s + 1];
+    for (int64_t k = k0 + 1; k < k1; ++k) {
+      const double t =
+          static_cast<double>(k - k0) / static_cast<double>(k1 - k0);
+      const double t2 = t * t, t3 = t2 * t;
+      const double h00 = 2 * t3 - 3 * t2 + 1, h10 = t3 - 2 * t2 + t;
+      const double h01 = 3 * t2 - 2 * t3, h11 = t3 - t2;
+      float* slice = dst + k * plane;
+      for (int64_t j = 0; j < ny; ++j)
+        for (int64_t i = 0; i < nx; ++i) {
+          const int64_t v = i + nx * j;
+          const double u_x = ux[v], u_y = uy[v];
+          // Trajectory tangents at key slices s and s+1 (one-sided: u).
+          const double vs_x = has_prev ? w_prev * (px[v] + u_x) : u_x;
+          const double vs_y = has_prev ? w_prev * (py[v] + u_y) : u_y;
+          const double ve_x = has_next ? w_next * (u_x + qx[v]) : u_x;
+          const double ve_y = has_next ? w_next * (u_y + qy[v]) : u_y;
+          // h(t): displacement from key slice s along the trajectory.
+          const double h_x = h10 * vs_x + h01 * u_x + h11 * ve_x;
+          const double h_y = h10 * vs_y + h01 * u_y + h11 * ve_y;
+          const double x0 = i - h_x, y0 = j - h_y;    // on key slice s
+          const double x1 = x0 + u_x, y1 = y0 + u_y;  // on key slice s+1
+          const double a0 = Sample(d0, nx, ny, x0, y0);
+          const double a1 = Sample(d1, nx, ny, x1, y1);
+          if (options.values == MorphValues::kLinear) {
+            slice[v] = static_cast<float>((1 - t) * a0 + t * a1);
+            continue;
+          }
+          if (options.values == MorphValues::kSmoothstep) {
+            // Zero value tangents: h00 + h01 = 1, a convex blend.
+            slice[v] = static_cast<float>(h00 * a0 + h01 * a1);
+            continue;
+          }
+          // Value tangents: chord slopes along the trajectory, reaching key
+          // slices s-1 and s+2 through the neighbouring gaps' fields.
+          double m0 = a1 - a0, m1 = a1 - a0;
+          if (has_prev)
+            m0 = w_prev * (a1 - Sample(dm, nx, ny, x0 - px[v], y0 - py[v]));
+          if (has_next)
+            m1 = w_next * (Sample(dp, nx, ny, x1 + qx[v], y1 + qy[v]) - a0);
+          slice[v] =
+              static_cast<float>(h00 * a0 + h10 * m0 + h01 * a1 + h11 * m1);
+        }
+    }
+  };
   tbb::task_arena arena(context.threads > 0 ? context.threads
                                             : tbb::task_arena::automatic);
   arena.execute([&] {
     tbb::parallel_for(int64_t{0}, gaps, [&](int64_t s) {
-      run_gap(s);
+      register_gap(s);
       context.Report({.stage = "stack", .fraction = 0.0});
     });
   });
   if (cancelled.load()) return context.CheckCancelled();
   if (!failure.ok()) return failure;
+  if (cubic) {
+    arena.execute([&] {
+      tbb::parallel_for(int64_t{0}, gaps,
+                        [&](int64_t s) { write_cubic_gap(s); });
+    });
+    if (cancelled.load()) return context.CheckCancelled();
+  }
   double total = 0;
   for (int64_t s = 0; s < gaps; ++s) {
     total += sum[s];

@@ -20,14 +20,43 @@
 // linear stacking (core/stack StackLinear); at t = 0 and t = 1 it returns D0
 // and D1, so the original slices are reproduced bit-identically.
 //
-// The field produced is meant to be refined by core/solver with a fidelity
-// term (SolverOptions::fidelity): the curvature energy removes the creases
-// that piecewise morphing leaves at the original slices while staying close
-// to the morph.
+// With the piecewise trajectory the field is meant to be refined by
+// core/solver with a fidelity term (SolverOptions::fidelity,
+// MorphOptions::refine): the curvature energy removes the creases that
+// piecewise morphing leaves at the original slices while staying close to
+// the morph.
+//
+// MorphTrajectory::kCubic (issue 14, "smooth in z by construction") removes
+// the crease without a refinement: the gap registrations are composed into
+// one trajectory per pixel through all key slices, interpolated in z by a
+// cubic Hermite spline with Catmull-Rom tangents (Catmull & Rom 1974; chord
+// slopes over the two gaps for uneven gaps), and the values carried
+// along it are interpolated the same way, so the field is C1 across the key
+// slices (up to the first-order evaluation of the fields at p, as above).
+// Inside the gap between key slices s, s+1 (registration u_s, output slice
+// at fraction t, everything per gap, i.e. in units of the gap):
+//   x_s(p)   = p - h(t),  h(t) = H10(t) v_s + H01(t) u_s + H11(t) v_{s+1}
+//   x_{s+1}  = x_s + u_s, x_{s-1} = x_s - u_{s-1}, x_{s+2} = x_{s+1} + u_{s+1}
+//   f_t(p)   = H00(t) a_s + H10(t) m_s + H01(t) a_{s+1} + H11(t) m_{s+1}
+// with a_r = D_r(x_r), the Hermite basis H00 = 2t^3 - 3t^2 + 1, H10 = t^3 -
+// 2t^2 + t, H01 = 3t^2 - 2t^3, H11 = t^3 - t^2, the trajectory tangent v_s =
+// (u_{s-1} + u_s) / 2 and the value tangent m_s = (a_{s+1} - a_{s-1}) / 2
+// (uniform gaps; for uneven gaps of L_{s-1}, L_s output slices the chord
+// slopes (u_{s-1} + u_s) / (L_{s-1} + L_s) and (a_{s+1} - a_{s-1}) /
+// (L_{s-1} + L_s) per output slice, scaled by the gap's L; one-sided, v = u
+// and m = a_{s+1} - a_s within the gap, at the first and last key slice). A
+// constant velocity (u_{s-1} = u_s) gives h(t) = t u_s, i.e. exactly the
+// piecewise-linear trajectory; the cubic value interpolation can overshoot the
+// key-slice values (Catmull-Rom is not monotone). At t = 0 and 1 the key slices
+// are reproduced bit-identically (they are never rewritten).
 //
 // Parallelism: gaps are registered concurrently (one ITK filter per gap,
-// single-threaded), so results do not depend on the thread count.
-// Cancellation is polled once per gap.
+// single-threaded); the cubic needs the neighbouring gaps' fields, so all
+// gaps are registered before any slice is written. Results do not depend
+// on the thread count. Cancellation is polled once per gap and phase.
+// Memory: kCubic holds every gap's displacement (2 floats per pixel per gap,
+// e.g. 73 MB for 35 gaps of 512x512) until the slices are written; the
+// piecewise trajectory holds one per running gap.
 #ifndef INTERSLICE_CORE_MORPH_MORPH_H_
 #define INTERSLICE_CORE_MORPH_MORPH_H_
 
@@ -41,12 +70,48 @@
 
 namespace interslice {
 
+// How the output slices inside a gap follow the registrations.
+enum class MorphTrajectory {
+  // One registration per gap, linear in t (Penney et al. 2004): C0 in z,
+  // creased at every key slice.
+  kPiecewiseLinear,
+  // The gap registrations composed into one C1 cubic Hermite trajectory per
+  // pixel (Catmull-Rom tangents), the values C1 along it (see above).
+  kCubic,
+};
+
+// kCubic only: the interpolation of the values a_s, a_{s+1} carried along
+// the trajectory (see above).
+enum class MorphValues {
+  // (1 - t) a_s + t a_{s+1}, as kPiecewiseLinear: C1 trajectory, but the
+  // value still creases at the key slices.
+  kLinear,
+  // Cubic Hermite with Catmull-Rom tangents through a_{s-1} .. a_{s+2}: C1;
+  // may overshoot the key values.
+  kCatmullRom,
+  // a_s + (a_{s+1} - a_s) (3t^2 - 2t^3) (the Hermite cubic with zero
+  // tangents, "smoothstep"): C1, and a convex blend of the two key values
+  // like the linear one, so it never overshoots them (no object where
+  // neither key slice has one along the trajectory).
+  kSmoothstep,
+};
+
 struct MorphOptions {
+  // The trajectory through the key slices. The default is what
+  // --method morph runs: the cubic, which on the phantom (bone and soft
+  // tissue, every 2nd / 4th / 8th slice and thick -> thin) is more accurate
+  // than the refined piecewise morph everywhere and has crease index <= 1.9
+  // without any refinement (docs/eval/candidates.md, "Smooth-in-z morph").
+  MorphTrajectory trajectory = MorphTrajectory::kCubic;
+  // kCubic only: how the values carried along the trajectory are
+  // interpolated between the key slices.
+  MorphValues values = MorphValues::kCatmullRom;
   // Pyramid levels of the demons registration (each halves the resolution).
   // >= 1.
   int levels = 4;
   // Demons iterations per level, the same at every level. >= 0 (0 gives
-  // u = 0, i.e. linear stacking).
+  // u = 0: linear stacking for kPiecewiseLinear; for kCubic the values of
+  // each pixel interpolated in z in place).
   int iterations = 50;
   // Standard deviation of the Gaussian applied to the displacement field
   // after every demons iteration (the regulariser), in pixels of the level.
@@ -57,11 +122,18 @@ struct MorphOptions {
   // Registration runs on maps downsampled by this integer factor in-plane
   // (block mean); the displacement is upsampled bilinearly. >= 1.
   int downsample = 4;
-  // The refinement that follows the morph in the pipeline (SolverOptions::
-  // fidelity, fidelity_taper): the largest tapered fidelity of {0.3, 1, 3}
-  // whose result keeps the crease index (docs/eval; a property of the result
-  // alone, no ground truth) <= 3 on the phantom (bone, every 8th slice);
-  // Dice was not used to choose it. docs/eval/candidates.md has the sweep.
+  // Whether the pipeline refines the morph by the direct solver with the
+  // fidelity below. The piecewise trajectory needs it to remove its crease
+  // at the key slices (crease index 4-14 -> <= 3, at a cost in accuracy);
+  // the cubic one has no crease to remove, and the refinement only costs it
+  // accuracy (docs/eval/candidates.md), so the default does not refine.
+  bool refine = false;
+  // The refinement (only with refine; SolverOptions::fidelity,
+  // fidelity_taper), chosen for the piecewise trajectory: the largest
+  // tapered fidelity of {0.3, 1, 3} whose result keeps the crease index
+  // (docs/eval; a property of the result alone, no ground truth) <= 3 on the
+  // phantom (bone, every 8th slice); Dice was not used to choose it.
+  // docs/eval/candidates.md has the sweep.
   double fidelity = 0.3;
   bool fidelity_taper = true;
   // RemoveUnsupportedComponents' margin, mm.
@@ -83,7 +155,10 @@ struct MorphedField {
 // Stacks `slice_maps` (one 2D map per original slice, as StackLinear) onto
 // the grid of `plan` by registration-based morphing. The output grid, fixed
 // slices and factor are those StackLinear gives for the same plan.
-// INVALID_ARGUMENT for bad options or a plan that does not match the maps;
+// Distances stay in mm, displacements in pixels; uneven plans (gaps of
+// different numbers of output slices) are handled with t measured in output
+// slices. INVALID_ARGUMENT for bad options (including an unknown trajectory
+// or value interpolation) or a plan that does not match the maps;
 // RESOURCE_EXHAUSTED if the output would exceed max_voxels; CANCELLED /
 // DEADLINE_EXCEEDED from context.cancel.
 absl::StatusOr<MorphedField> StackMorph(const Volume<float>& slice_maps,

@@ -312,15 +312,24 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
   {
     StageClock clock(report, context, "solve");
     SolverOptions solver = spec.solver;
-    if (solver.method == SolverMethod::kMorph) {
+    const bool morph_method = spec.solver.method == SolverMethod::kMorph;
+    if (morph_method) {
       const MorphOptions morph;
       solver.fidelity = morph.fidelity;
       solver.fidelity_taper = morph.fidelity_taper;
+      // The cubic morph is crease-free by construction: no refinement
+      // (MorphOptions::refine); kLinear leaves the field as it is and still
+      // reports its energy.
+      if (!morph.refine) {
+        solver.method = SolverMethod::kLinear;
+        solver.fidelity = 0;
+      }
     }
     INTERSLICE_ASSIGN_OR_RETURN(
         report.solver,
         Solve(stacked.field, stacked.fixed_slices, solver, context));
-    if (solver.method == SolverMethod::kMorph) {
+    if (morph_method) {
+      report.solver.method = SolverMethod::kMorph;
       INTERSLICE_RETURN_IF_ERROR(
           RemoveUnsupportedComponents(stacked.field, stacked.fixed_slices,
                                       MorphOptions().component_margin_mm,

@@ -54,6 +54,9 @@ struct Method {
   bool nearest = false;
   bool morph = false;  // registration-based stacking (core/morph) first
   bool component_filter = false;  // RemoveUnsupportedComponents after
+  // The morph's trajectory and values (MorphOptions::trajectory, values).
+  MorphTrajectory trajectory = MorphTrajectory::kPiecewiseLinear;
+  MorphValues values = MorphValues::kCatmullRom;
   SolverOptions solver;
 };
 
@@ -65,6 +68,36 @@ absl::StatusOr<Method> ParseMethod(const std::string& name,
   if (absl::EndsWith(name, "-mm")) {
     m.solver.units = EnergyUnits::kMillimetre;
     base = name.substr(0, name.size() - 3);
+  }
+  // morph-smooth[pos|ss]...: the same methods on the cubic (C1 in z)
+  // trajectory, values by Catmull-Rom; "pos" blends the values linearly
+  // (only the trajectory is C1), "ss" by smoothstep. "morph-smooth" alone is
+  // the cubic morph with the component filter and no refinement (it needs none
+  // for the crease).
+  if (absl::StartsWith(base, "morph-smooth")) {
+    m.trajectory = MorphTrajectory::kCubic;
+    std::string rest = base.substr(12);
+    if (absl::StartsWith(rest, "pos")) {
+      m.values = MorphValues::kLinear;
+      rest = rest.substr(3);
+    } else if (absl::StartsWith(rest, "ss")) {
+      m.values = MorphValues::kSmoothstep;
+      rest = rest.substr(2);
+    }
+    if (rest.empty()) {
+      m.morph = true;
+      m.component_filter = true;
+      m.solver.method = SolverMethod::kLinear;
+      return m;
+    }
+    if (rest == "-raw" || absl::StartsWith(rest, "-fid")) {
+      base = absl::StrCat("morph", rest);
+    } else {
+      return absl::InvalidArgumentError(
+          absl::StrCat("unknown method '", name,
+                       "' (morph-smooth[pos|ss], morph-smooth[pos|ss]-raw, "
+                       "morph-smooth[pos|ss]-fidL[t][c])"));
+    }
   }
   if (base == "nearest") {
     m.nearest = true;
@@ -85,12 +118,18 @@ absl::StatusOr<Method> ParseMethod(const std::string& name,
     m.morph = true;
     m.solver.method = SolverMethod::kLinear;
   } else if (base == "morph") {
-    // The shipped method, as the pipeline runs it (--method morph).
+    // The shipped method, as the pipeline runs it (--method morph): the
+    // default trajectory and values, the refinement only if the defaults
+    // ask for it, then the component filter. (The piecewise morph shipped
+    // before is morph-fid0.3tc.)
     const MorphOptions defaults;
     m.morph = true;
     m.component_filter = true;
-    m.solver.method = SolverMethod::kMorph;
-    m.solver.fidelity = defaults.fidelity;
+    m.trajectory = defaults.trajectory;
+    m.values = defaults.values;
+    m.solver.method =
+        defaults.refine ? SolverMethod::kMorph : SolverMethod::kLinear;
+    m.solver.fidelity = defaults.refine ? defaults.fidelity : 0;
     m.solver.fidelity_taper = defaults.fidelity_taper;
   } else if (absl::StartsWith(base, "morph-fid")) {
     // morph-fidL: morph, then the direct solver with fidelity L.
@@ -111,7 +150,8 @@ absl::StatusOr<Method> ParseMethod(const std::string& name,
     return absl::InvalidArgumentError(absl::StrCat(
         "unknown method '", name,
         "' (nearest, linear, cg15, cgtol, direct, morph-raw, morph, "
-        "morph-fidL[t][c]; optionally with -mm)"));
+        "morph-fidL[t][c], morph-smooth[pos|ss][-raw|-fidL[t][c]]; optionally "
+        "with -mm)"));
   }
   return m;
 }
@@ -267,6 +307,8 @@ absl::Status RunCase(const Case& c, const EvalOptions& o, Recorder& rec) {
       if (method.morph) {
         const auto tmorph = Clock::now();
         MorphOptions mo;
+        mo.trajectory = method.trajectory;
+        mo.values = method.values;
         // Sensitivity runs only (docs/eval): override the registration.
         if (const char* e = std::getenv("MORPH_LEVELS"))
           mo.levels = std::atoi(e);

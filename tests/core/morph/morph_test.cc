@@ -51,8 +51,11 @@ Blob Inside(const Volume<float>& field, int64_t k) {
   return b;
 }
 
+// The piecewise-linear trajectory (the tests written for it); the cubic
+// tests below use CubicOptions.
 MorphOptions SmallOptions() {
   MorphOptions o;
+  o.trajectory = MorphTrajectory::kPiecewiseLinear;
   o.downsample = 1;
   o.levels = 4;
   o.iterations = 60;
@@ -69,22 +72,36 @@ TEST(StackMorphTest, MovesADiscThatLinearStackingLoses) {
   ASSERT_TRUE(linear.ok()) << linear.status();
   EXPECT_EQ(Inside(linear->field, 2).area, 0);
 
-  auto morphed =
-      StackMorph(maps, plan, SmallOptions(), int64_t{1} << 30, context);
-  ASSERT_TRUE(morphed.ok()) << morphed.status();
-  const Volume<float>& f = morphed->stacked.field;
-  const double disc = M_PI * 7 * 7;
-  for (int64_t k = 1; k <= 3; ++k) {
-    const Blob b = Inside(f, k);
-    SCOPED_TRACE(k);
-    // The disc travels with the correspondence: its centre moves by k/4 of
-    // the 18 px and it keeps (nearly) its area.
-    EXPECT_NEAR(b.cx, 20 + 18.0 * k / 4, 1.5);
-    EXPECT_NEAR(b.cy, 32, 1.0);
-    EXPECT_NEAR(b.area, disc, 0.25 * disc);
+  // Both trajectories (with one gap the cubic's tangents are one-sided, so
+  // its trajectory is the straight one too).
+  for (MorphTrajectory trajectory :
+       {MorphTrajectory::kPiecewiseLinear, MorphTrajectory::kCubic}) {
+    MorphOptions options = SmallOptions();
+    options.trajectory = trajectory;
+    auto morphed = StackMorph(maps, plan, options, int64_t{1} << 30, context);
+    ASSERT_TRUE(morphed.ok()) << morphed.status();
+    const Volume<float>& f = morphed->stacked.field;
+    const double disc = M_PI * 7 * 7;
+    for (int64_t k = 1; k <= 3; ++k) {
+      const Blob b = Inside(f, k);
+      SCOPED_TRACE(k);
+      // The disc travels with the correspondence: its centre moves by k/4 of
+      // the 18 px and it keeps (nearly) its area.
+      EXPECT_NEAR(b.cx, 20 + 18.0 * k / 4, 1.5);
+      EXPECT_NEAR(b.cy, 32, 1.0);
+      EXPECT_NEAR(b.area, disc, 0.25 * disc);
+    }
+    EXPECT_GT(morphed->statistics.mean_displacement_mm, 0);
+    EXPECT_NEAR(morphed->statistics.max_displacement_mm, 9.0, 2.0);
   }
-  EXPECT_GT(morphed->statistics.mean_displacement_mm, 0);
-  EXPECT_NEAR(morphed->statistics.max_displacement_mm, 9.0, 2.0);
+}
+
+TEST(StackMorphTest, DefaultIsTheCubicTrajectoryWithoutRefinement) {
+  // What --method morph runs (docs/eval/candidates.md).
+  const MorphOptions defaults;
+  EXPECT_EQ(defaults.trajectory, MorphTrajectory::kCubic);
+  EXPECT_EQ(defaults.values, MorphValues::kCatmullRom);
+  EXPECT_FALSE(defaults.refine);
 }
 
 TEST(StackMorphTest, OriginalSlicesAreBitIdenticalAndGridMatchesLinear) {
@@ -92,16 +109,18 @@ TEST(StackMorphTest, OriginalSlicesAreBitIdenticalAndGridMatchesLinear) {
   const StackPlan plan = UniformStackPlan(2, 4.0, 3);
   ComputeContext context;
   auto linear = StackLinear(maps, plan, int64_t{1} << 30, context);
-  auto morphed =
-      StackMorph(maps, plan, SmallOptions(), int64_t{1} << 30, context);
-  ASSERT_TRUE(linear.ok() && morphed.ok());
-  const StackedField& m = morphed->stacked;
-  EXPECT_EQ(m.field.grid.size, linear->field.grid.size);
-  EXPECT_EQ(m.fixed_slices, linear->fixed_slices);
-  const int64_t plane = kN * kN;
-  for (int64_t k : {0, 3}) {
-    for (int64_t v = 0; v < plane; ++v) {
-      ASSERT_EQ(m.field.data[k * plane + v], linear->field.data[k * plane + v]);
+  for (const MorphOptions& options : {SmallOptions(), MorphOptions()}) {
+    auto morphed = StackMorph(maps, plan, options, int64_t{1} << 30, context);
+    ASSERT_TRUE(linear.ok() && morphed.ok());
+    const StackedField& m = morphed->stacked;
+    EXPECT_EQ(m.field.grid.size, linear->field.grid.size);
+    EXPECT_EQ(m.fixed_slices, linear->fixed_slices);
+    const int64_t plane = kN * kN;
+    for (int64_t k : {0, 3}) {
+      for (int64_t v = 0; v < plane; ++v) {
+        ASSERT_EQ(m.field.data[k * plane + v],
+                  linear->field.data[k * plane + v]);
+      }
     }
   }
 }
@@ -154,6 +173,212 @@ TEST(StackMorphTest, RejectsBadOptionsAndHonoursCancellation) {
   token.Cancel();
   context.cancel = &token;
   EXPECT_EQ(StackMorph(maps, plan, SmallOptions(), int64_t{1} << 30, context)
+                .status()
+                .code(),
+            absl::StatusCode::kCancelled);
+}
+
+// A stack of disc distance maps (mm, positive inside; pixel 0.5 mm), disc s
+// centred at (cx[s], cy), radius r pixels.
+Volume<float> Discs(const std::vector<double>& cx, double cy, double r) {
+  Volume<float> maps;
+  const int64_t z = static_cast<int64_t>(cx.size());
+  maps.grid.size = {kN, kN, z};
+  maps.grid.spacing = {0.5, 0.5, 4.0};
+  maps.data.resize(kN * kN * z);
+  for (int64_t s = 0; s < z; ++s)
+    for (int64_t j = 0; j < kN; ++j)
+      for (int64_t i = 0; i < kN; ++i)
+        maps.data[i + kN * (j + kN * s)] =
+            static_cast<float>(0.5 * (r - std::hypot(i - cx[s], j - cy)));
+  return maps;
+}
+
+MorphOptions CubicOptions() {
+  MorphOptions o = SmallOptions();
+  o.trajectory = MorphTrajectory::kCubic;
+  return o;
+}
+
+// Mean |second z-difference| of the field near its zero level (|f| < 1 mm)
+// on the given slices: the crease measure of docs/eval (CreaseIndex).
+double MeanCurvatureNearSurface(const Volume<float>& f,
+                                const std::vector<int64_t>& slices) {
+  double total = 0;
+  int64_t count = 0;
+  for (int64_t k : slices)
+    for (int64_t j = 0; j < kN; ++j)
+      for (int64_t i = 0; i < kN; ++i) {
+        if (std::abs(f.at(i, j, k)) > 1.0f) continue;
+        total += std::abs(f.at(i, j, k + 1) - 2.0 * f.at(i, j, k) +
+                          f.at(i, j, k - 1));
+        ++count;
+      }
+  return count > 0 ? total / count : 0;
+}
+
+TEST(StackMorphCubicTest, ZeroDisplacementIsCatmullRomOfTheValues) {
+  // With no registration (u = 0) the trajectory is the pixel itself and the
+  // cubic interpolates its four key values by Catmull-Rom; checked against
+  // the closed form on a 4-slice stack, factor 4 (t = 1/4, 1/2, 3/4).
+  const Volume<float> maps = Discs({20, 26, 34, 44}, 32, 8);
+  const StackPlan plan = UniformStackPlan(4, 4.0, 4);
+  MorphOptions o = CubicOptions();
+  o.iterations = 0;
+  ComputeContext context;
+  auto morphed = StackMorph(maps, plan, o, int64_t{1} << 30, context);
+  ASSERT_TRUE(morphed.ok()) << morphed.status();
+  const Volume<float>& f = morphed->stacked.field;
+  auto key = [&](int64_t s, int64_t i, int64_t j) {
+    return static_cast<double>(maps.data[i + kN * (j + kN * s)]);
+  };
+  for (int64_t i : {10, 25, 30, 40, 50}) {
+    const int64_t j = 30;
+    for (int64_t s = 0; s < 3; ++s) {
+      const double a0 = key(s, i, j), a1 = key(s + 1, i, j);
+      const double m0 = s > 0 ? (a1 - key(s - 1, i, j)) / 2 : a1 - a0;
+      const double m1 = s < 2 ? (key(s + 2, i, j) - a0) / 2 : a1 - a0;
+      for (int64_t q = 1; q < 4; ++q) {
+        const double t = q / 4.0;
+        const double expected = (2 * t * t * t - 3 * t * t + 1) * a0 +
+                                (t * t * t - 2 * t * t + t) * m0 +
+                                (3 * t * t - 2 * t * t * t) * a1 +
+                                (t * t * t - t * t) * m1;
+        EXPECT_NEAR(f.at(i, j, 4 * s + q), expected, 1e-4)
+            << "i " << i << " gap " << s << " t " << t;
+      }
+    }
+  }
+  // The key slices are never rewritten.
+  for (int64_t s = 0; s < 4; ++s)
+    for (int64_t v = 0; v < kN * kN; ++v)
+      ASSERT_EQ(f.data[4 * s * kN * kN + v], maps.data[s * kN * kN + v]);
+  // Smoothstep values: the convex blend a0 + (a1 - a0)(3t^2 - 2t^3).
+  o.values = MorphValues::kSmoothstep;
+  auto smooth = StackMorph(maps, plan, o, int64_t{1} << 30, context);
+  ASSERT_TRUE(smooth.ok()) << smooth.status();
+  for (int64_t i : {10, 25, 30, 40, 50})
+    for (int64_t s = 0; s < 3; ++s)
+      for (int64_t q = 1; q < 4; ++q) {
+        const double t = q / 4.0, a0 = key(s, i, 30), a1 = key(s + 1, i, 30);
+        EXPECT_NEAR(smooth->stacked.field.at(i, 30, 4 * s + q),
+                    a0 + (a1 - a0) * (3 * t * t - 2 * t * t * t), 1e-4);
+      }
+  o.values = static_cast<MorphValues>(9);
+  EXPECT_EQ(
+      StackMorph(maps, plan, o, int64_t{1} << 30, context).status().code(),
+      absl::StatusCode::kInvalidArgument);
+}
+
+TEST(StackMorphCubicTest, ConstantVelocityGivesTheLinearMotion) {
+  // A disc translating 6 px per key slice: every gap's registration is the
+  // same, so the Catmull-Rom trajectory is the straight line and the cubic
+  // morph moves the disc uniformly, as the piecewise one does.
+  const Volume<float> maps = Discs({17, 23, 29, 35, 41}, 32, 8);
+  const StackPlan plan = UniformStackPlan(5, 4.0, 4);
+  ComputeContext context;
+  auto cubic =
+      StackMorph(maps, plan, CubicOptions(), int64_t{1} << 30, context);
+  auto piecewise =
+      StackMorph(maps, plan, SmallOptions(), int64_t{1} << 30, context);
+  ASSERT_TRUE(cubic.ok() && piecewise.ok());
+  const Volume<float>& f = cubic->stacked.field;
+  const double disc = M_PI * 8 * 8;
+  for (int64_t k = 1; k < 16; ++k) {
+    if (k % 4 == 0) continue;
+    SCOPED_TRACE(k);
+    const Blob b = Inside(f, k);
+    EXPECT_NEAR(b.cx, 17 + 6.0 * k / 4, 0.5);
+    EXPECT_NEAR(b.cy, 32, 0.5);
+    EXPECT_NEAR(b.area, disc, 0.1 * disc);
+    // Within the interior gaps (both tangents from registrations) the two
+    // trajectories coincide up to the registrations' differences.
+    const Blob p = Inside(piecewise->stacked.field, k);
+    EXPECT_NEAR(b.cx, p.cx, 0.3);
+    EXPECT_NEAR(b.area, p.area, 0.05 * disc);
+  }
+}
+
+TEST(StackMorphCubicTest, AcceleratingDiscHasNoCreaseAtTheKeySlices) {
+  // A disc accelerating (4, 8, 12 px per gap): the piecewise morph changes
+  // velocity abruptly at the key slices, so the field's second z-difference
+  // there is much larger than inside the gaps; the cubic one is C1, so its
+  // second difference at a key slice is that of its neighbours (a moving
+  // disc's field has some everywhere: the distance map is curved). On this
+  // stack: piecewise key / inserted 2.5, cubic 1.1, cubic key / piecewise
+  // key 0.55.
+  const Volume<float> maps = Discs({14, 18, 26, 38}, 32, 8);
+  const StackPlan plan = UniformStackPlan(4, 4.0, 4);
+  ComputeContext context;
+  auto cubic =
+      StackMorph(maps, plan, CubicOptions(), int64_t{1} << 30, context);
+  auto piecewise =
+      StackMorph(maps, plan, SmallOptions(), int64_t{1} << 30, context);
+  ASSERT_TRUE(cubic.ok() && piecewise.ok());
+  const std::vector<int64_t> keys = {4, 8};
+  const std::vector<int64_t> inserted = {2, 3, 5, 6, 7, 9, 10};
+  const double cubic_key = MeanCurvatureNearSurface(cubic->stacked.field, keys);
+  const double cubic_in =
+      MeanCurvatureNearSurface(cubic->stacked.field, inserted);
+  const double piece_key =
+      MeanCurvatureNearSurface(piecewise->stacked.field, keys);
+  const double piece_in =
+      MeanCurvatureNearSurface(piecewise->stacked.field, inserted);
+  ASSERT_GT(cubic_in, 0);
+  ASSERT_GT(piece_in, 0);
+  EXPECT_LT(cubic_key, 0.7 * piece_key);
+  EXPECT_LT(cubic_key / cubic_in, 1.5);
+  EXPECT_GT(piece_key / piece_in, 2.0);
+  // And the disc still follows the key slices in between.
+  const Blob mid = Inside(cubic->stacked.field, 6);
+  EXPECT_NEAR(mid.cx, 22, 1.5);
+}
+
+TEST(StackMorphCubicTest, ResultDoesNotDependOnThreadCount) {
+  const Volume<float> maps = Discs({14, 18, 26, 38, 40}, 32, 8);
+  const StackPlan plan = UniformStackPlan(5, 4.0, 3);
+  ComputeContext one, two;
+  one.threads = 1;
+  two.threads = 2;
+  auto a = StackMorph(maps, plan, CubicOptions(), int64_t{1} << 30, one);
+  auto b = StackMorph(maps, plan, CubicOptions(), int64_t{1} << 30, two);
+  ASSERT_TRUE(a.ok() && b.ok());
+  EXPECT_EQ(a->stacked.field.data, b->stacked.field.data);
+  MorphOptions linear_values = CubicOptions();
+  linear_values.values = MorphValues::kLinear;
+  auto c = StackMorph(maps, plan, linear_values, int64_t{1} << 30, one);
+  auto d = StackMorph(maps, plan, linear_values, int64_t{1} << 30, two);
+  ASSERT_TRUE(c.ok() && d.ok());
+  EXPECT_EQ(c->stacked.field.data, d->stacked.field.data);
+  EXPECT_NE(a->stacked.field.data, c->stacked.field.data);
+}
+
+TEST(StackMorphCubicTest, UnevenPlanKeepsKeySlicesAndRejectsBadTrajectory) {
+  const Volume<float> maps = Discs({14, 18, 26, 38}, 32, 8);
+  // Gaps of 2, 5 and 3 output slices (a series with uneven spacing).
+  StackPlan uneven = UniformStackPlan(4, 4.0, 4);
+  uneven.nodes = {0, 2, 7, 10};
+  uneven.output_slices = 11;
+  uneven.uniform = false;
+  const StackPlan* plan = &uneven;
+  ComputeContext context;
+  auto morphed =
+      StackMorph(maps, *plan, CubicOptions(), int64_t{1} << 30, context);
+  ASSERT_TRUE(morphed.ok()) << morphed.status();
+  const int64_t plane = kN * kN;
+  for (int64_t s = 0; s < 4; ++s)
+    for (int64_t v = 0; v < plane; ++v)
+      ASSERT_EQ(morphed->stacked.field.data[plan->nodes[s] * plane + v],
+                maps.data[s * plane + v]);
+  MorphOptions bad = CubicOptions();
+  bad.trajectory = static_cast<MorphTrajectory>(7);
+  EXPECT_EQ(
+      StackMorph(maps, *plan, bad, int64_t{1} << 30, context).status().code(),
+      absl::StatusCode::kInvalidArgument);
+  CancellationToken token;
+  token.Cancel();
+  context.cancel = &token;
+  EXPECT_EQ(StackMorph(maps, *plan, CubicOptions(), int64_t{1} << 30, context)
                 .status()
                 .code(),
             absl::StatusCode::kCancelled);
