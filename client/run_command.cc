@@ -80,7 +80,8 @@ void AddRunOptions(CLI::App& app, RunArguments& args) {
   app.add_option("--method", args.method,
                  "direct (exact minimiser), cg (the paper's conjugate "
                  "gradient), linear (no refinement) or morph "
-                 "(registration-based stacking + exact solver with fidelity)")
+                 "(registration-based stacking along a smooth, C1-in-z trajectory; "
+                 "no solver, docs/eval/candidates.md)")
       ->capture_default_str();
   app.add_option("--iterations", args.iterations,
                  "CG iterations (default 15, as in the paper)");
