@@ -199,9 +199,8 @@ class ArtifactFile {
       std::vector<char> buffer(1 << 16);
       int64_t left = offset;
       while (in && left > 0) {
-        in.read(buffer.data(),
-                static_cast<std::streamsize>(
-                    std::min<int64_t>(left, buffer.size())));
+        in.read(buffer.data(), static_cast<std::streamsize>(
+                                   std::min<int64_t>(left, buffer.size())));
         hash_->Update(buffer.data(), static_cast<size_t>(in.gcount()));
         left -= in.gcount();
       }

@@ -77,11 +77,12 @@ void AddRunOptions(CLI::App& app, RunArguments& args) {
   app.add_option("--roi", args.roi,
                  "Region of interest x0,y0,z0,x1,y1,z1: a half-open voxel box "
                  "in the input's index space (z in sorted slice order)");
-  app.add_option("--method", args.method,
-                 "direct (exact minimiser), cg (the paper's conjugate "
-                 "gradient), linear (no refinement) or morph "
-                 "(registration-based stacking along a smooth, C1-in-z trajectory; "
-                 "no solver, docs/eval/candidates.md)")
+  app.add_option(
+         "--method", args.method,
+         "direct (exact minimiser), cg (the paper's conjugate "
+         "gradient), linear (no refinement) or morph "
+         "(registration-based stacking along a smooth, C1-in-z trajectory; "
+         "no solver, docs/eval/candidates.md)")
       ->capture_default_str();
   app.add_option("--iterations", args.iterations,
                  "CG iterations (default 15, as in the paper)");

@@ -67,8 +67,8 @@ std::vector<absl::StatusOr<std::string>> Sha256OfFiles(
       shas[n] = Sha256OfFile(paths[n]);
     }
   };
-  const int extra = std::min<int>(std::max(threads, 1),
-                                  static_cast<int>(paths.size())) - 1;
+  const int extra =
+      std::min<int>(std::max(threads, 1), static_cast<int>(paths.size())) - 1;
   std::vector<std::thread> pool;
   for (int t = 0; t < extra; ++t) pool.emplace_back(work);
   work();

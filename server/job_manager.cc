@@ -890,8 +890,8 @@ void JobManager::RunOne(const std::shared_ptr<Job>& job) {
       if (!fill_json.ok()) report = fill_json.status();
     } else if (options_.isolate_jobs) {
       WorkerOutcome outcome;
-      report = RunJobInWorkerProcess(worker_request(), context,
-                                     options_.worker, &outcome);
+      report = RunJobInWorkerProcess(worker_request(), context, options_.worker,
+                                     &outcome);
       log_crash(outcome);
     } else {
       report = RunJob(spec, context);

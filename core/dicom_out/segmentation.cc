@@ -28,15 +28,15 @@ namespace {
 
 using dicom_out_internal::AddReferencedImageSeries;
 using dicom_out_internal::AddSegmentationFrame;
-using dicom_out_internal::CreateBinarySegmentation;
-using dicom_out_internal::SaveSegmentation;
 using dicom_out_internal::CheckReferencedSeries;
 using dicom_out_internal::CopyPatientStudyFrameOfReference;
+using dicom_out_internal::CreateBinarySegmentation;
 using dicom_out_internal::CurrentDate;
 using dicom_out_internal::CurrentTime;
 using dicom_out_internal::FormatDecimalString;
 using dicom_out_internal::LoadSourceHeader;
 using dicom_out_internal::SaveFileAtomically;
+using dicom_out_internal::SaveSegmentation;
 using dicom_out_internal::ValidateOutputGrid;
 
 absl::Status Check(const OFCondition& cond, const char* what) {
@@ -155,10 +155,9 @@ absl::Status AddSegmentationFrame(DcmSegmentation& seg, const Grid& grid,
                                   const std::string& derivation_description,
                                   const uint8_t* frame) {
   const Vec3 p = grid.IndexToPhysical({0, 0, static_cast<double>(k)});
-  std::unique_ptr<FGPlanePosPatient> position(
-      FGPlanePosPatient::createMinimal(FormatDecimalString(p[0]).c_str(),
-                                       FormatDecimalString(p[1]).c_str(),
-                                       FormatDecimalString(p[2]).c_str()));
+  std::unique_ptr<FGPlanePosPatient> position(FGPlanePosPatient::createMinimal(
+      FormatDecimalString(p[0]).c_str(), FormatDecimalString(p[1]).c_str(),
+      FormatDecimalString(p[2]).c_str()));
   if (position == nullptr) {
     return absl::InternalError("DICOM SEG: cannot create plane position");
   }
@@ -185,11 +184,10 @@ absl::Status AddSegmentationFrame(DcmSegmentation& seg, const Grid& grid,
   per_frame.push_back(derivation.get());
   // addFrame packs the bytes into its own bit-packed copy; it takes a
   // non-const pointer only by its signature.
-  return Check(seg.addFrame(const_cast<Uint8*>(frame), segment_number,
-                            per_frame),
-               absl::StrCat("add the frame of segment ", segment_number,
-                            " on slice ", k)
-                   .c_str());
+  return Check(
+      seg.addFrame(const_cast<Uint8*>(frame), segment_number, per_frame),
+      absl::StrCat("add the frame of segment ", segment_number, " on slice ", k)
+          .c_str());
 }
 
 absl::Status SaveSegmentation(DcmSegmentation& seg, DcmItem& source_header,
@@ -256,9 +254,9 @@ absl::Status WriteSegmentation(const DicomSeries& source,
   for (int64_t k = 0; k < nz; ++k) {
     const uint8_t* slice = &mask.data[static_cast<size_t>(nx * ny * k)];
     for (size_t i = 0; i < frame.size(); ++i) frame[i] = slice[i] != 0;
-    INTERSLICE_RETURN_IF_ERROR(AddSegmentationFrame(
-        *seg, grid, k, segment_number, referenced,
-        options.derivation_description, frame.data()));
+    INTERSLICE_RETURN_IF_ERROR(
+        AddSegmentationFrame(*seg, grid, k, segment_number, referenced,
+                             options.derivation_description, frame.data()));
   }
   return SaveSegmentation(*seg, src, identity, referenced, path);
 }
