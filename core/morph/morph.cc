@@ -72,6 +72,23 @@ inline float Sample(const float* plane, int64_t nx, int64_t ny, double x,
   return static_cast<float>(a * (1 - fy) + b * fy);
 }
 
+// The tangent at a key slice of the monotone (PCHIP) value interpolation,
+// per output slice: the weighted harmonic mean of the slopes of the gaps on
+// either side (Fritsch & Carlson 1980, "Monotone piecewise cubic
+// interpolation", SIAM J. Numer. Anal. 17(2); the weights of Fritsch &
+// Butland 1984 for uneven gaps, as in MATLAB's pchip), zero where the slopes
+// differ in sign or one is zero (a local extremum or plateau at the key
+// slice). |tangent| <= 3 min(|slope_before|, |slope_after|), so every Hermite
+// piece stays between its two key values. `before`/`after`: slopes (value per
+// output slice) of the gaps of `len_before`/`len_after` output slices.
+inline double MonotoneTangent(double before, double after, double len_before,
+                              double len_after) {
+  if (!(before * after > 0)) return 0.0;
+  const double w1 = 2 * len_after + len_before;
+  const double w2 = len_after + 2 * len_before;
+  return (w1 + w2) / (w1 / before + w2 / after);
+}
+
 absl::Status ValidateOptions(const MorphOptions& o) {
   if (o.levels < 1 || o.levels > 8)
     return absl::InvalidArgumentError("morph: levels must be in [1, 8]");
@@ -88,7 +105,8 @@ absl::Status ValidateOptions(const MorphOptions& o) {
     return absl::InvalidArgumentError("morph: unknown trajectory");
   if (o.values != MorphValues::kLinear &&
       o.values != MorphValues::kCatmullRom &&
-      o.values != MorphValues::kSmoothstep)
+      o.values != MorphValues::kSmoothstep &&
+      o.values != MorphValues::kMonotone)
     return absl::InvalidArgumentError("morph: unknown value interpolation");
   return absl::OkStatus();
 }
@@ -298,13 +316,28 @@ absl::StatusOr<MorphedField> StackMorph(const Volume<float>& slice_maps,
             slice[v] = static_cast<float>(h00 * a0 + h01 * a1);
             continue;
           }
-          // Value tangents: chord slopes along the trajectory, reaching key
-          // slices s-1 and s+2 through the neighbouring gaps' fields.
+          // Value tangents from key slices s-1 and s+2, reached along the
+          // trajectory through the neighbouring gaps' fields: Catmull-Rom's
+          // chord slopes, or the monotone (PCHIP) limited slopes.
           double m0 = a1 - a0, m1 = a1 - a0;
-          if (has_prev)
-            m0 = w_prev * (a1 - Sample(dm, nx, ny, x0 - px[v], y0 - py[v]));
-          if (has_next)
-            m1 = w_next * (Sample(dp, nx, ny, x1 + qx[v], y1 + qy[v]) - a0);
+          if (options.values == MorphValues::kMonotone) {
+            const double slope = (a1 - a0) / len;  // per output slice
+            if (has_prev) {
+              const double am = Sample(dm, nx, ny, x0 - px[v], y0 - py[v]);
+              m0 = len * MonotoneTangent((a0 - am) / len_prev, slope,
+                                         len_prev, len);
+            }
+            if (has_next) {
+              const double ap = Sample(dp, nx, ny, x1 + qx[v], y1 + qy[v]);
+              m1 = len * MonotoneTangent(slope, (ap - a1) / len_next, len,
+                                         len_next);
+            }
+          } else {
+            if (has_prev)
+              m0 = w_prev * (a1 - Sample(dm, nx, ny, x0 - px[v], y0 - py[v]));
+            if (has_next)
+              m1 = w_next * (Sample(dp, nx, ny, x1 + qx[v], y1 + qy[v]) - a0);
+          }
           slice[v] =
               static_cast<float>(h00 * a0 + h10 * m0 + h01 * a1 + h11 * m1);
         }

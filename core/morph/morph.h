@@ -94,6 +94,13 @@ enum class MorphValues {
   // like the linear one, so it never overshoots them (no object where
   // neither key slice has one along the trajectory).
   kSmoothstep,
+  // Cubic Hermite with monotone (PCHIP) tangents: the weighted harmonic mean
+  // of the value slopes on either side of a key slice, zero at a local
+  // extremum (Fritsch & Carlson 1980). C1 like Catmull-Rom (the tangent at a
+  // key slice is the same from both gaps), and like smoothstep every piece
+  // stays between its two key values, so it never overshoots them; linear
+  // values along the trajectory are reproduced exactly.
+  kMonotone,
 };
 
 struct MorphOptions {

@@ -52,6 +52,9 @@ std::string CsvCell(const json& v) {
 struct Method {
   std::string name;
   bool nearest = false;
+  // Diagnostic probe: the grey values of the two neighbouring original
+  // slices blended linearly in z, minus the threshold (no distance maps).
+  bool grey_linear = false;
   bool morph = false;  // registration-based stacking (core/morph) first
   bool component_filter = false;  // RemoveUnsupportedComponents after
   // The morph's trajectory and values (MorphOptions::trajectory, values).
@@ -69,7 +72,7 @@ absl::StatusOr<Method> ParseMethod(const std::string& name,
     m.solver.units = EnergyUnits::kMillimetre;
     base = name.substr(0, name.size() - 3);
   }
-  // morph-smooth[pos|ss]...: the same methods on the cubic (C1 in z)
+  // morph-smooth[pos|ss|mono]...: the same methods on the cubic (C1 in z)
   // trajectory, values by Catmull-Rom; "pos" blends the values linearly
   // (only the trajectory is C1), "ss" by smoothstep. "morph-smooth" alone is
   // the cubic morph with the component filter and no refinement (it needs none
@@ -83,6 +86,9 @@ absl::StatusOr<Method> ParseMethod(const std::string& name,
     } else if (absl::StartsWith(rest, "ss")) {
       m.values = MorphValues::kSmoothstep;
       rest = rest.substr(2);
+    } else if (absl::StartsWith(rest, "mono")) {
+      m.values = MorphValues::kMonotone;
+      rest = rest.substr(4);
     }
     if (rest.empty()) {
       m.morph = true;
@@ -95,12 +101,14 @@ absl::StatusOr<Method> ParseMethod(const std::string& name,
     } else {
       return absl::InvalidArgumentError(
           absl::StrCat("unknown method '", name,
-                       "' (morph-smooth[pos|ss], morph-smooth[pos|ss]-raw, "
-                       "morph-smooth[pos|ss]-fidL[t][c])"));
+                       "' (morph-smooth[pos|ss|mono], morph-smooth[pos|ss|mono]-raw, "
+                       "morph-smooth[pos|ss|mono]-fidL[t][c])"));
     }
   }
   if (base == "nearest") {
     m.nearest = true;
+  } else if (base == "grey-linear") {
+    m.grey_linear = true;
   } else if (base == "linear") {
     m.solver.method = SolverMethod::kLinear;
   } else if (base == "cg15") {
@@ -150,7 +158,7 @@ absl::StatusOr<Method> ParseMethod(const std::string& name,
     return absl::InvalidArgumentError(absl::StrCat(
         "unknown method '", name,
         "' (nearest, linear, cg15, cgtol, direct, morph-raw, morph, "
-        "morph-fidL[t][c], morph-smooth[pos|ss][-raw|-fidL[t][c]]; optionally "
+        "morph-fidL[t][c], morph-smooth[pos|ss|mono][-raw|-fidL[t][c]]; optionally "
         "with -mm)"));
   }
   return m;
@@ -266,6 +274,15 @@ absl::Status RunCase(const Case& c, const EvalOptions& o, Recorder& rec) {
     Volume<float> shifted = c.truth_grey;
     for (float& v : shifted.data) v -= c.level;
     INTERSLICE_RETURN_IF_ERROR(WritePlanes(c, "truth", shifted, rec));
+    if (std::getenv("INTERSLICE_EVAL_DUMP") != nullptr) {
+      // Debugging aid: the ground truth's grey values minus the threshold.
+      std::ofstream dump(absl::StrCat(std::getenv("INTERSLICE_EVAL_DUMP"), "/",
+                                      c.experiment, "_k", c.factor,
+                                      "_truth.f32"),
+                         std::ios::binary);
+      dump.write(reinterpret_cast<const char*>(shifted.data.data()),
+                 static_cast<std::streamsize>(shifted.data.size() * 4));
+    }
   }
 
   for (const std::string& name : c.methods) {
@@ -280,7 +297,23 @@ absl::Status RunCase(const Case& c, const EvalOptions& o, Recorder& rec) {
                       ? "-"
                       : std::string(EnergyUnitsName(method.solver.units))}};
     std::vector<json> curve;
-    if (method.nearest) {
+    if (method.grey_linear) {
+      value.grid = stacked.field.grid;
+      value.data.resize(value.grid.VoxelCount());
+      const int64_t plane = value.grid.SliceVoxelCount();
+      const int n = c.factor;
+      const int64_t last = c.originals.grid.size[2] - 1;
+      for (int64_t k = 0; k < value.grid.size[2]; ++k) {
+        const int64_t s = std::min<int64_t>(k / n, last);
+        const int64_t s1 = std::min<int64_t>(s + 1, last);
+        const float t = static_cast<float>(k - s * n) / n;
+        for (int64_t v = 0; v < plane; ++v)
+          value.data[k * plane + v] =
+              (1 - t) * c.originals.data[s * plane + v] +
+              t * c.originals.data[s1 * plane + v] - c.level;
+      }
+      row["solve_seconds"] = 0;
+    } else if (method.nearest) {
       // Nearest original slice (ties go to the lower slice), as a +-1 field.
       value.grid = stacked.field.grid;
       value.data.resize(value.grid.VoxelCount());
@@ -401,7 +434,7 @@ absl::Status RunCase(const Case& c, const EvalOptions& o, Recorder& rec) {
       row["truth_slab_components"] = ComponentsJson(truth_slab);
     }
     row["evaluated_slices"] = evaluated;
-    if (c.analytic && !method.nearest) {
+    if (c.analytic && !method.nearest && !method.grey_linear) {
       // Surface error of the mesh against the analytic shape (as the test).
       INTERSLICE_ASSIGN_OR_RETURN(const Mesh mesh,
                                   ExtractSurface(value, {}, context));
