@@ -81,8 +81,9 @@ void AddRunOptions(CLI::App& app, RunArguments& args) {
          "--method", args.method,
          "direct (exact minimiser), cg (the paper's conjugate "
          "gradient), linear (no refinement) or morph "
-         "(registration-based stacking along a smooth, C1-in-z trajectory; "
-         "no solver, docs/eval/candidates.md)")
+         "(registration-based stacking along a smooth, C1-in-z trajectory, "
+         "values interpolated without overshoot; no solver, "
+         "docs/eval/candidates.md)")
       ->capture_default_str();
   app.add_option("--iterations", args.iterations,
                  "CG iterations (default 15, as in the paper)");

@@ -31,7 +31,7 @@
 // one trajectory per pixel through all key slices, interpolated in z by a
 // cubic Hermite spline with Catmull-Rom tangents (Catmull & Rom 1974; chord
 // slopes over the two gaps for uneven gaps), and the values carried
-// along it are interpolated the same way, so the field is C1 across the key
+// along it by a cubic Hermite too (below), so the field is C1 across the key
 // slices (up to the first-order evaluation of the fields at p, as above).
 // Inside the gap between key slices s, s+1 (registration u_s, output slice
 // at fraction t, everything per gap, i.e. in units of the gap):
@@ -40,15 +40,21 @@
 //   f_t(p)   = H00(t) a_s + H10(t) m_s + H01(t) a_{s+1} + H11(t) m_{s+1}
 // with a_r = D_r(x_r), the Hermite basis H00 = 2t^3 - 3t^2 + 1, H10 = t^3 -
 // 2t^2 + t, H01 = 3t^2 - 2t^3, H11 = t^3 - t^2, the trajectory tangent v_s =
-// (u_{s-1} + u_s) / 2 and the value tangent m_s = (a_{s+1} - a_{s-1}) / 2
-// (uniform gaps; for uneven gaps of L_{s-1}, L_s output slices the chord
+// (u_{s-1} + u_s) / 2 and, with Catmull-Rom values, the value tangent m_s =
+// (a_{s+1} - a_{s-1}) / 2 (uniform gaps; for uneven gaps of L_{s-1}, L_s output slices the chord
 // slopes (u_{s-1} + u_s) / (L_{s-1} + L_s) and (a_{s+1} - a_{s-1}) /
 // (L_{s-1} + L_s) per output slice, scaled by the gap's L; one-sided, v = u
 // and m = a_{s+1} - a_s within the gap, at the first and last key slice). A
 // constant velocity (u_{s-1} = u_s) gives h(t) = t u_s, i.e. exactly the
-// piecewise-linear trajectory; the cubic value interpolation can overshoot the
-// key-slice values (Catmull-Rom is not monotone). At t = 0 and 1 the key slices
-// are reproduced bit-identically (they are never rewritten).
+// piecewise-linear trajectory. Catmull-Rom value tangents can overshoot the
+// key-slice values (an object where neither key slice has one along the
+// trajectory); the default value tangents are therefore the monotone (PCHIP)
+// ones of Fritsch & Carlson 1980 (MorphValues::kMonotone): m_s is the
+// weighted harmonic mean of the value slopes a_s - a_{s-1} and a_{s+1} - a_s
+// (per output slice, weights 2 L_s + L_{s-1} and L_s + 2 L_{s-1}), 0 where
+// they differ in sign, so every piece stays between a_s and a_{s+1} and the
+// value is still C1 at the key slices. At t = 0 and 1 the key slices are
+// reproduced bit-identically (they are never rewritten).
 //
 // Parallelism: gaps are registered concurrently (one ITK filter per gap,
 // single-threaded); the cubic needs the neighbouring gaps' fields, so all
@@ -107,12 +113,16 @@ struct MorphOptions {
   // The trajectory through the key slices. The default is what
   // --method morph runs: the cubic, which on the phantom (bone and soft
   // tissue, every 2nd / 4th / 8th slice and thick -> thin) is more accurate
-  // than the refined piecewise morph everywhere and has crease index <= 1.9
-  // without any refinement (docs/eval/candidates.md, "Smooth-in-z morph").
+  // than the refined piecewise morph everywhere and has crease index <= 2.7
+  // without any refinement (docs/eval/candidates.md, "Smooth-in-z morph" and
+  // "Monotone values").
   MorphTrajectory trajectory = MorphTrajectory::kCubic;
   // kCubic only: how the values carried along the trajectory are
-  // interpolated between the key slices.
-  MorphValues values = MorphValues::kCatmullRom;
+  // interpolated between the key slices. The default, monotone (PCHIP), is
+  // the most accurate of the four on both objects of the phantom at every 2nd,
+  // 4th and 8th slice (docs/eval/candidates.md, "Monotone values"); it has no
+  // parameter.
+  MorphValues values = MorphValues::kMonotone;
   // Pyramid levels of the demons registration (each halves the resolution).
   // >= 1.
   int levels = 4;

@@ -30,7 +30,7 @@
 // - kMorph (beyond the paper, issue 14): the field is a registration-based
 //   stacking (core/morph StackMorph, chosen by the pipeline for this
 //   method). With MorphOptions' defaults (cubic, C1-in-z trajectory,
-//   refine = false) the pipeline calls Solve() with kLinear (the energy
+//   monotone values, refine = false) the pipeline calls Solve() with kLinear (the energy
 //   only): the field is used as stacked and core/morph's component filter
 //   is applied. With
 //   MorphOptions::refine, Solve() runs the direct solver exactly as for
