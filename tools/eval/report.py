@@ -294,7 +294,7 @@ def main():
         L.append("## Beyond the paper (issue 14): registration-based stacking, `--method morph`")
         L.append("")
         L.append("`morph-raw`: for every pair of neighbouring key slices, ITK's multi-resolution "
-                 "symmetric-forces demons (4 levels, 50 iterations each, field sigma 2 px, maps clipped "
+                 "symmetric-forces demons (4 levels, 25 iterations each, field sigma 2 px, maps clipped "
                  "to +-4 mm, registered at 1/4 resolution) gives a 2D correspondence u with "
                  "D1(x + u) ~ D0(x); an inserted slice at fraction t is (1 - t) D0(p - t u) + t D1(p + (1 - t) u) "
                  "(core/morph; Penney et al. 2004, Frakes et al. 2008): piecewise linear in z, so it creases at "
