@@ -129,9 +129,10 @@ struct MorphOptions {
   // Demons iterations per level, the same at every level. >= 0 (0 gives
   // u = 0: linear stacking for kPiecewiseLinear; for kCubic the values of
   // each pixel interpolated in z in place). 25: the registration has
-  // converged by then on the phantom (mean displacement within 1.2% of 50
-  // iterations at every 2nd, 4th and 8th slice, a property of the key slices
-  // alone) at half the cost; docs/eval/candidates.md, "Demons iterations".
+  // converged by then on the phantom (mean displacement within 3% of 50
+  // iterations at every 2nd, 4th and 8th slice on both objects, a property
+  // of the key slices alone) at half the cost; docs/eval/candidates.md,
+  // "Demons iterations".
   int iterations = 25;
   // Standard deviation of the Gaussian applied to the displacement field
   // after every demons iteration (the regulariser), in pixels of the level.
