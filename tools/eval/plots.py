@@ -185,7 +185,7 @@ def skull_top_reformat(out, planes, height_mm=40.0):
            and p["plane"] in ("sagittal", "coronal")]
     if not sel:
         return []
-    methods = [m for m in ("truth", "nearest", "linear", "cg15", "direct")
+    methods = [m for m in ("truth", "nearest", "linear", "cg15", "direct", "morph")
                if any(p["method"] == m for p in sel)]
     fig, axes = plt.subplots(len(methods), 2, figsize=(11, 1.45 * len(methods)),
                              squeeze=False)
