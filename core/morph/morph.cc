@@ -324,13 +324,13 @@ absl::StatusOr<MorphedField> StackMorph(const Volume<float>& slice_maps,
             const double slope = (a1 - a0) / len;  // per output slice
             if (has_prev) {
               const double am = Sample(dm, nx, ny, x0 - px[v], y0 - py[v]);
-              m0 = len * MonotoneTangent((a0 - am) / len_prev, slope,
-                                         len_prev, len);
+              m0 = len *
+                   MonotoneTangent((a0 - am) / len_prev, slope, len_prev, len);
             }
             if (has_next) {
               const double ap = Sample(dp, nx, ny, x1 + qx[v], y1 + qy[v]);
-              m1 = len * MonotoneTangent(slope, (ap - a1) / len_next, len,
-                                         len_next);
+              m1 = len *
+                   MonotoneTangent(slope, (ap - a1) / len_next, len, len_next);
             }
           } else {
             if (has_prev)

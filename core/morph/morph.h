@@ -41,15 +41,15 @@
 // with a_r = D_r(x_r), the Hermite basis H00 = 2t^3 - 3t^2 + 1, H10 = t^3 -
 // 2t^2 + t, H01 = 3t^2 - 2t^3, H11 = t^3 - t^2, the trajectory tangent v_s =
 // (u_{s-1} + u_s) / 2 and, with Catmull-Rom values, the value tangent m_s =
-// (a_{s+1} - a_{s-1}) / 2 (uniform gaps; for uneven gaps of L_{s-1}, L_s output slices the chord
-// slopes (u_{s-1} + u_s) / (L_{s-1} + L_s) and (a_{s+1} - a_{s-1}) /
-// (L_{s-1} + L_s) per output slice, scaled by the gap's L; one-sided, v = u
-// and m = a_{s+1} - a_s within the gap, at the first and last key slice). A
-// constant velocity (u_{s-1} = u_s) gives h(t) = t u_s, i.e. exactly the
-// piecewise-linear trajectory. Catmull-Rom value tangents can overshoot the
-// key-slice values (an object where neither key slice has one along the
-// trajectory); the default value tangents are therefore the monotone (PCHIP)
-// ones of Fritsch & Carlson 1980 (MorphValues::kMonotone): m_s is the
+// (a_{s+1} - a_{s-1}) / 2 (uniform gaps; for uneven gaps of L_{s-1}, L_s output
+// slices the chord slopes (u_{s-1} + u_s) / (L_{s-1} + L_s) and (a_{s+1} -
+// a_{s-1}) / (L_{s-1} + L_s) per output slice, scaled by the gap's L;
+// one-sided, v = u and m = a_{s+1} - a_s within the gap, at the first and last
+// key slice). A constant velocity (u_{s-1} = u_s) gives h(t) = t u_s, i.e.
+// exactly the piecewise-linear trajectory. Catmull-Rom value tangents can
+// overshoot the key-slice values (an object where neither key slice has one
+// along the trajectory); the default value tangents are therefore the monotone
+// (PCHIP) ones of Fritsch & Carlson 1980 (MorphValues::kMonotone): m_s is the
 // weighted harmonic mean of the value slopes a_s - a_{s-1} and a_{s+1} - a_s
 // (per output slice, weights 2 L_s + L_{s-1} and L_s + 2 L_{s-1}), 0 where
 // they differ in sign, so every piece stays between a_s and a_{s+1} and the

@@ -30,12 +30,11 @@
 // - kMorph (beyond the paper, issue 14): the field is a registration-based
 //   stacking (core/morph StackMorph, chosen by the pipeline for this
 //   method). With MorphOptions' defaults (cubic, C1-in-z trajectory,
-//   monotone values, refine = false) the pipeline calls Solve() with kLinear (the energy
-//   only): the field is used as stacked and core/morph's component filter
-//   is applied. With
-//   MorphOptions::refine, Solve() runs the direct solver exactly as for
-//   kDirect, with the fidelity term of SolverOptions (MorphOptions' fidelity
-//   and taper), before the filter.
+//   monotone values, refine = false) the pipeline calls Solve() with kLinear
+//   (the energy only): the field is used as stacked and core/morph's component
+//   filter is applied. With MorphOptions::refine, Solve() runs the direct
+//   solver exactly as for kDirect, with the fidelity term of SolverOptions
+//   (MorphOptions' fidelity and taper), before the filter.
 //
 // Fixed slices are never written: their voxels come out bit-identical.
 // Non-convergence is not an error: SolverResult says how far CG got.

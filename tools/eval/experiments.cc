@@ -99,10 +99,10 @@ absl::StatusOr<Method> ParseMethod(const std::string& name,
     if (rest == "-raw" || absl::StartsWith(rest, "-fid")) {
       base = absl::StrCat("morph", rest);
     } else {
-      return absl::InvalidArgumentError(
-          absl::StrCat("unknown method '", name,
-                       "' (morph-smooth[pos|ss|mono], morph-smooth[pos|ss|mono]-raw, "
-                       "morph-smooth[pos|ss|mono]-fidL[t][c])"));
+      return absl::InvalidArgumentError(absl::StrCat(
+          "unknown method '", name,
+          "' (morph-smooth[pos|ss|mono], morph-smooth[pos|ss|mono]-raw, "
+          "morph-smooth[pos|ss|mono]-fidL[t][c])"));
     }
   }
   if (base == "nearest") {
@@ -158,7 +158,8 @@ absl::StatusOr<Method> ParseMethod(const std::string& name,
     return absl::InvalidArgumentError(absl::StrCat(
         "unknown method '", name,
         "' (nearest, linear, cg15, cgtol, direct, morph-raw, morph, "
-        "morph-fidL[t][c], morph-smooth[pos|ss|mono][-raw|-fidL[t][c]]; optionally "
+        "morph-fidL[t][c], morph-smooth[pos|ss|mono][-raw|-fidL[t][c]]; "
+        "optionally "
         "with -mm)"));
   }
   return m;
@@ -276,10 +277,10 @@ absl::Status RunCase(const Case& c, const EvalOptions& o, Recorder& rec) {
     INTERSLICE_RETURN_IF_ERROR(WritePlanes(c, "truth", shifted, rec));
     if (std::getenv("INTERSLICE_EVAL_DUMP") != nullptr) {
       // Debugging aid: the ground truth's grey values minus the threshold.
-      std::ofstream dump(absl::StrCat(std::getenv("INTERSLICE_EVAL_DUMP"), "/",
-                                      c.experiment, "_k", c.factor,
-                                      "_truth.f32"),
-                         std::ios::binary);
+      std::ofstream dump(
+          absl::StrCat(std::getenv("INTERSLICE_EVAL_DUMP"), "/", c.experiment,
+                       "_k", c.factor, "_truth.f32"),
+          std::ios::binary);
       dump.write(reinterpret_cast<const char*>(shifted.data.data()),
                  static_cast<std::streamsize>(shifted.data.size() * 4));
     }
