@@ -89,7 +89,11 @@ if [ "$default_data" = 1 ]; then report_args+=(--default-data); fi
 if [ "$publish" = 1 ] && [ "$default_data" = 1 ]; then
   docs="$repo/docs/eval"
   mkdir -p "$docs"
-  rm -f "$docs"/*.png "$docs"/report.md "$docs"/*.csv "$docs"/results.json "$docs"/skull_top_k8.json
+  # Replace this harness's files only: docs/eval also holds other reports'
+  # files (segmentations.md's fill_*.csv and segmentations_dice.png).
+  rm -f "$docs"/report.md "$docs"/results.json "$docs"/skull_top_k8.json \
+    "$docs"/metrics.csv "$docs"/convergence.csv "$docs"/reformat_*.png \
+    "$docs"/fig5_convergence.png "$docs"/skull_top_*.png
   cp "$out"/report.md "$out"/*.png "$out"/*.csv "$out"/results.json "$docs"/
   [ -f "$out/skull_top_k8.json" ] && cp "$out/skull_top_k8.json" "$docs"/
   echo "eval.sh: report published to $docs"
