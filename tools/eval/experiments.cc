@@ -19,6 +19,7 @@
 #include "core/common/status_macros.h"
 #include "core/dicom/series_reader.h"
 #include "core/morph/morph.h"
+#include "core/slab/slab_deconvolution.h"
 #include "core/stack/stacking.h"
 #include "core/surface/surface.h"
 #include "tools/eval/metrics.h"
@@ -283,6 +284,13 @@ absl::Status RunCase(const Case& c, const EvalOptions& o, Recorder& rec) {
           std::ios::binary);
       dump.write(reinterpret_cast<const char*>(shifted.data.data()),
                  static_cast<std::streamsize>(shifted.data.size() * 4));
+      // And the original (key) slices' grey values, as read.
+      std::ofstream keys(absl::StrCat(std::getenv("INTERSLICE_EVAL_DUMP"), "/",
+                                      c.experiment, "_k", c.factor,
+                                      "_originals.f32"),
+                         std::ios::binary);
+      keys.write(reinterpret_cast<const char*>(c.originals.data.data()),
+                 static_cast<std::streamsize>(c.originals.data.size() * 4));
     }
   }
 
@@ -747,6 +755,23 @@ absl::Status RunThickToThin(const EvalOptions& o, Recorder& rec) {
   c.experiment = "thick";
   c.factor = factor;
   c.originals = std::move(thick_image);
+  if (const char* slab = std::getenv("INTERSLICE_EVAL_SLAB_MM")) {
+    // Candidate probe (docs/eval/candidates.md, "Slab deconvolution"): the
+    // thick slices replaced by their slab deconvolution before any method.
+    SlabDeconvolutionOptions so;
+    so.slab_thickness_mm = std::atof(slab);
+    so.factor = factor;
+    ComputeContext sc;
+    sc.threads = o.threads;
+    INTERSLICE_ASSIGN_OR_RETURN(SlabDeconvolution sd,
+                                DeconvolveSlabs(c.originals, so, sc));
+    std::fprintf(stderr,
+                 "slab deconvolution %g mm: %d iterations, residual %.2f -> "
+                 "%.2f\n",
+                 so.slab_thickness_mm, sd.iterations, sd.initial_rms,
+                 sd.final_rms);
+    c.originals = std::move(sd.slices);
+  }
   c.truth_grey = Slices(thin.image, k_off, k_off + out_slices);
   // The output grid starts at the thick series' origin: same as the thin
   // slice k_off (checked above), so only the origin differs by rounding.
