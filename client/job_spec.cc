@@ -116,6 +116,7 @@ absl::StatusOr<JobSpec> BuildJobSpec(const RunArguments& args) {
   spec.z_resolution.factor = args.factor;
   spec.z_resolution.spacing_mm = args.spacing;
   spec.strict_spacing = args.strict_spacing;
+  spec.slab_deconvolution = args.slab_deconvolution;
   absl::StatusOr<std::vector<std::string>> series = ParseList(
       args.output_series, {"mask", "distance", "intensity"}, "--output-series");
   if (!series.ok()) return series.status();

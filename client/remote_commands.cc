@@ -301,6 +301,12 @@ void SetTimeout(grpc::ClientContext& context, double seconds) {
       std::chrono::milliseconds(static_cast<int64_t>(seconds * 1000)));
 }
 
+// JobSpec::slab_deconvolution is not in the service's JobSpec (proto) yet:
+// refused rather than run as a different job remotely.
+constexpr char kSlabDeconvolutionInProcessOnly[] =
+    "--slab-deconvolution runs in-process only (interslice run); the server "
+    "does not take it yet";
+
 absl::StatusOr<v1::UploadHeader> PrepareUpload(const RunArguments& args,
                                                double deadline_seconds,
                                                const std::string& label,
@@ -327,6 +333,9 @@ absl::StatusOr<v1::UploadHeader> PrepareUpload(const RunArguments& args,
   if (pacs) checked.inputs = {"."};
   absl::StatusOr<JobSpec> spec = BuildJobSpec(checked);
   if (!spec.ok()) return spec.status();
+  if (spec->slab_deconvolution) {
+    return absl::InvalidArgumentError(kSlabDeconvolutionInProcessOnly);
+  }
   if (!pacs) {
     absl::StatusOr<std::vector<LocalFile>> found = CollectFiles(spec->inputs);
     if (!found.ok()) return found.status();
@@ -909,6 +918,10 @@ int RemoteCommands::Execute() {
   for (CLI::App* c : commands) any = any || (c != nullptr && c->parsed());
   if (!any) return -1;
   if (deadline_seconds_ < 0) return Fail("--deadline must be >= 0");
+  if ((interpolate_->parsed() || submit_->parsed()) &&
+      run_args_.slab_deconvolution) {
+    return Fail(kSlabDeconvolutionInProcessOnly);
+  }
   absl::StatusOr<Connection> connection = Connection::Open(connection_);
   if (!connection.ok()) return Fail(std::string(connection.status().message()));
   if (interpolate_->parsed()) {

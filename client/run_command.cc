@@ -27,6 +27,13 @@ void PrintSummary(const JobReport& report, const std::string& out_dir) {
         "onto an orthogonal grid)\n",
         report.gantry_tilt_degrees);
   }
+  if (report.slab_thickness_mm > 0) {
+    std::printf(
+        "  slabs     %.3g mm slabs deconvolved in %d iterations (residual "
+        "%.3g -> %.3g)\n",
+        report.slab_thickness_mm, report.slab_iterations,
+        report.slab_residual_before, report.slab_residual_after);
+  }
   if (report.max_snap_mm > 1e-6) {
     std::printf(
         "  spacing   non-uniform: slices moved up to %.3g mm to the nearest "
@@ -124,6 +131,11 @@ void AddRunOptions(CLI::App& app, RunArguments& args) {
   app.add_flag("--strict-spacing", args.strict_spacing,
                "Fail on non-uniform slice spacing (missing slices) instead "
                "of placing each slice on the nearest output slice");
+  app.add_flag("--slab-deconvolution", args.slab_deconvolution,
+               "Thick slices: contour an estimate of the thin object at each "
+               "slice position (slab deconvolution by the series' "
+               "SliceThickness) instead of the slab-averaged slices; in-process "
+               "only (docs/eval/candidates.md)");
   app.add_option("--band", args.band,
                  "Radius in mm of the band of exact 2D distances (default 16 "
                  "pixels)");

@@ -29,6 +29,7 @@ struct RunArguments {
   std::optional<int> factor;
   std::optional<double> spacing;
   bool strict_spacing = false;
+  bool slab_deconvolution = false;
   std::string output_series;  // "mask,distance,intensity"
   bool seg = false;
   std::string dicom_compression = "none";

@@ -1113,6 +1113,7 @@ absl::StatusOr<DicomSeries> ReadDicomSeries(
   result.modality = first.modality;
   result.sop_class_uid = first.sop_class_uid;
   result.volume = stack.order.front().volume;
+  result.slice_thickness_mm = first.slice_thickness;
   result.notes = InputNotes(headers, chosen->members);
   result.uniform_spacing = stack.uniform;
   result.min_gap_mm = stack.min_gap;

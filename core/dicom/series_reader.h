@@ -148,6 +148,9 @@ struct DicomSeries {
   double min_gap_mm = 0, max_gap_mm = 0;
   // Non-zero when the slices were resampled for gantry tilt (degrees).
   double gantry_tilt_degrees = 0;
+  // SliceThickness of the first slice (functional groups for multi-frame
+  // objects), mm; 0 when absent.
+  double slice_thickness_mm = 0;
   // Files not used: non-DICOM, DICOMDIR, non-image, other series or volumes.
   int64_t skipped_files = 0;
   // What the reader inferred or found missing in the series' files, one

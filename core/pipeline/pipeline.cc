@@ -20,6 +20,7 @@
 #include "core/dicom_out/encapsulated_stl.h"
 #include "core/morph/morph.h"
 #include "core/sdf/signed_distance.h"
+#include "core/slab/slab_deconvolution.h"
 #include "core/surface/surface.h"
 #include "core/volume_io/volume_io.h"
 #include "nlohmann/json.hpp"
@@ -139,6 +140,37 @@ absl::Status WriteIntensityFolder(const DicomSeries& source,
                      ": ", ec.message()));
   }
   return absl::OkStatus();
+}
+
+// JobSpec::slab_deconvolution: the slices' slab deconvolution on the factor
+// of the job's own (uniform) plan, the slab being the series' SliceThickness.
+absl::StatusOr<Volume<float>> DeconvolveSlabsForPlan(
+    const Volume<float>& image, const std::vector<double>& positions,
+    double slice_thickness_mm, const JobSpec& spec, JobReport& report,
+    const ComputeContext& context) {
+  if (!(slice_thickness_mm > 0))
+    return absl::InvalidArgumentError(
+        "slab deconvolution needs the series' SliceThickness (0018,0050), "
+        "which it does not have");
+  INTERSLICE_ASSIGN_OR_RETURN(
+      const StackPlan plan,
+      PlanStack(positions, std::min(image.grid.spacing[0], image.grid.spacing[1]),
+                spec.z_resolution));
+  if (!plan.uniform)
+    return absl::InvalidArgumentError(absl::StrFormat(
+        "slab deconvolution needs uniform slice spacing; gaps run from %.3f "
+        "to %.3f mm",
+        plan.min_gap_mm, plan.max_gap_mm));
+  SlabDeconvolutionOptions options;
+  options.slab_thickness_mm = slice_thickness_mm;
+  options.factor = plan.factor;
+  INTERSLICE_ASSIGN_OR_RETURN(SlabDeconvolution result,
+                              DeconvolveSlabs(image, options, context));
+  report.slab_thickness_mm = slice_thickness_mm;
+  report.slab_iterations = result.iterations;
+  report.slab_residual_before = result.initial_rms;
+  report.slab_residual_after = result.final_rms;
+  return std::move(result.slices);
 }
 
 }  // namespace
@@ -271,8 +303,18 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
     options.lower = spec.lower_threshold;
     options.upper = spec.upper_threshold;
     options.band_radius_mm = spec.band_radius_mm;
-    INTERSLICE_ASSIGN_OR_RETURN(
-        slice_maps, ComputeSliceDistanceMaps(image, options, context));
+    if (spec.slab_deconvolution) {
+      // Contour the slab deconvolution of the slices instead (JobSpec).
+      INTERSLICE_ASSIGN_OR_RETURN(
+          Volume<float> estimates,
+          DeconvolveSlabsForPlan(image, positions, source.slice_thickness_mm,
+                                 spec, report, context));
+      INTERSLICE_ASSIGN_OR_RETURN(
+          slice_maps, ComputeSliceDistanceMaps(estimates, options, context));
+    } else {
+      INTERSLICE_ASSIGN_OR_RETURN(
+          slice_maps, ComputeSliceDistanceMaps(image, options, context));
+    }
     // Release the grey values early unless an intensity series needs them.
     if (!wants_intensity) image = Volume<float>();
   }
@@ -512,6 +554,13 @@ std::string JobReportToJson(const JobReport& report) {
   j["input"]["min_gap_mm"] = report.min_gap_mm;
   j["input"]["max_gap_mm"] = report.max_gap_mm;
   j["input"]["notes"] = report.input_notes;
+  if (report.slab_thickness_mm > 0) {
+    j["input"]["slab_deconvolution"] = {
+        {"slab_thickness_mm", report.slab_thickness_mm},
+        {"iterations", report.slab_iterations},
+        {"residual_before", report.slab_residual_before},
+        {"residual_after", report.slab_residual_after}};
+  }
   j["mesh"] = {{"vertices", report.mesh_vertices},
                {"triangles", report.mesh_triangles}};
   ordered_json artifacts = ordered_json::array();
@@ -582,6 +631,13 @@ absl::StatusOr<JobReport> JobReportFromJson(const std::string& text) {
     // Absent in reports written before the reader had notes.
     if (input.contains("notes")) {
       report.input_notes = input.at("notes").get<std::vector<std::string>>();
+    }
+    if (input.contains("slab_deconvolution")) {
+      const json& slab = input.at("slab_deconvolution");
+      report.slab_thickness_mm = slab.at("slab_thickness_mm").get<double>();
+      report.slab_iterations = slab.at("iterations").get<int>();
+      report.slab_residual_before = slab.at("residual_before").get<double>();
+      report.slab_residual_after = slab.at("residual_after").get<double>();
     }
     report.mesh_vertices = j.at("mesh").at("vertices").get<int64_t>();
     report.mesh_triangles = j.at("mesh").at("triangles").get<int64_t>();

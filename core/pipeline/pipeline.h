@@ -37,6 +37,17 @@ struct JobSpec {
   // PlanStack); with strict_spacing it is INVALID_ARGUMENT naming the
   // smallest and largest gap.
   bool strict_spacing = false;
+  // Thick slices (SliceThickness wider than the output z spacing): contour
+  // not the slices as read but their slab deconvolution (core/slab
+  // DeconvolveSlabs, slab = the series' SliceThickness, the output factor of
+  // a uniform plan): an estimate of the thin object at the slice positions,
+  // where a thick slice averages it over its slab (docs/eval/candidates.md,
+  // "Slab deconvolution"). The original slices of the field are then these
+  // estimates' distance maps, not the input's. INVALID_ARGUMENT without a
+  // SliceThickness, with non-uniform spacing, or with a slab wider than two
+  // slice gaps. The intensity series (output_series "intensity") still
+  // carries the values as read.
+  bool slab_deconvolution = false;
   SolverOptions solver;        // default: 15 CG iterations, voxel units
   double mesh_adaptivity = 0;  // OpenVDB adaptivity in [0, 1]
   // Outputs, written into output_dir (created if missing):
@@ -123,6 +134,12 @@ struct JobReport {
   // What the reader inferred about the input (DicomSeries::notes): no UIDs,
   // no patient data.
   std::vector<std::string> input_notes;
+  // JobSpec::slab_deconvolution only: the slab (mm, 0 = not run), the
+  // iterations, and the RMS of (slices - slab averages of the estimate)
+  // before and after, in modality units.
+  double slab_thickness_mm = 0;
+  int slab_iterations = 0;
+  double slab_residual_before = 0, slab_residual_after = 0;
   int64_t mesh_vertices = 0;
   int64_t mesh_triangles = 0;
   std::vector<Artifact> artifacts;

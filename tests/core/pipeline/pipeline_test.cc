@@ -6,6 +6,7 @@
 
 #include "core/dicom/series_reader.h"
 #include "core/sdf/signed_distance.h"
+#include "core/slab/slab_deconvolution.h"
 #include "core/volume_io/volume_io.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
@@ -268,6 +269,76 @@ TEST_F(PipelineTest, MissingSliceIsPlacedOnItsNodeUnlessSpacingIsStrict) {
   const auto ok = RunJob(uniform, {});
   ASSERT_TRUE(ok.ok()) << ok.status();
   EXPECT_LT(ok->max_snap_mm, 1e-6);
+  fs::remove_all(inputs);
+}
+
+TEST_F(PipelineTest, SlabDeconvolutionContoursTheEstimatesAndSaysSo) {
+  // The 5 mm thick slices (SliceThickness 5): the field's original slices
+  // are the distance maps of their slab deconvolution on the job's factor,
+  // not of the slices as read.
+  JobSpec spec = SmallJob();
+  spec.slab_deconvolution = true;
+  const auto report = RunJob(spec, {});
+  ASSERT_TRUE(report.ok()) << report.status();
+  EXPECT_EQ(report->slab_thickness_mm, 5.0);
+  EXPECT_GT(report->slab_iterations, 0);
+  EXPECT_LT(report->slab_residual_after, 0.5);
+  EXPECT_GT(report->slab_residual_before, report->slab_residual_after);
+  const auto json = nlohmann::json::parse(JobReportToJson(*report));
+  EXPECT_EQ(json["input"]["slab_deconvolution"]["iterations"].get<int>(),
+            report->slab_iterations);
+  const auto back = JobReportFromJson(JobReportToJson(*report));
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_EQ(back->slab_iterations, report->slab_iterations);
+  EXPECT_EQ(back->slab_thickness_mm, 5.0);
+
+  const auto distance = ReadVolumeAsFloat((dir_ / "distance.nrrd").string());
+  ASSERT_TRUE(distance.ok()) << distance.status();
+  const auto series = ReadDicomSeries({kSeries}, {}, {});
+  ASSERT_TRUE(series.ok());
+  EXPECT_EQ(series->slice_thickness_mm, 5.0);
+  const Volume<float> roi = CropVolume(series->image, *spec.roi);
+  SlabDeconvolutionOptions slab;
+  slab.slab_thickness_mm = 5.0;
+  slab.factor = 4;
+  const auto estimates = DeconvolveSlabs(roi, slab, {});
+  ASSERT_TRUE(estimates.ok()) << estimates.status();
+  EXPECT_EQ(estimates->iterations, report->slab_iterations);
+  ContourOptions contour;
+  contour.lower = 300;
+  const auto maps = ComputeSliceDistanceMaps(estimates->slices, contour, {});
+  const auto raw_maps = ComputeSliceDistanceMaps(roi, contour, {});
+  ASSERT_TRUE(maps.ok() && raw_maps.ok());
+  const int64_t plane = 80 * 80;
+  for (int64_t s = 0; s < 4; ++s) {
+    EXPECT_EQ(std::memcmp(&distance->data[s * 4 * plane],
+                          &maps->data[s * plane], plane * sizeof(float)),
+              0)
+        << "original slice " << s;
+  }
+  EXPECT_NE(maps->data, raw_maps->data);
+
+  // Without the option nothing is reported.
+  const auto plain = RunJob(SmallJob(), {});
+  ASSERT_TRUE(plain.ok());
+  EXPECT_EQ(plain->slab_thickness_mm, 0);
+  EXPECT_FALSE(nlohmann::json::parse(JobReportToJson(*plain))["input"].contains(
+      "slab_deconvolution"));
+
+  // Non-uniform spacing (I10, I20, I40) is refused, naming the gaps.
+  const fs::path inputs = dir_.string() + "_in";
+  fs::create_directories(inputs);
+  for (const char* name : {"I10.dcm", "I20.dcm", "I40.dcm"}) {
+    fs::copy_file(fs::path(kSeries) / name, inputs / name,
+                  fs::copy_options::overwrite_existing);
+  }
+  spec.inputs = {inputs.string()};
+  spec.roi = VoxelBox{{200, 40, 0}, {280, 120, 3}};
+  spec.z_resolution = {.spacing_mm = 2.5};
+  const auto uneven = RunJob(spec, {});
+  EXPECT_EQ(uneven.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(std::string(uneven.status().message()),
+              ::testing::HasSubstr("uniform slice spacing"));
   fs::remove_all(inputs);
 }
 
