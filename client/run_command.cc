@@ -131,11 +131,12 @@ void AddRunOptions(CLI::App& app, RunArguments& args) {
   app.add_flag("--strict-spacing", args.strict_spacing,
                "Fail on non-uniform slice spacing (missing slices) instead "
                "of placing each slice on the nearest output slice");
-  app.add_flag("--slab-deconvolution", args.slab_deconvolution,
-               "Thick slices: contour an estimate of the thin object at each "
-               "slice position (slab deconvolution by the series' "
-               "SliceThickness) instead of the slab-averaged slices; in-process "
-               "only (docs/eval/candidates.md)");
+  app.add_flag(
+      "--slab-deconvolution", args.slab_deconvolution,
+      "Thick slices: contour an estimate of the thin object at each "
+      "slice position (slab deconvolution by the series' "
+      "SliceThickness) instead of the slab-averaged slices; in-process "
+      "only (docs/eval/candidates.md)");
   app.add_option("--band", args.band,
                  "Radius in mm of the band of exact 2D distances (default 16 "
                  "pixels)");

@@ -154,7 +154,8 @@ absl::StatusOr<Volume<float>> DeconvolveSlabsForPlan(
         "which it does not have");
   INTERSLICE_ASSIGN_OR_RETURN(
       const StackPlan plan,
-      PlanStack(positions, std::min(image.grid.spacing[0], image.grid.spacing[1]),
+      PlanStack(positions,
+                std::min(image.grid.spacing[0], image.grid.spacing[1]),
                 spec.z_resolution));
   if (!plan.uniform)
     return absl::InvalidArgumentError(absl::StrFormat(

@@ -21,8 +21,8 @@ using Row = std::vector<std::pair<int64_t, double>>;
 std::vector<Row> SlabRows(int64_t slices, int factor, double spacing_mm,
                           double thickness_mm) {
   const int64_t fine = (slices - 1) * factor + 1;
-  const double h = spacing_mm / factor;         // fine sample spacing, mm
-  const double half = 0.5 * thickness_mm / h;   // box half-width, fine units
+  const double h = spacing_mm / factor;        // fine sample spacing, mm
+  const double half = 0.5 * thickness_mm / h;  // box half-width, fine units
   std::vector<Row> rows(slices);
   for (int64_t s = 0; s < slices; ++s) {
     const double centre = static_cast<double>(s * factor);
@@ -38,9 +38,8 @@ std::vector<Row> SlabRows(int64_t slices, int factor, double spacing_mm,
       if (overlap <= 0) continue;
       total += overlap;
       const int64_t q = std::min<int64_t>(k / factor, slices - 1);
-      const double f = q == slices - 1
-                           ? 0.0
-                           : static_cast<double>(k - q * factor) / factor;
+      const double f =
+          q == slices - 1 ? 0.0 : static_cast<double>(k - q * factor) / factor;
       weight[q] += overlap * (1 - f);
       if (f > 0) weight[q + 1] += overlap * f;
     }
@@ -65,7 +64,8 @@ absl::StatusOr<SlabDeconvolution> DeconvolveSlabs(
     return absl::InvalidArgumentError(
         "slab deconvolution: slab thickness must be > 0 mm");
   if (options.factor < 1)
-    return absl::InvalidArgumentError("slab deconvolution: factor must be >= 1");
+    return absl::InvalidArgumentError(
+        "slab deconvolution: factor must be >= 1");
   if (!(options.tolerance > 0) || !std::isfinite(options.tolerance))
     return absl::InvalidArgumentError(
         "slab deconvolution: tolerance must be > 0");

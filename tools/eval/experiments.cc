@@ -285,10 +285,10 @@ absl::Status RunCase(const Case& c, const EvalOptions& o, Recorder& rec) {
       dump.write(reinterpret_cast<const char*>(shifted.data.data()),
                  static_cast<std::streamsize>(shifted.data.size() * 4));
       // And the original (key) slices' grey values, as read.
-      std::ofstream keys(absl::StrCat(std::getenv("INTERSLICE_EVAL_DUMP"), "/",
-                                      c.experiment, "_k", c.factor,
-                                      "_originals.f32"),
-                         std::ios::binary);
+      std::ofstream keys(
+          absl::StrCat(std::getenv("INTERSLICE_EVAL_DUMP"), "/", c.experiment,
+                       "_k", c.factor, "_originals.f32"),
+          std::ios::binary);
       keys.write(reinterpret_cast<const char*>(c.originals.data.data()),
                  static_cast<std::streamsize>(c.originals.data.size() * 4));
     }
