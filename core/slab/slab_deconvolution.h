@@ -31,7 +31,9 @@
 // on the slices alone, C <- C + (S - A C) with A = P U, a small banded matrix
 // along z shared by every pixel (Richardson iteration for A C = S; A's rows
 // are convex weights, and for slabs no wider than two slice gaps its
-// eigenvalues lie in (0, 1], so it converges). No fine volume is held.
+// eigenvalues lie in [0, 1], so the iteration cannot diverge; a mode with
+// eigenvalue 0, possible only near two gaps, keeps its input value). No fine
+// volume is held.
 //
 // It changes the original slices: the pipeline's "original slices are kept
 // bit-identical" then holds for these estimates, not for the input.
