@@ -1,7 +1,5 @@
 #include "client/remote_commands.h"
 
-#include <openssl/evp.h>
-
 #include <algorithm>
 #include <cctype>
 #include <chrono>
@@ -17,10 +15,13 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "client/fill_command.h"
-#include "client/job_spec_proto.h"
 #include "client/progress_display.h"
+#include "core/common/sha256.h"
+#include "core/dicom/series_reader.h"
 #include "grpc/health/v1/health.grpc.pb.h"
 #include "interslice/v1/interslice.grpc.pb.h"
+#include "job/errors.h"
+#include "job/wire.h"
 #include "nlohmann/json.hpp"
 
 namespace interslice::client {
@@ -35,33 +36,11 @@ int Fail(const std::string& message) {
   return 1;
 }
 
-class Sha256 {
- public:
-  Sha256() : ctx_(EVP_MD_CTX_new()) {
-    EVP_DigestInit_ex(ctx_, EVP_sha256(), nullptr);
-  }
-  ~Sha256() { EVP_MD_CTX_free(ctx_); }
-  void Update(const char* data, size_t n) { EVP_DigestUpdate(ctx_, data, n); }
-  std::string Finish() {
-    unsigned char digest[EVP_MAX_MD_SIZE];
-    unsigned int n = 0;
-    EVP_DigestFinal_ex(ctx_, digest, &n);
-    return std::string(reinterpret_cast<char*>(digest), n);
-  }
-
- private:
-  EVP_MD_CTX* ctx_;
-};
-
+// SHA-256 of a file, raw bytes; empty when it cannot be read (the upload
+// of that file then fails on its own).
 std::string HashFile(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  Sha256 hash;
-  std::vector<char> buffer(1 << 16);
-  while (in) {
-    in.read(buffer.data(), static_cast<std::streamsize>(buffer.size()));
-    hash.Update(buffer.data(), static_cast<size_t>(in.gcount()));
-  }
-  return hash.Finish();
+  absl::StatusOr<std::string> sha = Sha256OfFile(path);
+  return sha.ok() ? *sha : std::string();
 }
 
 struct LocalFile {
@@ -70,32 +49,22 @@ struct LocalFile {
   int64_t size = 0;
 };
 
-// Every regular file under the inputs (the server skips what is not DICOM),
-// in a stable order.
+// Every regular file under the inputs, found as `interslice run` finds them
+// (core/dicom CollectInputFiles: recursive, de-duplicated, sorted; the
+// server skips what is not DICOM), so that a remote job reads the same
+// files as the local one. Uploaded under their own file names (the server
+// stores them by index).
 absl::StatusOr<std::vector<LocalFile>> CollectFiles(
     const std::vector<std::string>& inputs) {
+  absl::StatusOr<std::vector<std::string>> paths = CollectInputFiles(inputs);
+  if (!paths.ok()) return paths.status();
   std::vector<LocalFile> files;
-  for (const std::string& input : inputs) {
+  for (const std::string& path : *paths) {
     std::error_code ec;
-    if (fs::is_regular_file(input, ec)) {
-      files.push_back({input, fs::path(input).filename().string(),
-                       static_cast<int64_t>(fs::file_size(input, ec))});
-    } else if (fs::is_directory(input, ec)) {
-      std::vector<LocalFile> found;
-      for (fs::recursive_directory_iterator it(input, ec), end;
-           !ec && it != end; it.increment(ec)) {
-        if (!it->is_regular_file()) continue;
-        found.push_back({it->path().string(),
-                         fs::relative(it->path(), input).string(),
-                         static_cast<int64_t>(it->file_size())});
-      }
-      std::sort(found.begin(), found.end(),
-                [](const auto& a, const auto& b) { return a.path < b.path; });
-      files.insert(files.end(), found.begin(), found.end());
-    } else {
-      return absl::NotFoundError(
-          absl::StrCat("no such file or folder: ", input));
-    }
+    const auto size = fs::file_size(path, ec);
+    if (ec) return absl::NotFoundError("cannot read an input file's size");
+    files.push_back(
+        {path, fs::path(path).filename().string(), static_cast<int64_t>(size)});
   }
   if (files.empty()) return absl::NotFoundError("no input files found");
   return files;
@@ -201,7 +170,7 @@ class ArtifactFile {
       while (in && left > 0) {
         in.read(buffer.data(), static_cast<std::streamsize>(
                                    std::min<int64_t>(left, buffer.size())));
-        hash_->Update(buffer.data(), static_cast<size_t>(in.gcount()));
+        hash_->Update(std::string_view(buffer.data(), in.gcount()));
         left -= in.gcount();
       }
       if (left != 0) return absl::DataLossError("cannot read " + part_);
@@ -215,7 +184,7 @@ class ArtifactFile {
   absl::Status Append(const std::string& data) {
     out_.write(data.data(), static_cast<std::streamsize>(data.size()));
     if (!out_) return absl::ResourceExhaustedError("cannot write " + part_);
-    hash_->Update(data.data(), data.size());
+    hash_->Update(data);
     bytes_ += static_cast<int64_t>(data.size());
     return absl::OkStatus();
   }
@@ -290,22 +259,11 @@ const char* StateName(v1::JobState s) {
   }
 }
 
-bool IsTerminal(v1::JobState s) {
-  return s == v1::JOB_STATE_SUCCEEDED || s == v1::JOB_STATE_FAILED ||
-         s == v1::JOB_STATE_CANCELLED;
-}
-
 void SetTimeout(grpc::ClientContext& context, double seconds) {
   context.set_deadline(
       std::chrono::system_clock::now() +
       std::chrono::milliseconds(static_cast<int64_t>(seconds * 1000)));
 }
-
-// JobSpec::slab_deconvolution is not in the service's JobSpec (proto) yet:
-// refused rather than run as a different job remotely.
-constexpr char kSlabDeconvolutionInProcessOnly[] =
-    "--slab-deconvolution runs in-process only (interslice run); the server "
-    "does not take it yet";
 
 absl::StatusOr<v1::UploadHeader> PrepareUpload(const RunArguments& args,
                                                double deadline_seconds,
@@ -331,10 +289,9 @@ absl::StatusOr<v1::UploadHeader> PrepareUpload(const RunArguments& args,
   RunArguments checked = args;
   // BuildJobSpec checks the job options; the series comes from the peer.
   if (pacs) checked.inputs = {"."};
-  absl::StatusOr<JobSpec> spec = BuildJobSpec(checked);
-  if (!spec.ok()) return spec.status();
-  if (spec->slab_deconvolution) {
-    return absl::InvalidArgumentError(kSlabDeconvolutionInProcessOnly);
+  absl::StatusOr<JobSpec> spec = job::BuildJobSpec(checked);
+  if (!spec.ok()) {
+    return job::ForDoor(spec.status(), job::ErrorDoor::kCommandLine);
   }
   if (!pacs) {
     absl::StatusOr<std::vector<LocalFile>> found = CollectFiles(spec->inputs);
@@ -342,7 +299,7 @@ absl::StatusOr<v1::UploadHeader> PrepareUpload(const RunArguments& args,
     *files = std::move(*found);
   }
   v1::UploadHeader header;
-  *header.mutable_spec() = JobSpecToProto(*spec);
+  *header.mutable_spec() = job::ToWire(*spec);
   for (const std::string& peer : args.send_to) {
     header.mutable_spec()->add_send_to(peer);
   }
@@ -437,8 +394,8 @@ int RunInterpolate(const Connection& connection, const RunArguments& args,
   std::vector<LocalFile> files;
   absl::StatusOr<v1::UploadHeader> header = PrepareUpload(args, 0, "", &files);
   if (!header.ok()) return Fail(std::string(header.status().message()));
-  return InterpolateCall(connection, *header, files, args.out, args.report,
-                         args.quiet, deadline_seconds);
+  return InterpolateCall(connection, *header, files, args.out,
+                         args.local.report, args.local.quiet, deadline_seconds);
 }
 
 // `interslice fill --server`: the segmentation (uploaded under its own file
@@ -447,8 +404,11 @@ int RunInterpolate(const Connection& connection, const RunArguments& args,
 // segmentation's), in one Interpolate call.
 int RunFillRemote(const Connection& connection, const FillArguments& args,
                   double deadline_seconds) {
-  absl::StatusOr<FillJobSpec> spec = BuildFillJobSpec(args);
-  if (!spec.ok()) return Fail(std::string(spec.status().message()));
+  absl::StatusOr<FillJobSpec> spec = job::BuildFillJobSpec(args);
+  if (!spec.ok()) {
+    return Fail(std::string(
+        job::ForDoor(spec.status(), job::ErrorDoor::kCommandLine).message()));
+  }
   std::error_code ec;
   if (!fs::is_regular_file(spec->segmentation, ec)) {
     return Fail("no such segmentation file: " + spec->segmentation);
@@ -468,13 +428,13 @@ int RunFillRemote(const Connection& connection, const FillArguments& args,
     files.push_back(std::move(f));
   }
   v1::UploadHeader header;
-  *header.mutable_spec() = FillJobSpecToProto(*spec, files.front().name);
+  *header.mutable_spec() = job::ToWire(*spec, files.front().name);
   header.set_file_count(static_cast<int>(files.size()));
   int64_t total = 0;
   for (const LocalFile& f : files) total += f.size;
   header.set_total_bytes(total);
-  return InterpolateCall(connection, header, files, args.out, args.report,
-                         args.quiet, deadline_seconds);
+  return InterpolateCall(connection, header, files, args.out, args.local.report,
+                         args.local.quiet, deadline_seconds);
 }
 
 int RunSubmit(const Connection& connection, const RunArguments& args,
@@ -521,10 +481,10 @@ int WatchJob(const Connection& connection, const std::string& job_id,
           status.state() == v1::JOB_STATE_QUEUED) {
         display.Update(ToEvent(status.progress()));
       }
-      if (IsTerminal(status.state())) *final = status;
+      if (job::IsTerminalState(status.state())) *final = status;
     }
     const grpc::Status s = reader->Finish();
-    if (s.ok() && IsTerminal(final->state())) break;
+    if (s.ok() && job::IsTerminalState(final->state())) break;
     if (s.error_code() == grpc::UNAVAILABLE && ++retries <= kWatchRetries) {
       std::this_thread::sleep_for(std::chrono::seconds(1));
       continue;  // resume after `sequence`
@@ -721,7 +681,7 @@ int RunCancel(const Connection& connection, const std::string& job_id) {
   const grpc::Status s = stub->Cancel(&context, request, &status);
   if (!s.ok()) return Fail(DescribeRpcError(s, connection.address()));
   std::printf("job %s: %s%s\n", job_id.c_str(), StateName(status.state()),
-              status.cancel_requested() && !IsTerminal(status.state())
+              status.cancel_requested() && !job::IsTerminalState(status.state())
                   ? " (cancellation requested)"
                   : "");
   return 0;
@@ -918,10 +878,6 @@ int RemoteCommands::Execute() {
   for (CLI::App* c : commands) any = any || (c != nullptr && c->parsed());
   if (!any) return -1;
   if (deadline_seconds_ < 0) return Fail("--deadline must be >= 0");
-  if ((interpolate_->parsed() || submit_->parsed()) &&
-      run_args_.slab_deconvolution) {
-    return Fail(kSlabDeconvolutionInProcessOnly);
-  }
   absl::StatusOr<Connection> connection = Connection::Open(connection_);
   if (!connection.ok()) return Fail(std::string(connection.status().message()));
   if (interpolate_->parsed()) {

@@ -2,12 +2,11 @@
 #ifndef INTERSLICE_CLIENT_RUN_COMMAND_H_
 #define INTERSLICE_CLIENT_RUN_COMMAND_H_
 
-#include <optional>
 #include <string>
 #include <vector>
 
-#include "absl/status/statusor.h"
-#include "core/pipeline/pipeline.h"
+#include "client/job_command.h"
+#include "job/options.h"
 
 namespace CLI {
 class App;
@@ -15,36 +14,10 @@ class App;
 
 namespace interslice::client {
 
-// Raw option values as typed by the user, before validation.
-struct RunArguments {
-  std::vector<std::string> inputs;
-  std::string series_uid;
-  std::optional<double> threshold;
-  std::optional<double> upper;
-  std::string roi;  // "x0,y0,z0,x1,y1,z1"
-  std::string method = "cg";
-  std::optional<int> iterations;
-  std::optional<double> tolerance;
-  std::string energy_units = "voxel";
-  std::optional<int> factor;
-  std::optional<double> spacing;
-  bool strict_spacing = false;
-  bool slab_deconvolution = false;
-  std::string output_series;  // "mask,distance,intensity"
-  bool seg = false;
-  std::string dicom_compression = "none";
-  std::string uid_root;
-  bool random_uids = false;
-  std::optional<int64_t> series_number_base;
-  std::string multiframe_volume;
-  std::optional<double> band;
-  double adaptivity = 0;
-  std::string out;
-  std::string mesh = "stl";
-  std::string volume = "nii";
-  std::string report;
-  int threads = 0;
-  bool quiet = false;
+// The job's options as typed (job/options.h), and what only the command
+// line has.
+struct RunArguments : job::InterpolationOptions {
+  LocalRunArguments local;
   // Remote jobs only (interpolate, submit): DICOM peers of the server to
   // store the DICOM results on (JobSpec.send_to), and a series on a peer to
   // read instead of local files (JobSpec.pacs_source).
@@ -54,10 +27,6 @@ struct RunArguments {
 
 // Adds the `run` subcommand's options to `app`, bound to `args`.
 void AddRunOptions(CLI::App& app, RunArguments& args);
-
-// Turns the raw arguments into a job spec; INVALID_ARGUMENT naming the
-// option for anything malformed.
-absl::StatusOr<JobSpec> BuildJobSpec(const RunArguments& args);
 
 // Runs the job, shows progress on a terminal, writes the report, prints a
 // summary. Returns the process exit code.

@@ -8,13 +8,12 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
-#include "core/pipeline/pipeline.h"
+#include "core/common/sha256.h"
+#include "job/job.h"
+#include "job/wire.h"
 #include "server/dicom/delivery.h"
 #include "server/dicom/retrieve.h"
-#include "server/fill_spec.h"
-#include "server/hashing.h"
 #include "server/log_safe.h"
-#include "server/spec_mapping.h"
 #include "server/status_map.h"
 #include "spdlog/spdlog.h"
 
@@ -35,10 +34,7 @@ std::string NewJobId() {
   return buffer;
 }
 
-bool IsTerminal(v1::JobState s) {
-  return s == v1::JOB_STATE_SUCCEEDED || s == v1::JOB_STATE_FAILED ||
-         s == v1::JOB_STATE_CANCELLED;
-}
+using job::IsTerminalState;
 
 // A delivery of the job's results to a DICOM peer is still to be made: the
 // results must stay.
@@ -63,6 +59,61 @@ const char* OutcomeName(v1::JobState s) {
     default:
       return "failed";
   }
+}
+
+// Every file of every artifact, in report order (a derived DICOM series is a
+// folder: each of its files becomes an artifact named "<folder>/<file>", one
+// level, the only nesting), with its size and SHA-256 hashed on `threads`
+// threads; `total_bytes` their sum.
+absl::StatusOr<std::vector<v1::ArtifactInfo>> DescribeArtifacts(
+    const std::vector<Artifact>& produced, int threads, int64_t* total_bytes) {
+  struct ArtifactFile {
+    std::string name, kind;
+    fs::path path;
+  };
+  std::vector<ArtifactFile> files;
+  for (const Artifact& a : produced) {
+    const fs::path top(a.path);
+    std::vector<ArtifactFile> entries;
+    std::error_code ec;
+    if (fs::is_directory(top, ec)) {
+      for (const auto& entry : fs::directory_iterator(top, ec)) {
+        if (!entry.is_regular_file(ec)) continue;
+        entries.push_back(
+            {top.filename().string() + "/" + entry.path().filename().string(),
+             a.kind, entry.path()});
+      }
+      std::sort(entries.begin(), entries.end(),
+                [](const ArtifactFile& x, const ArtifactFile& y) {
+                  return x.name < y.name;
+                });
+    } else {
+      entries.push_back({top.filename().string(), a.kind, top});
+    }
+    files.insert(files.end(), entries.begin(), entries.end());
+  }
+  std::vector<std::string> paths;
+  for (const ArtifactFile& f : files) paths.push_back(f.path.string());
+  // Hashing re-reads every output (~0.25 s per 400 MB in one thread): as
+  // many threads as the job had, so it scales like the job's writing.
+  const std::vector<absl::StatusOr<std::string>> shas =
+      Sha256OfFiles(paths, threads);
+  std::vector<v1::ArtifactInfo> artifacts;
+  *total_bytes = 0;
+  for (size_t n = 0; n < files.size(); ++n) {
+    if (!shas[n].ok()) return shas[n].status();
+    std::error_code ec;
+    const int64_t size = static_cast<int64_t>(fs::file_size(files[n].path, ec));
+    v1::ArtifactInfo info;
+    info.set_name(files[n].name);
+    info.set_kind(files[n].kind);
+    info.set_media_type(job::MediaTypeForArtifact(files[n].name));
+    info.set_size_bytes(size);
+    info.set_sha256(*shas[n]);
+    artifacts.push_back(info);
+    *total_bytes += size;
+  }
+  return artifacts;
 }
 
 }  // namespace
@@ -277,22 +328,17 @@ absl::StatusOr<std::shared_ptr<Job>> JobManager::Admit(
                      " bytes) exceeds the server's spool quota of ",
                      spool_->quota_bytes(), " bytes")));
   }
-  const bool fill = IsFillJob(header.spec());
-  absl::StatusOr<JobSpec> spec = JobSpec();
-  if (fill) {
-    absl::StatusOr<FillJobSpec> fill_spec = FillJobSpecFromProto(header.spec());
-    if (!fill_spec.ok()) return reject(fill_spec.status());
-    // The segmentation and at least one file of its reference series.
-    if (header.file_count() < 2) {
-      return reject(absl::InvalidArgumentError(absl::StrCat(
-          "a fill job uploads its segmentation and the reference series' "
-          "files: file_count must be >= 2 (got ",
-          header.file_count(), ")")));
-    }
-  } else {
-    spec = JobSpecFromProto(header.spec());
+  // The job's kind and options, checked as every door checks them.
+  absl::StatusOr<std::unique_ptr<job::JobKind>> kind =
+      job::MakeJobFromWire(header.spec());
+  if (!kind.ok()) return reject(kind.status());
+  if (!pacs && header.file_count() < (*kind)->min_upload_files()) {
+    // A fill job uploads its segmentation and its reference series' files.
+    return reject(absl::InvalidArgumentError(absl::StrCat(
+        "a ", (*kind)->name(), " job uploads at least ",
+        (*kind)->min_upload_files(), " files: file_count must be >= ",
+        (*kind)->min_upload_files(), " (got ", header.file_count(), ")")));
   }
-  if (!spec.ok()) return reject(spec.status());
   if (!header.spec().send_to().empty()) {
     if (deliveries_ == nullptr) {
       return reject(absl::InvalidArgumentError(
@@ -304,9 +350,7 @@ absl::StatusOr<std::shared_ptr<Job>> JobManager::Admit(
     if (absl::Status s = deliveries_->CheckPeers(names); !s.ok()) {
       return reject(s);
     }
-    // A fill job's DICOM results (*.dcm artifacts, when it writes any) are
-    // delivered; one that writes none makes a delivery of 0 instances.
-    if (!fill && spec->output_series.empty() && !spec->write_seg) {
+    if (!(*kind)->writes_dicom()) {
       return reject(absl::InvalidArgumentError(
           "spec.send_to needs DICOM results: ask for derived series "
           "(output_series) or a segmentation"));
@@ -427,9 +471,14 @@ absl::StatusOr<std::string> JobManager::SubmitLocalFiles(
     const v1::JobSpec& spec, const std::string& files_dir,
     const std::string& owner, const std::string& origin,
     const std::string& segmentation_file) {
-  if (IsFillJob(spec) == segmentation_file.empty()) {
+  absl::StatusOr<std::unique_ptr<job::JobKind>> kind =
+      job::MakeJobFromWire(spec);
+  if (!kind.ok()) return kind.status();
+  if ((*kind)->segmentation_upload_name().empty() !=
+      segmentation_file.empty()) {
     return absl::InvalidArgumentError(
-        "a fill job on received files needs exactly its segmentation file");
+        "a job on received files needs a segmentation file exactly when its "
+        "kind takes one (a fill)");
   }
   std::vector<fs::path> files;
   int64_t bytes = 0;
@@ -471,7 +520,7 @@ absl::StatusOr<std::string> JobManager::SubmitLocalFiles(
   }
   if (!segmentation_file.empty()) {
     const fs::path target =
-        fs::path(upload) / SegmentationUploadPath(segmentation_file);
+        fs::path(upload) / job::SegmentationUploadPath(segmentation_file);
     fs::create_directories(target.parent_path(), ec);
     if (!ec) fs::create_hard_link(segmentation_file, target, ec);
     if (ec) fs::copy_file(segmentation_file, target, ec);
@@ -523,8 +572,8 @@ void JobManager::RemoveFinished(const std::shared_ptr<Job>& job) {
   {
     std::lock_guard<std::mutex> lock(job->mu_);
     const v1::JobState s = job->record_.status().state();
-    bytes = IsTerminal(s) ? job->record_.result_bytes()
-                          : job->record_.upload_bytes();
+    bytes = IsTerminalState(s) ? job->record_.result_bytes()
+                               : job->record_.upload_bytes();
   }
   if (deliveries_ != nullptr) deliveries_->Forget(job->id());
   spool_->RemoveJob(job->id());
@@ -597,7 +646,7 @@ absl::StatusOr<v1::JobStatus> JobManager::Cancel(const std::string& id) {
     Persist(job);
     metrics_->JobFinished("cancelled");
     spdlog::info("job={} cancelled while queued", id);
-  } else if (!IsTerminal(job->Snapshot(false).state())) {
+  } else if (!IsTerminalState(job->Snapshot(false).state())) {
     job->Update(
         [](JobRecord& r) { r.mutable_status()->set_cancel_requested(true); });
     spdlog::info("job={} cancellation requested", id);
@@ -619,7 +668,7 @@ std::vector<v1::JobStatus> JobManager::List(bool include_finished,
   std::vector<v1::JobStatus> out;
   for (const auto& job : jobs) {
     v1::JobStatus s = job->Snapshot(false);
-    if (!include_finished && IsTerminal(s.state())) continue;
+    if (!include_finished && IsTerminalState(s.state())) continue;
     out.push_back(std::move(s));
   }
   std::sort(out.begin(), out.end(), [](const auto& a, const auto& b) {
@@ -770,13 +819,10 @@ void JobManager::WorkerLoop() {
 
 void JobManager::RunOne(const std::shared_ptr<Job>& job) {
   const std::string& id = job->id();
-  absl::StatusOr<JobSpec> spec_or;
-  bool fill = false;
+  v1::JobSpec wire;
   {
     std::lock_guard<std::mutex> lock(job->mu_);
-    fill = IsFillJob(job->record_.spec());
-    // A fill job's spec is checked where it runs (RunFillJobInSpool).
-    spec_or = fill ? JobSpec() : JobSpecFromProto(job->record_.spec());
+    wire = job->record_.spec();
     job->started_ = std::chrono::steady_clock::now();
   }
   job->Update([](JobRecord& r) {
@@ -793,134 +839,14 @@ void JobManager::RunOne(const std::shared_ptr<Job>& job) {
   Persist(job);
   spdlog::info("job={} started", id);
 
-  absl::StatusOr<JobReport> report =
-      spec_or.ok() ? absl::InternalError("not run") : spec_or.status();
-  // Fill jobs: their report's JSON (FillJobReportToJson), summarized below
-  // into `report`'s stages and artifacts.
-  absl::StatusOr<std::string> fill_json = absl::InternalError("not run");
-  // A series named on a DICOM peer is retrieved into the upload folder
-  // first; then the job runs as if it had been uploaded.
-  v1::PacsSeriesSource pacs_source;
-  {
-    std::lock_guard<std::mutex> lock(job->mu_);
-    if (job->record_.spec().has_pacs_source()) {
-      pacs_source = job->record_.spec().pacs_source();
-    }
-  }
-  if (spec_or.ok() && !pacs_source.peer().empty()) {
-    job->Update([](JobRecord& r) {
-      r.mutable_status()->mutable_progress()->set_stage("retrieve");
-    });
-    absl::Status retrieved = RetrieveFromPeer(job, pacs_source);
-    if (!retrieved.ok()) {
-      spec_or = retrieved;
-      report = retrieved;
-    }
-  }
-  if (spec_or.ok()) {
-    JobSpec spec = *spec_or;
-    spec.inputs = {spool_->UploadDir(id)};
-    spec.output_dir = spool_->OutputDir(id);
-    spec.max_output_voxels = options_.max_output_voxels;
-    ComputeContext context;
-    context.threads = options_.threads_per_job;
-    context.cancel = &job->token_;
-    const auto started = std::chrono::steady_clock::now();
-    const bool in_process = !options_.isolate_jobs;
-    const float threshold = spec.lower_threshold;
-    context.progress = [job, started, in_process,
-                        threshold](const ProgressEvent& e) {
-      const std::chrono::duration<double> elapsed =
-          std::chrono::steady_clock::now() - started;
-      job->Update([&](JobRecord& r) {
-        v1::Progress* p = r.mutable_status()->mutable_progress();
-        p->set_stage(e.stage);
-        p->set_stage_percent(100.0 * e.fraction);
-        p->set_iteration(e.iteration);
-        p->set_relative_residual(e.relative_residual);
-        p->set_energy(e.energy);
-        p->set_elapsed_seconds(elapsed.count());
-      });
-      if (in_process) InjectTestFault(e.stage, threshold);
-    };
-    // The request a supervised worker process runs (fill and interpolation
-    // jobs alike), and the one log line a crashed worker gets.
-    auto worker_request = [&] {
-      spool::v1::WorkerRequest request;
-      {
-        std::lock_guard<std::mutex> lock(job->mu_);
-        *request.mutable_spec() = job->record_.spec();
-        request.set_deadline_unix_ms(job->record_.deadline_unix_ms());
-      }
-      request.set_input_dir(spec.inputs.front());
-      request.set_output_dir(spec.output_dir);
-      request.set_max_output_voxels(spec.max_output_voxels);
-      request.set_threads(options_.threads_per_job);
-      request.set_server_pid(::getpid());
-      return request;
-    };
-    auto log_crash = [&id](const WorkerOutcome& outcome) {
-      if (!outcome.crashed) return;
-      spdlog::error(
-          "job={} worker process crashed (signal {}) during stage {}; the "
-          "job failed, the server carries on",
-          id, outcome.signal,
-          outcome.last_stage.empty() ? "start" : outcome.last_stage);
-    };
-    // A deadline that passed while queued fails fast, without reading.
-    absl::Status early = job->token_.Check();
-    if (!early.ok()) {
-      report = early;
-    } else if (fill) {
-      if (options_.isolate_jobs) {
-        WorkerOutcome outcome;
-        fill_json = RunInWorkerProcess(worker_request(), context,
-                                       options_.worker, &outcome);
-        log_crash(outcome);
-      } else {
-        v1::JobSpec proto;
-        {
-          std::lock_guard<std::mutex> lock(job->mu_);
-          proto = job->record_.spec();
-        }
-        fill_json =
-            RunFillJobInSpool(proto, spec.inputs.front(), spec.output_dir,
-                              spec.max_output_voxels, context);
-      }
-      if (!fill_json.ok()) report = fill_json.status();
-    } else if (options_.isolate_jobs) {
-      WorkerOutcome outcome;
-      report = RunJobInWorkerProcess(worker_request(), context, options_.worker,
-                                     &outcome);
-      log_crash(outcome);
-    } else {
-      report = RunJob(spec, context);
-      if (report.ok()) report->peak_rss_bytes = PeakRssBytes();
-    }
-  }
-
-  // A fill job's report becomes the stages and artifacts handled below; its
-  // own JSON is what clients get.
-  std::string fill_report_json;
-  if (fill && fill_json.ok()) {
-    absl::StatusOr<FillReportSummary> summary = SummarizeFillReport(*fill_json);
-    if (summary.ok()) {
-      JobReport r;
-      r.stages = std::move(summary->stages);
-      r.artifacts = std::move(summary->artifacts);
-      report = std::move(r);
-      fill_report_json = std::move(summary->report_json);
-    } else {
-      report = summary.status();
-    }
-  }
+  absl::StatusOr<job::JobResult> result = Execute(job, wire);
 
   bool shutdown_cancelled;
   {
     std::lock_guard<std::mutex> lock(job->mu_);
     shutdown_cancelled = job->shutdown_cancelled_;
   }
-  if (!report.ok() && shutdown_cancelled && !job->ephemeral()) {
+  if (!result.ok() && shutdown_cancelled && !job->ephemeral()) {
     // Stopped by a drain, not by its owner: keep the upload and run it
     // after the restart.
     spool_->RemoveOutputs(id);
@@ -940,115 +866,148 @@ void JobManager::RunOne(const std::shared_ptr<Job>& job) {
   spool_->Release(upload_bytes);
   const int64_t now = UnixMillisNow();
   const int64_t expires = now + options_.retention_seconds * 1000;
-  if (report.ok()) {
-    for (const StageTiming& s : report->stages) {
-      metrics_->StageSeconds(s.stage, s.seconds);
-    }
-    // Every file of every artifact, in report order (a derived DICOM series
-    // is a folder: each of its files becomes an artifact named
-    // "<folder>/<file>", one level, the only nesting), then hashed.
-    struct ArtifactFile {
-      std::string name, kind;
-      fs::path path;
-    };
-    std::vector<ArtifactFile> files;
-    for (Artifact& a : report->artifacts) {
-      const fs::path top(a.path);
-      std::vector<ArtifactFile> entries;
-      std::error_code ec;
-      if (fs::is_directory(top, ec)) {
-        for (const auto& entry : fs::directory_iterator(top, ec)) {
-          if (!entry.is_regular_file(ec)) continue;
-          entries.push_back(
-              {top.filename().string() + "/" + entry.path().filename().string(),
-               a.kind, entry.path()});
-        }
-        std::sort(entries.begin(), entries.end(),
-                  [](const ArtifactFile& x, const ArtifactFile& y) {
-                    return x.name < y.name;
-                  });
-      } else {
-        entries.push_back({top.filename().string(), a.kind, top});
-      }
-      files.insert(files.end(), entries.begin(), entries.end());
-      a.path = top.filename().string();  // the report names files, not paths
-    }
-    std::vector<std::string> paths;
-    for (const ArtifactFile& f : files) paths.push_back(f.path.string());
-    // Hashing re-reads every output (~0.25 s per 400 MB in one thread): as
-    // many threads as the job had, so it scales like the job's writing.
-    const std::vector<absl::StatusOr<std::string>> shas =
-        Sha256OfFiles(paths, options_.threads_per_job);
-    std::vector<v1::ArtifactInfo> artifacts;
-    int64_t result_bytes = 0;
-    absl::Status hashed = absl::OkStatus();
-    for (size_t n = 0; n < files.size(); ++n) {
-      if (!shas[n].ok()) {
-        hashed = shas[n].status();
-        break;
-      }
-      std::error_code ec;
-      const int64_t size =
-          static_cast<int64_t>(fs::file_size(files[n].path, ec));
-      v1::ArtifactInfo info;
-      info.set_name(files[n].name);
-      info.set_kind(files[n].kind);
-      info.set_media_type(MediaTypeForArtifact(files[n].name));
-      info.set_size_bytes(size);
-      info.set_sha256(*shas[n]);
-      artifacts.push_back(info);
-      result_bytes += size;
-    }
-    if (hashed.ok()) {
-      spool_->Add(result_bytes);
-      const std::string json =
-          fill ? fill_report_json : JobReportToJson(*report);
-      // One delivery per destination, of every DICOM file the job wrote.
-      std::vector<std::string> dicom_files;
-      std::vector<v1::Delivery> deliveries;
-      std::vector<std::string> send_to;
-      {
-        std::lock_guard<std::mutex> lock(job->mu_);
-        send_to.assign(job->record_.spec().send_to().begin(),
-                       job->record_.spec().send_to().end());
-      }
-      if (deliveries_ != nullptr && !send_to.empty()) {
-        dicom_files = dicom::ListDicomFiles(spool_->OutputDir(id));
-        for (const std::string& peer : send_to) {
-          v1::Delivery d;
-          d.set_peer(peer);
-          d.set_state(v1::Delivery::PENDING);
-          d.set_instances_total(static_cast<int32_t>(dicom_files.size()));
-          deliveries.push_back(d);
-        }
-      }
-      job->Update([&](JobRecord& r) {
-        for (const v1::Delivery& d : deliveries) {
-          *r.mutable_status()->add_deliveries() = d;
-        }
-        v1::JobStatus* s = r.mutable_status();
-        s->set_state(v1::JOB_STATE_SUCCEEDED);
-        s->set_finished_unix_ms(now);
-        s->set_expires_unix_ms(expires);
-        s->mutable_progress()->set_stage("done");
-        s->mutable_progress()->set_stage_percent(100);
-        for (const auto& a : artifacts) *s->add_artifacts() = a;
-        s->set_report_json(json);
-        r.set_result_bytes(result_bytes);
-      });
-      Persist(job);
-      for (const v1::Delivery& d : deliveries) {
-        deliveries_->Add(id, d, dicom_files, now);
-      }
-      metrics_->JobFinished("succeeded");
-      spdlog::info("job={} succeeded: {} artifact(s), {} bytes", id,
-                   artifacts.size(), result_bytes);
-      return;
-    }
-    report = hashed;
+  absl::Status published =
+      result.ok() ? Publish(job, *result, now, expires) : result.status();
+  if (!published.ok()) FailJob(job, published, now, expires);
+}
+
+absl::StatusOr<job::JobResult> JobManager::Execute(
+    const std::shared_ptr<Job>& job, const v1::JobSpec& wire) {
+  const std::string& id = job->id();
+  // The job's kind, checked again (the spool may hold a record written by an
+  // older version); then pointed at its folders.
+  absl::StatusOr<std::unique_ptr<job::JobKind>> kind =
+      job::MakeJobFromWire(wire);
+  absl::Status ready = kind.status();
+  // A series named on a DICOM peer is retrieved into the upload folder
+  // first; then the job runs as if it had been uploaded.
+  if (ready.ok() && wire.has_pacs_source() &&
+      !wire.pacs_source().peer().empty()) {
+    job->Update([](JobRecord& r) {
+      r.mutable_status()->mutable_progress()->set_stage("retrieve");
+    });
+    ready = RetrieveFromPeer(job, wire.pacs_source());
   }
+  if (!ready.ok()) return ready;
+  job::JobKind& work = **kind;
+  const std::string upload_dir = spool_->UploadDir(id);
+  const std::string output_dir = spool_->OutputDir(id);
+  ComputeContext context;
+  context.threads = options_.threads_per_job;
+  context.cancel = &job->token_;
+  const auto started = std::chrono::steady_clock::now();
+  const bool in_process = !options_.isolate_jobs;
+  const float threshold = wire.threshold();
+  context.progress = [job, started, in_process,
+                      threshold](const ProgressEvent& e) {
+    const std::chrono::duration<double> elapsed =
+        std::chrono::steady_clock::now() - started;
+    job->Update([&](JobRecord& r) {
+      v1::Progress* p = r.mutable_status()->mutable_progress();
+      p->set_stage(e.stage);
+      p->set_stage_percent(100.0 * e.fraction);
+      p->set_iteration(e.iteration);
+      p->set_relative_residual(e.relative_residual);
+      p->set_energy(e.energy);
+      p->set_elapsed_seconds(elapsed.count());
+    });
+    if (in_process) InjectTestFault(e.stage, threshold);
+  };
+  // A deadline that passed while queued fails fast, without reading.
+  if (absl::Status early = job->token_.Check(); !early.ok()) return early;
+  if (options_.isolate_jobs) {
+    spool::v1::WorkerRequest request;
+    *request.mutable_spec() = wire;
+    {
+      std::lock_guard<std::mutex> lock(job->mu_);
+      request.set_deadline_unix_ms(job->record_.deadline_unix_ms());
+    }
+    request.set_input_dir(upload_dir);
+    request.set_output_dir(output_dir);
+    request.set_max_output_voxels(options_.max_output_voxels);
+    request.set_threads(options_.threads_per_job);
+    request.set_server_pid(::getpid());
+    WorkerOutcome outcome;
+    absl::StatusOr<job::JobResult> result =
+        RunInWorkerProcess(request, context, options_.worker, &outcome);
+    if (outcome.crashed) {
+      spdlog::error(
+          "job={} worker process crashed (signal {}) during stage {}; the "
+          "job failed, the server carries on",
+          id, outcome.signal,
+          outcome.last_stage.empty() ? "start" : outcome.last_stage);
+    }
+    return result;
+  }
+  if (absl::Status s =
+          work.UseSpool(upload_dir, output_dir, options_.max_output_voxels);
+      !s.ok()) {
+    return s;
+  }
+  return work.Run(context);
+}
+
+absl::Status JobManager::Publish(const std::shared_ptr<Job>& job,
+                                 const job::JobResult& result, int64_t now,
+                                 int64_t expires) {
+  const std::string& id = job->id();
+  for (const StageTiming& s : result.stages) {
+    metrics_->StageSeconds(s.stage, s.seconds);
+  }
+  int64_t result_bytes = 0;
+  absl::StatusOr<std::vector<v1::ArtifactInfo>> artifacts = DescribeArtifacts(
+      result.artifacts, options_.threads_per_job, &result_bytes);
+  if (!artifacts.ok()) return artifacts.status();
+  spool_->Add(result_bytes);
+  const std::string& json = result.report_json;
+  // One delivery per destination, of every DICOM file the job wrote.
+  std::vector<std::string> dicom_files;
+  std::vector<v1::Delivery> deliveries;
+  std::vector<std::string> send_to;
+  {
+    std::lock_guard<std::mutex> lock(job->mu_);
+    send_to.assign(job->record_.spec().send_to().begin(),
+                   job->record_.spec().send_to().end());
+  }
+  if (deliveries_ != nullptr && !send_to.empty()) {
+    dicom_files = dicom::ListDicomFiles(spool_->OutputDir(id));
+    for (const std::string& peer : send_to) {
+      v1::Delivery d;
+      d.set_peer(peer);
+      d.set_state(v1::Delivery::PENDING);
+      d.set_instances_total(static_cast<int32_t>(dicom_files.size()));
+      deliveries.push_back(d);
+    }
+  }
+  job->Update([&](JobRecord& r) {
+    for (const v1::Delivery& d : deliveries) {
+      *r.mutable_status()->add_deliveries() = d;
+    }
+    v1::JobStatus* s = r.mutable_status();
+    s->set_state(v1::JOB_STATE_SUCCEEDED);
+    s->set_finished_unix_ms(now);
+    s->set_expires_unix_ms(expires);
+    s->mutable_progress()->set_stage("done");
+    s->mutable_progress()->set_stage_percent(100);
+    for (const auto& a : *artifacts) *s->add_artifacts() = a;
+    s->set_report_json(json);
+    r.set_result_bytes(result_bytes);
+  });
+  Persist(job);
+  for (const v1::Delivery& d : deliveries) {
+    deliveries_->Add(id, d, dicom_files, now);
+  }
+  metrics_->JobFinished("succeeded");
+  spdlog::info("job={} succeeded: {} artifact(s), {} bytes", id,
+               artifacts->size(), result_bytes);
+  return absl::OkStatus();
+}
+
+void JobManager::FailJob(const std::shared_ptr<Job>& job,
+                         const absl::Status& error, int64_t now,
+                         int64_t expires) {
+  const std::string& id = job->id();
   spool_->RemoveOutputs(id);
-  const absl::Status error = report.status();
   const bool cancelled = error.code() == absl::StatusCode::kCancelled;
   const std::string message = RedactPhi(error.message());
   job->Update([&](JobRecord& r) {
@@ -1133,7 +1092,7 @@ void JobManager::TickerLoop() {
         const v1::JobStatus& s = job->record_.status();
         // Results still owed to a DICOM peer outlive retention until the
         // delivery ends (delivered, or failed after give_up_after).
-        if (!job->ephemeral() && !job->running_ && IsTerminal(s.state()) &&
+        if (!job->ephemeral() && !job->running_ && IsTerminalState(s.state()) &&
             s.expires_unix_ms() > 0 && s.expires_unix_ms() < now &&
             !HasPendingDelivery(job->record_)) {
           expired.push_back(job);

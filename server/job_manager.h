@@ -31,6 +31,7 @@
 #include "absl/status/statusor.h"
 #include "core/common/compute.h"
 #include "interslice/v1/interslice.pb.h"
+#include "job/job.h"
 #include "server/job_worker.h"
 #include "server/metrics.h"
 #include "server/spool.h"
@@ -205,7 +206,19 @@ class JobManager {
  private:
   void WorkerLoop();
   void TickerLoop();
+  // Runs a queued job and records how it ended.
   void RunOne(const std::shared_ptr<Job>& job);
+  // The job's work: retrieval from a peer if it names one, then its kind run
+  // in a worker process (or in this process without isolation).
+  absl::StatusOr<job::JobResult> Execute(const std::shared_ptr<Job>& job,
+                                         const v1::JobSpec& wire);
+  // Records a successful result: artifacts hashed and listed, deliveries
+  // queued. An error (an unreadable artifact) leaves the job to FailJob.
+  absl::Status Publish(const std::shared_ptr<Job>& job,
+                       const job::JobResult& result, int64_t now,
+                       int64_t expires);
+  void FailJob(const std::shared_ptr<Job>& job, const absl::Status& error,
+               int64_t now, int64_t expires);
   void Persist(const std::shared_ptr<Job>& job);
   void PublishGauges();  // with mu_ held
   void RemoveFinished(const std::shared_ptr<Job>& job);

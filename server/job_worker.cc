@@ -24,8 +24,7 @@
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_split.h"
 #include "core/dicom/series_reader.h"
-#include "server/fill_spec.h"
-#include "server/spec_mapping.h"
+#include "job/job.h"
 
 extern char** environ;
 
@@ -118,7 +117,7 @@ void InjectFault(const Fault& fault, const std::string& stage,
 
 }  // namespace
 
-absl::StatusOr<std::string> RunInWorkerProcess(
+absl::StatusOr<job::JobResult> RunInWorkerProcess(
     const spool::v1::WorkerRequest& request, const ComputeContext& context,
     const WorkerOptions& options, WorkerOutcome* outcome) {
   WorkerOutcome local;
@@ -251,10 +250,20 @@ absl::StatusOr<std::string> RunInWorkerProcess(
   }
 
   if (have_result && !out.crashed) {
-    const absl::Status job(static_cast<absl::StatusCode>(result.code()),
-                           result.message());
-    if (!job.ok()) return job;
-    return result.report_json();
+    const absl::Status status(static_cast<absl::StatusCode>(result.code()),
+                              result.message());
+    if (!status.ok()) return status;
+    job::JobResult made;
+    for (const spool::v1::WorkerStage& s : result.stages()) {
+      made.stages.push_back({s.stage(), s.seconds()});
+    }
+    for (const spool::v1::WorkerArtifact& a : result.artifacts()) {
+      made.artifacts.push_back({a.kind(), a.path(), a.size_bytes()});
+    }
+    made.warnings.assign(result.warnings().begin(), result.warnings().end());
+    made.report_json = result.report_json();
+    made.peak_rss_bytes = out.peak_rss_bytes;
+    return made;
   }
   if (out.crashed) {
     return absl::InternalError(absl::StrFormat(
@@ -272,24 +281,6 @@ absl::StatusOr<std::string> RunInWorkerProcess(
   return absl::InternalError(absl::StrFormat(
       "the job's worker process ended without a result (exit code %d%s)",
       out.exit_code, protocol_error ? ", protocol error" : ""));
-}
-
-absl::StatusOr<JobReport> RunJobInWorkerProcess(
-    const spool::v1::WorkerRequest& request, const ComputeContext& context,
-    const WorkerOptions& options, WorkerOutcome* outcome) {
-  WorkerOutcome local;
-  WorkerOutcome& out = outcome != nullptr ? *outcome : local;
-  absl::StatusOr<std::string> json =
-      RunInWorkerProcess(request, context, options, &out);
-  if (!json.ok()) return json.status();
-  absl::StatusOr<JobReport> report = JobReportFromJson(*json);
-  if (!report.ok()) {
-    return absl::InternalError(
-        absl::StrCat("the job's worker process sent an unreadable report: ",
-                     report.status().message()));
-  }
-  report->peak_rss_bytes = out.peak_rss_bytes;
-  return report;
 }
 
 void InjectTestFault(const std::string& stage, float threshold) {
@@ -340,24 +331,39 @@ int RunJobWorker(int in_fd, int out_fd) {
     return 2;  // the server is gone already
   }
 
-  auto finish = [&](const absl::Status& status, const std::string& report) {
+  auto finish = [&](const absl::Status& status, const job::JobResult& made) {
     spool::v1::WorkerEvent event;
     spool::v1::WorkerResult* result = event.mutable_result();
     result->set_code(static_cast<int32_t>(status.code()));
     result->set_message(std::string(status.message()));
-    result->set_report_json(report);
+    if (status.ok()) {
+      result->set_report_json(made.report_json);
+      for (const StageTiming& s : made.stages) {
+        spool::v1::WorkerStage* stage = result->add_stages();
+        stage->set_stage(s.stage);
+        stage->set_seconds(s.seconds);
+      }
+      for (const Artifact& a : made.artifacts) {
+        spool::v1::WorkerArtifact* artifact = result->add_artifacts();
+        artifact->set_kind(a.kind);
+        artifact->set_path(a.path);
+        artifact->set_size_bytes(a.size_bytes);
+      }
+      for (const std::string& w : made.warnings) result->add_warnings(w);
+      result->set_peak_rss_bytes(made.peak_rss_bytes);
+    }
     return WriteFrame(protocol_fd, event) ? 0 : 3;
   };
 
   QuietDicomToolkitLogging();
-  const bool fill = IsFillJob(request.spec());
-  absl::StatusOr<JobSpec> spec =
-      fill ? JobSpec() : JobSpecFromProto(request.spec());
-  if (!spec.ok()) return finish(spec.status(), "");
-  spec->inputs = {request.input_dir()};
-  spec->output_dir = request.output_dir();
-  if (request.max_output_voxels() > 0) {
-    spec->max_output_voxels = request.max_output_voxels();
+  absl::StatusOr<std::unique_ptr<job::JobKind>> made =
+      job::MakeJobFromWire(request.spec());
+  if (!made.ok()) return finish(made.status(), {});
+  job::JobKind& job = **made;
+  if (absl::Status s = job.UseSpool(request.input_dir(), request.output_dir(),
+                                    request.max_output_voxels());
+      !s.ok()) {
+    return finish(s, {});
   }
   if (request.deadline_unix_ms() > 0) {
     const auto now_unix = std::chrono::system_clock::now();
@@ -368,6 +374,7 @@ int RunJobWorker(int in_fd, int out_fd) {
     token.SetDeadline(std::chrono::steady_clock::now() + remaining);
   }
   const Fault fault = ReadFault();
+  const float threshold = request.spec().threshold();
   ComputeContext context;
   context.threads = request.threads();
   context.cancel = &token;
@@ -380,19 +387,11 @@ int RunJobWorker(int in_fd, int out_fd) {
     p->set_relative_residual(e.relative_residual);
     p->set_energy(e.energy);
     WriteFrame(protocol_fd, event);
-    InjectFault(fault, e.stage, spec->lower_threshold);
+    InjectFault(fault, e.stage, threshold);
   };
-  if (fill) {
-    absl::StatusOr<std::string> json = RunFillJobInSpool(
-        request.spec(), request.input_dir(), request.output_dir(),
-        request.max_output_voxels(), context);
-    if (!json.ok()) return finish(json.status(), "");
-    return finish(absl::OkStatus(), *json);
-  }
-  absl::StatusOr<JobReport> report = RunJob(*spec, context);
-  if (!report.ok()) return finish(report.status(), "");
-  report->peak_rss_bytes = PeakRssBytes();
-  return finish(absl::OkStatus(), JobReportToJson(*report));
+  absl::StatusOr<job::JobResult> result = job.Run(context);
+  if (!result.ok()) return finish(result.status(), {});
+  return finish(absl::OkStatus(), *result);
 }
 
 }  // namespace interslice::server

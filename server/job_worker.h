@@ -25,8 +25,8 @@
 
 #include "absl/status/statusor.h"
 #include "core/common/compute.h"
-#include "core/pipeline/pipeline.h"
 #include "interslice/spool/v1/worker.pb.h"
+#include "job/job.h"
 
 namespace interslice::server {
 
@@ -49,25 +49,18 @@ struct WorkerOutcome {
 
 // Runs `request` in a worker process, forwarding its progress to
 // context.progress and context.cancel to it (polled every 100 ms). Returns
-// the job's report (peak_rss_bytes: the worker's) or its error; a worker
-// that crashes gives INTERNAL "the job's worker process crashed (signal N,
-// NAME) during stage S; ..."; one that cannot be started gives UNAVAILABLE.
-// Blocking: call it from a job worker thread.
-absl::StatusOr<JobReport> RunJobInWorkerProcess(
+// what the job made (job/job.h; peak_rss_bytes: the worker's, from wait4)
+// or its error, for any kind of job; a worker that crashes gives INTERNAL
+// "the job's worker process crashed (signal N, NAME) during stage S; ...";
+// one that cannot be started gives UNAVAILABLE. Blocking: call it from a
+// job worker thread.
+absl::StatusOr<job::JobResult> RunInWorkerProcess(
     const spool::v1::WorkerRequest& request, const ComputeContext& context,
     const WorkerOptions& options, WorkerOutcome* outcome);
 
-// The same for any job, interpolation or fill (request.spec.fill set):
-// returns the report JSON the worker sent (JobReportToJson or
-// FillJobReportToJson), unparsed.
-absl::StatusOr<std::string> RunInWorkerProcess(
-    const spool::v1::WorkerRequest& request, const ComputeContext& context,
-    const WorkerOptions& options, WorkerOutcome* outcome);
-
-// The worker side: reads one WorkerRequest from `in_fd`, runs the job (an
-// interpolation, or a fill when request.spec.fill is set: server/fill_spec.h)
-// and
-// writes its events to `out_fd`. Returns the process exit code (0 when the
+// The worker side: reads one WorkerRequest from `in_fd`, runs the job it
+// names (job/job.h MakeJobFromWire, on the request's folders) and writes its
+// events to `out_fd`. Returns the process exit code (0 when the
 // job's result, OK or not, was delivered). main() calls it for
 // `--job-worker`.
 //

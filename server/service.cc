@@ -12,7 +12,8 @@
 
 #include "absl/strings/str_cat.h"
 #include "core/dicom/series_reader.h"
-#include "server/fill_spec.h"
+#include "job/job.h"
+#include "job/wire.h"
 #include "server/log_safe.h"
 #include "server/status_map.h"
 #include "spdlog/spdlog.h"
@@ -30,10 +31,7 @@ namespace {
 constexpr int kDefaultChunkBytes = 64 * 1024;
 constexpr int kMaxFetchChunkBytes = 1 << 20;
 
-bool IsTerminal(v1::JobState s) {
-  return s == v1::JOB_STATE_SUCCEEDED || s == v1::JOB_STATE_FAILED ||
-         s == v1::JOB_STATE_CANCELLED;
-}
+using job::IsTerminalState;
 
 grpc::Status StatusOfFailedJob(const v1::JobStatus& s) {
   const int code =
@@ -107,6 +105,11 @@ class UploadSink {
           manager_->Admit(stream_.header(), ephemeral_, deadline_, owner_);
       if (!job.ok()) return job.status();
       job_ = *job;
+      // Admit checked the spec: the kind says which upload, if any, is its
+      // segmentation.
+      absl::StatusOr<std::unique_ptr<job::JobKind>> kind =
+          job::MakeJobFromWire(stream_.header().spec());
+      if (kind.ok()) segmentation_name_ = (*kind)->segmentation_upload_name();
       return absl::OkStatus();
     }
     if (step.open_file) {
@@ -123,7 +126,7 @@ class UploadSink {
   // The client half-closed: the upload must be complete.
   absl::Status Finish() {
     INTERSLICE_SINK_RETURN_IF_ERROR(stream_.Finish());
-    if (IsFillJob(stream_.header().spec()) && !has_segmentation_) {
+    if (!segmentation_name_.empty() && !has_segmentation_) {
       // The client's file names may carry patient data: not echoed.
       return absl::InvalidArgumentError(absl::StrCat(
           "spec.fill.segmentation_file names none of the ",
@@ -166,10 +169,9 @@ class UploadSink {
     std::snprintf(name, sizeof(name), "%06d.dcm", index);
     std::string path =
         (fs::path(spool_->UploadDir(job_->id())) / name).string();
-    // A fill job's segmentation goes where server/fill_spec.h expects it, out
-    // of the reference series' folder level.
-    const v1::JobSpec& spec = stream_.header().spec();
-    if (IsFillJob(spec) && client_name == spec.fill().segmentation_file()) {
+    // A fill job's segmentation goes where job::SegmentationUploadPath puts
+    // it, out of the reference series' folder level.
+    if (!segmentation_name_.empty() && client_name == segmentation_name_) {
       if (has_segmentation_) {
         return absl::InvalidArgumentError(
             "two uploaded files carry the name given as "
@@ -177,7 +179,7 @@ class UploadSink {
       }
       has_segmentation_ = true;
       const fs::path target = fs::path(spool_->UploadDir(job_->id())) /
-                              SegmentationUploadPath(client_name);
+                              job::SegmentationUploadPath(client_name);
       std::error_code ec;
       fs::create_directories(target.parent_path(), ec);
       if (ec) return absl::InternalError("cannot create an upload folder");
@@ -222,7 +224,10 @@ class UploadSink {
   Spool* const spool_;
   Metrics* const metrics_;
   UploadStream stream_;
-  bool has_segmentation_ = false;  // a fill job's segmentation arrived
+  // The uploaded file that is the job's segmentation (its kind's
+  // segmentation_upload_name; empty for none), and whether it arrived.
+  std::string segmentation_name_;
+  bool has_segmentation_ = false;
   const bool ephemeral_;
   const std::optional<std::chrono::steady_clock::time_point> deadline_;
   const std::string owner_;
@@ -561,7 +566,7 @@ class InterpolateReactor
       return;
     }
     const v1::JobStatus status = job_->Snapshot(true);
-    if (IsTerminal(status.state())) {
+    if (IsTerminalState(status.state())) {
       if (status.state() != v1::JOB_STATE_SUCCEEDED) {
         FinishLocked(StatusOfFailedJob(status));
         return;
@@ -704,7 +709,7 @@ class WatchReactor : public grpc::ServerWriteReactor<v1::JobStatus> {
   void WriteNextLocked() {
     if (finished_ || write_in_flight_ || terminal_sent_) return;
     status_ = job_->Snapshot(true);
-    const bool terminal = IsTerminal(status_.state());
+    const bool terminal = IsTerminalState(status_.state());
     if (!terminal && status_.sequence() <= last_sequence_) return;
     if (terminal && !first_ && status_.sequence() <= last_sequence_) return;
     first_ = false;

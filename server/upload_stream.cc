@@ -3,7 +3,7 @@
 #include <utility>
 
 #include "absl/strings/str_cat.h"
-#include "server/hashing.h"
+#include "core/common/sha256.h"
 #include "server/log_safe.h"
 
 namespace interslice::server {

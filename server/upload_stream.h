@@ -18,9 +18,11 @@
 #include "absl/status/status.h"
 #include "interslice/v1/interslice.pb.h"
 
-namespace interslice::server {
-
+namespace interslice {
 class Sha256;
+}  // namespace interslice
+
+namespace interslice::server {
 
 struct UploadStreamLimits {
   // Largest FileChunk.data, bytes.

@@ -73,9 +73,9 @@ Vec3 Sub(const Vec3& a, const Vec3& b) {
 Vec3 Scale(const Vec3& a, double s) { return {a[0] * s, a[1] * s, a[2] * s}; }
 double Norm(const Vec3& a) { return std::sqrt(Dot(a, a)); }
 
-// Files of `paths`, directories searched recursively, sorted and without
-// duplicates so that results do not depend on directory listing order.
-absl::StatusOr<std::vector<std::string>> CollectFiles(
+}  // namespace
+
+absl::StatusOr<std::vector<std::string>> CollectInputFiles(
     const std::vector<std::string>& paths) {
   namespace fs = std::filesystem;
   if (paths.empty()) {
@@ -118,6 +118,8 @@ absl::StatusOr<std::vector<std::string>> CollectFiles(
   std::sort(files.begin(), files.end());
   return files;
 }
+
+namespace {
 
 // Scans every header (in `arena` when given), reporting the first half of the
 // read stage's progress.
@@ -943,7 +945,7 @@ void QuietDicomToolkitLogging() {
 absl::StatusOr<std::vector<DicomSeriesSummary>> ListDicomSeries(
     const std::vector<std::string>& paths) {
   INTERSLICE_ASSIGN_OR_RETURN(const std::vector<std::string> files,
-                              CollectFiles(paths));
+                              CollectInputFiles(paths));
   INTERSLICE_ASSIGN_OR_RETURN(const std::vector<FileHeader> headers,
                               ScanHeaders(files, nullptr, nullptr));
   std::vector<DicomSeriesSummary> result;
@@ -960,7 +962,7 @@ absl::StatusOr<DicomSeries> ReadDicomSeries(
                                             : tbb::task_arena::automatic);
 
   INTERSLICE_ASSIGN_OR_RETURN(const std::vector<std::string> files,
-                              CollectFiles(paths));
+                              CollectInputFiles(paths));
   if (files.empty()) {
     return absl::NotFoundError("no files in the input");
   }

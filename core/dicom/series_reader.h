@@ -162,6 +162,16 @@ struct DicomSeries {
   std::vector<std::string> notes;
 };
 
+// The files of `paths` (files, and folders searched recursively; entries
+// that are neither are skipped), sorted and without duplicates (the same file
+// reached twice, through a folder and by name, is listed once), so that what
+// is read does not depend on listing order. This is exactly what
+// ReadDicomSeries reads, and what `interslice interpolate` uploads.
+// INVALID_ARGUMENT for no paths or a folder that cannot be listed (never a
+// partial listing); NOT_FOUND for a path that does not exist.
+absl::StatusOr<std::vector<std::string>> CollectInputFiles(
+    const std::vector<std::string>& paths);
+
 // Reads the series. `paths` are files or directories.
 absl::StatusOr<DicomSeries> ReadDicomSeries(
     const std::vector<std::string>& paths, const DicomReadOptions& options,

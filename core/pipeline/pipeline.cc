@@ -8,6 +8,7 @@
 #include <filesystem>
 #include <fstream>
 #include <functional>
+#include <limits>
 #include <system_error>
 #include <vector>
 
@@ -228,6 +229,21 @@ absl::Status ValidateJobSpec(const JobSpec& spec) {
   }
   if (spec.max_output_voxels <= 0 || spec.max_input_voxels <= 0) {
     return absl::InvalidArgumentError("voxel limits must be positive");
+  }
+  // The derived objects are numbered base + 1 ... base + 4, each a DICOM IS
+  // (signed 32-bit): refused now rather than after the whole job ran.
+  if (spec.series_number_base > std::numeric_limits<int>::max() - 4) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("series number base must be at most ",
+                     std::numeric_limits<int>::max() - 4));
+  }
+  // Likewise a malformed UID root.
+  if (!spec.uid_root.empty()) {
+    if (absl::Status s = DeriveDicomUid(spec.uid_root, "check").status();
+        !s.ok()) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("uid root: ", s.message()));
+    }
   }
   return absl::OkStatus();
 }

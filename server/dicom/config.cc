@@ -5,7 +5,9 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <optional>
 #include <set>
+#include <span>
 
 #include "absl/strings/ascii.h"
 #include "absl/strings/match.h"
@@ -14,10 +16,10 @@
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
 #include "absl/strings/strip.h"
-#include "client/job_spec_proto.h"
-#include "client/run_command.h"
+#include "job/errors.h"
+#include "job/options.h"
+#include "job/wire.h"
 #include "re2/re2.h"
-#include "server/fill_spec.h"
 
 namespace interslice::server::dicom {
 namespace {
@@ -284,8 +286,100 @@ absl::StatusOr<RuleMatch> ParseMatch(const YAML::Node& node,
   return match;
 }
 
-// The `job` mapping -> the `interslice run` arguments -> (BuildJobSpec, the
-// command line's own validation) -> the wire spec.
+// A rule's `job:` or `fill:` mapping -> the option values of the job layer
+// (job/options.h): the keys are the option table's (every option the rules
+// file takes), each read as its table row says (numbers, integers, text,
+// true/false; lists as YAML lists or the command line's "a,b"; integer lists
+// as YAML lists of integers; a box as a list of six integers or "a,b,...").
+template <typename Options>
+absl::Status ReadOptions(const YAML::Node& node, const Context& ctx,
+                         const std::string& section,
+                         std::span<const job::OptionDef<Options>> table,
+                         Options& options) {
+  std::vector<std::string> known;
+  for (const job::OptionDef<Options>& def : table) {
+    if (def.doors & job::kRulesFile) known.emplace_back(def.key);
+  }
+  if (absl::Status s = CheckKeys(node, ctx, section, known); !s.ok()) return s;
+  for (const auto& item : node) {
+    const std::string key = item.first.Scalar();
+    const YAML::Node value = item.second;
+    const std::string field = absl::StrCat(section, ".", key);
+    const job::OptionDef<Options>* def = job::FindOption(table, key);
+    std::string text;
+    switch (def->kind) {
+      case job::ValueKind::kNumber: {
+        absl::StatusOr<double> v = GetNumber(value, ctx, field);
+        if (!v.ok()) return v.status();
+        text = value.Scalar();
+        break;
+      }
+      case job::ValueKind::kInteger: {
+        absl::StatusOr<int64_t> v = GetInteger(value, ctx, field);
+        if (!v.ok()) return v.status();
+        text = absl::StrCat(*v);
+        break;
+      }
+      case job::ValueKind::kText: {
+        absl::StatusOr<std::string> v = GetString(value, ctx, field);
+        if (!v.ok()) return v.status();
+        text = *v;
+        break;
+      }
+      case job::ValueKind::kFlag: {
+        absl::StatusOr<bool> v = GetBool(value, ctx, field);
+        if (!v.ok()) return v.status();
+        text = *v ? "true" : "false";
+        break;
+      }
+      case job::ValueKind::kList: {
+        absl::StatusOr<std::vector<std::string>> v =
+            GetStringList(value, ctx, field);
+        if (!v.ok()) return v.status();
+        text = v->empty() ? "none" : absl::StrJoin(*v, ",");
+        break;
+      }
+      case job::ValueKind::kIntegerList:
+      case job::ValueKind::kBox: {
+        const bool box = def->kind == job::ValueKind::kBox;
+        if (box && value.IsScalar()) {
+          text = value.Scalar();
+          break;
+        }
+        if (!value.IsSequence()) {
+          return ctx.Error(field, absl::StrCat("expected a list of integers, "
+                                               "got ",
+                                               KindName(value)));
+        }
+        std::vector<std::string> parts;
+        for (size_t i = 0; i < value.size(); ++i) {
+          absl::StatusOr<int64_t> v =
+              GetInteger(value[i], ctx, absl::StrCat(field, "[", i, "]"));
+          if (!v.ok()) return v.status();
+          parts.push_back(absl::StrCat(*v));
+        }
+        text = absl::StrJoin(parts, ",");
+        break;
+      }
+    }
+    if (absl::Status s = job::SetOption(options, key, text); !s.ok()) {
+      return ctx.Error(field, job::ErrorMessageWithoutKey(s));
+    }
+  }
+  return absl::OkStatus();
+}
+
+// An error of BuildJobSpec / BuildFillJobSpec, named as the rules file names
+// the option ("job.energy_units").
+absl::Status RuleOptionError(const absl::Status& status, const Context& ctx,
+                             const std::string& section) {
+  const std::optional<std::string> key = job::ErrorOptionKey(status);
+  return ctx.Error(key.has_value() ? absl::StrCat(section, ".", *key) : section,
+                   job::ErrorMessageWithoutKey(status));
+}
+
+// The `job` mapping -> the wire spec of an interpolation job, checked as
+// every door checks it.
 absl::StatusOr<v1::JobSpec> ParseJob(const YAML::Node& node,
                                      const Context& ctx) {
   if (!node)
@@ -296,267 +390,47 @@ absl::StatusOr<v1::JobSpec> ParseJob(const YAML::Node& node,
     return ctx.Error("job",
                      absl::StrCat("expected a mapping, got ", KindName(node)));
   }
-  absl::Status keys =
-      CheckKeys(node, ctx, "job",
-                {"threshold", "upper", "method", "iterations", "tolerance",
-                 "energy_units", "spacing", "factor", "roi", "output_series",
-                 "seg", "mesh", "volume", "uid_root"});
-  if (!keys.ok()) return keys;
-  client::RunArguments args;
+  job::InterpolationOptions options;
   // Placeholders: the server supplies the received files and the output
   // folder when it makes the job.
-  args.inputs = {"dicom"};
-  args.out = "out";
-  auto number = [&](const char* key,
-                    std::optional<double>* out) -> absl::Status {
-    if (!node[key]) return absl::OkStatus();
-    absl::StatusOr<double> v =
-        GetNumber(node[key], ctx, absl::StrCat("job.", key));
-    if (!v.ok()) return v.status();
-    *out = *v;
-    return absl::OkStatus();
-  };
-  auto integer = [&](const char* key, std::optional<int>* out) -> absl::Status {
-    if (!node[key]) return absl::OkStatus();
-    absl::StatusOr<int64_t> v =
-        GetInteger(node[key], ctx, absl::StrCat("job.", key));
-    if (!v.ok()) return v.status();
-    if (*v < std::numeric_limits<int>::min() ||
-        *v > std::numeric_limits<int>::max()) {
-      return ctx.Error(absl::StrCat("job.", key), "out of range");
-    }
-    *out = static_cast<int>(*v);
-    return absl::OkStatus();
-  };
-  auto text = [&](const char* key, std::string* out) -> absl::Status {
-    if (!node[key]) return absl::OkStatus();
-    absl::StatusOr<std::string> v =
-        GetString(node[key], ctx, absl::StrCat("job.", key));
-    if (!v.ok()) return v.status();
-    *out = *v;
-    return absl::OkStatus();
-  };
-  // Lists are written as YAML lists or as the command line's "a,b".
-  auto list = [&](const char* key, std::string* out) -> absl::Status {
-    if (!node[key]) return absl::OkStatus();
-    absl::StatusOr<std::vector<std::string>> v =
-        GetStringList(node[key], ctx, absl::StrCat("job.", key));
-    if (!v.ok()) return v.status();
-    *out = v->empty() ? "none" : absl::StrJoin(*v, ",");
-    return absl::OkStatus();
-  };
-  for (absl::Status s :
-       {number("threshold", &args.threshold), number("upper", &args.upper),
-        text("method", &args.method), integer("iterations", &args.iterations),
-        number("tolerance", &args.tolerance),
-        text("energy_units", &args.energy_units),
-        number("spacing", &args.spacing), integer("factor", &args.factor),
-        list("output_series", &args.output_series), list("mesh", &args.mesh),
-        list("volume", &args.volume), text("uid_root", &args.uid_root)}) {
-    if (!s.ok()) return s;
+  options.inputs = {"dicom"};
+  options.out = "out";
+  if (absl::Status s = ReadOptions(node, ctx, "job",
+                                   job::InterpolationOptionTable(), options);
+      !s.ok()) {
+    return s;
   }
-  if (!node["threshold"]) {
-    return ctx.Error("job.threshold", "missing (it is required)");
-  }
-  if (node["seg"]) {
-    absl::StatusOr<bool> v = GetBool(node["seg"], ctx, "job.seg");
-    if (!v.ok()) return v.status();
-    args.seg = *v;
-  }
-  if (node["roi"]) {
-    const YAML::Node roi = node["roi"];
-    if (roi.IsSequence()) {
-      std::vector<std::string> parts;
-      for (size_t i = 0; i < roi.size(); ++i) {
-        absl::StatusOr<int64_t> v =
-            GetInteger(roi[i], ctx, absl::StrCat("job.roi[", i, "]"));
-        if (!v.ok()) return v.status();
-        parts.push_back(absl::StrCat(*v));
-      }
-      args.roi = absl::StrJoin(parts, ",");
-    } else {
-      absl::StatusOr<std::string> v = GetString(roi, ctx, "job.roi");
-      if (!v.ok()) return v.status();
-      args.roi = *v;
-    }
-  }
-  absl::StatusOr<JobSpec> spec = client::BuildJobSpec(args);
-  if (!spec.ok()) {
-    // The command line's messages name the option ("--energy-units: ...");
-    // name the rule file's field instead.
-    std::string message(spec.status().message());
-    std::string field = "job";
-    if (absl::StartsWith(message, "--")) {
-      const size_t end = message.find_first_of(": ");
-      std::string option = message.substr(2, end - 2);
-      std::replace(option.begin(), option.end(), '-', '_');
-      field = absl::StrCat("job.", option);
-      if (end != std::string::npos && message[end] == ':') {
-        message = std::string(absl::StripLeadingAsciiWhitespace(
-            absl::string_view(message).substr(end + 1)));
-      }
-    }
-    return ctx.Error(field, message);
-  }
-  return client::JobSpecToProto(*spec);
+  absl::StatusOr<JobSpec> spec = job::BuildJobSpec(options);
+  if (!spec.ok()) return RuleOptionError(spec.status(), ctx, "job");
+  return job::ToWire(*spec);
 }
 
-// The `fill` mapping (a rule for SEG / RTSTRUCT series) -> the wire spec of
-// a fill job, checked as the server checks an uploaded one
-// (FillJobSpecFromProto). Keys as `interslice fill`'s options; lists are YAML
-// lists (labels and key_slices of integers) or "a,b" text (mesh, volume).
+// The `fill` mapping (a rule for SEG / RTSTRUCT series) -> the wire spec of a
+// fill job, checked as every door checks it.
 absl::StatusOr<v1::JobSpec> ParseFill(const YAML::Node& node,
                                       const Context& ctx) {
-  v1::JobSpec spec;
-  v1::LabelFill* fill = spec.mutable_fill();
-  // The server names the received segmentation itself.
-  fill->set_segmentation_file("segmentation.dcm");
-  // Outputs: as `interslice fill` (labels.nii.gz and one STL per label)
-  // unless given.
-  v1::OutputSelection* outputs = spec.mutable_outputs();
-  outputs->add_volume_formats(v1::VOLUME_FORMAT_NIFTI);
-  outputs->add_mesh_formats(v1::MESH_FORMAT_STL);
+  job::FillJobOptions options;
+  options.segmentation = "segmentation";
+  options.reference = {"dicom"};
+  options.out = "out";
   // What came in as DICOM goes back as DICOM: the filled labels as a SEG
   // (and as an RTSTRUCT when the input was one, the fill's own default).
-  fill->set_seg(true);
-  if (node.IsNull()) return spec;  // `fill:` alone: every default
-  if (!node.IsMap()) {
-    return ctx.Error("fill",
-                     absl::StrCat("expected a mapping, got ", KindName(node)));
-  }
-  absl::Status keys = CheckKeys(
-      node, ctx, "fill",
-      {"labels", "key_slices", "method", "iterations", "tolerance", "factor",
-       "spacing", "band", "mesh", "volume", "adaptivity", "seg", "rtstruct"});
-  if (!keys.ok()) return keys;
-  auto integers = [&](const char* key,
-                      std::vector<int64_t>* out) -> absl::Status {
-    if (!node[key]) return absl::OkStatus();
-    const std::string field = absl::StrCat("fill.", key);
-    if (!node[key].IsSequence()) {
-      return ctx.Error(field, absl::StrCat("expected a list of integers, got ",
-                                           KindName(node[key])));
-    }
-    for (size_t i = 0; i < node[key].size(); ++i) {
-      absl::StatusOr<int64_t> v =
-          GetInteger(node[key][i], ctx, absl::StrCat(field, "[", i, "]"));
-      if (!v.ok()) return v.status();
-      out->push_back(*v);
-    }
-    return absl::OkStatus();
-  };
-  std::vector<int64_t> labels, key_slices;
-  for (absl::Status st :
-       {integers("labels", &labels), integers("key_slices", &key_slices)}) {
-    if (!st.ok()) return st;
-  }
-  for (int64_t label : labels) {
-    if (label < 1 || label > 65535) {
-      return ctx.Error("fill.labels",
-                       absl::StrCat(label, " is not a label (1..65535)"));
-    }
-    fill->add_labels(static_cast<int>(label));
-  }
-  for (int64_t k : key_slices) fill->add_key_slices(k);
-  if (node["method"]) {
-    absl::StatusOr<std::string> v =
-        GetString(node["method"], ctx, "fill.method");
-    if (!v.ok()) return v.status();
-    if (*v == "auto") {
-      spec.clear_method();
-    } else if (*v == "direct") {
-      spec.set_method(v1::SOLVER_METHOD_DIRECT);
-    } else if (*v == "cg") {
-      spec.set_method(v1::SOLVER_METHOD_CONJUGATE_GRADIENT);
-    } else if (*v == "linear") {
-      spec.set_method(v1::SOLVER_METHOD_LINEAR);
-    } else {
+  options.seg = true;
+  if (!node.IsNull()) {  // `fill:` alone: every default
+    if (!node.IsMap()) {
       return ctx.Error(
-          "fill.method",
-          absl::StrCat("unknown method '", *v,
-                       "' (choose from auto, direct, cg, linear)"));
+          "fill", absl::StrCat("expected a mapping, got ", KindName(node)));
+    }
+    if (absl::Status s =
+            ReadOptions(node, ctx, "fill", job::FillOptionTable(), options);
+        !s.ok()) {
+      return s;
     }
   }
-  for (const char* key : {"seg", "rtstruct"}) {
-    if (!node[key]) continue;
-    absl::StatusOr<bool> v =
-        GetBool(node[key], ctx, absl::StrCat("fill.", key));
-    if (!v.ok()) return v.status();
-    if (std::string(key) == "seg") {
-      fill->set_seg(*v);
-    } else {
-      fill->set_rtstruct(*v);
-    }
-  }
-  if (node["iterations"]) {
-    absl::StatusOr<int64_t> v =
-        GetInteger(node["iterations"], ctx, "fill.iterations");
-    if (!v.ok()) return v.status();
-    if (*v < 0 || *v > std::numeric_limits<int>::max()) {
-      return ctx.Error("fill.iterations", "out of range");
-    }
-    spec.set_max_iterations(static_cast<int>(*v));
-  }
-  if (node["factor"] && node["spacing"]) {
-    return ctx.Error("fill.factor",
-                     "factor and spacing are alternatives; give one");
-  }
-  if (node["factor"]) {
-    absl::StatusOr<int64_t> v = GetInteger(node["factor"], ctx, "fill.factor");
-    if (!v.ok()) return v.status();
-    if (*v < 1 || *v > 1024) return ctx.Error("fill.factor", "must be 1..1024");
-    spec.set_insertion_factor(static_cast<int>(*v));
-  }
-  for (const char* key : {"tolerance", "spacing", "band", "adaptivity"}) {
-    if (!node[key]) continue;
-    absl::StatusOr<double> v =
-        GetNumber(node[key], ctx, absl::StrCat("fill.", key));
-    if (!v.ok()) return v.status();
-    const std::string k = key;
-    if (k == "tolerance") spec.set_tolerance(*v);
-    if (k == "spacing") spec.set_slice_spacing_mm(*v);
-    if (k == "band") spec.set_band_radius_mm(*v);
-    if (k == "adaptivity") spec.set_mesh_adaptivity(*v);
-  }
-  for (const char* key : {"mesh", "volume"}) {
-    if (!node[key]) continue;
-    const std::string field = absl::StrCat("fill.", key);
-    absl::StatusOr<std::vector<std::string>> v =
-        GetStringList(node[key], ctx, field);
-    if (!v.ok()) return v.status();
-    const bool mesh = std::string(key) == "mesh";
-    if (mesh) {
-      outputs->clear_mesh_formats();
-    } else {
-      outputs->clear_volume_formats();
-    }
-    for (const std::string& f : *v) {
-      if (f == "none") continue;
-      if (mesh && (f == "stl" || f == "ply" || f == "obj")) {
-        outputs->add_mesh_formats(f == "ply"   ? v1::MESH_FORMAT_PLY
-                                  : f == "obj" ? v1::MESH_FORMAT_OBJ
-                                               : v1::MESH_FORMAT_STL);
-      } else if (!mesh && (f == "nii" || f == "nrrd")) {
-        outputs->add_volume_formats(f == "nrrd" ? v1::VOLUME_FORMAT_NRRD
-                                                : v1::VOLUME_FORMAT_NIFTI);
-      } else {
-        return ctx.Error(field, absl::StrCat("unknown value '", f, "'"));
-      }
-    }
-  }
-  absl::StatusOr<FillJobSpec> checked = FillJobSpecFromProto(spec);
-  if (!checked.ok()) {
-    // "spec.fill.labels: 0 is ..." -> field "fill.labels", "0 is ...".
-    std::string message(checked.status().message());
-    std::string field = "fill";
-    const size_t colon = message.find(": ");
-    if (absl::StartsWith(message, "spec.fill.") && colon != std::string::npos) {
-      field = message.substr(5, colon - 5);
-      message = message.substr(colon + 2);
-    }
-    return ctx.Error(field, message);
-  }
-  return spec;
+  absl::StatusOr<FillJobSpec> spec = job::BuildFillJobSpec(options);
+  if (!spec.ok()) return RuleOptionError(spec.status(), ctx, "fill");
+  // The server names the received segmentation itself.
+  return job::ToWire(*spec, "segmentation.dcm");
 }
 
 }  // namespace

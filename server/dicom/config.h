@@ -96,13 +96,14 @@ struct RuleMatch {
 struct Rule {
   std::string name;  // as written, or "#<index>" when the file gives none
   RuleMatch match;
-  // The job: the `interslice run` options of the same names, mapped exactly
-  // as the command line maps them (client/run_command.h BuildJobSpec), with
-  // the same defaults (so mesh: stl and volume: nii unless given). send_to
-  // is filled from the rule's send_to.
-  // A fill rule (key `fill` instead of `job`: the `interslice fill` options
-  // labels, key_slices, method, iterations, tolerance, factor, spacing, band,
-  // mesh, volume, adaptivity) has job.fill set: it matches SEG and RTSTRUCT
+  // The job: the job layer's options (job/options.h: the keys are the
+  // command line's option names with '_' for '-'), mapped and checked
+  // exactly as every door maps them, with the same defaults (so mesh: stl
+  // and volume: nii unless given). send_to is filled from the rule's
+  // send_to.
+  // A fill rule (key `fill` instead of `job`: the fill options of the same
+  // table, e.g. labels, key_slices, method, iterations, factor, mesh; seg
+  // defaults to true here) has job.fill set: it matches SEG and RTSTRUCT
   // series only (and other rules never match them); its job fills the
   // segmentation on the series it references, which must be held in the
   // spool (series_assembler.h).

@@ -18,7 +18,7 @@
 #include "dcmtk/dcmdata/dcfilefo.h"
 #include "dcmtk/dcmdata/dcuid.h"
 #include "nlohmann/json.hpp"
-#include "server/hashing.h"
+#include "core/common/sha256.h"
 #include "server/job_manager.h"
 #include "server/log_safe.h"
 #include "server/metrics.h"

@@ -95,12 +95,6 @@ TEST_F(CliTest, BadInputGivesOneLineAndExitCodeOne) {
       {"run " + kSmallSeries + " --threshold 300 --upper 100 --out " + out,
        "upper"},
       {"frobnicate", "frobnicate"},
-      // Not in the service's job spec: refused before anything is sent.
-      {"interpolate " + kSmallSeries +
-           " --threshold 300 --slab-deconvolution --server 127.0.0.1:9 "
-           "--out " +
-           out,
-       "in-process only"},
   };
   for (const Case& c : cases) {
     const CommandResult r = RunCli(c.args);

@@ -216,7 +216,7 @@ TEST_F(FillCliTest, BadInputGivesOneLineAndExitCodeOne) {
       {"fill " + good + out, "--reference"},
       {"fill " + good + " --reference " + kPhantom +
            " --rtstruct --no-rtstruct" + out,
-       "--rtstruct and --no-rtstruct contradict"},
+       "--rtstruct excludes --no-rtstruct"},
       {"fill " + good + " --reference " + kPhantom + " --seg --uid-root 1.02" +
            out,
        "--uid-root"},

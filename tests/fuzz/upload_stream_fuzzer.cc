@@ -18,7 +18,7 @@
 
 #include "google/protobuf/stubs/logging.h"
 #include "interslice/v1/interslice.pb.h"
-#include "server/hashing.h"
+#include "core/common/sha256.h"
 #include "server/log_safe.h"
 #include "server/upload_stream.h"
 

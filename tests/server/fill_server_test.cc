@@ -390,7 +390,7 @@ TEST(FillServerTest, BadFillSpecsAreRefusedWithTheReason) {
   {
     v1::JobSpec s = good;
     s.set_method(v1::SOLVER_METHOD_MORPH);
-    cases.push_back({"morph", s, files, "MORPH is not available"});
+    cases.push_back({"morph", s, files, "spec.method: unknown method 'morph'"});
   }
   cases.push_back(
       {"segmentation only", good, {files.back()}, "file_count must be >= 2"});

@@ -309,6 +309,26 @@ TEST(ServerTest, OneCallGivesTheSameFilesAsRun) {
   EXPECT_EQ(CountJobs(dir / "spool"), 0);
 }
 
+// Every option of the job layer reaches the server: the slab deconvolution
+// (once refused remotely because the wire had no field for it) runs there as
+// it runs in-process.
+TEST(ServerTest, SlabDeconvolutionRunsOnTheServerAsInProcess) {
+  TempDir dir;
+  const std::vector<std::string> job =
+      Cat(kSmallJob, {"--slab-deconvolution", "--method", "direct"});
+  const std::string local = RunLocally(dir, job, "local");
+  ServerProcess server(dir / "spool", dir / "server.log", {});
+  CommandResult r = Cli(Cat(
+      Cat({"interpolate"}, job),
+      Cat(server.Server(), {"--out", dir / "remote", "--volume", "nii,nrrd",
+                            "--mesh", "stl,ply,obj", "--report",
+                            dir / "report.json"})));
+  ASSERT_EQ(r.exit_code, 0) << r.err << server.Log();
+  ExpectSameFiles(local, dir / "remote");
+  EXPECT_THAT(ReadFileOrEmpty(dir / "report.json"),
+              HasSubstr("\"slab_thickness_mm\""));
+}
+
 // DICOM outputs through the daemon are the objects `run` writes: the same
 // pixel data, geometry and (derived, not random) UIDs; only creation dates
 // and times may differ.

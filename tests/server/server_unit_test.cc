@@ -11,9 +11,7 @@
 #include <vector>
 
 #include "server/auth.h"
-#include "server/hashing.h"
 #include "server/log_safe.h"
-#include "server/spec_mapping.h"
 #include "server/status_map.h"
 #include "server/upload_guard.h"
 
@@ -57,63 +55,6 @@ TEST(StatusMapTest, CodesMapOneToOne) {
   EXPECT_EQ(ToGrpcStatus(absl::DeadlineExceededError("x")).error_code(),
             grpc::DEADLINE_EXCEEDED);
   EXPECT_TRUE(ToGrpcStatus(absl::OkStatus()).ok());
-}
-
-TEST(SpecMappingTest, DefaultsMatchTheCli) {
-  v1::JobSpec p;
-  EXPECT_FALSE(JobSpecFromProto(p).ok());  // threshold is required
-  p.set_threshold(300);
-  absl::StatusOr<JobSpec> spec = JobSpecFromProto(p);
-  ASSERT_TRUE(spec.ok()) << spec.status();
-  EXPECT_EQ(spec->solver.method, SolverMethod::kConjugateGradient);
-  EXPECT_EQ(spec->solver.max_iterations, 15);
-  EXPECT_EQ(spec->volume_formats, std::vector<std::string>{"nii"});
-  EXPECT_EQ(spec->mesh_formats, std::vector<std::string>{"stl"});
-  p.set_tolerance(1e-3);
-  EXPECT_EQ(JobSpecFromProto(p)->solver.max_iterations, 100000);
-  p.mutable_outputs();  // present and empty: no files
-  EXPECT_TRUE(JobSpecFromProto(p)->mesh_formats.empty());
-  p.set_strict_spacing(true);
-  p.set_uid_root("1.2.3");
-  p.mutable_segmentation()->set_enabled(true);
-  p.set_multiframe_volume("stack 1");
-  auto mapped = JobSpecFromProto(p);
-  ASSERT_TRUE(mapped.ok()) << mapped.status();
-  EXPECT_TRUE(mapped->strict_spacing);
-  EXPECT_TRUE(mapped->write_seg);
-  EXPECT_EQ(mapped->uid_root, "1.2.3");
-  EXPECT_EQ(mapped->multiframe_volume, "stack 1");
-  p.set_method(v1::SOLVER_METHOD_MORPH);
-  EXPECT_EQ(JobSpecFromProto(p)->solver.method, SolverMethod::kMorph);
-  p.mutable_derived_series()->add_contents("mask");
-  EXPECT_EQ(JobSpecFromProto(p)->output_series,
-            std::vector<std::string>{"mask"});
-  p.mutable_derived_series()->add_contents("bogus");
-  EXPECT_EQ(JobSpecFromProto(p).status().code(),
-            absl::StatusCode::kInvalidArgument);
-}
-
-TEST(SpecMappingTest, UncompressedNiftiAndRleIntensityMap) {
-  v1::JobSpec p;
-  p.set_threshold(300);
-  p.mutable_outputs()->add_volume_formats(v1::VOLUME_FORMAT_NIFTI_UNCOMPRESSED);
-  p.mutable_outputs()->add_volume_formats(v1::VOLUME_FORMAT_NIFTI);
-  absl::StatusOr<JobSpec> spec = JobSpecFromProto(p);
-  ASSERT_TRUE(spec.ok()) << spec.status();
-  EXPECT_EQ(spec->volume_formats,
-            (std::vector<std::string>{"nii-uncompressed", "nii"}));
-  EXPECT_EQ(spec->dicom_compression, "none");
-  p.mutable_derived_series()->set_pixel_compression(
-      v1::DICOM_PIXEL_COMPRESSION_RLE_LOSSLESS);
-  EXPECT_EQ(JobSpecFromProto(p)->dicom_compression, "rle");
-  p.mutable_derived_series()->set_pixel_compression(
-      v1::DICOM_PIXEL_COMPRESSION_NONE);
-  EXPECT_EQ(JobSpecFromProto(p)->dicom_compression, "none");
-  p.mutable_derived_series()->set_pixel_compression(
-      static_cast<v1::DicomPixelCompression>(99));
-  EXPECT_EQ(JobSpecFromProto(p).status().code(),
-            absl::StatusCode::kInvalidArgument);
-  EXPECT_EQ(MediaTypeForArtifact("distance.nii"), "application/octet-stream");
 }
 
 TEST(TokenFileTest, OneTokenAloneIsTheDefaultIdentity) {
@@ -255,42 +196,6 @@ TEST(UploadGuardTest, ReportsTheTotalLimitOnce) {
   }
   EXPECT_EQ(calls, 1);
   (*ticket)->Close();
-}
-
-// Artifacts are hashed on several threads: each digest must land in its own
-// file's slot whatever the order of completion, and an unreadable file gives
-// an error in its slot only.
-TEST(Sha256OfFilesTest, EachDigestInItsSlotOnAnyThreadCount) {
-  const std::filesystem::path dir =
-      std::filesystem::path(::testing::TempDir()) / "sha256-of-files";
-  std::filesystem::create_directories(dir);
-  std::vector<std::string> paths;
-  for (int n = 0; n < 7; ++n) {
-    paths.push_back((dir / ("f" + std::to_string(n))).string());
-    // Sizes in no particular order, so largest-first changes the order.
-    std::ofstream(paths.back(), std::ios::binary)
-        << std::string(static_cast<size_t>((n * 37 % 7) * 100000 + n),
-                       static_cast<char>('a' + n));
-  }
-  paths.insert(paths.begin() + 3, (dir / "missing").string());
-  for (int threads : {0, 1, 2, 5, 16}) {
-    const auto shas = Sha256OfFiles(paths, threads);
-    ASSERT_EQ(shas.size(), paths.size());
-    for (size_t n = 0; n < paths.size(); ++n) {
-      const auto one = Sha256OfFile(paths[n]);
-      ASSERT_EQ(shas[n].ok(), one.ok()) << paths[n];
-      if (one.ok()) {
-        EXPECT_EQ(*shas[n], *one) << paths[n] << " threads " << threads;
-      }
-    }
-    EXPECT_FALSE(shas[3].ok());
-  }
-  // The digest itself, for a known input ("abc", FIPS 180-2 appendix B.1).
-  const std::string abc = (dir / "abc").string();
-  std::ofstream(abc, std::ios::binary) << "abc";
-  EXPECT_EQ(HexString(*Sha256OfFiles({abc}, 2)[0]),
-            "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad");
-  std::filesystem::remove_all(dir);
 }
 
 }  // namespace

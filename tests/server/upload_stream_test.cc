@@ -6,7 +6,7 @@
 #include <string>
 #include <vector>
 
-#include "server/hashing.h"
+#include "core/common/sha256.h"
 
 namespace interslice::server {
 namespace {

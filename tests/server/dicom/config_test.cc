@@ -6,9 +6,11 @@
 #include <fstream>
 #include <string>
 
+#include "absl/strings/str_cat.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
-#include "server/fill_spec.h"
+#include "job/options.h"
+#include "job/wire.h"
 
 namespace interslice::server::dicom {
 namespace {
@@ -322,7 +324,7 @@ TEST_F(ConfigTest, JobValuesCheckedAsTheCommandLineChecksThem) {
               HasSubstr("job.mesh: unknown value 'vrml'"));
   EXPECT_THAT(RuleError("  - {name: a, job: {threshold: 1, factor: 2, "
                         "spacing: 1}}\n"),
-              HasSubstr("job.factor: --factor and --spacing are alternatives"));
+              HasSubstr("job.factor: factor and spacing are alternatives"));
   EXPECT_THAT(RuleError("  - {name: a, job: {threshold: 1, roi: [1, 2, 3]}}\n"),
               HasSubstr("job.roi: expected six integers"));
   EXPECT_THAT(RuleError("  - {name: a}\n"),
@@ -388,12 +390,12 @@ TEST_F(ConfigTest, FillRules) {
   EXPECT_TRUE(plain.fill().seg());
   EXPECT_FALSE(plain.fill().has_rtstruct());
   EXPECT_EQ(plain.method(), v1::SOLVER_METHOD_UNSPECIFIED);
-  absl::StatusOr<FillJobSpec> wire = FillJobSpecFromProto(plain);
+  absl::StatusOr<FillJobSpec> wire = job::FillJobSpecFromWire(plain);
   ASSERT_TRUE(wire.ok()) << wire.status();
   EXPECT_EQ(wire->fill.method, FillMethod::kAuto);
   EXPECT_TRUE(wire->write_seg);
   EXPECT_FALSE(wire->write_rtstruct.has_value());
-  absl::StatusOr<FillJobSpec> direct = FillJobSpecFromProto(fill);
+  absl::StatusOr<FillJobSpec> direct = job::FillJobSpecFromWire(fill);
   ASSERT_TRUE(direct.ok()) << direct.status();
   EXPECT_EQ(direct->fill.method, FillMethod::kSolver);
   EXPECT_EQ(direct->fill.solver.method, SolverMethod::kDirect);
@@ -432,6 +434,32 @@ TEST_F(ConfigTest, FillRules) {
               HasSubstr("fill.mesh: unknown value 'vrml'"));
   EXPECT_THAT(RuleError("  - {name: a, fill: {labels: 3}}\n"),
               HasSubstr("fill.labels: expected a list of integers"));
+}
+
+// docs/dicom-node.md lists every key a rule's `job:` and `fill:` take (the
+// option tables of job/options.h), so that the documentation cannot drift
+// from what the parser accepts.
+TEST_F(ConfigTest, DocumentationListsEveryRuleKey) {
+  std::ifstream in(std::string(INTERSLICE_SOURCE_DIR) + "/docs/dicom-node.md");
+  const std::string doc((std::istreambuf_iterator<char>(in)), {});
+  ASSERT_FALSE(doc.empty());
+  const size_t job_row = doc.find("| `rules[].job` |");
+  const size_t fill_row = doc.find("| `rules[].fill` |");
+  ASSERT_NE(job_row, std::string::npos);
+  ASSERT_NE(fill_row, std::string::npos);
+  const std::string job_text = doc.substr(job_row, doc.find('\n', job_row) - job_row);
+  const std::string fill_text =
+      doc.substr(fill_row, doc.find('\n', fill_row) - fill_row);
+  for (const auto& def : job::InterpolationOptionTable()) {
+    if ((def.doors & job::kRulesFile) == 0) continue;
+    EXPECT_THAT(job_text, HasSubstr(absl::StrCat("`", std::string(def.key), "`")))
+        << "rules[].job does not document " << def.key;
+  }
+  for (const auto& def : job::FillOptionTable()) {
+    if ((def.doors & job::kRulesFile) == 0) continue;
+    EXPECT_THAT(fill_text, HasSubstr(absl::StrCat("`", std::string(def.key), "`")))
+        << "rules[].fill does not document " << def.key;
+  }
 }
 
 // The documented examples parse, so that they cannot rot.

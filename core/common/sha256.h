@@ -1,6 +1,7 @@
-// SHA-256 (OpenSSL's EVP interface) for uploaded files and artifacts.
-#ifndef INTERSLICE_SERVER_HASHING_H_
-#define INTERSLICE_SERVER_HASHING_H_
+// SHA-256 (OpenSSL's EVP interface): what the client and the server check
+// uploaded files and artifacts with, and what names received instances.
+#ifndef INTERSLICE_CORE_COMMON_SHA256_H_
+#define INTERSLICE_CORE_COMMON_SHA256_H_
 
 #include <memory>
 #include <string>
@@ -9,7 +10,7 @@
 
 #include "absl/status/statusor.h"
 
-namespace interslice::server {
+namespace interslice {
 
 class Sha256 {
  public:
@@ -37,6 +38,6 @@ std::vector<absl::StatusOr<std::string>> Sha256OfFiles(
 
 std::string HexString(std::string_view bytes);
 
-}  // namespace interslice::server
+}  // namespace interslice
 
-#endif  // INTERSLICE_SERVER_HASHING_H_
+#endif  // INTERSLICE_CORE_COMMON_SHA256_H_

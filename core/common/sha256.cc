@@ -1,4 +1,4 @@
-#include "server/hashing.h"
+#include "core/common/sha256.h"
 
 #include <openssl/evp.h>
 
@@ -12,7 +12,7 @@
 
 #include "absl/strings/str_cat.h"
 
-namespace interslice::server {
+namespace interslice {
 
 struct Sha256::State {
   EVP_MD_CTX* ctx = nullptr;
@@ -87,4 +87,4 @@ std::string HexString(std::string_view bytes) {
   return out;
 }
 
-}  // namespace interslice::server
+}  // namespace interslice

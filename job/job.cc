@@ -1,0 +1,264 @@
+#include "job/job.h"
+
+#include <algorithm>
+#include <filesystem>
+#include <utility>
+
+#include "absl/strings/match.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "job/wire.h"
+
+namespace interslice::job {
+namespace {
+
+namespace fs = std::filesystem;
+
+constexpr const char* kSegmentationFolder = "segmentation";
+
+std::string FileName(const std::string& path) {
+  return fs::path(path).filename().string();
+}
+
+std::vector<std::string> InterpolationSummary(const JobReport& report,
+                                              const std::string& out_dir) {
+  std::vector<std::string> lines;
+  const Grid& g = report.output_grid;
+  lines.push_back(absl::StrFormat("interslice: wrote %d file(s) to %s",
+                                  report.artifacts.size(), out_dir));
+  lines.push_back(absl::StrFormat(
+      "  grid      %d x %d x %d voxels, spacing %.4g x %.4g x %.4g mm (%d "
+      "slices inserted per gap)",
+      g.size[0], g.size[1], g.size[2], g.spacing[0], g.spacing[1], g.spacing[2],
+      report.insertion_factor - 1));
+  if (report.gantry_tilt_degrees != 0) {
+    lines.push_back(absl::StrFormat(
+        "  tilt      gantry tilt of %.3g degrees corrected (slices resampled "
+        "onto an orthogonal grid)",
+        report.gantry_tilt_degrees));
+  }
+  if (report.slab_thickness_mm > 0) {
+    lines.push_back(absl::StrFormat(
+        "  slabs     %.3g mm slabs deconvolved in %d iterations (residual "
+        "%.3g -> %.3g)",
+        report.slab_thickness_mm, report.slab_iterations,
+        report.slab_residual_before, report.slab_residual_after));
+  }
+  if (report.max_snap_mm > 1e-6) {
+    lines.push_back(absl::StrFormat(
+        "  spacing   non-uniform: slices moved up to %.3g mm to the nearest "
+        "output slice",
+        report.max_snap_mm));
+  }
+  lines.push_back(absl::StrFormat(
+      "  solver    %s, %d iterations, relative residual %.3g, energy %.6g -> "
+      "%.6g (%s units)",
+      SolverMethodName(report.solver.method), report.solver.iterations,
+      report.solver.relative_residual, report.solver.initial_energy,
+      report.solver.energy, EnergyUnitsName(report.energy_units)));
+  if (report.mesh_triangles > 0 || report.mesh_vertices > 0) {
+    lines.push_back(absl::StrFormat("  surface   %d triangles, %d vertices",
+                                    report.mesh_triangles,
+                                    report.mesh_vertices));
+  }
+  std::string timings;
+  double total = 0;
+  for (const StageTiming& s : report.stages) {
+    absl::StrAppendFormat(&timings, " %s %.2fs", s.stage, s.seconds);
+    total += s.seconds;
+  }
+  lines.push_back(
+      absl::StrFormat("  time     %s (total %.2fs), peak memory %.0f MiB",
+                      timings, total, report.peak_rss_bytes / 1048576.0));
+  for (const Artifact& a : report.artifacts) {
+    lines.push_back(absl::StrFormat("  %-20s %s", a.kind, a.path));
+  }
+  return lines;
+}
+
+std::vector<std::string> FillSummary(const FillJobReport& report,
+                                     const std::string& out_dir) {
+  std::vector<std::string> lines;
+  const Grid& g = report.output_grid;
+  lines.push_back(absl::StrFormat(
+      "interslice: filled %d label(s) (%s) on %d x %d x %d voxels, %d file(s) "
+      "in %s",
+      report.per_label.size(), report.method, g.size[0], g.size[1], g.size[2],
+      report.artifacts.size(), out_dir));
+  for (const LabelFillInfo& info : report.per_label) {
+    lines.push_back(absl::StrFormat(
+        "  label %-5d %d key slices (%d drawn), %d voxels", info.label,
+        info.key_slices.size(), info.drawn_slices, info.output_voxels));
+  }
+  lines.push_back(absl::StrFormat(
+      "  time      read %.2fs fill %.2fs mesh %.2fs write %.2fs; gap voxels "
+      "closed %d",
+      report.read_seconds, report.fill_seconds, report.mesh_seconds,
+      report.write_seconds, report.gap_voxels_closed));
+  return lines;
+}
+
+class InterpolationJob final : public JobKind {
+ public:
+  explicit InterpolationJob(JobSpec spec) : spec_(std::move(spec)) {}
+
+  absl::string_view name() const override { return "interpolate"; }
+  int min_upload_files() const override { return 1; }
+  bool writes_dicom() const override {
+    return !spec_.output_series.empty() || spec_.write_seg;
+  }
+
+  absl::Status UseSpool(const std::string& upload_dir,
+                        const std::string& output_dir,
+                        int64_t max_output_voxels) override {
+    spec_.inputs = {upload_dir};
+    spec_.output_dir = output_dir;
+    if (max_output_voxels > 0) spec_.max_output_voxels = max_output_voxels;
+    relative_paths_ = true;
+    return absl::OkStatus();
+  }
+
+  absl::StatusOr<JobResult> Run(const ComputeContext& context) const override {
+    absl::StatusOr<JobReport> report = RunJob(spec_, context);
+    if (!report.ok()) return report.status();
+    report->peak_rss_bytes = PeakRssBytes();
+    JobResult result;
+    result.stages = report->stages;
+    result.artifacts = report->artifacts;
+    result.peak_rss_bytes = report->peak_rss_bytes;
+    result.summary = InterpolationSummary(*report, spec_.output_dir);
+    if (relative_paths_) {
+      for (Artifact& a : report->artifacts) a.path = FileName(a.path);
+    }
+    result.report_json = JobReportToJson(*report);
+    return result;
+  }
+
+ private:
+  JobSpec spec_;
+  bool relative_paths_ = false;
+};
+
+class FillJob final : public JobKind {
+ public:
+  FillJob(FillJobSpec spec, std::string segmentation_upload_name)
+      : spec_(std::move(spec)),
+        segmentation_upload_name_(std::move(segmentation_upload_name)) {}
+
+  absl::string_view name() const override { return "fill"; }
+  // The segmentation and at least one file of its reference series.
+  int min_upload_files() const override { return 2; }
+  // A fill job's DICOM results (SEG, RTSTRUCT) are delivered when it writes
+  // any; one that writes none makes a delivery of no instances.
+  bool writes_dicom() const override { return true; }
+  std::string segmentation_upload_name() const override {
+    return segmentation_upload_name_;
+  }
+
+  absl::Status UseSpool(const std::string& upload_dir,
+                        const std::string& output_dir,
+                        int64_t max_output_voxels) override {
+    std::error_code ec;
+    spec_.reference.clear();
+    for (const auto& entry : fs::directory_iterator(upload_dir, ec)) {
+      if (entry.is_regular_file(ec)) {
+        spec_.reference.push_back(entry.path().string());
+      }
+    }
+    std::sort(spec_.reference.begin(), spec_.reference.end());
+    spec_.segmentation.clear();
+    for (const auto& entry : fs::directory_iterator(
+             fs::path(upload_dir) / kSegmentationFolder, ec)) {
+      if (entry.is_regular_file(ec)) spec_.segmentation = entry.path().string();
+    }
+    if (spec_.segmentation.empty()) {
+      return absl::FailedPreconditionError(
+          "the fill job's segmentation file is missing from its upload");
+    }
+    if (spec_.reference.empty()) {
+      return absl::FailedPreconditionError(
+          "the fill job's upload holds no reference series files");
+    }
+    spec_.output_dir = output_dir;
+    if (max_output_voxels > 0) spec_.fill.max_output_voxels = max_output_voxels;
+    relative_paths_ = true;
+    return absl::OkStatus();
+  }
+
+  absl::StatusOr<JobResult> Run(const ComputeContext& context) const override {
+    absl::StatusOr<FillJobReport> report = RunFillJob(spec_, context);
+    if (!report.ok()) return report.status();
+    JobResult result;
+    result.stages = {{"read", report->read_seconds},
+                     {"fill", report->fill_seconds},
+                     {"mesh", report->mesh_seconds},
+                     {"write", report->write_seconds}};
+    for (const FillArtifact& a : report->artifacts) {
+      result.artifacts.push_back({a.kind, a.path, a.size_bytes});
+    }
+    result.warnings = report->warnings;
+    result.summary = FillSummary(*report, spec_.output_dir);
+    result.peak_rss_bytes = PeakRssBytes();
+    if (relative_paths_) {
+      for (FillArtifact& a : report->artifacts) a.path = FileName(a.path);
+    }
+    result.report_json = FillJobReportToJson(*report);
+    return result;
+  }
+
+ private:
+  FillJobSpec spec_;
+  const std::string segmentation_upload_name_;
+  bool relative_paths_ = false;
+};
+
+}  // namespace
+
+std::unique_ptr<JobKind> MakeInterpolationJob(JobSpec spec) {
+  return std::make_unique<InterpolationJob>(std::move(spec));
+}
+
+std::unique_ptr<JobKind> MakeFillJob(FillJobSpec spec) {
+  return std::make_unique<FillJob>(std::move(spec), "");
+}
+
+absl::StatusOr<std::unique_ptr<JobKind>> MakeJobFromWire(
+    const v1::JobSpec& spec) {
+  if (IsFillSpec(spec)) {
+    absl::StatusOr<FillJobSpec> fill = FillJobSpecFromWire(spec);
+    if (!fill.ok()) return fill.status();
+    return std::unique_ptr<JobKind>(std::make_unique<FillJob>(
+        *std::move(fill), spec.fill().segmentation_file()));
+  }
+  absl::StatusOr<JobSpec> interpolation = JobSpecFromWire(spec);
+  if (!interpolation.ok()) return interpolation.status();
+  return MakeInterpolationJob(*std::move(interpolation));
+}
+
+std::string SegmentationUploadPath(const std::string& client_name) {
+  std::string lower = client_name;
+  std::transform(lower.begin(), lower.end(), lower.begin(),
+                 [](unsigned char c) { return std::tolower(c); });
+  std::string extension = ".dcm";
+  for (const char* e : {".nii.gz", ".nii", ".nrrd"}) {
+    if (absl::EndsWith(lower, e)) {
+      extension = e;
+      break;
+    }
+  }
+  return absl::StrCat(kSegmentationFolder, "/segmentation", extension);
+}
+
+std::string MediaTypeForArtifact(const std::string& name) {
+  if (absl::EndsWith(name, ".nii.gz")) return "application/gzip";
+  if (absl::EndsWith(name, ".nrrd")) return "application/octet-stream";
+  if (absl::EndsWith(name, ".nii")) return "application/octet-stream";
+  if (absl::EndsWith(name, ".stl")) return "model/stl";
+  if (absl::EndsWith(name, ".ply")) return "application/ply";
+  if (absl::EndsWith(name, ".obj")) return "model/obj";
+  if (absl::EndsWith(name, ".dcm")) return "application/dicom";
+  if (absl::EndsWith(name, ".txt")) return "text/plain";
+  return "application/octet-stream";
+}
+
+}  // namespace interslice::job

@@ -1,0 +1,103 @@
+// The kinds of job (interpolation, fill) behind one interface, so that the
+// CLI, the server's job manager and worker processes and the DICOM node's
+// rules run any job without knowing which kind it is.
+//
+// A job is made from a core spec (the CLI, in-process) or from the wire spec
+// (the server), pointed at its files, and run with progress and
+// cancellation (core/common/compute.h). What it made comes back in one
+// report shape, JobResult: the stages with their times, the artifacts, and
+// the kind's own detailed report as JSON.
+#ifndef INTERSLICE_JOB_JOB_H_
+#define INTERSLICE_JOB_JOB_H_
+
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "absl/strings/string_view.h"
+#include "core/common/compute.h"
+#include "core/labels/fill_job.h"
+#include "core/pipeline/pipeline.h"
+#include "interslice/v1/interslice.pb.h"
+
+namespace interslice::job {
+
+// What a job made, the same for every kind.
+struct JobResult {
+  // Stage names and seconds, in the order they ran.
+  std::vector<StageTiming> stages;
+  // kind, path, size: files, or a folder for a derived DICOM series. Paths
+  // are where the job wrote them (absolute when its output folder was).
+  std::vector<Artifact> artifacts;
+  // The kind's own report (core/pipeline JobReportToJson, core/labels
+  // FillJobReportToJson). With JobKind::UseSpool its artifact paths are
+  // relative to the output folder (a client must not learn the server's
+  // paths); otherwise as written.
+  std::string report_json;
+  // For a person: a few lines that say what was made (no patient data).
+  std::vector<std::string> summary;
+  // Things the person should know although the job succeeded.
+  std::vector<std::string> warnings;
+  // Of the process that ran the job (getrusage), bytes.
+  int64_t peak_rss_bytes = 0;
+};
+
+class JobKind {
+ public:
+  virtual ~JobKind() = default;
+
+  // "interpolate" or "fill".
+  virtual absl::string_view name() const = 0;
+
+  // Admission (server): the fewest files an upload of this job can hold
+  // (a fill job uploads its segmentation and its reference series).
+  virtual int min_upload_files() const = 0;
+  // Whether the job writes DICOM results (needed to deliver to a peer).
+  virtual bool writes_dicom() const = 0;
+  // The uploaded file (by FileChunk.file_name) that is the job's
+  // segmentation, stored at SegmentationUploadPath() in the upload folder;
+  // empty for kinds without one.
+  virtual std::string segmentation_upload_name() const { return ""; }
+
+  // Points the job at a server's spool: it reads its files from
+  // `upload_dir` (series files at its top level, a segmentation where
+  // SegmentationUploadPath puts it) and writes into `output_dir`;
+  // max_output_voxels > 0 replaces the core's default limit. The report's
+  // artifact paths become relative to `output_dir`. FAILED_PRECONDITION
+  // when the files the job needs are not there.
+  virtual absl::Status UseSpool(const std::string& upload_dir,
+                                const std::string& output_dir,
+                                int64_t max_output_voxels) = 0;
+
+  // Runs the job. Errors from the core (each stage's header says which);
+  // CANCELLED / DEADLINE_EXCEEDED when context.cancel fires.
+  virtual absl::StatusOr<JobResult> Run(
+      const ComputeContext& context) const = 0;
+};
+
+// A job for the core spec as given (inputs and output folder included).
+std::unique_ptr<JobKind> MakeInterpolationJob(JobSpec spec);
+std::unique_ptr<JobKind> MakeFillJob(FillJobSpec spec);
+
+// The job a wire spec names (fill when spec.fill is set), checked as every
+// door checks it (job/wire.h); INVALID_ARGUMENT naming the wire field. Its
+// files are set by UseSpool.
+absl::StatusOr<std::unique_ptr<JobKind>> MakeJobFromWire(
+    const v1::JobSpec& spec);
+
+// Where a job's uploaded segmentation is stored, relative to its upload
+// folder: "segmentation/segmentation" + the extension of `client_name`
+// (".nii", ".nii.gz", ".nrrd"; anything else ".dcm", which selects the
+// DICOM reader). Kept out of the folder's top level so that a SEG or
+// RTSTRUCT is never read as part of the reference series.
+std::string SegmentationUploadPath(const std::string& client_name);
+
+// "distance"/"mask"/... file name -> its media type (application/dicom,
+// model/stl, ...).
+std::string MediaTypeForArtifact(const std::string& file_name);
+
+}  // namespace interslice::job
+
+#endif  // INTERSLICE_JOB_JOB_H_
