@@ -3,11 +3,11 @@
 //
 // Decoding: native pixel data (implicit/explicit little endian, explicit big
 // endian, deflated) and what a registered DCMTK codec decodes (JPEG
-// baseline, extended and lossless, JPEG-LS, RLE), the same file read the
-// same way whatever the syntax; JPEG 2000 (1.2.840.10008.1.2.4.90/.91)
+// baseline, extended and lossless, JPEG-LS, RLE) through DCMTK, which
+// decodes every frame of the file; JPEG 2000 (1.2.840.10008.1.2.4.90/.91)
 // through GDCM (gdcm_decode.h), used only when DCMTK cannot decode, one
-// frame's codestream at a time and one fragment per frame when there are
-// several frames. Anything else: UNIMPLEMENTED naming the syntax.
+// asked-for frame's codestream at a time, one fragment per frame when there
+// are several frames. Anything else: UNIMPLEMENTED naming the syntax.
 //
 // Values: stored value (the BitsStored bits at HighBit, sign-extended when
 // PixelRepresentation is 1; other bits, e.g. overlays, ignored) *
