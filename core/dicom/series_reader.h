@@ -1,5 +1,14 @@
 // Reading one DICOM image series into a volume (DCMTK; GDCM for JPEG 2000).
 //
+// ReadDicomSeries runs three parts, each with its own header and usable on
+// its own: series_index.h (paths -> scanned headers -> image series, and the
+// listings used in messages), series_layout.h (one series' headers -> the
+// sorted stack's geometry, multi-frame volumes, gantry tilt) and
+// pixel_decode.h (a file's frames -> modality values). This header includes
+// the index and decode headers, which declare DicomSeriesSummary,
+// CollectInputFiles, TransferSyntaxInfo, DecodableTransferSyntaxes and
+// RegisterDicomDecoders.
+//
 // Input: files and/or directories (directories are searched recursively).
 // Files that are not DICOM, DICOMDIR files, DICOM objects that are not
 // images with a position and orientation (reports, presentation states,
@@ -97,6 +106,8 @@
 
 #include "absl/status/statusor.h"
 #include "core/common/compute.h"
+#include "core/dicom/pixel_decode.h"  // DecodableTransferSyntaxes, ...
+#include "core/dicom/series_index.h"  // DicomSeriesSummary, CollectInputFiles
 #include "core/geometry/volume.h"
 
 namespace interslice {
@@ -123,14 +134,6 @@ struct DicomSliceInfo {
   Vec3 image_position = {0, 0, 0};
   double position_along_normal = 0;  // mm
   double rescale_slope = 1, rescale_intercept = 0;
-};
-
-// One series found in the input (for listings and error messages).
-struct DicomSeriesSummary {
-  // The UID, or for a series without one its name ("no-uid-1", ...).
-  std::string series_instance_uid;
-  std::string modality;
-  int64_t image_count = 0;
 };
 
 struct DicomSeries {
@@ -162,16 +165,6 @@ struct DicomSeries {
   std::vector<std::string> notes;
 };
 
-// The files of `paths` (files, and folders searched recursively; entries
-// that are neither are skipped), sorted and without duplicates (the same file
-// reached twice, through a folder and by name, is listed once), so that what
-// is read does not depend on listing order. This is exactly what
-// ReadDicomSeries reads, and what `interslice interpolate` uploads.
-// INVALID_ARGUMENT for no paths or a folder that cannot be listed (never a
-// partial listing); NOT_FOUND for a path that does not exist.
-absl::StatusOr<std::vector<std::string>> CollectInputFiles(
-    const std::vector<std::string>& paths);
-
 // Reads the series. `paths` are files or directories.
 absl::StatusOr<DicomSeries> ReadDicomSeries(
     const std::vector<std::string>& paths, const DicomReadOptions& options,
@@ -181,24 +174,10 @@ absl::StatusOr<DicomSeries> ReadDicomSeries(
 absl::StatusOr<std::vector<DicomSeriesSummary>> ListDicomSeries(
     const std::vector<std::string>& paths);
 
-struct TransferSyntaxInfo {
-  std::string uid;
-  std::string name;
-};
-
-// The transfer syntaxes this reader decodes: the uncompressed and deflated
-// ones, those a registered DCMTK codec can decode (JPEG, JPEG-LS, RLE), and
-// JPEG 2000 through GDCM. Computed from the codec registry, so it stays true.
-std::vector<TransferSyntaxInfo> DecodableTransferSyntaxes();
-
 // Turns DCMTK's own logger (which prints a line to stderr for every file it
 // cannot parse) down to fatal messages. Programs call it once at start-up;
 // the library never changes that process-wide setting by itself.
 void QuietDicomToolkitLogging();
-
-// Registers DCMTK's JPEG, JPEG-LS and RLE decoders; idempotent and
-// thread-safe (ReadDicomSeries calls it).
-void RegisterDicomDecoders();
 
 }  // namespace interslice
 
