@@ -29,6 +29,7 @@
 #include "absl/strings/str_split.h"
 #include "core/dicom/series_reader.h"
 #include "core/labels/label_fill.h"
+#include "core/labels/label_map_io.h"
 #include "core/volume_io/volume_io.h"
 #include "itkConnectedComponentImageFilter.h"
 #include "itkImage.h"
@@ -271,18 +272,14 @@ int Main(int argc, char** argv) {
   LabelVolume truth;
   std::vector<MadeLabel> made;
   if (!labels_path.empty()) {
-    absl::StatusOr<Volume<float>> raw = ReadVolumeAsFloat(labels_path);
-    absl::Status s = raw.status();
-    if (s.ok())
-      s = CheckSameGrid(raw->grid, series->image.grid, "the label map");
-    absl::StatusOr<LabelVolume> l =
-        s.ok() ? LabelVolumeFromFloat(*raw) : absl::StatusOr<LabelVolume>(s);
+    // Any layout of the series' voxels (core/labels/label_map_io.h).
+    absl::StatusOr<LabelMapOnReference> l =
+        ReadLabelMapOnReference(labels_path, series->image.grid);
     if (!l.ok()) {
       std::fprintf(stderr, "%s\n", std::string(l.status().message()).c_str());
       return 1;
     }
-    truth = *std::move(l);
-    truth.grid = series->image.grid;
+    truth = std::move(l->labels);
   } else {
     std::vector<float> edges;
     for (absl::string_view e : absl::StrSplit(bands_text, ',')) {
