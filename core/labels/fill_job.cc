@@ -14,6 +14,7 @@
 #include "core/dicom_out/rtstruct.h"
 #include "core/labels/label_contours.h"
 #include "core/labels/label_map_io.h"
+#include "core/labels/segment_names.h"
 #include "core/labels/segmentation_reader.h"
 #include "core/surface/surface.h"
 #include "core/volume_io/volume_io.h"
@@ -255,6 +256,26 @@ absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
     label_map_file = std::move(map->file);
     report.input_kind = "label-map";
     report.input_layout = label_map_file->mapping.Describe();
+    // Segment names: a Slicer .seg.nrrd's own, replaced by a sidecar's.
+    absl::StatusOr<std::vector<LabelSegment>> segments =
+        SegmentsFromSlicerFields(label_map_file->header.key_values);
+    std::string source = "the segmentation's segments";
+    if (segments.ok() && !spec.label_names.empty()) {
+      segments = ReadSegmentNames(spec.label_names);
+      source = "the label names";
+    }
+    if (!segments.ok()) return segments.status();
+    if (!segments->empty()) {
+      INTERSLICE_RETURN_IF_ERROR(CheckSegmentsAgainstLabels(
+          *segments, LabelsPresent(input.labels), source));
+    }
+    input.segments = *std::move(segments);
+    report.segments = input.segments;
+  }
+  if (!spec.label_names.empty() && report.input_kind != "label-map") {
+    return absl::InvalidArgumentError(
+        "label names are for a label map; a SEG or RTSTRUCT names its "
+        "segments itself");
   }
   const bool write_rtstruct = spec.write_rtstruct.value_or(input.rtstruct);
   if (!spec.write_seg && !write_rtstruct) {

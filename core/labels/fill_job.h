@@ -19,8 +19,9 @@
 //   result writes no mesh;
 //   write_seg -> seg.dcm: the filled label map as a multi-segment DICOM SEG
 //   (core/dicom_out/label_segmentation.h) carrying the input's segment
-//   labels, colours and codes (a label map: "Label N", a colour per label,
-//   generic codes); segment n is the n-th label present, ascending;
+//   labels, colours and codes (a label map: from label_names or its own
+//   .seg.nrrd fields, else "Label N", a colour per label, generic codes);
+//   segment n is the n-th label present, ascending;
 //   write_rtstruct (default: on for RTSTRUCT input) -> rtstruct.dcm: the
 //   filled labels as CLOSED_PLANAR contours per ROI and slice
 //   (core/dicom_out/rtstruct.h; ROI numbers = labels, names and colours from
@@ -53,7 +54,11 @@
 namespace interslice {
 
 struct FillJobSpec {
-  std::string segmentation;            // label map or DICOM SEG path
+  std::string segmentation;  // label map or DICOM SEG path
+  // A label map's segment names, colours and codes: a colour table (.csv)
+  // or JSON sidecar (segment_names.h); empty: a .seg.nrrd's own segment
+  // fields, else "Label N". INVALID_ARGUMENT with SEG or RTSTRUCT input.
+  std::string label_names;
   std::vector<std::string> reference;  // DICOM files and/or directories
   std::string series_instance_uid;     // when the reference holds several
   FillOptions fill;

@@ -8,6 +8,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "core/common/status_macros.h"
+#include "core/labels/segment_names.h"
 
 namespace interslice {
 namespace {
@@ -38,6 +39,12 @@ absl::StatusOr<LabelMapOnReference> ReadLabelMapOnReference(
         "the label map %s scales its voxel values (scl_slope %g, scl_inter "
         "%g); a label map stores its labels unscaled",
         name, header.scl_slope, header.scl_inter));
+  }
+  // Overlapping segments of a Slicer segmentation (stored in layers) are
+  // named as such rather than as a 4D volume.
+  if (absl::Status s = SegmentsFromSlicerFields(header.key_values).status();
+      !s.ok()) {
+    return absl::Status(s.code(), absl::StrCat(name, ": ", s.message()));
   }
   INTERSLICE_ASSIGN_OR_RETURN(
       out.file.mapping,
