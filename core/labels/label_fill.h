@@ -28,12 +28,15 @@
 //     the nearest slice wins more often than at the real gap
 //     (docs/eval/segmentations.md has both rules on the real series).
 //   The highest score wins (ties: linear, refined, morph, blend, copy, in
-//   that order). A label with fewer than three key slices gets linear
-//   stacking. Why: on the drop-k evaluation (docs/eval/segmentations.md) the
-//   refinement wins on compact structures but flattens 1-2 pixel thin ones,
-//   the morph wins where a structure moves or changes shape between key
-//   slices, and the nearest-slice copy beats linear stacking on small, thin
-//   structures at large gaps; no single method is best for every label.
+//   that order). Without validation: a label drawn on one key slice is
+//   copied (the interpolations close it off toward its drawn-and-empty
+//   neighbours: Dice .50 for the copy against <= .30 on the real series), a
+//   label drawn on two gets the morph (the refinement without auto_morph). Why:
+//   on the drop-k evaluation (docs/eval/segmentations.md) the refinement wins
+//   on compact structures but flattens 1-2 pixel thin ones, the morph wins
+//   where a structure moves or changes shape between key slices, and the
+//   nearest-slice copy beats linear stacking on small, thin structures at large
+//   gaps; no single method is best for every label.
 // - kSolver: every label with options.solver.method (linear, cg or direct),
 //   the paper's stages as such, or kMorph: every label by the morph as in
 //   kAuto (a label on one key slice: linear).
