@@ -22,13 +22,18 @@
 //     slices): in four folds only every 4th key slice (and the first and
 //     last) is kept, the others predicted, giving D(4g);
 //   - the score predicting the Dice at the label's own gap g is D(2g) with
-//     kDoubledGap or too few key slices, else the trend of the two,
-//     linear in log(gap): D(g) ~ 2 D(2g) - D(4g). Why: the doubled gap alone
-//     predicts the method that is best at twice the real gap, where copying
-//     the nearest slice wins more often than at the real gap
-//     (docs/eval/segmentations.md has both rules on the real series).
+//     kDoubledGap or too few key slices, else the error e = 1 - D
+//     extrapolated by a power law: e(g) = e(2g) 2^-p where e(4g) = e(2g) 2^p,
+//     p clamped to [0, 2] (halving the gap makes no candidate worse, and none
+//     better than a second-order interpolation error would). Why: the
+//     doubled gap alone predicts the method that is best at twice the real
+//     gap, where structures overlap less between key slices than at the real
+//     gap (docs/eval/segmentations.md has both rules on the real series).
 //   The highest score wins (ties: linear, refined, morph, blend, copy, in
-//   that order). Without validation: a label drawn on one key slice is
+//   that order), unless every candidate's D(2g) is below 0.1 (nothing
+//   overlaps at the doubled gap: a thin or small structure moving more than
+//   its size; the validation cannot rank them): then the morph (the copy
+//   without auto_morph). Without validation: a label drawn on one key slice is
 //   copied (the interpolations close it off toward its drawn-and-empty
 //   neighbours: Dice .50 for the copy against <= .30 on the real series), a
 //   label drawn on two gets the morph (the refinement without auto_morph). Why:
@@ -182,8 +187,8 @@ struct LabelFillInfo {
   // when not selected by validation, e.g. fewer than three key slices):
   // pooled Dice of each candidate on the held-out key slices at the doubled
   // gap, at the quadrupled gap (kGapTrend with >= 6 key slices), and the
-  // score the choice was made on. A candidate that was not tried (the morph
-  // without auto_morph) has Dice and score -1.
+  // score the choice was made on (the extrapolated Dice). A candidate that was
+  // not tried (the morph without auto_morph) has Dice and score -1.
   std::vector<std::pair<std::string, double>> validation_dice;
   std::vector<std::pair<std::string, double>> validation_dice_4g;
   std::vector<std::pair<std::string, double>> validation_score;

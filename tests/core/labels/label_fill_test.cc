@@ -472,6 +472,42 @@ TEST(AutoFillTest, LabelOnOneKeySliceIsKept) {
   EXPECT_EQ(CountOnSlice(result->labels, 10, 3), 9);
   EXPECT_THAT(result->warnings,
               ::testing::Contains(HasSubstr("label 3 is drawn on slice 10")));
+  // No validation for it: copied (to the slices nearer to it than to its
+  // drawn-and-empty neighbours 5 and 15).
+  ASSERT_EQ(result->per_label.size(), 3u);
+  EXPECT_EQ(result->per_label[2].method, "copy");
+  EXPECT_TRUE(result->per_label[2].validation_dice.empty());
+  for (int64_t k = 8; k <= 12; ++k)
+    EXPECT_EQ(CountOnSlice(result->labels, k, 3), 9);
+  EXPECT_EQ(CountOnSlice(result->labels, 7, 3), 0);
+  EXPECT_EQ(CountOnSlice(result->labels, 13, 3), 0);
+}
+
+// A small disc moving 12 pixels over two key gaps, three times its
+// diameter: no candidate predicts a held-out key slice at the doubled gap,
+// so the validation cannot rank them and the morph fills it.
+TEST(AutoFillTest, UninformativeValidationGetsTheMorph) {
+  LabelVolume truth;
+  truth.grid.size = {48, 24, 25};
+  truth.data.assign(truth.grid.VoxelCount(), 0);
+  for (int64_t k = 0; k < 25; ++k) {
+    const double cx = 5 + 1.5 * k;
+    for (int64_t j = 0; j < 24; ++j) {
+      for (int64_t i = 0; i < 48; ++i) {
+        if ((i - cx) * (i - cx) + (j - 12) * (j - 12) <= 4)
+          truth.at(i, j, k) = 1;
+      }
+    }
+  }
+  const std::vector<int64_t> keys = EveryNth(4, 25);
+  absl::StatusOr<FillResult> result =
+      FillWith("auto", KeepSlices(truth, keys), keys);
+  ASSERT_TRUE(result.ok()) << result.status();
+  const LabelFillInfo& info = result->per_label[0];
+  ASSERT_EQ(info.validation_dice.size(), 5u);
+  for (const auto& [name, dice] : info.validation_dice)
+    EXPECT_LT(dice, 0.1) << name;
+  EXPECT_EQ(info.method, "morph");
 }
 
 // Two discs of radius 5 moving 1.5 pixels per slice (label 1 to +x+y,
@@ -534,8 +570,8 @@ TEST(MorphFillTest, MovingStructuresFollowTheirMotion) {
 
 // What the selection saw, per rule: the doubled-gap Dice always (three or
 // more key slices), the quadrupled-gap Dice with the trend rule and six or
-// more key slices, and the score the choice was made on (the trend
-// 2 D(2g) - D(4g), or D(2g)); without auto_morph the morph is not tried.
+// more key slices, and the score the choice was made on (the power-law
+// trend of the error, or D(2g)); without auto_morph the morph is not tried.
 TEST(AutoFillTest, SelectionReportsWhatItSaw) {
   const LabelVolume truth = Ball(15.3, 0);
   const std::vector<int64_t> keys = EveryNth(3, kSize);  // 14 key slices
@@ -553,9 +589,13 @@ TEST(AutoFillTest, SelectionReportsWhatItSaw) {
   double best_score = -1e9;
   for (size_t c = 0; c < 5; ++c) {
     EXPECT_EQ(t.validation_dice[c].first, t.validation_score[c].first);
-    EXPECT_NEAR(
-        t.validation_score[c].second,
-        2 * t.validation_dice[c].second - t.validation_dice_4g[c].second, 1e-9);
+    // The power law of the error: e(g) = e(2g) 2^-p, e(4g) = e(2g) 2^p,
+    // p in [0, 2].
+    const double e2 = 1 - t.validation_dice[c].second;
+    const double e4 = 1 - t.validation_dice_4g[c].second;
+    const double p = std::clamp(std::log2(e4 / e2), 0.0, 2.0);
+    EXPECT_NEAR(t.validation_score[c].second, 1 - e2 * std::exp2(-p), 1e-9);
+    EXPECT_GE(t.validation_score[c].second, t.validation_dice[c].second);
     // Quadrupling the gap costs every candidate on a ball.
     EXPECT_LT(t.validation_dice_4g[c].second, t.validation_dice[c].second)
         << t.validation_dice[c].first;
