@@ -45,7 +45,7 @@ def goal_lines(name, summary):
 
 def section(out_dir, title, level, figure_name):
     """The report of one run of interslice_fill_eval, headings at `level`."""
-    h = "#" * level
+    h = "#" * (level + 1) if title else "#" * level
     summary = list(csv.DictReader(open(os.path.join(out_dir, "fill_summary.csv"))))
     metrics = list(csv.DictReader(open(os.path.join(out_dir, "fill_metrics.csv"))))
     made = json.load(open(os.path.join(out_dir, "labels.json")))
@@ -54,7 +54,7 @@ def section(out_dir, title, level, figure_name):
     by = {(int(r["k"]), r["method"]): r for r in summary}
     lines = []
     if title:
-        lines += ["#" * (level - 1) + " " + title, ""]
+        lines += ["#" * level + " " + title, ""]
     grid = made.get("grid")
     lines += [
         "Data: %d labels on a %s grid%s. Every k-th slice (0, k, 2k, ...) is "
