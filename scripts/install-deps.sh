@@ -57,9 +57,10 @@ if [ "${1:-}" = "--image" ]; then
   packages=("${kept[@]}")
   viewer_npm() { :; }
 fi
-# Extra packages for the evaluation report (scripts/eval.sh): plots.
+# Extra packages for the evaluation report (scripts/eval.sh): plots; nibabel
+# reads label maps back as a user's tools would (tests/core/volume_io).
 if [ "${1:-}" = "--eval" ]; then
-  packages+=(python3-matplotlib python3-numpy)
+  packages+=(python3-matplotlib python3-numpy python3-nibabel)
 fi
 
 missing=()

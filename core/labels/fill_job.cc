@@ -13,6 +13,8 @@
 #include "core/dicom_out/label_segmentation.h"
 #include "core/dicom_out/rtstruct.h"
 #include "core/labels/label_contours.h"
+#include "core/labels/label_map_io.h"
+#include "core/labels/segment_names.h"
 #include "core/labels/segmentation_reader.h"
 #include "core/surface/surface.h"
 #include "core/volume_io/volume_io.h"
@@ -233,6 +235,7 @@ absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
   }
 
   SegmentationInput input;
+  std::optional<LabelMapFile> label_map_file;
   if (LooksLikeDicomFile(spec.segmentation)) {
     absl::StatusOr<SegmentationInput> seg =
         ReadDicomLabels(spec.segmentation, reference_series, spec.fill.labels);
@@ -243,18 +246,37 @@ absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
                                            : "seg-binary";
     report.segments = input.segments;
   } else {
-    absl::StatusOr<Volume<float>> raw = ReadVolumeAsFloat(spec.segmentation);
-    if (!raw.ok()) return Annotate(raw.status(), spec.segmentation);
-    INTERSLICE_RETURN_IF_ERROR(
-        CheckSameGrid(raw->grid, reference, "the label map"));
-    absl::StatusOr<LabelVolume> labels = LabelVolumeFromFloat(*raw);
-    if (!labels.ok()) return Annotate(labels.status(), spec.segmentation);
-    input.labels = *std::move(labels);
+    // Any layout of the reference's voxels (label_map_io.h); the
+    // reference's (DICOM) geometry is the one carried to the DICOM outputs,
+    // the file's own layout and header to the label map outputs.
+    absl::StatusOr<LabelMapOnReference> map =
+        ReadLabelMapOnReference(spec.segmentation, reference);
+    if (!map.ok()) return map.status();
+    input.labels = std::move(map->labels);
+    label_map_file = std::move(map->file);
     report.input_kind = "label-map";
+    report.input_layout = label_map_file->mapping.Describe();
+    // Segment names: a Slicer .seg.nrrd's own, replaced by a sidecar's.
+    absl::StatusOr<std::vector<LabelSegment>> segments =
+        SegmentsFromSlicerFields(label_map_file->header.key_values);
+    std::string source = "the segmentation's segments";
+    if (segments.ok() && !spec.label_names.empty()) {
+      segments = ReadSegmentNames(spec.label_names);
+      source = "the label names";
+    }
+    if (!segments.ok()) return segments.status();
+    if (!segments->empty()) {
+      INTERSLICE_RETURN_IF_ERROR(CheckSegmentsAgainstLabels(
+          *segments, LabelsPresent(input.labels), source));
+    }
+    input.segments = *std::move(segments);
+    report.segments = input.segments;
   }
-  // The label map's grid equals the reference up to rounding; the
-  // reference's (DICOM) geometry is the one carried to the outputs.
-  input.labels.grid = reference;
+  if (!spec.label_names.empty() && report.input_kind != "label-map") {
+    return absl::InvalidArgumentError(
+        "label names are for a label map; a SEG or RTSTRUCT names its "
+        "segments itself");
+  }
   const bool write_rtstruct = spec.write_rtstruct.value_or(input.rtstruct);
   if (!spec.write_seg && !write_rtstruct) {
     std::vector<float>().swap(source.image.data);
@@ -316,7 +338,12 @@ absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
   for (const std::string& format : spec.volume_formats) {
     const std::string path =
         (dir / (format == "nii" ? "labels.nii.gz" : "labels.nrrd")).string();
-    INTERSLICE_RETURN_IF_ERROR(WriteVolume(result.labels, path));
+    if (label_map_file.has_value()) {
+      INTERSLICE_RETURN_IF_ERROR(
+          WriteLabelMapLike(result.labels, *label_map_file, path, context));
+    } else {
+      INTERSLICE_RETURN_IF_ERROR(WriteVolume(result.labels, path, context));
+    }
     report.artifacts.push_back({"labels", 0, path, FileSize(path)});
   }
   for (const auto& [label, mesh] : meshes) {
@@ -355,6 +382,7 @@ std::string FillJobReportToJson(const FillJobReport& report) {
                {"insertion_factor", report.factor}};
   j["method"] = report.method;
   j["input"] = report.input_kind;
+  if (!report.input_layout.empty()) j["input_layout"] = report.input_layout;
   ordered_json segments = ordered_json::array();
   for (const LabelSegment& d : report.segments) {
     const std::array<uint8_t, 3> rgb = SegmentRgb(d);

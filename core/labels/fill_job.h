@@ -3,21 +3,25 @@
 // `interslice fill`.
 //
 // Input: a label map (.nii, .nii.gz, .nrrd; integer labels, 0 = background)
-// on the grid of the reference series (CheckSameGrid; the reference is read
-// with core/dicom), or a DICOM SEG drawn on the reference series (any DICOM
-// file is read as one; label = SegmentNumber; segmentation_reader.h).
-// Output files in output_dir (created if missing), each written atomically
-// after every computation succeeded:
-//   volume formats "nii" -> labels.nii.gz, "nrrd" -> labels.nrrd (uint16
-//   label map on the output grid);
+// on the voxels of the reference series in any index layout (axes permuted
+// or flipped, label_map_io.h; the reference is read with core/dicom), or a
+// DICOM SEG drawn on the reference series (any DICOM file is read as one; label
+// = SegmentNumber; segmentation_reader.h). Output files in output_dir (created
+// if missing), each written atomically after every computation succeeded:
+//   volume formats "nii" -> labels.nii.gz, "nrrd" -> labels.nrrd: the label
+//   map on the output grid, for label map input in the input's layout and
+//   header (WriteLabelMapLike: axis order, directions, origin, NIfTI
+//   qform/sform codes, NRRD fields, voxel type), else uint16 in the
+//   reference's layout;
 //   mesh formats "stl" / "ply" / "obj" -> label-<L>.<ext>, one watertight
 //   mesh per filled label (LPS mm, from the label's combined field, so
 //   neighbouring labels' meshes meet without overlap); a label with an empty
 //   result writes no mesh;
 //   write_seg -> seg.dcm: the filled label map as a multi-segment DICOM SEG
 //   (core/dicom_out/label_segmentation.h) carrying the input's segment
-//   labels, colours and codes (a label map: "Label N", a colour per label,
-//   generic codes); segment n is the n-th label present, ascending;
+//   labels, colours and codes (a label map: from label_names or its own
+//   .seg.nrrd fields, else "Label N", a colour per label, generic codes);
+//   segment n is the n-th label present, ascending;
 //   write_rtstruct (default: on for RTSTRUCT input) -> rtstruct.dcm: the
 //   filled labels as CLOSED_PLANAR contours per ROI and slice
 //   (core/dicom_out/rtstruct.h; ROI numbers = labels, names and colours from
@@ -50,7 +54,11 @@
 namespace interslice {
 
 struct FillJobSpec {
-  std::string segmentation;            // label map or DICOM SEG path
+  std::string segmentation;  // label map or DICOM SEG path
+  // A label map's segment names, colours and codes: a colour table (.csv)
+  // or JSON sidecar (segment_names.h); empty: a .seg.nrrd's own segment
+  // fields, else "Label N". INVALID_ARGUMENT with SEG or RTSTRUCT input.
+  std::string label_names;
   std::vector<std::string> reference;  // DICOM files and/or directories
   std::string series_instance_uid;     // when the reference holds several
   FillOptions fill;
@@ -82,6 +90,9 @@ struct FillJobReport {
   // "label-map", "seg-binary", "seg-fractional" or "rtstruct"; a SEG's
   // segments or an RTSTRUCT's ROIs.
   std::string input_kind;
+  // A label map's index axes against the reference's (AxisMapping::
+  // Describe, "(i, j, k)" when the same); empty for DICOM input.
+  std::string input_layout;
   std::vector<LabelSegment> segments;
   // Key slices whose 2D distance came from the input's polygons (RTSTRUCT).
   int64_t polygon_key_slices = 0;

@@ -9,20 +9,42 @@
 // - kAuto (default, beyond the paper): per label, the candidate that best
 //   predicts the label's own held-out key slices. Candidates: nearest-slice
 //   copy (the nearest key slice's distance map), linear stacking, their
-//   mean ("blend"), and the paper's refinement with the exact minimiser
-//   (core/solver kDirect). Selection never sees withheld truth: in two
-//   folds, every other inner key slice (first 1, 3, 5, ..., then 2, 4,
-//   ...; never the first or last) is left out, each candidate fills it from
-//   the remaining key slices (gaps about twice the label's own), and the
-//   candidate with the highest Dice pooled over all held-out slices wins
-//   (ties: linear, refined, blend, copy, in that order).
-//   A label with fewer than three key slices gets linear stacking. Why:
-//   on the drop-k evaluation (docs/eval/segmentations.md) the refinement
-//   wins on compact structures but flattens 1-2 pixel thin ones, and the
-//   nearest-slice copy beats linear stacking on small, thin structures at
-//   large gaps; no single method is best for every label.
+//   mean ("blend"), the paper's refinement with the exact minimiser
+//   (core/solver kDirect) and the morph (core/morph StackMorph on the
+//   label's key-slice distance maps: each pair of neighbouring key slices
+//   registered, the label carried along the trajectory; with its component
+//   filter; FillOptions::auto_morph). Selection never sees withheld truth:
+//   - at the doubled gap: in two folds, every other inner key slice (first
+//     1, 3, 5, ..., then 2, 4, ...; never the first or last) is left out,
+//     each candidate fills it from the remaining key slices, giving the
+//     Dice D(2g) pooled over all held-out slices;
+//   - at the quadrupled gap (AutoSelection::kGapTrend, labels with >= 6 key
+//     slices): in four folds only every 4th key slice (and the first and
+//     last) is kept, the others predicted, giving D(4g);
+//   - the score predicting the Dice at the label's own gap g is D(2g) with
+//     kDoubledGap or too few key slices, else the error e = 1 - D
+//     extrapolated by a power law: e(g) = e(2g) 2^-p where e(4g) = e(2g) 2^p,
+//     p clamped to [0, 2] (halving the gap makes no candidate worse, and none
+//     better than a second-order interpolation error would). Why: the
+//     doubled gap alone predicts the method that is best at twice the real
+//     gap, where structures overlap less between key slices than at the real
+//     gap (docs/eval/segmentations.md has both rules on the real series).
+//   The highest score wins (ties: linear, refined, morph, blend, copy, in
+//   that order), unless every candidate's D(2g) is below 0.1 (nothing
+//   overlaps at the doubled gap: a thin or small structure moving more than
+//   its size; the validation cannot rank them): then the morph (the copy
+//   without auto_morph). Without validation: a label drawn on one key slice is
+//   copied (the interpolations close it off toward its drawn-and-empty
+//   neighbours: Dice .50 for the copy against <= .30 on the real series), a
+//   label drawn on two gets the morph (the refinement without auto_morph). Why:
+//   on the drop-k evaluation (docs/eval/segmentations.md) the refinement wins
+//   on compact structures but flattens 1-2 pixel thin ones, the morph wins
+//   where a structure moves or changes shape between key slices, and the
+//   nearest-slice copy beats linear stacking on small, thin structures at large
+//   gaps; no single method is best for every label.
 // - kSolver: every label with options.solver.method (linear, cg or direct),
-//   the paper's stages as such.
+//   the paper's stages as such, or kMorph: every label by the morph as in
+//   kAuto (a label on one key slice: linear).
 // Each label is computed in its own box: the in-plane bounding box of its
 // drawn pixels grown by `margin_pixels`, between its first and last key
 // slice. Outside its box a label's field is -infinity.
@@ -103,6 +125,10 @@ std::vector<int64_t> KeySlicesForLabel(
 
 enum class FillMethod { kAuto, kSolver };
 
+// How kAuto predicts each candidate's Dice at a label's own key gap (see
+// above).
+enum class AutoSelection { kGapTrend, kDoubledGap };
+
 // "auto", "solver".
 std::string_view FillMethodName(FillMethod method);
 
@@ -118,6 +144,11 @@ struct FillOptions {
   // the paper's 15 CG steps. Ignored by kAuto (its refined candidate is
   // always the exact minimiser, kDirect, with these units).
   SolverOptions solver;
+  // kAuto: the selection rule, and whether the morph is a candidate (it
+  // costs a registration per pair of neighbouring key slices in each
+  // validation fold and in the fill).
+  AutoSelection selection = AutoSelection::kGapTrend;
+  bool auto_morph = true;
   // Output z resolution: unset = the input grid itself (factor 1); otherwise
   // as ChooseInsertionFactor (input slices land on output slices k * N).
   ZResolution z_resolution;
@@ -149,12 +180,18 @@ struct LabelFillInfo {
   int64_t drawn_slices = 0;         // key slices where the label is drawn
   int64_t output_voxels = 0;        // voxels of the label in the result
   SolverResult solver;
-  // What filled the label: "copy", "linear", "blend", "cg" or "direct".
+  // What filled the label: "copy", "linear", "blend", "cg", "direct" or
+  // "morph".
   std::string method;
-  // kAuto only: pooled Dice of each candidate on the held-out key slices,
-  // in the order copy, linear, blend, direct (empty when not selected by
-  // validation, e.g. fewer than three key slices).
+  // kAuto only, each in the order copy, linear, blend, direct, morph (empty
+  // when not selected by validation, e.g. fewer than three key slices):
+  // pooled Dice of each candidate on the held-out key slices at the doubled
+  // gap, at the quadrupled gap (kGapTrend with >= 6 key slices), and the
+  // score the choice was made on (the extrapolated Dice). A candidate that was
+  // not tried (the morph without auto_morph) has Dice and score -1.
   std::vector<std::pair<std::string, double>> validation_dice;
+  std::vector<std::pair<std::string, double>> validation_dice_4g;
+  std::vector<std::pair<std::string, double>> validation_score;
   // Field for meshing, on the label's box of the output grid:
   // min(f_L, (f_L - max_{M != L} f_M) / 2), positive exactly where L wins
   // the comparison (before gap closing and key-slice restoration). Empty

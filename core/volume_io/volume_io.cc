@@ -6,9 +6,11 @@
 #include <itkImageFileWriter.h>
 #include <itkImageIOBase.h>
 #include <itkImportImageContainer.h>
+#include <itkMetaDataObject.h>
 #include <itkNiftiImageIO.h>
 #include <itkNrrdImageIO.h>
 #include <unistd.h>
+#include <zlib.h>
 
 #include <algorithm>
 #include <cerrno>
@@ -99,9 +101,9 @@ absl::Status CreateEmptyFile(const std::string& path) {
 // The pixel type's ITK image of `grid`'s geometry with `size` voxels, over
 // `data` (not copied; writers only read it).
 template <typename T>
-typename itk::Image<T, 3>::Pointer WrapImage(const Grid& grid,
-                                             const Index3& size,
-                                             const T* data) {
+typename itk::Image<T, 3>::Pointer WrapImage(
+    const Grid& grid, const Index3& size, const T* data,
+    const VolumeHeaderFields* fields = nullptr) {
   using ImageType = itk::Image<T, 3>;
   typename ImageType::Pointer image = ImageType::New();
   typename ImageType::SizeType itk_size;
@@ -122,6 +124,14 @@ typename itk::Image<T, 3>::Pointer WrapImage(const Grid& grid,
   container->SetImportPointer(const_cast<T*>(data), size[0] * size[1] * size[2],
                               /*LetContainerManageMemory=*/false);
   image->SetPixelContainer(container);
+  if (fields != nullptr) {
+    // ITK's NRRD writer writes the dictionary's string entries (other than
+    // its own NRRD_ fields) as "key:=value" lines.
+    for (const auto& [key, value] : fields->key_values) {
+      itk::EncapsulateMetaData<std::string>(image->GetMetaDataDictionary(), key,
+                                            value);
+    }
+  }
   return image;
 }
 
@@ -161,6 +171,22 @@ absl::StatusOr<std::string> ReadWholeFile(const std::string& path) {
   return bytes;
 }
 
+// NIfTI-1 header offsets (nifti1.h): qform_code and sform_code (int16).
+constexpr size_t kQformCodeOffset = 252, kSformCodeOffset = 254;
+
+// Sets the NIfTI header's qform/sform codes that `fields` asks for.
+void PatchNiftiCodes(char* header, const VolumeHeaderFields* fields) {
+  if (fields == nullptr) return;
+  if (fields->qform_code.has_value()) {
+    const int16_t code = static_cast<int16_t>(*fields->qform_code);
+    std::memcpy(header + kQformCodeOffset, &code, 2);
+  }
+  if (fields->sform_code.has_value()) {
+    const int16_t code = static_cast<int16_t>(*fields->sform_code);
+    std::memcpy(header + kSformCodeOffset, &code, 2);
+  }
+}
+
 // The probe volume whose file ITK writes to learn the header: 2 voxels per
 // axis (no axis of length 1, which some writers treat specially).
 constexpr int64_t kProbeSize = 2;
@@ -175,12 +201,14 @@ constexpr int64_t kProbeSize = 2;
 // "encoding: raw" made "encoding: gzip".
 template <typename T>
 absl::StatusOr<std::string> ItkHeader(const Grid& grid, Format format,
-                                      const std::string& probe_path) {
+                                      const std::string& probe_path,
+                                      const VolumeHeaderFields* fields) {
   const std::vector<T> probe(kProbeSize * kProbeSize * kProbeSize, T{0});
   const Index3 probe_size = {kProbeSize, kProbeSize, kProbeSize};
   INTERSLICE_RETURN_IF_ERROR(CreateEmptyFile(probe_path));
-  absl::Status written = ItkWrite(WrapImage<T>(grid, probe_size, probe.data()),
-                                  format, probe_path, /*compress=*/false);
+  absl::Status written =
+      ItkWrite(WrapImage<T>(grid, probe_size, probe.data(), fields), format,
+               probe_path, /*compress=*/false);
   absl::StatusOr<std::string> bytes =
       written.ok() ? ReadWholeFile(probe_path) : written;
   std::error_code ec;
@@ -213,6 +241,7 @@ absl::StatusOr<std::string> ItkHeader(const Grid& grid, Format format,
       dim[1 + a] = static_cast<int16_t>(grid.size[a]);
     }
     std::memcpy(header.data() + 40, dim, sizeof(dim));
+    PatchNiftiCodes(header.data(), fields);
     return header;
   }
 
@@ -246,6 +275,26 @@ volume_io_internal::GzipOptions GzipOptionsFor(Format format) {
   volume_io_internal::GzipOptions options;
   options.single_member = format == Format::kNrrd;
   return options;
+}
+
+// PatchNiftiCodes on an uncompressed .nii that ITK wrote.
+absl::Status PatchNiftiFile(const std::string& path,
+                            const VolumeHeaderFields* fields) {
+  const int fd = open(path.c_str(), O_RDWR | O_CLOEXEC);
+  if (fd < 0) {
+    return absl::InternalError(
+        std::error_code(errno, std::generic_category()).message());
+  }
+  char header[348];
+  bool ok = ::pread(fd, header, sizeof(header), 0) ==
+            static_cast<ssize_t>(sizeof(header));
+  if (ok) {
+    PatchNiftiCodes(header, fields);
+    ok = ::pwrite(fd, header + kQformCodeOffset, 4, kQformCodeOffset) == 4;
+  }
+  if (close(fd) != 0) ok = false;
+  return ok ? absl::OkStatus()
+            : absl::InternalError("cannot set the NIfTI transform codes");
 }
 
 absl::Status WriteHeaderAndGzippedData(const std::string& path,
@@ -285,7 +334,8 @@ absl::Status WriteHeaderAndGzippedData(const std::string& path,
 
 template <typename T>
 absl::Status WriteVolumeImpl(const Volume<T>& volume, const std::string& path,
-                             const ComputeContext& context) {
+                             const ComputeContext& context,
+                             const VolumeHeaderFields* fields = nullptr) {
   const std::optional<FormatInfo> info = FormatOf(path, /*for_reading=*/false);
   if (!info.has_value()) {
     return absl::InvalidArgumentError(
@@ -302,6 +352,23 @@ absl::Status WriteVolumeImpl(const Volume<T>& volume, const std::string& path,
         "voxels",
         path, volume.data.size(), volume.grid.VoxelCount()));
   }
+  if (fields != nullptr) {
+    for (const std::optional<int>& code :
+         {fields->qform_code, fields->sform_code}) {
+      if (code.has_value() && (*code < 0 || *code > 5)) {
+        return absl::InvalidArgumentError(absl::StrFormat(
+            "cannot write %s: NIfTI transform code %d is not 0..5", path,
+            *code));
+      }
+    }
+    for (const auto& [key, value] : fields->key_values) {
+      if (key.empty() || absl::StrContains(key, '\n') ||
+          absl::StrContains(key, ":=") || absl::StrContains(value, '\n')) {
+        return absl::InvalidArgumentError(absl::StrCat(
+            "cannot write ", path, ": bad NRRD key/value field '", key, "'"));
+      }
+    }
+  }
   const std::string temp = TemporaryPath(path, *info);
   if (absl::Status created = CreateEmptyFile(temp); !created.ok()) {
     return absl::InternalError(
@@ -312,8 +379,11 @@ absl::Status WriteVolumeImpl(const Volume<T>& volume, const std::string& path,
   if (info->extension == ".nii") {
     // Uncompressed: ITK writes the file itself.
     status = ItkWrite(
-        WrapImage<T>(volume.grid, volume.grid.size, volume.data.data()),
+        WrapImage<T>(volume.grid, volume.grid.size, volume.data.data(), fields),
         info->format, temp, /*compress=*/false);
+    if (status.ok() && fields != nullptr && info->format == Format::kNifti) {
+      status = PatchNiftiFile(temp, fields);
+    }
   } else {
     // Compressed: zlib in ITK (NIfTI's gzip, NRRD's gzip encoding) is one
     // thread at ~50-100 MB/s, and the float distance field barely compresses
@@ -328,7 +398,8 @@ absl::Status WriteVolumeImpl(const Volume<T>& volume, const std::string& path,
         volume.grid, info->format,
         TemporaryPath(path.substr(0, path.size() - info->extension.size()) +
                           probe_info.extension,
-                      probe_info));
+                      probe_info),
+        fields);
     status = header.status();
     if (status.ok()) {
       status = WriteHeaderAndGzippedData(
@@ -371,6 +442,25 @@ absl::Status WriteVolume(const Volume<uint16_t>& volume,
                          const std::string& path,
                          const ComputeContext& context) {
   return WriteVolumeImpl(volume, path, context);
+}
+
+absl::Status WriteVolume(const Volume<uint8_t>& volume, const std::string& path,
+                         const VolumeHeaderFields& fields,
+                         const ComputeContext& context) {
+  return WriteVolumeImpl(volume, path, context, &fields);
+}
+
+absl::Status WriteVolume(const Volume<int16_t>& volume, const std::string& path,
+                         const VolumeHeaderFields& fields,
+                         const ComputeContext& context) {
+  return WriteVolumeImpl(volume, path, context, &fields);
+}
+
+absl::Status WriteVolume(const Volume<uint16_t>& volume,
+                         const std::string& path,
+                         const VolumeHeaderFields& fields,
+                         const ComputeContext& context) {
+  return WriteVolumeImpl(volume, path, context, &fields);
 }
 
 absl::StatusOr<Volume<float>> ReadVolumeAsFloat(const std::string& path) {
@@ -430,6 +520,132 @@ absl::StatusOr<Volume<float>> ReadVolumeAsFloat(const std::string& path) {
   const float* data = image->GetBufferPointer();
   volume.data.assign(data, data + volume.grid.VoxelCount());
   return volume;
+}
+
+}  // namespace interslice
+
+namespace interslice {
+namespace {
+
+// The NRRD text header: lines up to the first empty one (at most 1 MiB).
+absl::StatusOr<std::vector<std::string>> NrrdHeaderLines(
+    const std::string& path) {
+  std::FILE* f = std::fopen(path.c_str(), "rb");
+  if (f == nullptr) return absl::NotFoundError("cannot open it");
+  std::vector<std::string> lines;
+  std::string line;
+  size_t total = 0;
+  int c;
+  while ((c = std::fgetc(f)) != EOF && total < (size_t{1} << 20)) {
+    ++total;
+    if (c != '\n') {
+      line.push_back(static_cast<char>(c));
+      continue;
+    }
+    if (!line.empty() && line.back() == '\r') line.pop_back();
+    if (line.empty()) break;
+    lines.push_back(std::move(line));
+    line.clear();
+  }
+  std::fclose(f);
+  return lines;
+}
+
+}  // namespace
+
+absl::StatusOr<VolumeFileHeader> ReadVolumeFileHeader(const std::string& path) {
+  const std::optional<FormatInfo> info = FormatOf(path, /*for_reading=*/true);
+  if (!info.has_value()) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "cannot read a volume from ", path,
+        ": unknown extension (expected .nii.gz, .nii, .nrrd or .nhdr)"));
+  }
+  std::error_code ec;
+  if (!std::filesystem::is_regular_file(path, ec)) {
+    return absl::NotFoundError(absl::StrCat("no such volume file: ", path));
+  }
+  VolumeFileHeader header;
+  header.nifti = info->format == Format::kNifti;
+  try {
+    itk::ImageIOBase::Pointer io = MakeImageIO(info->format);
+    io->SetFileName(path);
+    io->ReadImageInformation();
+    if (io->GetNumberOfDimensions() < 3) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("cannot read ", path, ": not a 3D volume"));
+    }
+    for (int a = 0; a < 3; ++a) {
+      header.grid.size[a] = static_cast<int64_t>(io->GetDimensions(a));
+      header.grid.spacing[a] = io->GetSpacing(a);
+      header.grid.origin[a] = io->GetOrigin(a);
+      const std::vector<double> axis = io->GetDirection(a);
+      for (int c = 0; c < 3; ++c) {
+        header.grid.direction[3 * c + a] =
+            c < static_cast<int>(axis.size()) ? axis[c] : (a == c ? 1.0 : 0.0);
+      }
+    }
+    const auto component = io->GetComponentType();
+    header.component_type =
+        itk::ImageIOBase::GetComponentTypeAsString(component);
+    using IOComponent = itk::IOComponentEnum;
+    header.integer_type = component != IOComponent::FLOAT &&
+                          component != IOComponent::DOUBLE &&
+                          component != IOComponent::UNKNOWNCOMPONENTTYPE;
+  } catch (const std::exception& e) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("cannot read ", path, ": ", e.what()));
+  }
+  if (header.nifti) {
+    // The 348-byte NIfTI-1 header (gzread reads .nii and .nii.gz alike).
+    gzFile f = gzopen(path.c_str(), "rb");
+    char raw[348];
+    const int n = f == nullptr ? -1 : gzread(f, raw, sizeof(raw));
+    if (f != nullptr) gzclose(f);
+    int32_t sizeof_hdr = 0;
+    if (n == static_cast<int>(sizeof(raw))) std::memcpy(&sizeof_hdr, raw, 4);
+    const bool swapped = sizeof_hdr == 0x5C010000;
+    if (sizeof_hdr != 348 && !swapped) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("cannot read ", path, ": not a NIfTI-1 header"));
+    }
+    auto int16_at = [&](size_t offset) {
+      uint16_t v;
+      std::memcpy(&v, raw + offset, 2);
+      if (swapped) v = static_cast<uint16_t>((v << 8) | (v >> 8));
+      return static_cast<int16_t>(v);
+    };
+    auto float_at = [&](size_t offset) {
+      uint32_t v;
+      std::memcpy(&v, raw + offset, 4);
+      if (swapped) v = __builtin_bswap32(v);
+      float f32;
+      std::memcpy(&f32, &v, 4);
+      return static_cast<double>(f32);
+    };
+    header.qform_code = int16_at(kQformCodeOffset);
+    header.sform_code = int16_at(kSformCodeOffset);
+    header.scl_slope = float_at(112);
+    header.scl_inter = float_at(116);
+  } else {
+    absl::StatusOr<std::vector<std::string>> lines = NrrdHeaderLines(path);
+    if (!lines.ok()) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("cannot read ", path, ": ", lines.status().message()));
+    }
+    for (const std::string& line : *lines) {
+      if (line.empty() || line[0] == '#') continue;
+      const size_t kv = line.find(":=");
+      const size_t field = line.find(": ");
+      if (kv != std::string::npos &&
+          (field == std::string::npos || kv < field)) {
+        header.key_values.emplace_back(line.substr(0, kv), line.substr(kv + 2));
+      } else if (field != std::string::npos &&
+                 line.substr(0, field) == "space") {
+        header.nrrd_space = line.substr(field + 2);
+      }
+    }
+  }
+  return header;
 }
 
 }  // namespace interslice

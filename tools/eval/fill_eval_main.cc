@@ -20,6 +20,7 @@
 #include <filesystem>
 #include <fstream>
 #include <map>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -29,6 +30,8 @@
 #include "absl/strings/str_split.h"
 #include "core/dicom/series_reader.h"
 #include "core/labels/label_fill.h"
+#include "core/labels/label_map_io.h"
+#include "core/labels/segmentation_reader.h"
 #include "core/volume_io/volume_io.h"
 #include "itkConnectedComponentImageFilter.h"
 #include "itkImage.h"
@@ -233,15 +236,24 @@ int Main(int argc, char** argv) {
   std::string bands_text = "-200,0,40,100,300,3000";
   int max_labels = 20, threads = 0, margin = FillOptions().margin_pixels;
   int64_t min_voxels = 2000;
-  app.add_option("--series", series_dir, "Reference DICOM series")->required();
+  app.add_option("--series", series_dir,
+                 "Reference DICOM series (without it, --labels is a label "
+                 "map on its own grid)");
   app.add_option("--labels", labels_path,
-                 "Fully drawn label map on the series' grid (default: made "
+                 "Fully drawn label map on the series' voxels (any layout), "
+                 "or an RTSTRUCT / SEG drawn on the series (default: made "
                  "from HU bands)");
+  std::string rois_text;
+  app.add_option("--rois", rois_text,
+                 "RTSTRUCT ROI / SEG segment numbers to read (comma "
+                 "separated; default all)");
   app.add_option("--bands", bands_text, "HU band edges for made labels");
   app.add_option("--max-labels", max_labels, "At most this many made labels");
   app.add_option("--min-voxels", min_voxels, "Smallest made label, voxels");
   app.add_option("--ks", ks_text, "Key slice steps");
-  app.add_option("--methods", methods_text, "copy,linear,cg,direct,auto");
+  app.add_option("--methods", methods_text,
+                 "copy,linear,cg,direct,morph,auto,auto-doubled,"
+                 "auto-nomorph");
   int64_t slices = 0;
   app.add_option("--slices", slices,
                  "Resample the truth labels to this many slices (nearest "
@@ -261,28 +273,68 @@ int Main(int argc, char** argv) {
   QuietDicomToolkitLogging();
   std::filesystem::create_directories(out_dir);
 
-  absl::StatusOr<DicomSeries> series =
-      ReadDicomSeries({series_dir}, {}, ComputeContext{.threads = threads});
-  if (!series.ok()) {
-    std::fprintf(stderr, "%s\n",
-                 std::string(series.status().message()).c_str());
+  if (series_dir.empty() && labels_path.empty()) {
+    std::fprintf(stderr, "give --series, --labels or both\n");
     return 1;
   }
+  std::optional<DicomSeries> series;
+  if (!series_dir.empty()) {
+    absl::StatusOr<DicomSeries> read =
+        ReadDicomSeries({series_dir}, {}, ComputeContext{.threads = threads});
+    if (!read.ok()) {
+      std::fprintf(stderr, "%s\n",
+                   std::string(read.status().message()).c_str());
+      return 1;
+    }
+    series = *std::move(read);
+  }
   LabelVolume truth;
+  LabelContours contours;
   std::vector<MadeLabel> made;
-  if (!labels_path.empty()) {
-    absl::StatusOr<Volume<float>> raw = ReadVolumeAsFloat(labels_path);
-    absl::Status s = raw.status();
-    if (s.ok())
-      s = CheckSameGrid(raw->grid, series->image.grid, "the label map");
-    absl::StatusOr<LabelVolume> l =
-        s.ok() ? LabelVolumeFromFloat(*raw) : absl::StatusOr<LabelVolume>(s);
+  if (!labels_path.empty() && series.has_value() &&
+      LooksLikeDicomFile(labels_path)) {
+    // An RTSTRUCT (its polygons give the key slices' exact distance, as
+    // `interslice fill` uses them) or a SEG drawn on the series.
+    std::vector<int> only;
+    for (absl::string_view r : absl::StrSplit(rois_text, ',')) {
+      int v;
+      if (!r.empty() && absl::SimpleAtoi(r, &v)) only.push_back(v);
+    }
+    const ReferenceSeries reference{series->image.grid,
+                                    series->series_instance_uid,
+                                    series->frame_of_reference_uid};
+    absl::StatusOr<SegmentationInput> seg =
+        ReadDicomLabels(labels_path, reference, only);
+    if (!seg.ok()) {
+      std::fprintf(stderr, "%s\n", std::string(seg.status().message()).c_str());
+      return 1;
+    }
+    truth = std::move(seg->labels);
+    contours = std::move(seg->contours);
+  } else if (!labels_path.empty()) {
+    // Any layout of the series' voxels (core/labels/label_map_io.h); no
+    // series: the map's own grid.
+    absl::StatusOr<Volume<float>> own;
+    Grid grid;
+    if (series.has_value()) {
+      grid = series->image.grid;
+    } else {
+      absl::StatusOr<VolumeFileHeader> header =
+          ReadVolumeFileHeader(labels_path);
+      if (!header.ok()) {
+        std::fprintf(stderr, "%s\n",
+                     std::string(header.status().message()).c_str());
+        return 1;
+      }
+      grid = header->grid;
+    }
+    absl::StatusOr<LabelMapOnReference> l =
+        ReadLabelMapOnReference(labels_path, grid);
     if (!l.ok()) {
       std::fprintf(stderr, "%s\n", std::string(l.status().message()).c_str());
       return 1;
     }
-    truth = *std::move(l);
-    truth.grid = series->image.grid;
+    truth = std::move(l->labels);
   } else {
     std::vector<float> edges;
     for (absl::string_view e : absl::StrSplit(bands_text, ',')) {
@@ -322,7 +374,7 @@ int Main(int argc, char** argv) {
                          {"voxels", m.voxels}});
   }
   std::ofstream(out_dir + "/labels.json")
-      << nlohmann::ordered_json{{"grid", series->image.grid.size},
+      << nlohmann::ordered_json{{"grid", truth.grid.size},
                                 {"labels", made_json}}
              .dump(2)
       << "\n";
@@ -340,7 +392,13 @@ int Main(int argc, char** argv) {
     timing << "grid,labels,k,method,threads,seconds,cpu_seconds\n";
   }
   std::ofstream choices(out_dir + "/fill_choices.csv");
-  choices << "k,label,chosen,copy,linear,blend,direct\n";
+  choices << "k,method,label,chosen";
+  for (const char* what : {"d2", "d4", "score"}) {
+    for (const char* c : {"copy", "linear", "blend", "direct", "morph"}) {
+      choices << "," << what << "_" << c;
+    }
+  }
+  choices << "\n";
   summary << "k,method,labels_scored,mean_dice,mean_hd95_mm,mean_msd_mm,"
              "gap_voxels,seconds,cpu_seconds\n";
   const int64_t nz = truth.grid.size[2];
@@ -367,12 +425,21 @@ int Main(int argc, char** argv) {
           FillOptions options;
           options.key_slices = keys;
           options.margin_pixels = margin;
-          options.method =
-              method == "auto" ? FillMethod::kAuto : FillMethod::kSolver;
+          // auto: the default; auto-doubled: the selection at the doubled
+          // gap only (the rule before issue 24); auto-nomorph: without the
+          // morph among the candidates.
+          const bool is_auto = method.rfind("auto", 0) == 0;
+          options.method = is_auto ? FillMethod::kAuto : FillMethod::kSolver;
+          if (method == "auto-doubled") {
+            options.selection = AutoSelection::kDoubledGap;
+          }
+          if (method == "auto-nomorph") options.auto_morph = false;
           options.solver.method = method == "linear" ? SolverMethod::kLinear
                                   : method == "cg"
                                       ? SolverMethod::kConjugateGradient
-                                      : SolverMethod::kDirect;
+                                  : method == "morph" ? SolverMethod::kMorph
+                                                      : SolverMethod::kDirect;
+          if (!contours.polygons.empty()) options.contours = &contours;
           absl::StatusOr<FillResult> r = FillBetweenSlices(
               truth, options, ComputeContext{.threads = threads});
           if (!r.ok()) {
@@ -381,15 +448,21 @@ int Main(int argc, char** argv) {
             return 1;
           }
           out = std::move(r->labels);
-          if (method == "auto" && rep == 0) {
-            // The candidate chosen per label and its validation Dice on the
-            // label's own held-out key slices (no truth involved).
+          if (is_auto && rep == 0) {
+            // The candidate chosen per label, its validation Dice on the
+            // label's own held-out key slices at the doubled and quadrupled
+            // gap and the score (no truth involved).
             for (const LabelFillInfo& info : r->per_label) {
-              choices << step << "," << info.label << "," << info.method;
-              for (const auto& [name, dice] : info.validation_dice) {
-                choices << absl::StrFormat(",%.4f", dice);
+              choices << step << "," << method << "," << info.label << ","
+                      << info.method;
+              for (const auto* list :
+                   {&info.validation_dice, &info.validation_dice_4g,
+                    &info.validation_score}) {
+                for (const auto& [name, dice] : *list) {
+                  choices << absl::StrFormat(",%.4f", dice);
+                }
+                if (list->empty()) choices << ",,,,,";
               }
-              if (info.validation_dice.empty()) choices << ",,,,";
               choices << "\n";
             }
             choices.flush();

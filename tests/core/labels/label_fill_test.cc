@@ -77,9 +77,10 @@ const std::vector<int64_t> kKeys = {0, 5, 10, 15, 20};
 // "auto" (FillMethod::kAuto) or a solver method name (FillMethod::kSolver).
 void SetMethod(const std::string& name, FillOptions& options) {
   options.method = name == "auto" ? FillMethod::kAuto : FillMethod::kSolver;
-  options.solver.method = name == "linear" ? SolverMethod::kLinear
-                          : name == "cg"   ? SolverMethod::kConjugateGradient
-                                           : SolverMethod::kDirect;
+  options.solver.method = name == "linear"  ? SolverMethod::kLinear
+                          : name == "cg"    ? SolverMethod::kConjugateGradient
+                          : name == "morph" ? SolverMethod::kMorph
+                                            : SolverMethod::kDirect;
 }
 
 class FillMethodTest : public ::testing::TestWithParam<std::string> {};
@@ -140,7 +141,8 @@ TEST_P(FillMethodTest, TouchingLabelsKeySlicesExactNoGapNoOverlap) {
 }
 
 INSTANTIATE_TEST_SUITE_P(Methods, FillMethodTest,
-                         ::testing::Values("auto", "linear", "cg", "direct"));
+                         ::testing::Values("auto", "linear", "cg", "direct",
+                                           "morph"));
 
 TEST(FillTest, EndCapsCloseWithinOneGap) {
   // The structure is on slices 2..18; drawn on the key slices 5, 10, 15 and
@@ -376,7 +378,7 @@ TEST(AutoFillTest, SphereEveryFourthSliceBeatsLinear) {
   const double dice_linear = WithheldDice(linear->labels, truth, 1, keys);
   EXPECT_GT(dice_auto, dice_linear);
   ASSERT_EQ(automatic->per_label.size(), 1u);
-  EXPECT_EQ(automatic->per_label[0].validation_dice.size(), 4u);
+  EXPECT_EQ(automatic->per_label[0].validation_dice.size(), 5u);
   for (int64_t k : keys) {
     for (int64_t p = 0; p < kSize * kSize; ++p) {
       ASSERT_EQ(automatic->labels.data[k * kSize * kSize + p],
@@ -470,6 +472,168 @@ TEST(AutoFillTest, LabelOnOneKeySliceIsKept) {
   EXPECT_EQ(CountOnSlice(result->labels, 10, 3), 9);
   EXPECT_THAT(result->warnings,
               ::testing::Contains(HasSubstr("label 3 is drawn on slice 10")));
+  // No validation for it: copied (to the slices nearer to it than to its
+  // drawn-and-empty neighbours 5 and 15).
+  ASSERT_EQ(result->per_label.size(), 3u);
+  EXPECT_EQ(result->per_label[2].method, "copy");
+  EXPECT_TRUE(result->per_label[2].validation_dice.empty());
+  for (int64_t k = 8; k <= 12; ++k)
+    EXPECT_EQ(CountOnSlice(result->labels, k, 3), 9);
+  EXPECT_EQ(CountOnSlice(result->labels, 7, 3), 0);
+  EXPECT_EQ(CountOnSlice(result->labels, 13, 3), 0);
+}
+
+// A small disc moving 12 pixels over two key gaps, three times its
+// diameter: no candidate predicts a held-out key slice at the doubled gap,
+// so the validation cannot rank them and the morph fills it.
+TEST(AutoFillTest, UninformativeValidationGetsTheMorph) {
+  LabelVolume truth;
+  truth.grid.size = {48, 24, 25};
+  truth.data.assign(truth.grid.VoxelCount(), 0);
+  for (int64_t k = 0; k < 25; ++k) {
+    const double cx = 5 + 1.5 * k;
+    for (int64_t j = 0; j < 24; ++j) {
+      for (int64_t i = 0; i < 48; ++i) {
+        if ((i - cx) * (i - cx) + (j - 12) * (j - 12) <= 4)
+          truth.at(i, j, k) = 1;
+      }
+    }
+  }
+  const std::vector<int64_t> keys = EveryNth(4, 25);
+  absl::StatusOr<FillResult> result =
+      FillWith("auto", KeepSlices(truth, keys), keys);
+  ASSERT_TRUE(result.ok()) << result.status();
+  const LabelFillInfo& info = result->per_label[0];
+  ASSERT_EQ(info.validation_dice.size(), 5u);
+  for (const auto& [name, dice] : info.validation_dice)
+    EXPECT_LT(dice, 0.1) << name;
+  EXPECT_EQ(info.method, "morph");
+}
+
+// Two discs of radius 5 moving 1.5 pixels per slice (label 1 to +x+y,
+// label 2 to -x), never touching: at every 5th slice a key slice, a disc
+// moves 7.5 pixels per gap, most of its diameter. Linear stacking of
+// their distance maps blends two displaced discs into a smaller lens, the
+// morph registers them and carries each disc along its motion.
+LabelVolume MovingDiscs() {
+  LabelVolume v;
+  v.grid.size = {72, 56, 21};
+  v.data.assign(v.grid.VoxelCount(), 0);
+  for (int64_t k = 0; k < 21; ++k) {
+    const double c1x = 8 + 1.2 * k, c1y = 8 + 0.9 * k;
+    const double c2x = 62 - 1.5 * k, c2y = 46;
+    for (int64_t j = 0; j < 56; ++j) {
+      for (int64_t i = 0; i < 72; ++i) {
+        if ((i - c1x) * (i - c1x) + (j - c1y) * (j - c1y) <= 25) {
+          v.at(i, j, k) = 1;
+        } else if ((i - c2x) * (i - c2x) + (j - c2y) * (j - c2y) <= 25) {
+          v.at(i, j, k) = 2;
+        }
+      }
+    }
+  }
+  return v;
+}
+
+TEST(MorphFillTest, MovingStructuresFollowTheirMotion) {
+  const LabelVolume truth = MovingDiscs();
+  const std::vector<int64_t> keys = EveryNth(5, 21);
+  const LabelVolume drawn = KeepSlices(truth, keys);
+  absl::StatusOr<FillResult> morph = FillWith("morph", drawn, keys, 2);
+  absl::StatusOr<FillResult> linear = FillWith("linear", drawn, keys);
+  absl::StatusOr<FillResult> automatic = FillWith("auto", drawn, keys);
+  ASSERT_TRUE(morph.ok()) << morph.status();
+  ASSERT_TRUE(linear.ok() && automatic.ok());
+  for (int label : {1, 2}) {
+    const double m = WithheldDice(morph->labels, truth, label, keys);
+    const double l = WithheldDice(linear->labels, truth, label, keys);
+    const double a = WithheldDice(automatic->labels, truth, label, keys);
+    EXPECT_GT(m, l + 0.1) << label << ": morph " << m << " linear " << l;
+    EXPECT_GT(m, 0.8) << label;
+    // auto finds the morph from the key slices alone.
+    EXPECT_EQ(automatic->per_label[label - 1].method, "morph") << label;
+    EXPECT_EQ(a, m) << label;
+    EXPECT_EQ(morph->per_label[label - 1].method, "morph");
+  }
+  // Key slices exactly as drawn.
+  const int64_t plane = truth.grid.SliceVoxelCount();
+  for (int64_t k : keys) {
+    for (int64_t p = 0; p < plane; ++p) {
+      ASSERT_EQ(morph->labels.data[k * plane + p], drawn.data[k * plane + p]);
+    }
+  }
+  // The same for any thread count.
+  absl::StatusOr<FillResult> one = FillWith("morph", drawn, keys, 1);
+  ASSERT_TRUE(one.ok());
+  EXPECT_EQ(one->labels.data, morph->labels.data);
+}
+
+// What the selection saw, per rule: the doubled-gap Dice always (three or
+// more key slices), the quadrupled-gap Dice with the trend rule and six or
+// more key slices, and the score the choice was made on (the power-law
+// trend of the error, or D(2g)); without auto_morph the morph is not tried.
+TEST(AutoFillTest, SelectionReportsWhatItSaw) {
+  const LabelVolume truth = Ball(15.3, 0);
+  const std::vector<int64_t> keys = EveryNth(3, kSize);  // 14 key slices
+  const LabelVolume drawn = KeepSlices(truth, keys);
+  FillOptions options;
+  options.key_slices = keys;
+  absl::StatusOr<FillResult> trend =
+      FillBetweenSlices(drawn, options, ComputeContext{.threads = 1});
+  ASSERT_TRUE(trend.ok()) << trend.status();
+  const LabelFillInfo& t = trend->per_label[0];
+  ASSERT_EQ(t.validation_dice.size(), 5u);
+  ASSERT_EQ(t.validation_dice_4g.size(), 5u);
+  ASSERT_EQ(t.validation_score.size(), 5u);
+  std::string best;
+  double best_score = -1e9;
+  for (size_t c = 0; c < 5; ++c) {
+    EXPECT_EQ(t.validation_dice[c].first, t.validation_score[c].first);
+    // The power law of the error: e(g) = e(2g) 2^-p, e(4g) = e(2g) 2^p,
+    // p in [0, 2].
+    const double e2 = 1 - t.validation_dice[c].second;
+    const double e4 = 1 - t.validation_dice_4g[c].second;
+    const double p = std::clamp(std::log2(e4 / e2), 0.0, 2.0);
+    EXPECT_NEAR(t.validation_score[c].second, 1 - e2 * std::exp2(-p), 1e-9);
+    EXPECT_GE(t.validation_score[c].second, t.validation_dice[c].second);
+    // Quadrupling the gap costs every candidate on a ball.
+    EXPECT_LT(t.validation_dice_4g[c].second, t.validation_dice[c].second)
+        << t.validation_dice[c].first;
+    if (t.validation_score[c].second > best_score) {
+      best_score = t.validation_score[c].second;
+      best = t.validation_score[c].first;
+    }
+  }
+  EXPECT_EQ(t.method, best);
+
+  options.selection = AutoSelection::kDoubledGap;
+  options.auto_morph = false;
+  absl::StatusOr<FillResult> doubled =
+      FillBetweenSlices(drawn, options, ComputeContext{.threads = 1});
+  ASSERT_TRUE(doubled.ok());
+  const LabelFillInfo& d = doubled->per_label[0];
+  EXPECT_TRUE(d.validation_dice_4g.empty());
+  ASSERT_EQ(d.validation_score.size(), 5u);
+  for (size_t c = 0; c < 5; ++c) {
+    EXPECT_EQ(d.validation_score[c].second, d.validation_dice[c].second);
+    // The same doubled-gap folds as the trend rule saw.
+    if (d.validation_dice[c].first != "morph") {
+      EXPECT_EQ(d.validation_dice[c].second, t.validation_dice[c].second);
+    } else {
+      EXPECT_EQ(d.validation_dice[c].second, -1);
+    }
+  }
+  EXPECT_NE(d.method, "morph");
+
+  // Five key slices: too few for the quadrupled gap; the doubled gap rules.
+  const std::vector<int64_t> few = {0, 10, 20, 30, 40};
+  options = FillOptions();
+  options.key_slices = few;
+  absl::StatusOr<FillResult> short_label = FillBetweenSlices(
+      KeepSlices(truth, few), options, ComputeContext{.threads = 1});
+  ASSERT_TRUE(short_label.ok());
+  EXPECT_TRUE(short_label->per_label[0].validation_dice_4g.empty());
+  EXPECT_EQ(short_label->per_label[0].validation_dice.size(), 5u);
 }
 
 TEST(LabelVolumeTest, FromFloatRejectsNonLabels) {
