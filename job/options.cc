@@ -119,9 +119,11 @@ constexpr OptionDef<FO> kFillOptions[] = {
      "the slices where it is drawn)"},
     {"method", "spec.method", ValueKind::kText, &FO::method,
      "auto (per label, the best of nearest-slice copy, linear stacking, "
-     "their blend and the exact refinement at predicting the label's own "
-     "held-out key slices), direct (exact minimiser), cg (the paper's "
-     "conjugate gradient) or linear (no refinement)"},
+     "their blend, the exact refinement and the morph at predicting the "
+     "label's own held-out key slices), direct (exact minimiser), cg (the "
+     "paper's conjugate gradient), linear (no refinement) or morph "
+     "(registration of the label's key slices, carried along a smooth "
+     "trajectory)"},
     {"iterations", "spec.max_iterations", ValueKind::kInteger, &FO::iterations,
      "CG iterations (default 15, as in the paper)"},
     {"tolerance", "spec.tolerance", ValueKind::kNumber, &FO::tolerance,
@@ -525,14 +527,9 @@ absl::StatusOr<FillJobSpec> BuildFillJobSpec(const FillJobOptions& o) {
   if (o.method == "auto") {
     spec.fill.method = FillMethod::kAuto;
   } else {
-    absl::StatusOr<SolverMethod> method =
-        ParseSolverMethod(o.method, "method", "auto, direct, cg, linear");
-    if (!method.ok() || *method == SolverMethod::kMorph) {
-      return OptionError("method",
-                         absl::StrCat("unknown method '", o.method,
-                                      "' (choose from auto, direct, cg, "
-                                      "linear)"));
-    }
+    absl::StatusOr<SolverMethod> method = ParseSolverMethod(
+        o.method, "method", "auto, direct, cg, linear, morph");
+    if (!method.ok()) return method.status();
     spec.fill.method = FillMethod::kSolver;
     spec.fill.solver.method = *method;
   }

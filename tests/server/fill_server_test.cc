@@ -389,8 +389,8 @@ TEST(FillServerTest, BadFillSpecsAreRefusedWithTheReason) {
   }
   {
     v1::JobSpec s = good;
-    s.set_method(v1::SOLVER_METHOD_MORPH);
-    cases.push_back({"morph", s, files, "spec.method: unknown method 'morph'"});
+    s.set_method(static_cast<v1::SolverMethod>(42));
+    cases.push_back({"method 42", s, files, "spec.method: unknown method 42"});
   }
   cases.push_back(
       {"segmentation only", good, {files.back()}, "file_count must be >= 2"});

@@ -426,8 +426,8 @@ TEST_F(ConfigTest, FillRules) {
               HasSubstr("fill.labels: 0 is not a label (1..65535)"));
   EXPECT_THAT(RuleError("  - {name: a, fill: {key_slices: [1, 1]}}\n"),
               HasSubstr("fill.key_slices: slice 1 is repeated"));
-  EXPECT_THAT(RuleError("  - {name: a, fill: {method: morph}}\n"),
-              HasSubstr("fill.method: unknown method 'morph'"));
+  EXPECT_THAT(RuleError("  - {name: a, fill: {method: fast}}\n"),
+              HasSubstr("fill.method: unknown method 'fast'"));
   EXPECT_THAT(RuleError("  - {name: a, fill: {threshold: 3}}\n"),
               HasSubstr("fill.threshold: unknown key"));
   EXPECT_THAT(RuleError("  - {name: a, fill: {mesh: [vrml]}}\n"),
