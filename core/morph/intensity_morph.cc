@@ -193,21 +193,23 @@ CoarseDisplacement InvertField(const CoarseDisplacement& u) {
         const int64_t c = ci + u.mx * cj;
         const double y_x = ci * u.downsample + half;
         const double y_y = cj * u.downsample + half;
+        // Fields are stored in coarse pixels; Sample works in fine ones.
         float vx = 0, vy = 0;
-        u.Sample(y_x + b.ux[c], y_y + b.uy[c], vx, vy);
-        b.ux[c] = -vx;
-        b.uy[c] = -vy;
+        u.Sample(y_x + b.ux[c] * u.downsample, y_y + b.uy[c] * u.downsample,
+                 vx, vy);
+        b.ux[c] = -vx / u.downsample;
+        b.uy[c] = -vy / u.downsample;
       }
   }
   return b;
 }
 
 // Smallest det(I + t grad u) over t in [0, 1] at every coarse pixel (grad u
-// by central differences, one-sided at the border, in fine pixels).
+// by central differences, one-sided at the border; u in coarse pixels per
+// coarse pixel is the same ratio as in fine ones).
 std::vector<float> MinJacobian(const CoarseDisplacement& u) {
   const int64_t mx = u.mx, my = u.my;
   std::vector<float> out(mx * my, 1.0f);
-  const double d = u.downsample;
   auto diff = [&](const std::vector<float>& f, int64_t i, int64_t j, int axis) {
     const int64_t n = axis == 0 ? mx : my;
     const int64_t c = axis == 0 ? i : j;
@@ -216,7 +218,7 @@ std::vector<float> MinJacobian(const CoarseDisplacement& u) {
     const int64_t hi = std::min<int64_t>(n - 1, c + 1);
     const int64_t a = axis == 0 ? lo + mx * j : i + mx * lo;
     const int64_t b = axis == 0 ? hi + mx * j : i + mx * hi;
-    return (f[b] - f[a]) / ((hi - lo) * d);
+    return (f[b] - f[a]) / static_cast<double>(hi - lo);
   };
   for (int64_t j = 0; j < my; ++j)
     for (int64_t i = 0; i < mx; ++i) {
@@ -432,8 +434,9 @@ absl::StatusOr<MorphedIntensity> MorphIntensity(
       for (int64_t ci = 0; ci < mx; ++ci) {
         const int64_t c = ci + mx * cj;
         before[c] = std::abs(c1[c] - c0[c]);
-        const double x = ci + g.forward.ux[c] / d;
-        const double y = cj + g.forward.uy[c] / d;
+        // The field is in coarse pixels: the lattice the residual is on.
+        const double x = ci + g.forward.ux[c];
+        const double y = cj + g.forward.uy[c];
         after[c] = std::abs(Sample(c1.data(), mx, my, x, y) - c0[c]);
       }
     absl::StatusOr<std::vector<float>> r_lin =
@@ -461,7 +464,8 @@ absl::StatusOr<MorphedIntensity> MorphIntensity(
     }
     const double sx = image.grid.spacing[0], sy = image.grid.spacing[1];
     for (int64_t c = 0; c < mx * my; ++c) {
-      const double len = std::hypot(g.forward.ux[c] * sx, g.forward.uy[c] * sy);
+      const double len =
+          d * std::hypot(g.forward.ux[c] * sx, g.forward.uy[c] * sy);
       g.displacement_sum_mm += len;
       g.displacement_max_mm = std::max(g.displacement_max_mm, len);
     }

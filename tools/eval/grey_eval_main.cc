@@ -110,6 +110,8 @@ absl::StatusOr<IntensityMorphOptions> MethodOptions(const std::string& name) {
     o.residual_high = 2e6;
     o.min_jacobian = 1e-9;
     o.max_gap_ratio = 1e9;
+  } else if (name == "morph-cr") {
+    o.values = MorphValues::kCatmullRom;
   } else if (name == "morph-linvals") {
     o.values = MorphValues::kLinear;
   } else {

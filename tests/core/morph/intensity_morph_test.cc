@@ -134,6 +134,35 @@ TEST(MorphIntensityTest, MovingDiscIsOneDiscWithItsGreyValues) {
   EXPECT_EQ(morphed->statistics.gaps_not_registered, 0);
 }
 
+TEST(MorphIntensityTest, CoarseRegistrationLatticeKeepsTheDiscWhole) {
+  // The registration on a lattice of 2x2 blocks (as on real series): the
+  // fields are kept in the lattice's pixels and must be scaled to the
+  // slice's for the backward field, the residual and the Jacobian. A scale
+  // error moves the backward side's sample and shows as a second disc.
+  const Volume<float> keys = DiscSlices({24, 36}, 32);
+  const std::vector<double> positions = {0.0, 4.0};
+  IntensityMorphOptions options = TestOptions();
+  options.demons.downsample = 2;
+  options.demons.levels = 3;
+  ComputeContext context;
+  auto morphed = MorphIntensity(keys, positions, Target(keys, 5, 1.0),
+                                std::nullopt, nullptr, options, context);
+  ASSERT_TRUE(morphed.ok()) << morphed.status();
+  for (int64_t k = 1; k <= 3; ++k) {
+    const double centre = 24 + 12 * (k / 4.0);
+    const float* slice = SliceOf(morphed->values, k);
+    const Blob blob = Centroid(slice, 0);
+    EXPECT_NEAR(blob.cx, centre, 0.25) << "slice " << k;
+    // The disc's plateau at its centre, not two half discs.
+    EXPECT_NEAR(slice[static_cast<int64_t>(std::lround(centre)) + kN * 32],
+                DiscValue(std::abs(std::lround(centre) - centre)), 20.0)
+        << "slice " << k;
+  }
+  // 12 px = 6 mm at 0.5 mm pixels: the reported motion is in mm.
+  EXPECT_NEAR(morphed->statistics.max_displacement_mm, 6.0, 1.0);
+  EXPECT_EQ(morphed->statistics.fallback_voxels, 0);
+}
+
 TEST(MorphIntensityTest, KeySlicesAreBitIdentical) {
   // Three key slices with values that are not round in float, output slices
   // on and between them.
