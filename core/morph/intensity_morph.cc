@@ -43,10 +43,10 @@ absl::Status ValidateIntensityOptions(const IntensityMorphOptions& o) {
         "intensity morph: unknown value interpolation");
   if (!(o.grey_scale > 0) || !std::isfinite(o.grey_scale))
     return absl::InvalidArgumentError("intensity morph: grey_scale must be > 0");
-  if (!(o.residual_low >= 0) || !(o.residual_high > o.residual_low) ||
-      !std::isfinite(o.residual_high))
+  if (!std::isfinite(o.gain_low) || !std::isfinite(o.gain_high) ||
+      !(o.gain_high > o.gain_low))
     return absl::InvalidArgumentError(
-        "intensity morph: need 0 <= residual_low < residual_high");
+        "intensity morph: need gain_low < gain_high");
   if (!(o.ratio_low >= 0) || !(o.ratio_high > o.ratio_low) ||
       !std::isfinite(o.ratio_high))
     return absl::InvalidArgumentError(
@@ -172,6 +172,9 @@ struct GapRegistration {
   bool registered = false;
   CoarseDisplacement forward, backward;
   std::vector<float> weight;  // mx*my, in [0, 1]
+  // mx*my: 1 where the key slices differ (r_lin >= gain_high); empty when
+  // the gap was not registered (everything counts) or not asked to be.
+  std::vector<uint8_t> changing;
   double displacement_sum_mm = 0, displacement_max_mm = 0;
   int64_t coarse_pixels = 0;
 };
@@ -425,7 +428,7 @@ absl::StatusOr<MorphedIntensity> MorphIntensity(
       return;
     }
     g.forward = *std::move(u);
-    g.backward = InvertField(g.forward);
+    if (options.backward_fields) g.backward = InvertField(g.forward);
     // Residuals on the registration lattice, before and after.
     const std::vector<float> c0 = Shrink(n0, nx, ny, d, mx, my);
     const std::vector<float> c1 = Shrink(n1, nx, ny, d, mx, my);
@@ -448,19 +451,22 @@ absl::StatusOr<MorphedIntensity> MorphIntensity(
       return;
     }
     const std::vector<float> jacobian = MinJacobian(g.forward);
-    const double low = options.residual_low, high = options.residual_high;
+    g.changing.assign(mx * my, 0);
     for (int64_t c = 0; c < mx * my; ++c) {
       const double reg_res = (*r_reg)[c] / unit, lin_res = (*r_lin)[c] / unit;
-      // Unreliable: a large residual after registration that the
-      // registration did not reduce much (no correspondence found).
-      const double large = Ramp((reg_res - low) / (high - low));
-      const double unexplained =
-          Ramp((reg_res / std::max(lin_res, 1e-12) - options.ratio_low) /
-               (options.ratio_high - options.ratio_low));
-      const double w_residual = 1.0 - large * unexplained;
+      // The motion is used where it explains the key slices' difference:
+      // not in unchanging tissue (whose noise it would only move around),
+      // not where no correspondence was found (large residual left).
+      const double explained =
+          1.0 - Ramp((reg_res / std::max(lin_res, 1e-12) - options.ratio_low) /
+                     (options.ratio_high - options.ratio_low));
+      const double w_residual =
+          explained * Ramp((lin_res - reg_res - options.gain_low) /
+                           (options.gain_high - options.gain_low));
       const double w_fold =
           Ramp((jacobian[c] - options.min_jacobian) / options.min_jacobian);
       g.weight[c] = static_cast<float>(w_residual * w_fold);
+      g.changing[c] = lin_res >= options.gain_high ? 1 : 0;
     }
     const double sx = image.grid.spacing[0], sy = image.grid.spacing[1];
     for (int64_t c = 0; c < mx * my; ++c) {
@@ -554,15 +560,19 @@ absl::StatusOr<MorphedIntensity> MorphIntensity(
     const float* gp = has_next ? keys + (s + 2) * plane : nullptr;
     // The fields this gap's slices need, at full resolution.
     const std::vector<float> u = reg[s].forward.Upsample();
-    const std::vector<float> b = reg[s].backward.Upsample();
+    const bool backward = options.backward_fields;
+    const std::vector<float> b =
+        backward ? reg[s].backward.Upsample() : std::vector<float>();
     const std::vector<float> u_prev =
         has_prev ? reg[s - 1].forward.Upsample() : std::vector<float>();
-    const std::vector<float> b_prev =
-        has_prev ? reg[s - 1].backward.Upsample() : std::vector<float>();
+    const std::vector<float> b_prev = has_prev && backward
+                                          ? reg[s - 1].backward.Upsample()
+                                          : std::vector<float>();
     const std::vector<float> u_next =
         has_next ? reg[s + 1].forward.Upsample() : std::vector<float>();
-    const std::vector<float> b_next =
-        has_next ? reg[s + 1].backward.Upsample() : std::vector<float>();
+    const std::vector<float> b_next = has_next && backward
+                                          ? reg[s + 1].backward.Upsample()
+                                          : std::vector<float>();
     std::vector<float> weight(plane);
     {
       const CoarseDisplacement& f = reg[s].forward;
@@ -571,6 +581,17 @@ absl::StatusOr<MorphedIntensity> MorphIntensity(
         for (int64_t i = 0; i < nx; ++i)
           weight[i + nx * j] = Sample(reg[s].weight.data(), f.mx, f.my,
                                       (i - half) / d, (j - half) / d);
+    }
+    // Where the key slices differ (the fallback statistics count there).
+    std::vector<uint8_t> changing(plane, 1);
+    if (!reg[s].changing.empty()) {
+      for (int64_t j = 0; j < ny; ++j)
+        for (int64_t i = 0; i < nx; ++i)
+          changing[i + nx * j] =
+              reg[s].changing[std::min<int64_t>(i / d, mx - 1) +
+                              mx * std::min<int64_t>(j / d, my - 1)];
+    } else if (!options.register_slices) {
+      std::fill(changing.begin(), changing.end(), 0);
     }
     int64_t fallbacks = 0, inserted = 0;
     for (int64_t k : gap_slices[s]) {
@@ -591,11 +612,12 @@ absl::StatusOr<MorphedIntensity> MorphIntensity(
             continue;
           }
           const double linear = (1 - t) * lin0 + t * lin1;
-          ++inserted;
+          const bool counted = changing[v] != 0;
+          inserted += counted;
           const double w = weight[v];
           if (w <= 0) {
             dst[v] = static_cast<float>(linear);
-            ++fallbacks;
+            fallbacks += counted;
             continue;
           }
           const double u_x = u[v], u_y = u[plane + v];
@@ -667,10 +689,10 @@ absl::StatusOr<MorphedIntensity> MorphIntensity(
           }
           if (touched) {
             dst[v] = static_cast<float>(linear);
-            ++fallbacks;
+            fallbacks += counted;
             continue;
           }
-          if (w < 0.5) ++fallbacks;
+          if (w < 0.5) fallbacks += counted;
           dst[v] = static_cast<float>(w * value + (1 - w) * linear);
         }
     }

@@ -13,8 +13,8 @@
 //
 // Methods: linear (ResampleSourceSlices, today's series), catmull-rom and
 // pchip-z (in place along z), morph (MorphIntensity defaults), and ablations:
-// morph-maps (registration by the bone's distance maps), morph-fwd (no
-// backward fields), morph-nofallback, morph-linvals (values blended
+// morph-maps (registration by the bone's distance maps), morph-bwd (key
+// slice s+1 sampled through the backward field), morph-nofallback, morph-linvals (values blended
 // linearly along the trajectory). GREY_* environment variables override the
 // morph's settings for sensitivity runs (see ApplyOverrides).
 #include <algorithm>
@@ -73,11 +73,11 @@ void ApplyOverrides(IntensityMorphOptions& o) {
     if (const char* e = std::getenv(name)) value = std::atoi(e);
   };
   num("GREY_SCALE", o.grey_scale);
-  num("GREY_RLOW", o.residual_low);
-  num("GREY_RHIGH", o.residual_high);
   num("GREY_JAC", o.min_jacobian);
+  num("GREY_GLOW", o.gain_low);
   num("GREY_QLOW", o.ratio_low);
   num("GREY_QHIGH", o.ratio_high);
+  num("GREY_GHIGH", o.gain_high);
   num("GREY_RSIGMA", o.residual_sigma_px);
   num("GREY_SIGMA", o.demons.field_sigma_px);
   integer("GREY_ITS", o.demons.iterations);
@@ -97,17 +97,21 @@ absl::StatusOr<IntensityMorphOptions> MethodOptions(const std::string& name) {
   if (name == "morph") return o;
   if (name == "morph-maps") {
     o.registration = IntensityRegistration::kDistanceMaps;
-  } else if (name == "morph-fwd") {
-    o.backward_fields = false;
+  } else if (name == "morph-bwd") {
+    o.backward_fields = true;
   } else if (name == "morph-nofallback") {
-    o.residual_low = 1e6;
-    o.residual_high = 2e6;
+    o.gain_low = -2e6;
+    o.gain_high = -1e6;
+    o.ratio_low = 1e6;
+    o.ratio_high = 2e6;
     o.min_jacobian = 1e-9;
     o.max_gap_ratio = 1e9;
   } else if (name == "morph-maps-nofallback") {
     o.registration = IntensityRegistration::kDistanceMaps;
-    o.residual_low = 1e6;
-    o.residual_high = 2e6;
+    o.gain_low = -2e6;
+    o.gain_high = -1e6;
+    o.ratio_low = 1e6;
+    o.ratio_high = 2e6;
     o.min_jacobian = 1e-9;
     o.max_gap_ratio = 1e9;
   } else if (name == "morph-cr") {

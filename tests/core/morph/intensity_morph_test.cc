@@ -18,10 +18,13 @@ constexpr double kPixelMm = 0.5;
 constexpr double kDiscHu = 1000;
 constexpr double kRadiusPx = 7;
 
-// A bright disc with a smooth (logistic, 1.5 px) edge on 0 HU: its grey value
-// at distance r (pixels) from its centre.
+// A bright disc on 0 HU with a smooth edge of compact support (a cosine ramp
+// 3 px wide): its grey value at distance r (pixels) from its centre.
 double DiscValue(double r) {
-  return kDiscHu / (1 + std::exp((r - kRadiusPx) / 1.5));
+  const double inner = kRadiusPx - 1.5, outer = kRadiusPx + 1.5;
+  if (r <= inner) return kDiscHu;
+  if (r >= outer) return 0;
+  return 0.5 * kDiscHu * (1 + std::cos(M_PI * (r - inner) / (outer - inner)));
 }
 
 // Key slices: slice s holds the disc centred at (cx[s], cy), at position
@@ -124,8 +127,8 @@ TEST(MorphIntensityTest, MovingDiscIsOneDiscWithItsGreyValues) {
       }
     // Inside and outside the edge: the analytic values within 1 HU.
     EXPECT_LT(worst_plateau, 1.0) << "slice " << k;
-    // Across the edge (slope up to 167 HU per pixel) a tenth of a pixel.
-    EXPECT_LT(worst_edge, 20.0) << "slice " << k;
+    // Across the edge (slope up to 520 HU per pixel): 0.06 pixel.
+    EXPECT_LT(worst_edge, 30.0) << "slice " << k;
     const Blob blob = Centroid(slice, 0);
     EXPECT_NEAR(blob.cx, centre, 0.1) << "slice " << k;
     EXPECT_NEAR(blob.cy, 32.0, 0.1) << "slice " << k;
@@ -234,10 +237,12 @@ TEST(MorphIntensityTest, AMissingBlockFallsBackToLinear) {
       ASSERT_NEAR(slice[v], Linear(keys, 2, 3, t, v), 1e-3)
           << "slice " << k << " voxel " << v;
   }
-  // The long gap's voxels are all fallbacks; the short gaps' are not.
+  // The long gap's voxels all count and all fall back; of the short gaps'
+  // only those where the key slices differ count.
   const int64_t long_gap_voxels = 23 * kN * kN;
-  EXPECT_EQ(morphed->statistics.fallback_voxels, long_gap_voxels);
-  EXPECT_EQ(morphed->statistics.inserted_voxels, long_gap_voxels + 2 * kN * kN);
+  EXPECT_GE(morphed->statistics.fallback_voxels, long_gap_voxels);
+  EXPECT_GT(morphed->statistics.inserted_voxels, long_gap_voxels);
+  EXPECT_LE(morphed->statistics.inserted_voxels, long_gap_voxels + 2 * kN * kN);
 }
 
 TEST(MorphIntensityTest, ConstantImagesFallBackToLinear) {
@@ -277,20 +282,37 @@ TEST(MorphIntensityTest, UnrelatedTextureFallsBackLocallyAndIsReported) {
                                 TestOptions(), context);
   ASSERT_TRUE(morphed.ok()) << morphed.status();
   const IntensityMorphStatistics& stats = morphed->statistics;
-  EXPECT_EQ(stats.inserted_voxels, 3 * kN * kN);
-  // About the noise's share of the slice (24 of 64 columns, plus the
-  // smoothing of the residual), not all of it and not none.
-  EXPECT_GT(stats.fallback_fraction, 0.25);
-  EXPECT_LT(stats.fallback_fraction, 0.6);
+  // Counted: where the key slices differ, i.e. the noise and around the
+  // discs.
+  EXPECT_GE(stats.inserted_voxels, 3 * 24 * kN * 9 / 10);
+  EXPECT_LT(stats.inserted_voxels, 3 * kN * kN);
+  // Most of it is the noise, which falls back; the discs' part does not.
+  EXPECT_GT(stats.fallback_fraction, 0.5);
+  EXPECT_LT(stats.fallback_fraction, 0.95);
   EXPECT_DOUBLE_EQ(stats.fallback_fraction,
                    static_cast<double>(stats.fallback_voxels) /
                        static_cast<double>(stats.inserted_voxels));
-  // Deep in the noise: exactly the linear blend.
+  // Deep in the noise: (nearly) the linear blend, against what the morph
+  // without fallback makes of it.
+  IntensityMorphOptions no_fallback = TestOptions();
+  no_fallback.gain_low = -2;
+  no_fallback.gain_high = -1;
+  no_fallback.ratio_low = 10;
+  no_fallback.ratio_high = 20;
+  auto unchecked = MorphIntensity(keys, positions, target, std::nullopt,
+                                  nullptr, no_fallback, context);
+  ASSERT_TRUE(unchecked.ok()) << unchecked.status();
   const float* mid = SliceOf(morphed->values, 2);
+  const float* raw = SliceOf(unchecked->values, 2);
+  double off_linear = 0, raw_off_linear = 0;
   for (int64_t j = 8; j < 56; ++j)
-    for (int64_t i = 2; i < 12; ++i)
-      ASSERT_NEAR(mid[i + kN * j], Linear(keys, 0, 1, 0.5, i + kN * j), 1e-3)
-          << i << "," << j;
+    for (int64_t i = 2; i < 14; ++i) {
+      const float linear = Linear(keys, 0, 1, 0.5, i + kN * j);
+      off_linear += std::abs(mid[i + kN * j] - linear);
+      raw_off_linear += std::abs(raw[i + kN * j] - linear);
+    }
+  EXPECT_GT(raw_off_linear, 0);
+  EXPECT_LT(off_linear, 0.1 * raw_off_linear);
   // The disc still moves: one disc at 44.
   double mass = 0, cx = 0;
   for (int64_t j = 0; j < kN; ++j)
