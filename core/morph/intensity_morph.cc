@@ -36,13 +36,15 @@ absl::Status ValidateIntensityOptions(const IntensityMorphOptions& o) {
   if (o.registration != IntensityRegistration::kGrey &&
       o.registration != IntensityRegistration::kDistanceMaps)
     return absl::InvalidArgumentError("intensity morph: unknown registration");
-  if (o.values != MorphValues::kLinear && o.values != MorphValues::kCatmullRom &&
+  if (o.values != MorphValues::kLinear &&
+      o.values != MorphValues::kCatmullRom &&
       o.values != MorphValues::kSmoothstep &&
       o.values != MorphValues::kMonotone)
     return absl::InvalidArgumentError(
         "intensity morph: unknown value interpolation");
   if (!(o.grey_scale > 0) || !std::isfinite(o.grey_scale))
-    return absl::InvalidArgumentError("intensity morph: grey_scale must be > 0");
+    return absl::InvalidArgumentError(
+        "intensity morph: grey_scale must be > 0");
   if (!std::isfinite(o.gain_low) || !std::isfinite(o.gain_high) ||
       !(o.gain_high > o.gain_low))
     return absl::InvalidArgumentError(
@@ -102,10 +104,9 @@ absl::Status CheckInPlaneGrid(const Grid& image, const Grid& target) {
 
 // The q-quantile (q in [0, 1]) of the non-padding values of two planes,
 // from every `stride`-th pixel; nullopt if there are none.
-std::optional<float> PairQuantile(const float* a, const float* b,
-                                  int64_t plane, std::optional<float> padding,
-                                  double q, int64_t stride,
-                                  std::vector<float>& scratch) {
+std::optional<float> PairQuantile(const float* a, const float* b, int64_t plane,
+                                  std::optional<float> padding, double q,
+                                  int64_t stride, std::vector<float>& scratch) {
   scratch.clear();
   for (const float* s : {a, b}) {
     for (int64_t v = 0; v < plane; v += stride) {
@@ -198,8 +199,8 @@ CoarseDisplacement InvertField(const CoarseDisplacement& u) {
         const double y_y = cj * u.downsample + half;
         // Fields are stored in coarse pixels; Sample works in fine ones.
         float vx = 0, vy = 0;
-        u.Sample(y_x + b.ux[c] * u.downsample, y_y + b.uy[c] * u.downsample,
-                 vx, vy);
+        u.Sample(y_x + b.ux[c] * u.downsample, y_y + b.uy[c] * u.downsample, vx,
+                 vy);
         b.ux[c] = -vx / u.downsample;
         b.uy[c] = -vy / u.downsample;
       }
@@ -372,7 +373,8 @@ absl::StatusOr<MorphedIntensity> MorphIntensity(
       g.registered = true;
       return;
     }
-    if (gap_mm[s] > options.max_gap_ratio * median_gap) return;  // missing block
+    if (gap_mm[s] > options.max_gap_ratio * median_gap)
+      return;  // missing block
     const float* g0 = keys + s * plane;
     const float* g1 = keys + (s + 1) * plane;
     // The registration images and the unit of their residual.
@@ -529,7 +531,8 @@ absl::StatusOr<MorphedIntensity> MorphIntensity(
     } else {
       pl.a = upper - 1;
       pl.b = upper;
-      pl.t = (p - positions_mm[pl.a]) / (positions_mm[pl.b] - positions_mm[pl.a]);
+      pl.t =
+          (p - positions_mm[pl.a]) / (positions_mm[pl.b] - positions_mm[pl.a]);
       gap_slices[pl.a].push_back(k);
     }
   }
@@ -638,8 +641,8 @@ absl::StatusOr<MorphedIntensity> MorphIntensity(
             const double b_x = b[v], b_y = b[plane + v];
             const double ws_x =
                 has_next ? w_next * (b_next[v] + b_x) : b_x;  // at s+1
-            const double ws_y = has_next ? w_next * (b_next[plane + v] + b_y)
-                                         : b_y;
+            const double ws_y =
+                has_next ? w_next * (b_next[plane + v] + b_y) : b_y;
             const double we_x = has_prev ? w_prev * (b_x + b_prev[v]) : b_x;
             const double we_y =
                 has_prev ? w_prev * (b_y + b_prev[plane + v]) : b_y;
@@ -647,8 +650,10 @@ absl::StatusOr<MorphedIntensity> MorphIntensity(
             y1 = j - (g10 * ws_y + g01 * b_y + g11 * we_y);
           }
           bool touched = false;
-          const double a0 = SampleUnpadded(g0, nx, ny, x0, y0, padding, touched);
-          const double a1 = SampleUnpadded(g1, nx, ny, x1, y1, padding, touched);
+          const double a0 =
+              SampleUnpadded(g0, nx, ny, x0, y0, padding, touched);
+          const double a1 =
+              SampleUnpadded(g1, nx, ny, x1, y1, padding, touched);
           double value = 0;
           if (options.values == MorphValues::kLinear) {
             value = (1 - t) * a0 + t * a1;
@@ -661,13 +666,13 @@ absl::StatusOr<MorphedIntensity> MorphIntensity(
             double m0 = a1 - a0, m1 = a1 - a0;
             double am = 0, ap = 0;
             if (has_prev) {
-              am = options.backward_fields
-                       ? SampleUnpadded(gm, nx, ny, x0 + b_prev[v],
-                                        y0 + b_prev[plane + v], padding,
-                                        touched)
-                       : SampleUnpadded(gm, nx, ny, x0 - u_prev[v],
-                                        y0 - u_prev[plane + v], padding,
-                                        touched);
+              am =
+                  options.backward_fields
+                      ? SampleUnpadded(gm, nx, ny, x0 + b_prev[v],
+                                       y0 + b_prev[plane + v], padding, touched)
+                      : SampleUnpadded(gm, nx, ny, x0 - u_prev[v],
+                                       y0 - u_prev[plane + v], padding,
+                                       touched);
             }
             if (has_next) {
               ap = SampleUnpadded(gp, nx, ny, x1 + u_next[v],

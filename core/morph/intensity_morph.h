@@ -136,8 +136,8 @@ struct IntensityMorphOptions {
 };
 
 struct IntensityMorphStatistics {
-  int gaps = 0;                // between key slices
-  int gaps_not_registered = 0; // fell back entirely (constant, too long)
+  int gaps = 0;                 // between key slices
+  int gaps_not_registered = 0;  // fell back entirely (constant, too long)
   // Output voxels strictly between two key slices where the key slices
   // differ (r_lin >= gain_high; every voxel of a gap that was not
   // registered), and those of them whose value is mostly the linear blend
@@ -145,7 +145,8 @@ struct IntensityMorphStatistics {
   // not counted.
   int64_t inserted_voxels = 0;
   int64_t fallback_voxels = 0;
-  double fallback_fraction = 0;  // fallback_voxels / inserted_voxels (0 if none)
+  double fallback_fraction =
+      0;  // fallback_voxels / inserted_voxels (0 if none)
   // Mean and largest forward displacement over all registered gaps, mm.
   double mean_displacement_mm = 0;
   double max_displacement_mm = 0;

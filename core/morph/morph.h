@@ -214,8 +214,8 @@ absl::StatusOr<std::vector<float>> RegisterSlices(const float* fixed,
 // registration's own lattice of mx x my = ceil(nx / d) x ceil(ny / d)
 // pixels (d = options.downsample; coarse pixel c covers fine pixels
 // [c d, c d + d) in each axis), in pixels of the coarse lattice (times d
-// for fine pixels, which Sample and Upsample apply). Holding this instead of the
-// full-resolution field takes 1/d^2 of the memory (e.g. 128 KB per gap of a
+// for fine pixels, which Sample and Upsample apply). Holding this instead of
+// the full-resolution field takes 1/d^2 of the memory (e.g. 128 KB per gap of a
 // 512x512 series at d = 4); Sample() gives exactly the value RegisterSlices
 // writes at a fine pixel.
 struct CoarseDisplacement {

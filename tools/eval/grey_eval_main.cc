@@ -14,9 +14,10 @@
 // Methods: linear (ResampleSourceSlices, today's series), catmull-rom and
 // pchip-z (in place along z), morph (MorphIntensity defaults), and ablations:
 // morph-maps (registration by the bone's distance maps), morph-bwd (key
-// slice s+1 sampled through the backward field), morph-nofallback, morph-linvals (values blended
-// linearly along the trajectory). GREY_* environment variables override the
-// morph's settings for sensitivity runs (see ApplyOverrides).
+// slice s+1 sampled through the backward field), morph-nofallback,
+// morph-linvals (values blended linearly along the trajectory). GREY_*
+// environment variables override the morph's settings for sensitivity runs (see
+// ApplyOverrides).
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -59,7 +60,7 @@ struct Options {
   std::vector<std::string> methods = {"linear", "catmull-rom", "morph"};
   double bone = 300;   // edge level of the bone edges (HU)
   double body = -500;  // body = truth >= body (holes filled per slice)
-  std::string soft = "-100,100";  // homogeneous soft tissue value range
+  std::string soft = "-100,100";       // homogeneous soft tissue value range
   double homogeneous_gradient = 0.01;  // x dynamic range per mm
   int threads = 0;
   int margin = 8;
@@ -200,8 +201,8 @@ std::vector<EdgePoint> EdgePoints(const Volume<float>& truth,
           candidates.push_back(truth.grid.LinearIndex(i, j, k));
       }
   }
-  const int64_t stride =
-      std::max<int64_t>(1, static_cast<int64_t>(candidates.size()) / max_points);
+  const int64_t stride = std::max<int64_t>(
+      1, static_cast<int64_t>(candidates.size()) / max_points);
   std::vector<EdgePoint> points;
   for (size_t c = 0; c < candidates.size(); c += stride) {
     const int64_t v = candidates[c];
@@ -210,9 +211,9 @@ std::vector<EdgePoint> EdgePoints(const Volume<float>& truth,
     if (!(len > 0)) continue;
     const int64_t plane = truth.grid.SliceVoxelCount();
     const int64_t k = v / plane, j = (v % plane) / n[0], i = v % n[0];
-    points.push_back({truth.grid.IndexToPhysical(
-                          {static_cast<double>(i), static_cast<double>(j),
-                           static_cast<double>(k)}),
+    points.push_back({truth.grid.IndexToPhysical({static_cast<double>(i),
+                                                  static_cast<double>(j),
+                                                  static_cast<double>(k)}),
                       {g[0] / len, g[1] / len, g[2] / len}});
   }
   return points;
@@ -276,18 +277,18 @@ absl::Status Run(const Options& o) {
   std::vector<double> soft;
   for (absl::string_view part : absl::StrSplit(o.soft, ','))
     soft.push_back(std::atof(std::string(part).c_str()));
-  json results = {{"series", o.name},
-                  {"dir", o.series},
-                  {"modality", series.modality},
-                  {"grid", {{"size", image.grid.size},
-                            {"spacing", image.grid.spacing}}},
-                  {"gantry_tilt_degrees", series.gantry_tilt_degrees},
-                  {"padding", padding.has_value() ? json(*padding) : json()},
-                  {"bone", o.bone},
-                  {"body", o.body},
-                  {"soft", soft},
-                  {"rows", json::array()},
-                  {"planes", json::array()}};
+  json results = {
+      {"series", o.name},
+      {"dir", o.series},
+      {"modality", series.modality},
+      {"grid", {{"size", image.grid.size}, {"spacing", image.grid.spacing}}},
+      {"gantry_tilt_degrees", series.gantry_tilt_degrees},
+      {"padding", padding.has_value() ? json(*padding) : json()},
+      {"bone", o.bone},
+      {"body", o.body},
+      {"soft", soft},
+      {"rows", json::array()},
+      {"planes", json::array()}};
   const int64_t plane = image.grid.SliceVoxelCount();
   for (int k : o.ks) {
     const int64_t keys_count = (image.grid.size[2] - 1) / k + 1;
@@ -344,10 +345,8 @@ absl::Status Run(const Options& o) {
         for (int64_t v = z * plane; v < (z + 1) * plane; ++v) {
           if (in_body && !body_all[v]) continue;
           const Vec3& g = gradient[v];
-          const double gm =
-              std::sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2]);
-          if (gm > 0 && std::abs(truth.data[v] - level) / gm <= 2.0)
-            out[v] = 1;
+          const double gm = std::sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2]);
+          if (gm > 0 && std::abs(truth.data[v] - level) / gm <= 2.0) out[v] = 1;
         }
       }
     };
@@ -357,7 +356,8 @@ absl::Status Run(const Options& o) {
         EdgePoints(truth, gradient, eval_slices, o.bone, 4000);
     const std::vector<EdgePoint> skin_points =
         EdgePoints(truth, gradient, eval_slices, o.body, 4000);
-    auto rises = [&](const Volume<float>& v, const std::vector<EdgePoint>& pts) {
+    auto rises = [&](const Volume<float>& v,
+                     const std::vector<EdgePoint>& pts) {
       std::vector<std::optional<double>> r(pts.size());
       for (size_t q = 0; q < pts.size(); ++q)
         r[q] = RiseDistance(v, pts[q].p, pts[q].n, 4.0, 0.05);
@@ -368,21 +368,25 @@ absl::Status Run(const Options& o) {
     // Distance maps of the key slices, for morph-maps.
     ContourOptions contour;
     contour.lower = static_cast<float>(o.bone);
-    INTERSLICE_ASSIGN_OR_RETURN(const Volume<float> maps,
-                                ComputeSliceDistanceMaps(keys, contour, context));
+    INTERSLICE_ASSIGN_OR_RETURN(
+        const Volume<float> maps,
+        ComputeSliceDistanceMaps(keys, contour, context));
     const int64_t sagittal = truth.grid.size[0] / 2;
     const int64_t coronal = truth.grid.size[1] / 2;
     if (k == 4 || k == 8) {
       for (bool sag : {true, false}) {
-        const std::string file = absl::StrCat("raw/k", k, "_truth_",
-                                              sag ? "sagittal" : "coronal", ".f32");
+        const std::string file = absl::StrCat(
+            "raw/k", k, "_truth_", sag ? "sagittal" : "coronal", ".f32");
         const std::vector<float> data =
             Plane(truth, sag, sag ? sagittal : coronal);
         std::ofstream(o.out + "/" + file, std::ios::binary)
             .write(reinterpret_cast<const char*>(data.data()), data.size() * 4);
         results["planes"].push_back(
-            {{"k", k}, {"method", "truth"}, {"plane", sag ? "sagittal" : "coronal"},
-             {"file", file}, {"rows", out_slices},
+            {{"k", k},
+             {"method", "truth"},
+             {"plane", sag ? "sagittal" : "coronal"},
+             {"file", file},
+             {"rows", out_slices},
              {"cols", sag ? truth.grid.size[1] : truth.grid.size[0]},
              {"row_mm", truth.grid.spacing[2]},
              {"col_mm", truth.grid.spacing[sag ? 1 : 0]}});
@@ -400,9 +404,8 @@ absl::Status Run(const Options& o) {
         INTERSLICE_ASSIGN_OR_RETURN(const IntensityMorphOptions mo,
                                     MethodOptions(method));
         INTERSLICE_ASSIGN_OR_RETURN(
-            MorphedIntensity mi,
-            MorphIntensity(keys, key_positions, truth.grid, padding, &maps, mo,
-                           context));
+            MorphedIntensity mi, MorphIntensity(keys, key_positions, truth.grid,
+                                                padding, &maps, mo, context));
         result = std::move(mi.values);
         row["fallback_fraction"] = mi.statistics.fallback_fraction;
         row["gaps_not_registered"] = mi.statistics.gaps_not_registered;
@@ -412,9 +415,9 @@ absl::Status Run(const Options& o) {
       row["seconds"] = Seconds(t0);
       if (const char* dump = std::getenv("GREY_DUMP")) {
         // Debugging aid: the whole result (and the truth) as raw float32.
-        std::ofstream(absl::StrCat(dump, "/", o.name, "_k", k, "_", method,
-                                   ".f32"),
-                      std::ios::binary)
+        std::ofstream(
+            absl::StrCat(dump, "/", o.name, "_k", k, "_", method, ".f32"),
+            std::ios::binary)
             .write(reinterpret_cast<const char*>(result.data.data()),
                    result.data.size() * 4);
         std::ofstream(absl::StrCat(dump, "/", o.name, "_k", k, "_truth.f32"),
@@ -447,36 +450,37 @@ absl::Status Run(const Options& o) {
                        &ssim_sum, &ssim_count);
       }
       row["ssim"] = ssim_count > 0 ? ssim_sum / ssim_count : 0;
-      auto rise_json = [&](const std::vector<EdgePoint>& pts,
-                           const std::vector<std::optional<double>>& truth_rise) {
-        const auto r = rises(result, pts);
-        std::vector<double> all, oblique, truth_all, truth_oblique;
-        int64_t undefined = 0;
-        for (size_t q = 0; q < pts.size(); ++q) {
-          if (!truth_rise[q].has_value()) continue;
-          if (!r[q].has_value()) {
-            ++undefined;
-            continue;
-          }
-          all.push_back(*r[q]);
-          truth_all.push_back(*truth_rise[q]);
-          // Edges whose normal leans out of the slice plane: where z
-          // interpolation decides the edge.
-          if (std::abs(pts[q].n[0] * truth.grid.Axis(2)[0] +
-                       pts[q].n[1] * truth.grid.Axis(2)[1] +
-                       pts[q].n[2] * truth.grid.Axis(2)[2]) >= 0.5) {
-            oblique.push_back(*r[q]);
-            truth_oblique.push_back(*truth_rise[q]);
-          }
-        }
-        return json{{"median_mm", Median(all)},
-                    {"truth_median_mm", Median(truth_all)},
-                    {"oblique_median_mm", Median(oblique)},
-                    {"truth_oblique_median_mm", Median(truth_oblique)},
-                    {"points", all.size()},
-                    {"oblique_points", oblique.size()},
-                    {"undefined", undefined}};
-      };
+      auto rise_json =
+          [&](const std::vector<EdgePoint>& pts,
+              const std::vector<std::optional<double>>& truth_rise) {
+            const auto r = rises(result, pts);
+            std::vector<double> all, oblique, truth_all, truth_oblique;
+            int64_t undefined = 0;
+            for (size_t q = 0; q < pts.size(); ++q) {
+              if (!truth_rise[q].has_value()) continue;
+              if (!r[q].has_value()) {
+                ++undefined;
+                continue;
+              }
+              all.push_back(*r[q]);
+              truth_all.push_back(*truth_rise[q]);
+              // Edges whose normal leans out of the slice plane: where z
+              // interpolation decides the edge.
+              if (std::abs(pts[q].n[0] * truth.grid.Axis(2)[0] +
+                           pts[q].n[1] * truth.grid.Axis(2)[1] +
+                           pts[q].n[2] * truth.grid.Axis(2)[2]) >= 0.5) {
+                oblique.push_back(*r[q]);
+                truth_oblique.push_back(*truth_rise[q]);
+              }
+            }
+            return json{{"median_mm", Median(all)},
+                        {"truth_median_mm", Median(truth_all)},
+                        {"oblique_median_mm", Median(oblique)},
+                        {"truth_oblique_median_mm", Median(truth_oblique)},
+                        {"points", all.size()},
+                        {"oblique_points", oblique.size()},
+                        {"undefined", undefined}};
+          };
       row["bone_rise"] = rise_json(bone_points, truth_bone);
       row["skin_rise"] = rise_json(skin_points, truth_skin);
       row["dynamic_range"] = range;
@@ -494,8 +498,10 @@ absl::Status Run(const Options& o) {
               .write(reinterpret_cast<const char*>(data.data()),
                      data.size() * 4);
           results["planes"].push_back(
-              {{"k", k}, {"method", method},
-               {"plane", sag ? "sagittal" : "coronal"}, {"file", file},
+              {{"k", k},
+               {"method", method},
+               {"plane", sag ? "sagittal" : "coronal"},
+               {"file", file},
                {"rows", out_slices},
                {"cols", sag ? truth.grid.size[1] : truth.grid.size[0]},
                {"row_mm", truth.grid.spacing[2]},

@@ -49,7 +49,8 @@ std::vector<double> FilterValid(const std::vector<double>& in, int64_t nx,
   for (int64_t j = 0; j < ny; ++j)
     for (int64_t i = 0; i < ox; ++i) {
       double acc = 0;
-      for (int t = 0; t <= 2 * kRadius; ++t) acc += taps[t] * in[i + t + nx * j];
+      for (int t = 0; t <= 2 * kRadius; ++t)
+        acc += taps[t] * in[i + t + nx * j];
       rows[i + ox * j] = acc;
     }
   for (int64_t j = 0; j < oy; ++j)
@@ -107,9 +108,10 @@ double SampleTrilinear(const Volume<float>& v, const Vec3& p) {
   int64_t i0[3];
   double f[3];
   for (int a = 0; a < 3; ++a) {
-    const double c =
-        std::clamp(idx[a], 0.0, static_cast<double>(std::max<int64_t>(0, n[a] - 1)));
-    i0[a] = std::min<int64_t>(static_cast<int64_t>(c), std::max<int64_t>(0, n[a] - 2));
+    const double c = std::clamp(
+        idx[a], 0.0, static_cast<double>(std::max<int64_t>(0, n[a] - 1)));
+    i0[a] = std::min<int64_t>(static_cast<int64_t>(c),
+                              std::max<int64_t>(0, n[a] - 2));
     f[a] = n[a] > 1 ? c - i0[a] : 0;
   }
   double acc = 0;
@@ -134,8 +136,8 @@ std::optional<double> RiseDistance(const Volume<float>& v, const Vec3& p,
   std::vector<double> profile(count);
   for (int s = 0; s < count; ++s) {
     const double d = (s - steps) * step_mm;
-    profile[s] = SampleTrilinear(
-        v, {p[0] + d * n[0], p[1] + d * n[1], p[2] + d * n[2]});
+    profile[s] =
+        SampleTrilinear(v, {p[0] + d * n[0], p[1] + d * n[1], p[2] + d * n[2]});
   }
   const double low =
       *std::min_element(profile.begin(), profile.begin() + steps + 1);
@@ -159,8 +161,7 @@ std::optional<double> RiseDistance(const Volume<float>& v, const Vec3& p,
   int hi = best + 1;
   while (hi < count && profile[hi] < l90) ++hi;
   if (lo < 0 || hi >= count) return std::nullopt;
-  const double s10 =
-      lo + (l10 - profile[lo]) / (profile[lo + 1] - profile[lo]);
+  const double s10 = lo + (l10 - profile[lo]) / (profile[lo + 1] - profile[lo]);
   const double s90 =
       hi - 1 + (l90 - profile[hi - 1]) / (profile[hi] - profile[hi - 1]);
   return (s90 - s10) * step_mm;

@@ -92,9 +92,8 @@ TEST(MorphIntensityTest, MovingDiscIsOneDiscWithItsGreyValues) {
   const std::vector<double> positions = {0.0, 4.0};
   const Grid target = Target(keys, 5, 1.0);  // t = 0, .25, .5, .75, 1
   ComputeContext context;
-  auto morphed =
-      MorphIntensity(keys, positions, target, std::nullopt, nullptr,
-                     TestOptions(), context);
+  auto morphed = MorphIntensity(keys, positions, target, std::nullopt, nullptr,
+                                TestOptions(), context);
   ASSERT_TRUE(morphed.ok()) << morphed.status();
   IntensityMorphOptions linear_options = TestOptions();
   linear_options.register_slices = false;
@@ -206,8 +205,7 @@ TEST(MorphIntensityTest, UnevenGapsFollowTheMotionByPosition) {
     const Blob blob = Centroid(SliceOf(morphed->values, k), 0);
     EXPECT_NEAR(blob.cx, 16 + 2 * z, 0.25) << "z " << z;
     // One disc of the disc's mass, not two partial ones.
-    EXPECT_NEAR(blob.mass, Centroid(SliceOf(keys, 0), 0).mass,
-                0.02 * blob.mass)
+    EXPECT_NEAR(blob.mass, Centroid(SliceOf(keys, 0), 0).mass, 0.02 * blob.mass)
         << "z " << z;
   }
 }
@@ -253,9 +251,8 @@ TEST(MorphIntensityTest, ConstantImagesFallBackToLinear) {
   keys.data.resize(2 * kN * kN, 300.0f);
   const std::vector<double> positions = {0.0, 4.0};
   ComputeContext context;
-  auto morphed =
-      MorphIntensity(keys, positions, Target(keys, 5, 1.0), std::nullopt,
-                     nullptr, TestOptions(), context);
+  auto morphed = MorphIntensity(keys, positions, Target(keys, 5, 1.0),
+                                std::nullopt, nullptr, TestOptions(), context);
   ASSERT_TRUE(morphed.ok()) << morphed.status();
   EXPECT_EQ(morphed->statistics.gaps_not_registered, 1);
   EXPECT_DOUBLE_EQ(morphed->statistics.fallback_fraction, 1.0);
@@ -341,7 +338,8 @@ TEST(MorphIntensityTest, PaddingNeverAppearsInsideTheScannedField) {
   for (int64_t k = 1; k < 4; ++k) {
     const float* slice = SliceOf(morphed->values, k);
     for (int64_t v = 0; v < kN * kN; ++v) {
-      const bool padded = SliceOf(keys, 0)[v] == kPad || SliceOf(keys, 1)[v] == kPad;
+      const bool padded =
+          SliceOf(keys, 0)[v] == kPad || SliceOf(keys, 1)[v] == kPad;
       if (padded) {
         ASSERT_EQ(slice[v], kPad) << v;
       } else {
@@ -392,9 +390,9 @@ TEST(MorphIntensityTest, ResultDoesNotDependOnThreads) {
 TEST(MorphIntensityTest, BadInputIsAnErrorNamingIt) {
   const Volume<float> keys = DiscSlices({20, 30}, 30);
   ComputeContext context;
-  auto unordered = MorphIntensity(keys, {4.0, 0.0}, Target(keys, 5, 1.0),
-                                  std::nullopt, nullptr, TestOptions(),
-                                  context);
+  auto unordered =
+      MorphIntensity(keys, {4.0, 0.0}, Target(keys, 5, 1.0), std::nullopt,
+                     nullptr, TestOptions(), context);
   EXPECT_EQ(unordered.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_THAT(std::string(unordered.status().message()),
               testing::HasSubstr("increasing"));
@@ -405,8 +403,8 @@ TEST(MorphIntensityTest, BadInputIsAnErrorNamingIt) {
   EXPECT_EQ(no_maps.status().code(), absl::StatusCode::kInvalidArgument);
   Grid other = Target(keys, 5, 1.0);
   other.size[0] = 32;
-  auto mismatch = MorphIntensity(keys, {0.0, 4.0}, other, std::nullopt,
-                                 nullptr, TestOptions(), context);
+  auto mismatch = MorphIntensity(keys, {0.0, 4.0}, other, std::nullopt, nullptr,
+                                 TestOptions(), context);
   EXPECT_EQ(mismatch.status().code(), absl::StatusCode::kInvalidArgument);
 }
 

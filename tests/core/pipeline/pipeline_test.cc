@@ -429,8 +429,8 @@ TEST_F(PipelineTest, MorphIntensitySeriesKeepsSourceSlicesAndReports) {
   fs::remove_all(dir_);
   const auto plain = RunJob(no_series, {});
   ASSERT_TRUE(plain.ok());
-  EXPECT_FALSE(nlohmann::json::parse(JobReportToJson(*plain))
-                   .contains("intensity"));
+  EXPECT_FALSE(
+      nlohmann::json::parse(JobReportToJson(*plain)).contains("intensity"));
 }
 
 TEST_F(PipelineTest, MorphIntensityHandlesAMissingSlice) {

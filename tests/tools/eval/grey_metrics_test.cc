@@ -109,8 +109,8 @@ TEST(RiseDistanceTest, ErfEdgeRisesOver2563Sigma) {
   ASSERT_TRUE(rise.has_value());
   EXPECT_NEAR(*rise, 2 * 1.2816 * sigma, 0.02);
   // Along the edge there is no rise.
-  EXPECT_FALSE(RiseDistance(v, {10.0, 1.5, 1.5}, {0, 1, 0}, 1.0, 0.05)
-                   .has_value());
+  EXPECT_FALSE(
+      RiseDistance(v, {10.0, 1.5, 1.5}, {0, 1, 0}, 1.0, 0.05).has_value());
 }
 
 TEST(ErrorOnMaskTest, RmseAndPsnrOverTheMaskOnly) {
