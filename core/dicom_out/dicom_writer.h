@@ -103,6 +103,15 @@ struct DicomWriteOptions {
   // samples only, and Float Pixel Data has no encapsulated transfer syntax).
   enum class PixelEncoding { kNative, kRleLossless };
   PixelEncoding intensity_encoding = PixelEncoding::kNative;
+  // How the intensity series' values between source slices were made, for
+  // what the series says of itself: kLinear (ResampleSourceSlices) or kMorph
+  // (core/morph MorphIntensity: carried along the motion between the source
+  // slices). It changes the DerivationDescription and, for kMorph, the
+  // SourceImageSequence of an output slice between two source slices also
+  // lists their outer neighbours, whose values shape it (the value tangents).
+  enum class IntensityInterpolation { kLinear, kMorph };
+  IntensityInterpolation intensity_interpolation =
+      IntensityInterpolation::kLinear;
 };
 
 // The identity of one derived object: series UID, SOP instance UIDs (one per

@@ -19,6 +19,7 @@
 #include "core/dicom/series_reader.h"
 #include "core/dicom_out/dicom_writer.h"
 #include "core/dicom_out/encapsulated_stl.h"
+#include "core/morph/intensity_morph.h"
 #include "core/morph/morph.h"
 #include "core/sdf/signed_distance.h"
 #include "core/slab/slab_deconvolution.h"
@@ -104,6 +105,11 @@ std::string DerivationKey(const JobSpec& spec, const Grid& output_grid) {
       EnergyUnitsName(spec.solver.units), spec.solver.max_iterations,
       spec.solver.tolerance, spec.strict_spacing ? 1 : 0,
       spec.multiframe_volume);
+  // Linear is what every job did before the option existed: its key (and
+  // so its UIDs) stays as it was.
+  if (spec.intensity_method != "linear") {
+    absl::StrAppend(&key, " intensity=", spec.intensity_method);
+  }
   if (spec.roi.has_value()) {
     absl::StrAppend(&key, " roi=", absl::StrJoin(spec.roi->begin, ","), ",",
                     absl::StrJoin(spec.roi->end, ","));
@@ -207,6 +213,11 @@ absl::Status ValidateJobSpec(const JobSpec& spec) {
     return absl::InvalidArgumentError(
         absl::StrCat("unknown DICOM compression '", spec.dicom_compression,
                      "' (choose from none, rle)"));
+  }
+  if (spec.intensity_method != "linear" && spec.intensity_method != "morph") {
+    return absl::InvalidArgumentError(
+        absl::StrCat("unknown intensity method '", spec.intensity_method,
+                     "' (choose from linear, morph)"));
   }
   for (const std::string& f : spec.output_series) {
     if (f != "mask" && f != "distance" && f != "intensity") {
@@ -446,9 +457,26 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
           PlanDerivedObjects(source, field.grid.size[2], dicom_options));
       INTERSLICE_ASSIGN_OR_RETURN(const std::optional<float> padding,
                                   SourcePixelPadding(source));
-      INTERSLICE_ASSIGN_OR_RETURN(
-          intensity,
-          ResampleSourceSlices(image, positions, field.grid, padding, context));
+      report.intensity_method = spec.intensity_method;
+      if (spec.intensity_method == "morph") {
+        dicom_options.intensity_interpolation =
+            DicomWriteOptions::IntensityInterpolation::kMorph;
+        INTERSLICE_ASSIGN_OR_RETURN(
+            MorphedIntensity morphed,
+            MorphIntensity(image, positions, field.grid, padding, nullptr,
+                           IntensityMorphOptions(), context));
+        intensity = std::move(morphed.values);
+        const IntensityMorphStatistics& stats = morphed.statistics;
+        report.intensity_gaps = stats.gaps;
+        report.intensity_gaps_not_registered = stats.gaps_not_registered;
+        report.intensity_fallback_fraction = stats.fallback_fraction;
+        report.intensity_mean_displacement_mm = stats.mean_displacement_mm;
+        report.intensity_max_displacement_mm = stats.max_displacement_mm;
+      } else {
+        INTERSLICE_ASSIGN_OR_RETURN(
+            intensity, ResampleSourceSlices(image, positions, field.grid,
+                                            padding, context));
+      }
       image = Volume<float>();
     }
 
@@ -578,6 +606,15 @@ std::string JobReportToJson(const JobReport& report) {
         {"residual_before", report.slab_residual_before},
         {"residual_after", report.slab_residual_after}};
   }
+  if (!report.intensity_method.empty()) {
+    j["intensity"] = {
+        {"method", report.intensity_method},
+        {"gaps", report.intensity_gaps},
+        {"gaps_not_registered", report.intensity_gaps_not_registered},
+        {"fallback_fraction", report.intensity_fallback_fraction},
+        {"mean_displacement_mm", report.intensity_mean_displacement_mm},
+        {"max_displacement_mm", report.intensity_max_displacement_mm}};
+  }
   j["mesh"] = {{"vertices", report.mesh_vertices},
                {"triangles", report.mesh_triangles}};
   ordered_json artifacts = ordered_json::array();
@@ -655,6 +692,20 @@ absl::StatusOr<JobReport> JobReportFromJson(const std::string& text) {
       report.slab_iterations = slab.at("iterations").get<int>();
       report.slab_residual_before = slab.at("residual_before").get<double>();
       report.slab_residual_after = slab.at("residual_after").get<double>();
+    }
+    // Absent in reports without an intensity series (and in older ones).
+    if (j.contains("intensity")) {
+      const json& intensity = j.at("intensity");
+      report.intensity_method = intensity.at("method").get<std::string>();
+      report.intensity_gaps = intensity.at("gaps").get<int>();
+      report.intensity_gaps_not_registered =
+          intensity.at("gaps_not_registered").get<int>();
+      report.intensity_fallback_fraction =
+          intensity.at("fallback_fraction").get<double>();
+      report.intensity_mean_displacement_mm =
+          intensity.at("mean_displacement_mm").get<double>();
+      report.intensity_max_displacement_mm =
+          intensity.at("max_displacement_mm").get<double>();
     }
     report.mesh_vertices = j.at("mesh").at("vertices").get<int64_t>();
     report.mesh_triangles = j.at("mesh").at("triangles").get<int64_t>();

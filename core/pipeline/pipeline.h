@@ -81,6 +81,20 @@ struct JobSpec {
   // distance map stay native. UIDs do not depend on it (the same instances,
   // transcoded losslessly).
   std::string dicom_compression = "none";
+  // How the intensity series (output_series "intensity", or brought along
+  // by a SEG or distance map) gets the grey values of the output slices
+  // between two source slices:
+  //   "linear" - the two bracketing source slices blended linearly in
+  //              modality units at the slice's true position
+  //              (ResampleSourceSlices, core/dicom_out);
+  //   "morph"  - carried along the motion between them (core/morph
+  //              MorphIntensity: the grey images registered by demons, a C1
+  //              trajectory and monotone values in z, local fallback to the
+  //              linear blend where the registration is unreliable, reported
+  //              in JobReport::intensity). Source slices are reproduced
+  //              bit-identically either way.
+  // docs/eval/intensity.md has the measurements behind the default.
+  std::string intensity_method = "linear";
   // UID root for new series/instance UIDs; empty = 2.25 + UUID.
   std::string uid_root;
   // UIDs are derived from the source instances, the job's parameters and the
@@ -140,6 +154,18 @@ struct JobReport {
   double slab_thickness_mm = 0;
   int slab_iterations = 0;
   double slab_residual_before = 0, slab_residual_after = 0;
+  // The intensity series, when one was written: its method ("linear" or
+  // "morph"; empty when none was written) and, for "morph", the gaps
+  // between source slices, those that could not be registered at all
+  // (constant slices, a missing block), the fraction of the inserted voxels
+  // whose value is mostly the linear fallback, and the mean and largest
+  // in-plane motion found (mm).
+  std::string intensity_method;
+  int intensity_gaps = 0;
+  int intensity_gaps_not_registered = 0;
+  double intensity_fallback_fraction = 0;
+  double intensity_mean_displacement_mm = 0;
+  double intensity_max_displacement_mm = 0;
   int64_t mesh_vertices = 0;
   int64_t mesh_triangles = 0;
   std::vector<Artifact> artifacts;

@@ -360,5 +360,123 @@ TEST_F(PipelineTest, RoiOfANonUniformSeriesStartsAtItsFirstSlice) {
   fs::remove_all(inputs);
 }
 
+TEST_F(PipelineTest, MorphIntensitySeriesKeepsSourceSlicesAndReports) {
+  JobSpec spec = SmallJob();
+  spec.output_series = {"intensity"};
+  spec.mesh_formats = {};
+  spec.volume_formats = {};
+  spec.intensity_method = "morph";
+  const auto morph = RunJob(spec, {});
+  ASSERT_TRUE(morph.ok()) << morph.status();
+  EXPECT_EQ(morph->intensity_method, "morph");
+  EXPECT_EQ(morph->intensity_gaps, 3);
+  EXPECT_GE(morph->intensity_fallback_fraction, 0.0);
+  EXPECT_LE(morph->intensity_fallback_fraction, 1.0);
+  EXPECT_GT(morph->intensity_mean_displacement_mm, 0.0);
+  const auto morph_series =
+      ReadDicomSeries({(dir_ / "series-intensity").string()}, {}, {});
+  ASSERT_TRUE(morph_series.ok()) << morph_series.status();
+  ASSERT_EQ(morph_series->image.grid.size, (Index3{80, 80, 13}));
+
+  // The source slices are in it unchanged (to the storage step, 1 HU here).
+  const auto source = ReadDicomSeries({kSeries}, {}, {});
+  ASSERT_TRUE(source.ok());
+  const Volume<float> roi = CropVolume(source->image, *spec.roi);
+  const int64_t plane = 80 * 80;
+  for (int64_t s = 0; s < 4; ++s)
+    for (int64_t v = 0; v < plane; ++v)
+      ASSERT_NEAR(morph_series->image.data[4 * s * plane + v],
+                  roi.data[s * plane + v], 0.5)
+          << "source slice " << s << " pixel " << v;
+
+  // The same job with linear values: the same source slices, other inserted
+  // slices, other UIDs (the method is part of what the series is).
+  spec.intensity_method = "linear";
+  fs::remove_all(dir_);
+  const auto linear = RunJob(spec, {});
+  ASSERT_TRUE(linear.ok()) << linear.status();
+  EXPECT_EQ(linear->intensity_method, "linear");
+  EXPECT_EQ(linear->intensity_gaps, 0);
+  const auto linear_series =
+      ReadDicomSeries({(dir_ / "series-intensity").string()}, {}, {});
+  ASSERT_TRUE(linear_series.ok()) << linear_series.status();
+  double difference = 0;
+  for (int64_t k = 1; k < 4; ++k)
+    for (int64_t v = 0; v < plane; ++v)
+      difference += std::abs(linear_series->image.data[k * plane + v] -
+                             morph_series->image.data[k * plane + v]);
+  EXPECT_GT(difference / (3 * plane), 1.0);  // HU per voxel
+  EXPECT_NE(linear_series->series_instance_uid,
+            morph_series->series_instance_uid);
+
+  // The report says what happened, and reads back.
+  const std::string json = JobReportToJson(*morph);
+  const nlohmann::json j = nlohmann::json::parse(json);
+  EXPECT_EQ(j["intensity"]["method"], "morph");
+  EXPECT_EQ(j["intensity"]["gaps"], 3);
+  EXPECT_TRUE(j["intensity"].contains("fallback_fraction"));
+  EXPECT_TRUE(j["intensity"].contains("gaps_not_registered"));
+  const auto back = JobReportFromJson(json);
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_EQ(back->intensity_method, "morph");
+  EXPECT_EQ(back->intensity_gaps, 3);
+  EXPECT_EQ(back->intensity_fallback_fraction,
+            morph->intensity_fallback_fraction);
+  EXPECT_EQ(back->intensity_mean_displacement_mm,
+            morph->intensity_mean_displacement_mm);
+  // No intensity series, no intensity section.
+  JobSpec no_series = SmallJob();
+  fs::remove_all(dir_);
+  const auto plain = RunJob(no_series, {});
+  ASSERT_TRUE(plain.ok());
+  EXPECT_FALSE(
+      nlohmann::json::parse(JobReportToJson(*plain)).contains("intensity"));
+}
+
+TEST_F(PipelineTest, MorphIntensityHandlesAMissingSlice) {
+  // I10, I20 and I40: gaps of 5 and 10 mm; the 10 mm gap is 2 median
+  // gaps, registered as any other.
+  const fs::path inputs = dir_.string() + "_in";
+  fs::create_directories(inputs);
+  for (const char* name : {"I10.dcm", "I20.dcm", "I40.dcm"}) {
+    fs::copy_file(fs::path(kSeries) / name, inputs / name,
+                  fs::copy_options::overwrite_existing);
+  }
+  JobSpec spec = SmallJob();
+  spec.inputs = {inputs.string()};
+  spec.roi = VoxelBox{{200, 40, 0}, {280, 120, 3}};
+  spec.z_resolution = {.spacing_mm = 2.5};
+  spec.output_series = {"intensity"};
+  spec.intensity_method = "morph";
+  const auto report = RunJob(spec, {});
+  ASSERT_TRUE(report.ok()) << report.status();
+  EXPECT_EQ(report->intensity_gaps, 2);
+  const auto written =
+      ReadDicomSeries({(dir_ / "series-intensity").string()}, {}, {});
+  ASSERT_TRUE(written.ok()) << written.status();
+  const auto source = ReadDicomSeries({inputs.string()}, {}, {});
+  ASSERT_TRUE(source.ok());
+  const Volume<float> roi = CropVolume(source->image, *spec.roi);
+  const int64_t plane = 80 * 80;
+  // Nodes 0, 2 and 6 hold the source slices.
+  const int64_t nodes[3] = {0, 2, 6};
+  for (int64_t s = 0; s < 3; ++s)
+    for (int64_t v = 0; v < plane; ++v)
+      ASSERT_NEAR(written->image.data[nodes[s] * plane + v],
+                  roi.data[s * plane + v], 0.5)
+          << "source slice " << s;
+  fs::remove_all(inputs);
+}
+
+TEST_F(PipelineTest, UnknownIntensityMethodIsRejected) {
+  JobSpec spec = SmallJob();
+  spec.intensity_method = "cubic";
+  const auto report = RunJob(spec, {});
+  EXPECT_EQ(report.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(std::string(report.status().message()),
+              ::testing::AllOf(::testing::HasSubstr("intensity method"),
+                               ::testing::HasSubstr("cubic")));
+}
+
 }  // namespace
 }  // namespace interslice
