@@ -70,6 +70,12 @@ constexpr OptionDef<IO> kInterpolationOptions[] = {
      ValueKind::kText, &IO::dicom_compression,
      "Pixel data of the DICOM intensity series: none (native) or rle (RLE "
      "Lossless: the same values, fewer bytes)"},
+    {"intensity_method", "spec.derived_series.intensity_method",
+     ValueKind::kText, &IO::intensity_method,
+     "Grey values of the DICOM intensity series between source slices: morph "
+     "(carried along the motion between neighbouring slices, locally linear "
+     "where the registration is unreliable; docs/eval/intensity.md) or "
+     "linear (the two bracketing slices blended)"},
     {"uid_root", "spec.uid_root", ValueKind::kText, &IO::uid_root,
      "UID root for the new DICOM UIDs (default 2.25 + UUID)"},
     {"random_uids", "spec.random_uids", ValueKind::kFlag, &IO::random_uids,
@@ -151,6 +157,10 @@ constexpr OptionDef<FO> kFillOptions[] = {
     {"rtstruct", "spec.fill.rtstruct", ValueKind::kFlag, &FO::rtstruct,
      "Write the filled labels as an RTSTRUCT of closed planar contours "
      "(DIR/rtstruct.dcm; default: on for RTSTRUCT input)"},
+    {"intensity_method", "spec.fill.intensity_method", ValueKind::kText,
+     &FO::intensity_method,
+     "Grey values of the intensity series a finer grid (--factor, --spacing) "
+     "writes for the DICOM outputs to lie on: morph or linear (as run)"},
     {"uid_root", "spec.uid_root", ValueKind::kText, &FO::uid_root,
      "UID root of the DICOM outputs (default 2.25 UUIDs)"},
     {"random_uids", "spec.random_uids", ValueKind::kFlag, &FO::random_uids,
@@ -339,6 +349,15 @@ absl::Status CheckBand(const std::optional<double>& band) {
   return absl::OkStatus();
 }
 
+absl::Status CheckIntensityMethod(const std::string& method) {
+  if (method != "morph" && method != "linear") {
+    return OptionError("intensity_method",
+                       absl::StrCat("unknown value '", method,
+                                    "' (choose from morph, linear)"));
+  }
+  return absl::OkStatus();
+}
+
 absl::Status CheckAdaptivity(double adaptivity) {
   if (!(adaptivity >= 0 && adaptivity <= 1)) {
     return OptionError("adaptivity", "must be in [0, 1]");
@@ -469,6 +488,10 @@ absl::StatusOr<JobSpec> BuildJobSpec(const InterpolationOptions& o) {
                                     "' (choose from none, rle)"));
   }
   spec.dicom_compression = o.dicom_compression;
+  if (absl::Status s = CheckIntensityMethod(o.intensity_method); !s.ok()) {
+    return s;
+  }
+  spec.intensity_method = o.intensity_method;
   spec.write_seg = o.seg;
   spec.uid_root = o.uid_root;
   spec.random_uids = o.random_uids;
@@ -560,6 +583,10 @@ absl::StatusOr<FillJobSpec> BuildFillJobSpec(const FillJobOptions& o) {
   spec.volume_formats = *volume;
   spec.write_seg = o.seg;
   spec.write_rtstruct = o.rtstruct;
+  if (absl::Status s = CheckIntensityMethod(o.intensity_method); !s.ok()) {
+    return s;
+  }
+  spec.intensity_method = o.intensity_method;
   spec.uid_root = o.uid_root;
   spec.random_uids = o.random_uids;
   if (absl::Status s = ValidateFillJobSpec(spec); !s.ok()) return s;

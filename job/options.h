@@ -77,6 +77,7 @@ struct InterpolationOptions {
   std::string output_series;  // "mask,distance,intensity"
   bool seg = false;
   std::string dicom_compression = "none";
+  std::string intensity_method = "morph";
   std::string uid_root;
   bool random_uids = false;
   std::optional<int64_t> series_number_base;
@@ -111,6 +112,7 @@ struct FillJobOptions {
   std::string volume = "nii";
   bool seg = false;
   std::optional<bool> rtstruct;  // unset: on for RTSTRUCT input
+  std::string intensity_method = "morph";
   std::string uid_root;
   bool random_uids = false;
 };

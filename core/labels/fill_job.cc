@@ -16,6 +16,7 @@
 #include "core/labels/label_map_io.h"
 #include "core/labels/segment_names.h"
 #include "core/labels/segmentation_reader.h"
+#include "core/morph/intensity_morph.h"
 #include "core/surface/surface.h"
 #include "core/volume_io/volume_io.h"
 #include "nlohmann/json.hpp"
@@ -80,6 +81,12 @@ absl::Status WriteDicomOutputs(const FillJobSpec& spec,
   options.uid_root = spec.uid_root;
   options.random_uids = spec.random_uids;
   options.derivation_key = DerivationKey(spec, input.labels, result.factor);
+  // The grey values of a derived series depend on how they are interpolated
+  // (a linear series keeps the UIDs it always had).
+  if (derive_series && spec.intensity_method != "linear") {
+    absl::StrAppend(&options.derivation_key, "\nintensity ",
+                    spec.intensity_method);
+  }
   options.derivation_description =
       "interslice fill between key slices (Csebfalvi et al. 2001)";
   INTERSLICE_ASSIGN_OR_RETURN(
@@ -98,9 +105,21 @@ absl::Status WriteDicomOutputs(const FillJobSpec& spec,
     }
     INTERSLICE_ASSIGN_OR_RETURN(std::optional<float> padding,
                                 SourcePixelPadding(source));
-    INTERSLICE_ASSIGN_OR_RETURN(
-        Volume<float> intensity,
-        ResampleSourceSlices(source.image, positions, grid, padding, context));
+    // The grey values as `run` makes them (pipeline.h, intensity_method).
+    Volume<float> intensity;
+    if (spec.intensity_method == "morph") {
+      options.intensity_interpolation =
+          DicomWriteOptions::IntensityInterpolation::kMorph;
+      INTERSLICE_ASSIGN_OR_RETURN(
+          MorphedIntensity morphed,
+          MorphIntensity(source.image, positions, grid, padding, nullptr,
+                         IntensityMorphOptions(), context));
+      intensity = std::move(morphed.values);
+    } else {
+      INTERSLICE_ASSIGN_OR_RETURN(
+          intensity, ResampleSourceSlices(source.image, positions, grid,
+                                          padding, context));
+    }
     const std::string folder = (dir / "series-intensity").string();
     INTERSLICE_ASSIGN_OR_RETURN(
         std::vector<std::string> written,
@@ -184,6 +203,11 @@ absl::Status ValidateFillJobSpec(const FillJobSpec& spec) {
       return absl::InvalidArgumentError(absl::StrCat(
           "fill: unknown mesh format '", f, "' (expected stl, ply or obj)"));
     }
+  }
+  if (spec.intensity_method != "linear" && spec.intensity_method != "morph") {
+    return absl::InvalidArgumentError(
+        absl::StrCat("fill: unknown intensity method '", spec.intensity_method,
+                     "' (choose from linear, morph)"));
   }
   if (!(spec.mesh_adaptivity >= 0 && spec.mesh_adaptivity <= 1)) {
     return absl::InvalidArgumentError(

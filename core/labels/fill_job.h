@@ -67,6 +67,9 @@ struct FillJobSpec {
   double mesh_adaptivity = 0;  // OpenVDB adaptivity in [0, 1]
   bool write_seg = false;
   std::optional<bool> write_rtstruct;  // unset: on for RTSTRUCT input
+  // The grey values of series-intensity/ (written on a finer grid): "morph"
+  // (default) or "linear", as JobSpec::intensity_method (pipeline.h).
+  std::string intensity_method = "morph";
   std::string uid_root;                // DicomWriteOptions::uid_root
   bool random_uids = false;            // DicomWriteOptions::random_uids
   std::string output_dir;

@@ -12,6 +12,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <string>
 #include <vector>
 
@@ -351,10 +352,13 @@ TEST_F(DicomOutputTest, UnevenGapsAndMissingSlicesArePlacedByTruePositions) {
         "run " + source.string() + " --threshold 300 --roi 150,100,0,350,300," +
         std::to_string(c.slices.size()) +
         " --method direct --quiet --volume none --mesh none --seg "
-        "--out " +
+        "--intensity-method linear --out " +
         out.string() + " --report " + report_path.string());
     ASSERT_EQ(r.exit_code, 0) << r.output;
     const nlohmann::json report = ReadJson(report_path);
+    // The placement is checked against the linear blend's formula below (the
+    // morph's own placement on uneven gaps: tests/core/morph).
+    EXPECT_EQ(report["intensity"]["method"], "linear");
     double max_gap = 0;
     for (size_t i = 1; i < c.positions.size(); ++i) {
       max_gap = std::max(max_gap, c.positions[i] - c.positions[i - 1]);
@@ -366,6 +370,71 @@ TEST_F(DicomOutputTest, UnevenGapsAndMissingSlicesArePlacedByTruePositions) {
     std::string errors;
     EXPECT_EQ(DciodvfyErrors(out / "seg.dcm", &errors), 0) << errors;
   }
+}
+
+// --intensity-method: the morph (default) and the linear blend keep the
+// source slices bit for bit and differ between them; each is named in the
+// report, the objects validate, and the two get different UIDs.
+TEST_F(DicomOutputTest, IntensityMethodKeepsSourceSlicesAndSaysWhichItUsed) {
+  std::map<std::string, DicomSeries> series;
+  for (const std::string method : {"", "linear", "morph"}) {
+    const std::string name = method.empty() ? "default" : method;
+    const fs::path out = dir_ / ("intensity-" + name);
+    const fs::path report_path = dir_ / ("intensity-" + name + ".json");
+    const CommandResult r = RunCli(
+        "run " + kPhantom.string() +
+        " --threshold 300 --roi 150,100,0,350,300,6 --method direct --quiet "
+        "--volume none --mesh none --output-series intensity " +
+        (method.empty() ? "" : "--intensity-method " + method + " ") +
+        "--out " + out.string() + " --report " + report_path.string());
+    ASSERT_EQ(r.exit_code, 0) << r.output;
+    const nlohmann::json report = ReadJson(report_path);
+    EXPECT_EQ(report["intensity"]["method"], method.empty() ? "morph" : method);
+    auto read = ReadDicomSeries({(out / "series-intensity").string()}, {}, {});
+    ASSERT_TRUE(read.ok()) << read.status();
+    std::string errors;
+    EXPECT_EQ(DciodvfyErrors(out / "series-intensity" / "IM00002.dcm", &errors),
+              0)
+        << errors;
+    series.emplace(name, *std::move(read));
+  }
+  auto source = ReadDicomSeries({kPhantom.string()}, {}, {});
+  ASSERT_TRUE(source.ok()) << source.status();
+  const DicomSeries& linear = series["linear"];
+  const DicomSeries& morph = series["morph"];
+  EXPECT_TRUE(series["default"].image.data == morph.image.data);
+  EXPECT_EQ(series["default"].series_instance_uid, morph.series_instance_uid);
+  EXPECT_NE(linear.series_instance_uid, morph.series_instance_uid);
+  ASSERT_EQ(linear.image.grid.size, morph.image.grid.size);
+  const int64_t plane = linear.image.grid.size[0] * linear.image.grid.size[1];
+  int64_t differing_planes = 0, source_planes = 0;
+  for (int64_t k = 0; k < linear.image.grid.size[2]; ++k) {
+    const bool same = std::equal(linear.image.data.begin() + k * plane,
+                                 linear.image.data.begin() + (k + 1) * plane,
+                                 morph.image.data.begin() + k * plane);
+    // A slice at a source slice's position is that slice in both.
+    bool on_source = false;
+    for (const DicomSliceInfo& s : source->slices) {
+      on_source =
+          on_source || std::abs(s.position_along_normal -
+                                linear.slices[k].position_along_normal) < 1e-3;
+    }
+    if (on_source) {
+      ++source_planes;
+      EXPECT_TRUE(same) << "source slice at output slice " << k;
+    } else if (!same) {
+      ++differing_planes;
+    }
+  }
+  EXPECT_EQ(source_planes, 6);
+  EXPECT_GT(differing_planes, 0);
+  const CommandResult bad = RunCli("run " + kPhantom.string() +
+                                   " --threshold 300 --intensity-method cubic "
+                                   "--out " +
+                                   (dir_ / "bad").string());
+  EXPECT_EQ(bad.exit_code, 1);
+  EXPECT_THAT(bad.output,
+              HasSubstr("--intensity-method: unknown value 'cubic'"));
 }
 
 // --dicom-compression rle: the intensity series is RLE Lossless and reads

@@ -121,6 +121,7 @@ TEST(WireTest, InterpolationSpecsRoundTrip) {
   cases[1].dicom_compression = "rle";
   cases[1].series_number_base = 2147483643;
   cases[1].slab_deconvolution = true;
+  cases[1].intensity_method = "linear";
   cases[1].volume = "nii-uncompressed,nrrd";
   cases[1].mesh = "obj";
   cases[2].method = "morph";
@@ -156,6 +157,7 @@ TEST(WireTest, InterpolationSpecsRoundTrip) {
     EXPECT_EQ(back->volume_formats, spec->volume_formats);
     EXPECT_EQ(back->mesh_formats, spec->mesh_formats);
     EXPECT_EQ(back->slab_deconvolution, spec->slab_deconvolution);
+    EXPECT_EQ(back->intensity_method, spec->intensity_method);
     EXPECT_EQ(back->series_number_base, spec->series_number_base);
     EXPECT_EQ(back->series_instance_uid, spec->series_instance_uid);
     EXPECT_TRUE(back->inputs.empty());

@@ -318,11 +318,11 @@ TEST(ServerTest, SlabDeconvolutionRunsOnTheServerAsInProcess) {
       Cat(kSmallJob, {"--slab-deconvolution", "--method", "direct"});
   const std::string local = RunLocally(dir, job, "local");
   ServerProcess server(dir / "spool", dir / "server.log", {});
-  CommandResult r = Cli(Cat(
-      Cat({"interpolate"}, job),
-      Cat(server.Server(), {"--out", dir / "remote", "--volume", "nii,nrrd",
-                            "--mesh", "stl,ply,obj", "--report",
-                            dir / "report.json"})));
+  CommandResult r =
+      Cli(Cat(Cat({"interpolate"}, job),
+              Cat(server.Server(),
+                  {"--out", dir / "remote", "--volume", "nii,nrrd", "--mesh",
+                   "stl,ply,obj", "--report", dir / "report.json"})));
   ASSERT_EQ(r.exit_code, 0) << r.err << server.Log();
   ExpectSameFiles(local, dir / "remote");
   EXPECT_THAT(ReadFileOrEmpty(dir / "report.json"),
@@ -332,6 +332,48 @@ TEST(ServerTest, SlabDeconvolutionRunsOnTheServerAsInProcess) {
 // DICOM outputs through the daemon are the objects `run` writes: the same
 // pixel data, geometry and (derived, not random) UIDs; only creation dates
 // and times may differ.
+// --intensity-method reaches the server: each method's intensity series from
+// the daemon is the one `run` writes with it (pixels and UIDs), and the two
+// methods differ between the source slices only.
+TEST(ServerTest, IntensityMethodChosenOnTheClientRunsOnTheServer) {
+  TempDir dir;
+  ServerProcess server(dir / "spool", dir / "server.log", {});
+  std::map<std::string, DicomSeries> series;
+  for (const std::string method : {"linear", "morph"}) {
+    const std::vector<std::string> args = {
+        "--output-series", "intensity", "--volume",           "none",
+        "--mesh",          "none",      "--intensity-method", method};
+    CommandResult local = Cli(Cat(
+        Cat({"run"}, kSmallJob),
+        Cat(args, {"--out", dir / ("local-" + method), "--quiet", "--threads",
+                   "1", "--report", dir / ("report-" + method + ".json")})));
+    ASSERT_EQ(local.exit_code, 0) << local.err;
+    EXPECT_THAT(ReadFileOrEmpty(dir / ("report-" + method + ".json")),
+                HasSubstr("\"method\": \"" + method + "\""));
+    CommandResult r =
+        Cli(Cat(Cat({"interpolate"}, kSmallJob),
+                Cat(args, Cat(server.Server(),
+                              {"--out", dir / ("remote-" + method)}))));
+    ASSERT_EQ(r.exit_code, 0) << r.err << server.Log();
+    auto a = ReadDicomSeries(
+        {(fs::path(dir / ("local-" + method)) / "series-intensity").string()},
+        {}, {});
+    auto b = ReadDicomSeries(
+        {(fs::path(dir / ("remote-" + method)) / "series-intensity").string()},
+        {}, {});
+    ASSERT_TRUE(a.ok()) << a.status();
+    ASSERT_TRUE(b.ok()) << b.status();
+    EXPECT_TRUE(a->image.data == b->image.data) << method;
+    EXPECT_EQ(a->series_instance_uid, b->series_instance_uid) << method;
+    series.emplace(method, *std::move(a));
+  }
+  // Different grey values between the source slices, different UIDs (a
+  // PACS must not take one for the other).
+  EXPECT_FALSE(series["linear"].image.data == series["morph"].image.data);
+  EXPECT_NE(series["linear"].series_instance_uid,
+            series["morph"].series_instance_uid);
+}
+
 TEST(ServerTest, DicomOutputsMatchRunInPixelsGeometryAndUids) {
   TempDir dir;
   const std::vector<std::string> dicom = {"--output-series",

@@ -311,6 +311,29 @@ TEST_F(ConfigTest, UnknownPeer) {
               HasSubstr("rule 'a' (#1): send_to: unknown peer 'pacs2'"));
 }
 
+// Every option of the job layer is a rule key: the intensity series'
+// method among them.
+TEST_F(ConfigTest, IntensityMethodIsARuleKey) {
+  absl::StatusOr<RuleSet> set = LoadRulesFile(
+      Write("rules.yaml",
+            "rules:\n"
+            "  - {name: a, job: {threshold: 300, output_series: [intensity], "
+            "intensity_method: linear}}\n"
+            "  - {name: b, job: {threshold: 300, output_series: [intensity]}}\n"
+            "  - {name: c, fill: {factor: 2, intensity_method: linear}}\n"),
+      Peers());
+  ASSERT_TRUE(set.ok()) << set.status();
+  EXPECT_EQ(set->rules[0].job.derived_series().intensity_method(),
+            v1::INTENSITY_INTERPOLATION_LINEAR);
+  EXPECT_EQ(set->rules[1].job.derived_series().intensity_method(),
+            v1::INTENSITY_INTERPOLATION_MORPH);
+  EXPECT_EQ(set->rules[2].job.fill().intensity_method(),
+            v1::INTENSITY_INTERPOLATION_LINEAR);
+  EXPECT_THAT(RuleError("  - {name: a, job: {threshold: 1, intensity_method: "
+                        "cubic}}\n"),
+              HasSubstr("job.intensity_method: unknown value 'cubic'"));
+}
+
 TEST_F(ConfigTest, JobValuesCheckedAsTheCommandLineChecksThem) {
   EXPECT_THAT(RuleError("  - {name: a, job: {upper: 5}}\n"),
               HasSubstr("rule 'a' (#1): job.threshold: missing"));
@@ -447,17 +470,20 @@ TEST_F(ConfigTest, DocumentationListsEveryRuleKey) {
   const size_t fill_row = doc.find("| `rules[].fill` |");
   ASSERT_NE(job_row, std::string::npos);
   ASSERT_NE(fill_row, std::string::npos);
-  const std::string job_text = doc.substr(job_row, doc.find('\n', job_row) - job_row);
+  const std::string job_text =
+      doc.substr(job_row, doc.find('\n', job_row) - job_row);
   const std::string fill_text =
       doc.substr(fill_row, doc.find('\n', fill_row) - fill_row);
   for (const auto& def : job::InterpolationOptionTable()) {
     if ((def.doors & job::kRulesFile) == 0) continue;
-    EXPECT_THAT(job_text, HasSubstr(absl::StrCat("`", std::string(def.key), "`")))
+    EXPECT_THAT(job_text,
+                HasSubstr(absl::StrCat("`", std::string(def.key), "`")))
         << "rules[].job does not document " << def.key;
   }
   for (const auto& def : job::FillOptionTable()) {
     if ((def.doors & job::kRulesFile) == 0) continue;
-    EXPECT_THAT(fill_text, HasSubstr(absl::StrCat("`", std::string(def.key), "`")))
+    EXPECT_THAT(fill_text,
+                HasSubstr(absl::StrCat("`", std::string(def.key), "`")))
         << "rules[].fill does not document " << def.key;
   }
 }
