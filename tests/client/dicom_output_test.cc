@@ -3,11 +3,9 @@
 // a missing slice (made here from the shipped files with DCMTK), and a
 // tilted head CT. Real processes; consumers other than our own reader (ITK's
 // GDCM series reader, dciodvfy) check what a viewer or PACS would see.
-#include <sys/wait.h>
 #include <unistd.h>
 
 #include <algorithm>
-#include <array>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
@@ -24,6 +22,8 @@
 #include "itkImage.h"
 #include "itkImageSeriesReader.h"
 #include "nlohmann/json.hpp"
+#include "tests/testing/dciodvfy.h"
+#include "tests/testing/process.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
@@ -37,28 +37,12 @@ namespace {
 namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 
-struct CommandResult {
-  int exit_code = -1;
-  std::string output;  // stdout and stderr
-};
+using testing::CommandResult;
 
-CommandResult RunCommand(const std::string& command_line) {
-  const std::string command = command_line + " 2>&1";
-  CommandResult result;
-  FILE* pipe = popen(command.c_str(), "r");
-  if (pipe == nullptr) return result;
-  std::array<char, 4096> buffer;
-  size_t n;
-  while ((n = fread(buffer.data(), 1, buffer.size(), pipe)) > 0) {
-    result.output.append(buffer.data(), n);
-  }
-  const int status = pclose(pipe);
-  result.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  return result;
-}
-
+// The CLI through the shell (the arguments are one command line), stdout and
+// stderr interleaved in `out`.
 CommandResult RunCli(const std::string& arguments) {
-  return RunCommand(std::string(INTERSLICE_CLI_PATH) + " " + arguments);
+  return testing::RunShell(std::string(INTERSLICE_CLI_PATH) + " " + arguments);
 }
 
 const fs::path kPhantom =
@@ -87,21 +71,10 @@ std::vector<fs::path> SortedFiles(const fs::path& folder) {
   return files;
 }
 
+// dciodvfy's problems with one file (tests/testing/dciodvfy.h: its error
+// lines, and a non-zero exit status), appended to `errors`.
 int DciodvfyErrors(const fs::path& file, std::string* errors) {
-  const CommandResult v = RunCommand("dciodvfy '" + file.string() + "'");
-  int count = 0;
-  size_t start = 0;
-  while (start < v.output.size()) {
-    size_t end = v.output.find('\n', start);
-    if (end == std::string::npos) end = v.output.size();
-    const std::string line = v.output.substr(start, end - start);
-    if (line.find("Error") != std::string::npos) {
-      ++count;
-      *errors += file.filename().string() + ": " + line + "\n";
-    }
-    start = end + 1;
-  }
-  return count;
+  return testing::DciodvfyErrors({file.string()}, errors);
 }
 
 std::string GetString(DcmItem& item, const DcmTagKey& tag) {
@@ -276,7 +249,7 @@ TEST_F(DicomOutputTest, ShippedPhantomObjectsValidateAndLieOnTheReportGrid) {
       "--volume nrrd --mesh none --output-series intensity,distance --seg "
       "--out " +
       out.string() + " --report " + report_path.string());
-  ASSERT_EQ(r.exit_code, 0) << r.output;
+  ASSERT_EQ(r.exit_code, 0) << r.out;
   const nlohmann::json report = ReadJson(report_path);
   EXPECT_FALSE(fs::exists(out / "series-mask"));
   EXPECT_FALSE(fs::exists(out / "series-distance"));
@@ -353,7 +326,7 @@ TEST_F(DicomOutputTest, UnevenGapsAndMissingSlicesArePlacedByTruePositions) {
         " --method direct --quiet --volume none --mesh none --seg "
         "--out " +
         out.string() + " --report " + report_path.string());
-    ASSERT_EQ(r.exit_code, 0) << r.output;
+    ASSERT_EQ(r.exit_code, 0) << r.out;
     const nlohmann::json report = ReadJson(report_path);
     double max_gap = 0;
     for (size_t i = 1; i < c.positions.size(); ++i) {
@@ -381,7 +354,7 @@ TEST_F(DicomOutputTest, RleIntensitySeriesReadsAsTheNativeOne) {
         RunCli(common + "--dicom-compression " + mode + " --out " +
                (dir_ / mode).string() + " --report " +
                (dir_ / (std::string(mode) + ".json")).string());
-    ASSERT_EQ(r.exit_code, 0) << r.output;
+    ASSERT_EQ(r.exit_code, 0) << r.out;
   }
   const fs::path rle = dir_ / "rle" / "series-intensity";
   const std::vector<fs::path> files = SortedFiles(rle);
@@ -405,7 +378,7 @@ TEST_F(DicomOutputTest, RleIntensitySeriesReadsAsTheNativeOne) {
   const CommandResult bad = RunCli(common + "--dicom-compression jpeg --out " +
                                    (dir_ / "x").string());
   EXPECT_EQ(bad.exit_code, 1);
-  EXPECT_THAT(bad.output, HasSubstr("--dicom-compression"));
+  EXPECT_THAT(bad.out, HasSubstr("--dicom-compression"));
 }
 
 // A tilted head CT: the tilt is corrected, reported and summarised, and the
@@ -418,8 +391,8 @@ TEST_F(DicomOutputTest, TiltedSeriesIsCorrectedAndReported) {
              " --threshold 300 --method direct --volume none --mesh none "
              "--output-series intensity --out " +
              out.string() + " --report " + report_path.string());
-  ASSERT_EQ(r.exit_code, 0) << r.output;
-  EXPECT_THAT(r.output, HasSubstr("gantry tilt of 18.5 degrees"));
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  EXPECT_THAT(r.out, HasSubstr("gantry tilt of 18.5 degrees"));
   const nlohmann::json report = ReadJson(report_path);
   EXPECT_NEAR(std::abs(report["input"]["gantry_tilt_degrees"].get<double>()),
               18.5, 0.1);
@@ -456,7 +429,7 @@ TEST_F(DicomOutputTest, AnonymisedSourceGivesValidObjectsThatBelongTogether) {
              "--quiet --volume none --mesh none --seg --output-series "
              "intensity,distance --out " +
              out.string());
-  ASSERT_EQ(r.exit_code, 0) << r.output;
+  ASSERT_EQ(r.exit_code, 0) << r.out;
   const std::vector<fs::path> files = SortedFiles(out / "series-intensity");
   ASSERT_FALSE(files.empty());
   std::string errors;
@@ -489,7 +462,7 @@ TEST_F(DicomOutputTest, RerunKeepsUidsAndRandomUidsDoNot) {
                " --roi 200,60,0,260,120,28 --method linear "
                "--quiet --volume none --mesh none --seg --out " +
                out.string() + " " + extra);
-    EXPECT_EQ(r.exit_code, 0) << r.output;
+    EXPECT_EQ(r.exit_code, 0) << r.out;
     std::vector<std::string> uids;
     for (const fs::path& f :
          {out / "seg.dcm", out / "series-intensity" / "IM00001.dcm",
