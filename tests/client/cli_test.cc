@@ -1,4 +1,6 @@
 // End-to-end tests of the `interslice` binary: real processes, real data.
+#include "tests/testing/cli.h"
+
 #include <unistd.h>
 
 #include <algorithm>
@@ -21,12 +23,7 @@ namespace {
 namespace fs = std::filesystem;
 
 using testing::CommandResult;
-
-// The CLI through the shell (the arguments are one command line), stdout and
-// stderr interleaved in `out`.
-CommandResult RunCli(const std::string& arguments) {
-  return testing::RunShell(std::string(INTERSLICE_CLI_PATH) + " " + arguments);
-}
+using testing::RunCli;
 
 class CliTest : public ::testing::Test {
  protected:

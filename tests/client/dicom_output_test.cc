@@ -22,6 +22,7 @@
 #include "itkImage.h"
 #include "itkImageSeriesReader.h"
 #include "nlohmann/json.hpp"
+#include "tests/testing/cli.h"
 #include "tests/testing/dciodvfy.h"
 #include "tests/testing/process.h"
 // osconfig.h must precede every other DCMTK header.
@@ -38,12 +39,7 @@ namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 
 using testing::CommandResult;
-
-// The CLI through the shell (the arguments are one command line), stdout and
-// stderr interleaved in `out`.
-CommandResult RunCli(const std::string& arguments) {
-  return testing::RunShell(std::string(INTERSLICE_CLI_PATH) + " " + arguments);
-}
+using testing::RunCli;
 
 const fs::path kPhantom =
     fs::path(INTERSLICE_SOURCE_DIR) / "data/ct-head-phantom-thick";

@@ -21,6 +21,7 @@
 #include "gtest/gtest.h"
 #include "nlohmann/json.hpp"
 #include "tests/core/dicom_out/dicom_test_util.h"
+#include "tests/testing/cli.h"
 #include "tests/testing/mesh_checks.h"
 #include "tests/testing/process.h"
 // osconfig.h must precede every other DCMTK header.
@@ -36,12 +37,7 @@ namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 
 using testing::CommandResult;
-
-// The CLI through the shell (the arguments are one command line), stdout and
-// stderr interleaved in `out`.
-CommandResult RunCli(const std::string& arguments) {
-  return testing::RunShell(std::string(INTERSLICE_CLI_PATH) + " " + arguments);
-}
+using testing::RunCli;
 
 // Every 2nd slice of the 5 mm series is a key slice (10 mm gaps).
 constexpr int64_t kStep = 2;

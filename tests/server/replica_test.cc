@@ -18,6 +18,7 @@
 #include "grpcpp/grpcpp.h"
 #include "interslice/v1/interslice.grpc.pb.h"
 #include "server/forwarding.h"
+#include "tests/testing/files.h"
 #include "tests/testing/process.h"
 #include "tests/testing/server_process.h"
 #include "tests/testing/temp_dir.h"
@@ -75,20 +76,11 @@ std::set<std::string> JobsIn(const std::string& spool) {
   return ids;
 }
 
+// The files of a run through the server equal the in-process run's (the
+// report differs: timings).
 void ExpectSameFiles(const std::string& expected_dir,
                      const std::string& actual_dir) {
-  int files = 0;
-  for (const auto& entry : fs::directory_iterator(expected_dir)) {
-    const std::string name = entry.path().filename().string();
-    if (name == "report.json") continue;
-    ++files;
-    const std::string actual = (fs::path(actual_dir) / name).string();
-    ASSERT_TRUE(fs::exists(actual)) << actual;
-    EXPECT_TRUE(ReadFileOrEmpty(entry.path().string()) ==
-                ReadFileOrEmpty(actual))
-        << actual << " differs";
-  }
-  EXPECT_GE(files, 4);
+  testing::ExpectSameFiles(expected_dir, actual_dir, 4, {"report.json"});
 }
 
 std::unique_ptr<v1::InterSlice::Stub> StubTo(const std::string& address) {

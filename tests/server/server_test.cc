@@ -21,6 +21,7 @@
 #include "dcmtk/dcmdata/dcfilefo.h"
 #include "grpcpp/grpcpp.h"
 #include "interslice/v1/interslice.grpc.pb.h"
+#include "tests/testing/files.h"
 #include "tests/testing/process.h"
 #include "tests/testing/server_process.h"
 #include "tests/testing/temp_dir.h"
@@ -51,20 +52,11 @@ std::string Trim(std::string s) {
   return s;
 }
 
+// The files of a run through the server equal the in-process run's (the
+// report differs: timings).
 void ExpectSameFiles(const std::string& expected_dir,
                      const std::string& actual_dir) {
-  int files = 0;
-  for (const auto& entry : fs::directory_iterator(expected_dir)) {
-    const std::string name = entry.path().filename().string();
-    if (name == "report.json") continue;
-    ++files;
-    const std::string actual = (fs::path(actual_dir) / name).string();
-    ASSERT_TRUE(fs::exists(actual)) << name;
-    EXPECT_TRUE(ReadFileOrEmpty(entry.path().string()) ==
-                ReadFileOrEmpty(actual))
-        << name << " differs";
-  }
-  EXPECT_GE(files, 5);
+  testing::ExpectSameFiles(expected_dir, actual_dir, 5, {"report.json"});
 }
 
 // The in-process reference, on one thread.

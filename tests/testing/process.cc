@@ -12,6 +12,7 @@
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <fstream>
 #include <sstream>
 #include <thread>
@@ -44,7 +45,12 @@ pid_t Spawn(const std::vector<std::string>& argv, const std::string& out,
     ::dup2(o, 1);
     ::dup2(e, 2);
     ::execv(args[0], args.data());
-    std::fprintf(stderr, "cannot execute %s\n", args[0]);
+    // Only async-signal-safe calls between fork and exec (the test process
+    // has threads): write(2), not stdio.
+    constexpr char kFailed[] = "cannot execute: ";
+    (void)!::write(2, kFailed, sizeof(kFailed) - 1);
+    (void)!::write(2, args[0], std::strlen(args[0]));
+    (void)!::write(2, "\n", 1);
     ::_exit(127);
   }
   return pid;

@@ -12,8 +12,18 @@ tools=()
 while (($#)) && [[ $1 != -- ]]; do tools+=("$1"); shift; done
 [[ ${1:-} == -- ]] || { echo "usage: $0 TOOL... -- COMMAND [ARGS...]" >&2; exit 2; }
 shift
+# An executable regular file on PATH (bash's `command -v` also accepts a
+# file it cannot execute when there is no other).
+installed() {
+  local dir
+  local IFS=:
+  for dir in $PATH; do
+    [[ -f ${dir:-.}/$1 && -x ${dir:-.}/$1 ]] && return 0
+  done
+  return 1
+}
 for tool in "${tools[@]}"; do
-  if ! command -v "$tool" >/dev/null 2>&1; then
+  if ! installed "$tool"; then
     if [[ ${CI:-} == true ]]; then
       echo "FAIL: $tool is not installed (not on PATH); this test needs it" \
            "(scripts/install-deps.sh installs it) [CI=true: a missing tool is a failure]"

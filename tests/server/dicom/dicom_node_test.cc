@@ -20,6 +20,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
+#include "tests/testing/files.h"
 #include "tests/testing/process.h"
 #include "tests/testing/server_process.h"
 #include "tests/testing/temp_dir.h"
@@ -261,16 +262,7 @@ TEST(DicomNodeTest, PhantomSentWithStorescuMakesTheRulesJob) {
       Cat({kCli, "fetch", jobs[0], "--out", dir / "remote"}, server.Client()),
       120);
   ASSERT_EQ(fetch.exit_code, 0) << fetch.err;
-  int compared = 0;
-  for (const auto& e : fs::directory_iterator(dir / "local")) {
-    const std::string name = e.path().filename().string();
-    ASSERT_TRUE(fs::exists(fs::path(dir / "remote") / name)) << name;
-    EXPECT_TRUE(ReadFileOrEmpty(e.path().string()) ==
-                ReadFileOrEmpty(dir / ("remote/" + name)))
-        << name << " differs";
-    ++compared;
-  }
-  EXPECT_GE(compared, 2);
+  ExpectSameFiles(dir / "local", dir / "remote", 2);
   const std::string log = server.Log();
   EXPECT_THAT(log, HasSubstr("made by rule ct-head"));
   EXPECT_THAT(log, HasSubstr("STORESCU -> INTERSLICE released: 28 instance(s) "
@@ -639,16 +631,7 @@ class DicomFillTest : public ::testing::Test {
                        server.Client()),
                    120);
     ASSERT_EQ(fetch.exit_code, 0) << fetch.err;
-    int compared = 0;
-    for (const auto& e : fs::directory_iterator(dir_ / "local")) {
-      const std::string name = e.path().filename().string();
-      ASSERT_TRUE(fs::exists(fs::path(dir_ / "remote") / name)) << name;
-      EXPECT_TRUE(ReadFileOrEmpty(e.path().string()) ==
-                  ReadFileOrEmpty(dir_ / ("remote/" + name)))
-          << name << " differs";
-      ++compared;
-    }
-    EXPECT_GE(compared, 2);  // labels.nrrd, label-1.stl
+    ExpectSameFiles(dir_ / "local", dir_ / "remote", 2);  // labels, label-1.stl
     EXPECT_THAT(server.Log(), HasSubstr("(fill) made by rule fill-seg"));
     EXPECT_THAT(
         ReadFileOrEmpty(server.spool() + "/jobs/" + jobs[0] + "/job.pb"),
