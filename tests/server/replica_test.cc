@@ -234,7 +234,7 @@ TEST(ReplicaTest, AnyReplicaAnswersForAnyJobAndAKilledOneComesBack) {
   }
   // Forwarded calls are not forwarded again, and forged ids naming hosts
   // outside the replica set are unknown jobs (no connection to them).
-  for (const std::string forged :
+  for (const std::string& forged :
        {"0123456789abcdef" + server::JobIdSuffix("10.1.2.3:50051"),
         "0123456789abcdef" + server::JobIdSuffix("example.com:443")}) {
     const grpc::Status s = FirstStatus(addresses[0], forged, &status);
