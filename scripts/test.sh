@@ -23,18 +23,23 @@
 # Which tests run where (ctest labels, set in tests/**/CMakeLists.txt; every
 # test has `plain` or `sanitized` or both, and this script fails when one has
 # neither):
-#   sanitized only: every test of client/ and server/ that is not
-#     phantom-sized: the CLI's bad-input and small-series runs, the server,
-#     replica, fill-server, DICOM listener, delivery and Orthanc end-to-end
-#     tests. They parse untrusted input (DICOM files, SEG/RTSTRUCT, uploads,
-#     DIMSE associations, job specs) in real processes, so they run where
-#     ASan/UBSan watch every process; running them again in the plain build
-#     would repeat the same code paths without the checks. The shipped
-#     (plain, GCC) server is exercised by stage 4.
-#   plain only: `slow` (the phantom-sized end-to-end runs of the CLI, about
-#     a minute each under ASan and no parsing the sanitized tests do not
-#     already do on smaller series), `viewer` (node) and `deploy` (yamllint):
-#     nothing of ours to instrument in them, or only what other tests cover.
+#   sanitized only: every test of client/ and server/ that is not `slow`:
+#     the CLI on small and malformed series, SEG/RTSTRUCT and label maps, the
+#     server, replica, fill-server, DICOM listener, delivery tests and the
+#     pull from Orthanc. They parse untrusted input (DICOM files,
+#     segmentations, uploads, DIMSE associations, job specs) in real
+#     processes, so they run where ASan/UBSan watch every process; running
+#     them again in the plain build would repeat the same code paths without
+#     the checks. The shipped (plain, GCC) server is exercised by stage 4.
+#   plain only: `slow`, the phantom-sized end-to-end runs (the CLI on the
+#     whole phantom, the DICOM-output checks on it, three Orthanc round trips
+#     of the phantom, 30 jobs over three replicas: one to four minutes each
+#     under ASan on 2 cores). What they parse is parsed under ASan by the
+#     sanitized tests (the phantom by ReadDicomSeriesTest and, through the
+#     listener, by DicomNodeTest.PhantomSentWithStorescuMakesTheRulesJob;
+#     uploads by the server tests; Orthanc's DIMSE by the pull and the
+#     delivery tests); `viewer` (node) and `deploy` (yamllint): nothing of
+#     ours to instrument.
 #   both: the core unit tests (tests/core): seconds in the plain build, and
 #     the plain build is the compiler (GCC) and the code that ship, while the
 #     instrumented one is clang; a numeric tolerance or an exact byte
