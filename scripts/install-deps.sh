@@ -22,7 +22,8 @@ packages=(
   libcurl4-openssl-dev
   # deploy/ manifests are linted in CI
   yamllint
-  # libFuzzer targets (scripts/fuzz.sh): clang with its sanitizer runtimes
+  # the instrumented build (scripts/build-instrumented.sh: the sanitized suite
+  # and the libFuzzer targets): clang with its sanitizer and libFuzzer runtimes
   clang libclang-rt-14-dev
 )
 # Node.js for the viewer test (tests/viewer: a DICOM SEG loaded as OHIF v3

@@ -3,11 +3,9 @@
 // a missing slice (made here from the shipped files with DCMTK), and a
 // tilted head CT. Real processes; consumers other than our own reader (ITK's
 // GDCM series reader, dciodvfy) check what a viewer or PACS would see.
-#include <sys/wait.h>
 #include <unistd.h>
 
 #include <algorithm>
-#include <array>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
@@ -25,6 +23,9 @@
 #include "itkImage.h"
 #include "itkImageSeriesReader.h"
 #include "nlohmann/json.hpp"
+#include "tests/testing/cli.h"
+#include "tests/testing/dciodvfy.h"
+#include "tests/testing/process.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
@@ -38,29 +39,8 @@ namespace {
 namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 
-struct CommandResult {
-  int exit_code = -1;
-  std::string output;  // stdout and stderr
-};
-
-CommandResult RunCommand(const std::string& command_line) {
-  const std::string command = command_line + " 2>&1";
-  CommandResult result;
-  FILE* pipe = popen(command.c_str(), "r");
-  if (pipe == nullptr) return result;
-  std::array<char, 4096> buffer;
-  size_t n;
-  while ((n = fread(buffer.data(), 1, buffer.size(), pipe)) > 0) {
-    result.output.append(buffer.data(), n);
-  }
-  const int status = pclose(pipe);
-  result.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  return result;
-}
-
-CommandResult RunCli(const std::string& arguments) {
-  return RunCommand(std::string(INTERSLICE_CLI_PATH) + " " + arguments);
-}
+using testing::CommandResult;
+using testing::RunCli;
 
 const fs::path kPhantom =
     fs::path(INTERSLICE_SOURCE_DIR) / "data/ct-head-phantom-thick";
@@ -88,21 +68,10 @@ std::vector<fs::path> SortedFiles(const fs::path& folder) {
   return files;
 }
 
+// dciodvfy's problems with one file (tests/testing/dciodvfy.h: its error
+// lines, and a non-zero exit status), appended to `errors`.
 int DciodvfyErrors(const fs::path& file, std::string* errors) {
-  const CommandResult v = RunCommand("dciodvfy '" + file.string() + "'");
-  int count = 0;
-  size_t start = 0;
-  while (start < v.output.size()) {
-    size_t end = v.output.find('\n', start);
-    if (end == std::string::npos) end = v.output.size();
-    const std::string line = v.output.substr(start, end - start);
-    if (line.find("Error") != std::string::npos) {
-      ++count;
-      *errors += file.filename().string() + ": " + line + "\n";
-    }
-    start = end + 1;
-  }
-  return count;
+  return testing::DciodvfyErrors({file.string()}, errors);
 }
 
 std::string GetString(DcmItem& item, const DcmTagKey& tag) {
@@ -277,7 +246,7 @@ TEST_F(DicomOutputTest, ShippedPhantomObjectsValidateAndLieOnTheReportGrid) {
       "--volume nrrd --mesh none --output-series intensity,distance --seg "
       "--out " +
       out.string() + " --report " + report_path.string());
-  ASSERT_EQ(r.exit_code, 0) << r.output;
+  ASSERT_EQ(r.exit_code, 0) << r.out;
   const nlohmann::json report = ReadJson(report_path);
   EXPECT_FALSE(fs::exists(out / "series-mask"));
   EXPECT_FALSE(fs::exists(out / "series-distance"));
@@ -354,7 +323,7 @@ TEST_F(DicomOutputTest, UnevenGapsAndMissingSlicesArePlacedByTruePositions) {
         " --method direct --quiet --volume none --mesh none --seg "
         "--intensity-method linear --out " +
         out.string() + " --report " + report_path.string());
-    ASSERT_EQ(r.exit_code, 0) << r.output;
+    ASSERT_EQ(r.exit_code, 0) << r.out;
     const nlohmann::json report = ReadJson(report_path);
     // The placement is checked against the linear blend's formula below (the
     // morph's own placement on uneven gaps: tests/core/morph).
@@ -450,7 +419,7 @@ TEST_F(DicomOutputTest, RleIntensitySeriesReadsAsTheNativeOne) {
         RunCli(common + "--dicom-compression " + mode + " --out " +
                (dir_ / mode).string() + " --report " +
                (dir_ / (std::string(mode) + ".json")).string());
-    ASSERT_EQ(r.exit_code, 0) << r.output;
+    ASSERT_EQ(r.exit_code, 0) << r.out;
   }
   const fs::path rle = dir_ / "rle" / "series-intensity";
   const std::vector<fs::path> files = SortedFiles(rle);
@@ -474,7 +443,7 @@ TEST_F(DicomOutputTest, RleIntensitySeriesReadsAsTheNativeOne) {
   const CommandResult bad = RunCli(common + "--dicom-compression jpeg --out " +
                                    (dir_ / "x").string());
   EXPECT_EQ(bad.exit_code, 1);
-  EXPECT_THAT(bad.output, HasSubstr("--dicom-compression"));
+  EXPECT_THAT(bad.out, HasSubstr("--dicom-compression"));
 }
 
 // A tilted head CT: the tilt is corrected, reported and summarised, and the
@@ -487,8 +456,8 @@ TEST_F(DicomOutputTest, TiltedSeriesIsCorrectedAndReported) {
              " --threshold 300 --method direct --volume none --mesh none "
              "--output-series intensity --out " +
              out.string() + " --report " + report_path.string());
-  ASSERT_EQ(r.exit_code, 0) << r.output;
-  EXPECT_THAT(r.output, HasSubstr("gantry tilt of 18.5 degrees"));
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  EXPECT_THAT(r.out, HasSubstr("gantry tilt of 18.5 degrees"));
   const nlohmann::json report = ReadJson(report_path);
   EXPECT_NEAR(std::abs(report["input"]["gantry_tilt_degrees"].get<double>()),
               18.5, 0.1);
@@ -525,7 +494,7 @@ TEST_F(DicomOutputTest, AnonymisedSourceGivesValidObjectsThatBelongTogether) {
              "--quiet --volume none --mesh none --seg --output-series "
              "intensity,distance --out " +
              out.string());
-  ASSERT_EQ(r.exit_code, 0) << r.output;
+  ASSERT_EQ(r.exit_code, 0) << r.out;
   const std::vector<fs::path> files = SortedFiles(out / "series-intensity");
   ASSERT_FALSE(files.empty());
   std::string errors;
@@ -558,7 +527,7 @@ TEST_F(DicomOutputTest, RerunKeepsUidsAndRandomUidsDoNot) {
                " --roi 200,60,0,260,120,28 --method linear "
                "--quiet --volume none --mesh none --seg --out " +
                out.string() + " " + extra);
-    EXPECT_EQ(r.exit_code, 0) << r.output;
+    EXPECT_EQ(r.exit_code, 0) << r.out;
     std::vector<std::string> uids;
     for (const fs::path& f :
          {out / "seg.dcm", out / "series-intensity" / "IM00001.dcm",

@@ -1,6 +1,5 @@
 // End-to-end tests of `interslice fill`: the real binary on the shipped
 // thick CT phantom, with a two-label segmentation made from it.
-#include <sys/wait.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -22,7 +21,9 @@
 #include "gtest/gtest.h"
 #include "nlohmann/json.hpp"
 #include "tests/core/dicom_out/dicom_test_util.h"
+#include "tests/testing/cli.h"
 #include "tests/testing/mesh_checks.h"
+#include "tests/testing/process.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
@@ -35,26 +36,8 @@ namespace {
 namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 
-struct CommandResult {
-  int exit_code = -1;
-  std::string output;
-};
-
-CommandResult RunCli(const std::string& arguments) {
-  const std::string command =
-      std::string(INTERSLICE_CLI_PATH) + " " + arguments + " 2>&1";
-  CommandResult result;
-  FILE* pipe = popen(command.c_str(), "r");
-  if (pipe == nullptr) return result;
-  std::array<char, 4096> buffer;
-  size_t n;
-  while ((n = fread(buffer.data(), 1, buffer.size(), pipe)) > 0) {
-    result.output.append(buffer.data(), n);
-  }
-  const int status = pclose(pipe);
-  result.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  return result;
-}
+using testing::CommandResult;
+using testing::RunCli;
 
 // Every 2nd slice of the 5 mm series is a key slice (10 mm gaps).
 constexpr int64_t kStep = 2;
@@ -116,7 +99,7 @@ TEST_F(FillCliTest, FillsEverySecondSliceOfTwoTouchingLabels) {
                                  " --threads 2 "
                                  "--mesh stl,ply --volume nii,nrrd --out " +
                                  out.string() + " --report " + report.string());
-  ASSERT_EQ(r.exit_code, 0) << r.output;
+  ASSERT_EQ(r.exit_code, 0) << r.out;
 
   absl::StatusOr<Volume<float>> filled =
       ReadVolumeAsFloat((out / "labels.nrrd").string());
@@ -223,11 +206,10 @@ TEST_F(FillCliTest, BadInputGivesOneLineAndExitCodeOne) {
   };
   for (const Case& c : cases) {
     const CommandResult r = RunCli(c.args);
-    EXPECT_EQ(r.exit_code, 1) << c.args << "\n" << r.output;
-    EXPECT_THAT(r.output, HasSubstr(c.message)) << c.args;
-    EXPECT_EQ(std::count(r.output.begin(), r.output.end(), '\n'), 1)
-        << c.args << "\n"
-        << r.output;
+    EXPECT_EQ(r.exit_code, 1) << c.args << "\n" << r.out;
+    EXPECT_THAT(r.out, HasSubstr(c.message)) << c.args;
+    EXPECT_EQ(std::count(r.out.begin(), r.out.end(), '\n'), 1) << c.args << "\n"
+                                                               << r.out;
   }
   EXPECT_FALSE(fs::exists(dir_ / "out" / "labels.nii.gz"));
 }
@@ -243,7 +225,7 @@ TEST_F(FillCliTest, ReadsAndFillsADicomSeg) {
                            "--method direct --factor 5 --seg --volume nrrd "
                            "--mesh none --quiet --out " +
                            run.string());
-  ASSERT_EQ(r.exit_code, 0) << r.output;
+  ASSERT_EQ(r.exit_code, 0) << r.out;
   absl::StatusOr<DicomSeries> series = ReadDicomSeries(
       {(run / "series-intensity").string()}, {}, ComputeContext{.threads = 1});
   ASSERT_TRUE(series.ok()) << series.status();
@@ -297,7 +279,7 @@ TEST_F(FillCliTest, ReadsAndFillsADicomSeg) {
              " --key-slices 0-15:5 --method direct --mesh none --volume nrrd "
              "--out " +
              out.string() + " --report " + report.string());
-  ASSERT_EQ(r.exit_code, 0) << r.output;
+  ASSERT_EQ(r.exit_code, 0) << r.out;
   absl::StatusOr<Volume<float>> filled =
       ReadVolumeAsFloat((out / "labels.nrrd").string());
   ASSERT_TRUE(filled.ok()) << filled.status();
@@ -349,7 +331,7 @@ TEST_F(FillCliTest, WritesSegAndRtStructOfALabelMap) {
              " --key-slices 0-27:3 --method linear --mesh none --volume nrrd "
              "--seg --rtstruct --threads 2 --quiet --out " +
              out.string() + " --report " + report.string());
-  ASSERT_EQ(r.exit_code, 0) << r.output;
+  ASSERT_EQ(r.exit_code, 0) << r.out;
   const std::string seg = (out / "seg.dcm").string();
   const std::string rt = (out / "rtstruct.dcm").string();
   ::interslice::testing::ExpectValidIod({seg, rt});
@@ -481,7 +463,7 @@ TEST_F(FillCliTest, RtStructInIsFilledFromItsPolygonsAndWrittenBack) {
              " --method linear --mesh none --volume nrrd --seg --threads 2 "
              "--quiet --out " +
              out.string() + " --report " + report.string());
-  ASSERT_EQ(r.exit_code, 0) << r.output;
+  ASSERT_EQ(r.exit_code, 0) << r.out;
   const std::string seg = (out / "seg.dcm").string();
   const std::string rt = (out / "rtstruct.dcm").string();
   ::interslice::testing::ExpectValidIod({seg, rt});
@@ -553,7 +535,7 @@ TEST_F(FillCliTest, SegOnAFinerGridReferencesADerivedIntensitySeries) {
              " --factor 2 --method linear --mesh none --volume nrrd --seg "
              "--quiet --out " +
              out.string());
-  ASSERT_EQ(r.exit_code, 0) << r.output;
+  ASSERT_EQ(r.exit_code, 0) << r.out;
   EXPECT_FALSE(fs::exists(out / "rtstruct.dcm"));  // not by default here
   const std::string seg = (out / "seg.dcm").string();
   ::interslice::testing::ExpectValidIod({seg});

@@ -1,4 +1,4 @@
-// Fill jobs through the daemon (issue 13): a real interslice-server process
+// Fill jobs through the daemon: a real interslice-server process
 // on loopback, driven by the real `interslice` client (`fill --server`,
 // `fetch`) and, for detached jobs and malformed specs, by a gRPC stub. The
 // artifacts must equal those of RunFillJob in this process, voxel for voxel
@@ -6,14 +6,10 @@
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 #include <openssl/evp.h>
-#include <signal.h>
-#include <sys/wait.h>
-#include <unistd.h>
 
 #include <chrono>
 #include <filesystem>
 #include <fstream>
-#include <thread>
 
 #include "absl/strings/str_cat.h"
 #include "core/dicom/series_reader.h"
@@ -22,7 +18,9 @@
 #include "grpcpp/grpcpp.h"
 #include "interslice/v1/interslice.grpc.pb.h"
 #include "nlohmann/json.hpp"
-#include "tests/server/process.h"
+#include "tests/testing/process.h"
+#include "tests/testing/server_process.h"
+#include "tests/testing/temp_dir.h"
 
 namespace interslice::testing {
 namespace {
@@ -31,74 +29,13 @@ namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 
 const std::string kCli = INTERSLICE_CLI_PATH;
-const std::string kServer = INTERSLICE_SERVER_PATH;
 const std::string kSeries = std::string(INTERSLICE_TEST_DATA_DIR) + "/ct-thick";
 
-std::vector<std::string> Cat(std::vector<std::string> a,
-                             const std::vector<std::string>& b) {
-  a.insert(a.end(), b.begin(), b.end());
-  return a;
+// A gRPC stub talking to the server.
+std::unique_ptr<v1::InterSlice::Stub> StubTo(const ServerProcess& server) {
+  return v1::InterSlice::NewStub(grpc::CreateChannel(
+      server.address(), grpc::InsecureChannelCredentials()));
 }
-
-class TempDir {
- public:
-  TempDir() {
-    char name[] = "/tmp/interslice-fill-server-test-XXXXXX";
-    path_ = mkdtemp(name);
-  }
-  ~TempDir() {
-    std::error_code ec;
-    fs::remove_all(path_, ec);
-  }
-  std::string operator/(const std::string& name) const {
-    return (fs::path(path_) / name).string();
-  }
-
- private:
-  std::string path_;
-};
-
-// One server process (one worker, two solver threads: the results must not
-// depend on the thread count), stopped with SIGTERM.
-class ServerProcess {
- public:
-  explicit ServerProcess(const TempDir& dir)
-      : spool_(dir / "spool"), log_(dir / "server.log") {
-    const std::string port_file = spool_ + ".port";
-    pid_ = StartProcess({kServer, "--listen", "127.0.0.1:0", "--spool", spool_,
-                         "--port-file", port_file, "--workers", "1",
-                         "--threads-per-job", "2", "--drain-grace", "0"},
-                        log_);
-    for (int i = 0;
-         i < 500 && !fs::exists(port_file) && WaitProcess(pid_, 0) == -1; ++i) {
-      std::this_thread::sleep_for(std::chrono::milliseconds(20));
-    }
-    std::ifstream in(port_file);
-    int port = 0;
-    in >> port;
-    address_ = absl::StrCat("127.0.0.1:", port);
-  }
-  ~ServerProcess() {
-    kill(pid_, SIGTERM);
-    const int rc = WaitProcess(pid_, 60);
-    EXPECT_EQ(rc, 0) << "interslice-server did not exit cleanly\n" << Log();
-    if (rc == -1) {
-      kill(pid_, SIGKILL);
-      waitpid(pid_, nullptr, 0);
-    }
-  }
-  std::vector<std::string> Server() const { return {"--server", address_}; }
-  std::unique_ptr<v1::InterSlice::Stub> Stub() const {
-    return v1::InterSlice::NewStub(
-        grpc::CreateChannel(address_, grpc::InsecureChannelCredentials()));
-  }
-  std::string Log() const { return ReadFileOrEmpty(log_); }
-
- private:
-  std::string spool_, log_;
-  pid_t pid_ = -1;
-  std::string address_;
-};
 
 CommandResult Cli(const std::vector<std::string>& args, double timeout = 300) {
   return RunCommand(Cat({kCli}, args), timeout);
@@ -132,7 +69,7 @@ std::vector<UploadFile> SeriesFiles(const std::string& dir) {
 // A detached job by Submit: the status and, if OK, the job id.
 grpc::Status Submit(const ServerProcess& server, const v1::JobSpec& spec,
                     const std::vector<UploadFile>& files, std::string* id) {
-  auto stub = server.Stub();
+  auto stub = StubTo(server);
   grpc::ClientContext context;
   context.set_deadline(std::chrono::system_clock::now() +
                        std::chrono::seconds(60));
@@ -169,7 +106,7 @@ grpc::Status Submit(const ServerProcess& server, const v1::JobSpec& spec,
 
 // Waits for the end of a detached job.
 v1::JobStatus WaitForEnd(const ServerProcess& server, const std::string& id) {
-  auto stub = server.Stub();
+  auto stub = StubTo(server);
   grpc::ClientContext context;
   context.set_deadline(std::chrono::system_clock::now() +
                        std::chrono::seconds(240));
@@ -256,14 +193,17 @@ TEST(FillServerTest, LabelMapFilledByTheServerEqualsInProcess) {
   const std::string labels = WriteLabelMap(dir / "drawn.nii.gz");
   const FillJobReport local = RunLocally(labels, kSeries, dir / "local");
   ASSERT_EQ(local.per_label.size(), 2u);
-  ServerProcess server(dir);
+  // One worker, two solver threads: the results must not depend on the
+  // thread count.
+  ServerProcess server({.spool = dir / "spool", .log = dir / "server.log"});
+  ASSERT_TRUE(server.Start());
 
   // One call: `interslice fill --server` writes the same files.
   CommandResult r =
       Cli(Cat({"fill", labels, "--reference", kSeries, "--method", "direct",
                "--volume", "nii,nrrd", "--mesh", "stl", "--out", dir / "remote",
                "--report", dir / "remote.json"},
-              server.Server()));
+              server.ServerFlag()));
   ASSERT_EQ(r.exit_code, 0) << r.err << server.Log();
   ExpectSameResults(dir / "local", dir / "remote");
   // The report is `interslice fill --report`'s, paths in the output folder.
@@ -299,7 +239,7 @@ TEST(FillServerTest, LabelMapFilledByTheServerEqualsInProcess) {
     kinds.push_back(a.kind());
   EXPECT_THAT(kinds, ::testing::Contains("labels"));
   EXPECT_THAT(kinds, ::testing::Contains("surface"));
-  r = Cli(Cat({"fetch", id, "--out", dir / "fetched"}, server.Server()));
+  r = Cli(Cat({"fetch", id, "--out", dir / "fetched"}, server.ServerFlag()));
   ASSERT_EQ(r.exit_code, 0) << r.err;
   ExpectSameResults(dir / "local", dir / "fetched");
 }
@@ -318,14 +258,17 @@ TEST(FillServerTest, DicomSegFilledByTheServerEqualsInProcess) {
   const FillJobReport local =
       RunLocally(seg, reference, dir / "local", {0, 5, 10, 15});
   EXPECT_EQ(local.input_kind, "seg-binary");
-  ServerProcess server(dir);
+  // One worker, two solver threads: the results must not depend on the
+  // thread count.
+  ServerProcess server({.spool = dir / "spool", .log = dir / "server.log"});
+  ASSERT_TRUE(server.Start());
   // The SEG sits in the series' folder: the client must not upload it as a
   // slice of the series too.
   fs::copy_file(seg, reference + "/seg.dcm");
   r = Cli(Cat({"fill", reference + "/seg.dcm", "--reference", reference,
                "--key-slices", "0-15:5", "--method", "direct", "--volume",
                "nii,nrrd", "--mesh", "stl", "--out", dir / "remote"},
-              server.Server()));
+              server.ServerFlag()));
   ASSERT_EQ(r.exit_code, 0) << r.err << server.Log();
   ExpectSameResults(dir / "local", dir / "remote");
 }
@@ -336,7 +279,10 @@ TEST(FillServerTest, DicomSegFilledByTheServerEqualsInProcess) {
 TEST(FillServerTest, BadFillSpecsAreRefusedWithTheReason) {
   TempDir dir;
   const std::string labels = WriteLabelMap(dir / "drawn.nii.gz");
-  ServerProcess server(dir);
+  // One worker, two solver threads: the results must not depend on the
+  // thread count.
+  ServerProcess server({.spool = dir / "spool", .log = dir / "server.log"});
+  ASSERT_TRUE(server.Start());
   std::vector<UploadFile> files = SeriesFiles(kSeries);
   files.push_back({labels, "drawn.nii.gz"});
   v1::JobSpec good;
@@ -413,14 +359,14 @@ TEST(FillServerTest, BadFillSpecsAreRefusedWithTheReason) {
   // client says so in one line.
   CommandResult r = Cli(Cat({"fill", labels, "--reference", kSeries, "--labels",
                              "1,9", "--mesh", "none", "--out", dir / "out"},
-                            server.Server()));
+                            server.ServerFlag()));
   EXPECT_EQ(r.exit_code, 1);
   EXPECT_THAT(r.err, HasSubstr("9"));
   EXPECT_THAT(r.err, HasSubstr("interslice: error:"));
   // The server carries on.
   r = Cli(Cat({"fill", labels, "--reference", kSeries, "--mesh", "none",
                "--out", dir / "ok"},
-              server.Server()));
+              server.ServerFlag()));
   EXPECT_EQ(r.exit_code, 0) << r.err;
   EXPECT_TRUE(fs::exists(dir / "ok/labels.nii.gz"));
 }

@@ -14,6 +14,7 @@
 #include "server/log_safe.h"
 #include "server/status_map.h"
 #include "server/upload_guard.h"
+#include "tests/testing/wait_for.h"
 
 namespace interslice::server {
 namespace {
@@ -144,7 +145,9 @@ TEST(UploadGuardTest, LimitsUploadsInAllAndPerPeer) {
 
 TEST(UploadGuardTest, ReportsStallsUntilClosed) {
   UploadGuardOptions options;
-  options.idle_timeout_seconds = 0.3;
+  // Five times the pause between progress calls below, so that a loaded
+  // machine stretching one pause does not look like a stall.
+  options.idle_timeout_seconds = 0.5;
   UploadGuard guard(options);
   std::atomic<int> stalls{0};
   absl::Status last;
@@ -162,19 +165,19 @@ TEST(UploadGuardTest, ReportsStallsUntilClosed) {
     (*ticket)->Progress();
   }
   EXPECT_EQ(stalls, 0);
-  for (int i = 0; i < 50 && stalls == 0; ++i) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));
-  }
-  EXPECT_GE(stalls, 1);
+  EXPECT_TRUE(::interslice::testing::WaitFor([&] { return stalls >= 1; },
+                                             std::chrono::seconds(30)));
   {
     std::lock_guard<std::mutex> lock(mu);
     EXPECT_EQ(last.code(), absl::StatusCode::kDeadlineExceeded);
     EXPECT_EQ(last.message(),
-              "upload stalled: no data for 0.3 s; the server cancelled it");
+              "upload stalled: no data for 0.5 s; the server cancelled it");
   }
   (*ticket)->Close();
   const int seen = stalls;
-  std::this_thread::sleep_for(std::chrono::milliseconds(800));
+  // A check that nothing happens: no report after Close, for longer than
+  // the idle timeout (a sleep, not a wait).
+  std::this_thread::sleep_for(std::chrono::milliseconds(1200));
   EXPECT_EQ(stalls, seen);
 }
 
@@ -190,9 +193,18 @@ TEST(UploadGuardTest, ReportsTheTotalLimitOnce) {
     ++calls;
   });
   ASSERT_TRUE(ticket.ok());
+  // Data keeps arriving, yet the total limit applies...
+  EXPECT_TRUE(::interslice::testing::WaitFor(
+      [&] {
+        (*ticket)->Progress();
+        return calls >= 1;
+      },
+      std::chrono::seconds(30), std::chrono::milliseconds(100)));
+  // ...once: no second report while data keeps coming (a check that
+  // nothing happens, for 0.8 s).
   for (int i = 0; i < 8; ++i) {
     std::this_thread::sleep_for(std::chrono::milliseconds(100));
-    (*ticket)->Progress();  // data arrives, yet the total limit applies
+    (*ticket)->Progress();
   }
   EXPECT_EQ(calls, 1);
   (*ticket)->Close();

@@ -372,7 +372,7 @@ TEST_F(ConfigTest, OtherRuleErrors) {
               HasSubstr("rules: missing"));
 }
 
-// Fill rules (issue 13): the `interslice fill` options, checked as the
+// Fill rules: the `interslice fill` options, checked as the
 // server checks an uploaded fill spec; they match segmentations only, and
 // job rules never match a segmentation.
 TEST_F(ConfigTest, FillRules) {

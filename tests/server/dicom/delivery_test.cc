@@ -4,7 +4,6 @@
 
 #include <arpa/inet.h>
 #include <netinet/in.h>
-#include <signal.h>
 #include <sys/socket.h>
 #include <unistd.h>
 
@@ -19,9 +18,10 @@
 #include "absl/status/status.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
-#include "tests/server/dicom/orthanc_fixture.h"
-#include "tests/server/process.h"
+#include "tests/testing/orthanc.h"
+#include "tests/testing/process.h"
 #include "tests/testing/temp_dir.h"
+#include "tests/testing/wait_for.h"
 
 namespace interslice::server::dicom {
 namespace {
@@ -178,9 +178,9 @@ TEST(StoreFilesTest, TlsPeerWithCaCheckedCertificates) {
       {"/usr/bin/storescp", "+tls", d + "/pacs.key", d + "/pacs.pem", "+cf",
        d + "/ca.pem", "-rc", "-od", d + "/received", std::to_string(port)},
       d + "/storescp.log");
-  for (int i = 0; i < 200 && !Listening(port); ++i) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));
-  }
+  ASSERT_TRUE(testing::WaitFor([&] { return Listening(port); },
+                               std::chrono::seconds(60)))
+      << testing::ReadFileOrEmpty(d + "/storescp.log");
   DicomPeer peer;
   peer.name = "secure";
   peer.ae_title = "STORESCP";
@@ -205,8 +205,7 @@ TEST(StoreFilesTest, TlsPeerWithCaCheckedCertificates) {
   absl::StatusOr<StoreResult> refused = StoreFiles(peer, files, options);
   EXPECT_FALSE(refused.ok());
   EXPECT_EQ(refused.status().code(), absl::StatusCode::kUnavailable);
-  ::kill(scp, SIGTERM);
-  testing::WaitProcess(scp, 10);
+  testing::StopProcess(scp, 30);
 }
 
 TEST(DeliveryQueueTest, PeerDownThenBackIsDeliveredWithBackoff) {
@@ -228,9 +227,8 @@ TEST(DeliveryQueueTest, PeerDownThenBackIsDeliveredWithBackoff) {
                 .count());
   // Two failed tries while the peer is down, each with the error and a
   // next attempt in the future.
-  for (int i = 0; i < 100 && updates.all().size() < 2; ++i) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));
-  }
+  testing::WaitFor([&] { return updates.all().size() >= 2; },
+                   std::chrono::seconds(60));
   const std::vector<v1::Delivery> failures = updates.all();
   ASSERT_GE(failures.size(), 2u);
   for (const v1::Delivery& f : failures) {
@@ -245,7 +243,7 @@ TEST(DeliveryQueueTest, PeerDownThenBackIsDeliveredWithBackoff) {
 
   ASSERT_TRUE((*orthanc)->Restart().ok());
   std::optional<v1::Delivery> done =
-      updates.WaitFor(v1::Delivery::DELIVERED, std::chrono::seconds(30));
+      updates.WaitFor(v1::Delivery::DELIVERED, std::chrono::seconds(120));
   ASSERT_TRUE(done.has_value());
   EXPECT_EQ(done->instances_sent(), 4);
   EXPECT_EQ(done->last_error(), "");
@@ -269,7 +267,7 @@ TEST(DeliveryQueueTest, GivesUpAfterTheConfiguredTime) {
   d.set_peer("down");
   queue.Add("job2", d, ListDicomFiles(kThick.string()), 0);
   std::optional<v1::Delivery> failed =
-      updates.WaitFor(v1::Delivery::FAILED, std::chrono::seconds(30));
+      updates.WaitFor(v1::Delivery::FAILED, std::chrono::seconds(120));
   ASSERT_TRUE(failed.has_value());
   EXPECT_EQ(failed->attempts(), 1);
   EXPECT_THAT(failed->last_error(), HasSubstr("down"));

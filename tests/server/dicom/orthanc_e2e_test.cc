@@ -26,9 +26,11 @@
 #include "absl/strings/str_cat.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
-#include "tests/server/dicom/orthanc_fixture.h"
-#include "tests/server/process.h"
+#include "tests/testing/orthanc.h"
+#include "tests/testing/process.h"
+#include "tests/testing/server_process.h"
 #include "tests/testing/temp_dir.h"
+#include "tests/testing/wait_for.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
@@ -42,7 +44,6 @@ namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 
 const std::string kCli = INTERSLICE_CLI_PATH;
-const std::string kServer = INTERSLICE_SERVER_PATH;
 const fs::path kPhantom =
     fs::path(INTERSLICE_SOURCE_DIR) / "data" / "ct-head-phantom-thick";
 // The job: bone of the phantom, one slice inserted per gap (factor 2 keeps
@@ -60,12 +61,6 @@ const std::vector<std::string> kJob = {"--threshold",
                                        "stl",
                                        "--volume",
                                        "none"};
-
-std::vector<std::string> Cat(std::vector<std::string> a,
-                             const std::vector<std::string>& b) {
-  a.insert(a.end(), b.begin(), b.end());
-  return a;
-}
 
 CommandResult Cli(const std::vector<std::string>& args, double timeout = 300) {
   return RunCommand(Cat({kCli}, args), timeout);
@@ -124,51 +119,6 @@ std::map<std::string, std::string> LocalPayloads(const std::string& dir) {
   return out;
 }
 
-class Server {
- public:
-  Server(std::string spool, std::string log, std::vector<std::string> extra)
-      : spool_(std::move(spool)),
-        log_(std::move(log)),
-        extra_(std::move(extra)) {
-    Start();
-  }
-  ~Server() { Stop(); }
-  void Start() {
-    const std::string port_file = spool_ + ".port";
-    std::error_code ec;
-    fs::remove(port_file, ec);
-    pid_ = StartProcess(
-        Cat({kServer, "--listen", "127.0.0.1:0", "--spool", spool_,
-             "--port-file", port_file, "--workers", "1", "--threads-per-job",
-             "2", "--drain-grace", "0", "--isolation", "thread"},
-            extra_),
-        log_);
-    for (int i = 0;
-         i < 1500 && !fs::exists(port_file) && WaitProcess(pid_, 0) == -1;
-         ++i) {
-      std::this_thread::sleep_for(std::chrono::milliseconds(20));
-    }
-    std::ifstream in(port_file);
-    int port = 0;
-    in >> port;
-    address_ = absl::StrCat("127.0.0.1:", port);
-  }
-  void Stop() {
-    if (pid_ <= 0) return;
-    kill(pid_, SIGTERM);
-    EXPECT_EQ(WaitProcess(pid_, 60), 0) << Log();
-    pid_ = -1;
-  }
-  std::vector<std::string> Flag() const { return {"--server", address_}; }
-  std::string Log() const { return ReadFileOrEmpty(log_); }
-
- private:
-  std::string spool_, log_;
-  std::vector<std::string> extra_;
-  pid_t pid_ = -1;
-  std::string address_;
-};
-
 class OrthancEndToEndTest : public ::testing::Test {
  protected:
   void SetUp() override {
@@ -187,12 +137,19 @@ class OrthancEndToEndTest : public ::testing::Test {
     series_ = Tag(*source->getDataset(), DCM_SeriesInstanceUID);
     frame_ = Tag(*source->getDataset(), DCM_FrameOfReferenceUID);
   }
-  std::unique_ptr<Server> StartServer(std::vector<std::string> extra = {}) {
-    return std::make_unique<Server>(
-        (dir_.path() / "spool").string(), (dir_.path() / "server.log").string(),
-        Cat({"--dicom-peers", peers_, "--delivery-retry", "0.2",
-             "--delivery-retry-max", "1"},
-            extra));
+  // The server, with Orthanc as its peer; jobs run on threads of the
+  // server process (--isolation thread). Started: the caller ASSERTs
+  // running().
+  std::unique_ptr<ServerProcess> StartServer(
+      std::vector<std::string> extra = {}) {
+    auto server = std::make_unique<ServerProcess>(ServerOptions{
+        .spool = dir_ / "spool",
+        .log = dir_ / "server.log",
+        .extra = Cat({"--dicom-peers", peers_, "--delivery-retry", "0.2",
+                      "--delivery-retry-max", "1", "--isolation", "thread"},
+                     extra)});
+    EXPECT_TRUE(server->Start());
+    return server;
   }
   // Orthanc's instances of the study: SOP Instance UID -> Orthanc id.
   std::map<std::string, std::string> OrthancInstances() {
@@ -206,9 +163,10 @@ class OrthancEndToEndTest : public ::testing::Test {
     }
     return out;
   }
-  std::string Submit(Server& server, const std::vector<std::string>& extra) {
+  std::string Submit(ServerProcess& server,
+                     const std::vector<std::string>& extra) {
     const CommandResult r =
-        Cli(Cat(Cat({"submit"}, kJob), Cat(extra, server.Flag())));
+        Cli(Cat(Cat({"submit"}, kJob), Cat(extra, server.ServerFlag())));
     EXPECT_EQ(r.exit_code, 0) << r.err << server.Log();
     std::string id = r.out;
     while (!id.empty() && (id.back() == '\n' || id.back() == '\r')) {
@@ -232,11 +190,12 @@ class OrthancEndToEndTest : public ::testing::Test {
 
 TEST_F(OrthancEndToEndTest, ResultsLandInTheStudyAndEqualALocalRun) {
   auto server = StartServer();
+  ASSERT_TRUE(server->running());
   const auto t0 = std::chrono::steady_clock::now();
   const std::string job =
       Submit(*server, {kPhantom.string(), "--send-to", "orthanc"});
   const CommandResult watch =
-      Cli(Cat({"watch", job, "--wait-deliveries"}, server->Flag()));
+      Cli(Cat({"watch", job, "--wait-deliveries"}, server->ServerFlag()));
   const double seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0)
           .count();
@@ -295,17 +254,18 @@ TEST_F(OrthancEndToEndTest, ResultsLandInTheStudyAndEqualALocalRun) {
   const std::string again =
       Submit(*server, {kPhantom.string(), "--send-to", "orthanc"});
   const CommandResult watch2 =
-      Cli(Cat({"watch", again, "--wait-deliveries"}, server->Flag()));
+      Cli(Cat({"watch", again, "--wait-deliveries"}, server->ServerFlag()));
   ASSERT_EQ(watch2.exit_code, 0) << watch2.err;
   EXPECT_EQ(OrthancInstances().size(), remote.size());
 }
 
 TEST_F(OrthancEndToEndTest, UnknownPeerIsRefusedAtAdmission) {
   auto server = StartServer();
+  ASSERT_TRUE(server->running());
   const CommandResult r =
       Cli(Cat(Cat({"submit"}, kJob),
               Cat({kPhantom.string(), "--send-to", "orthanc,nowhere"},
-                  server->Flag())));
+                  server->ServerFlag())));
   EXPECT_NE(r.exit_code, 0);
   EXPECT_THAT(r.err, HasSubstr("nowhere"));
 }
@@ -314,21 +274,24 @@ TEST_F(OrthancEndToEndTest, DownPeerGetsResultsAfterItComesBackAndARestart) {
   orthanc_->Stop();
   // Results are kept for 1 s only, except while a delivery is pending.
   auto server = StartServer({"--retention", "1"});
+  ASSERT_TRUE(server->running());
   const std::string job =
       Submit(*server, {kPhantom.string(), "--send-to", "orthanc"});
   // The job succeeds; its delivery waits.
-  const CommandResult watch = Cli(Cat({"watch", job}, server->Flag()));
+  const CommandResult watch = Cli(Cat({"watch", job}, server->ServerFlag()));
   ASSERT_EQ(watch.exit_code, 0) << watch.err << server->Log();
   EXPECT_THAT(watch.out, HasSubstr("to orthanc: pending"));
   // Let it fail a few times, past the retention time and the ticker's
   // expiry sweep (every 10 s), then stop the server with it still pending.
+  // A sleep on purpose: what is checked is that the job does NOT expire
+  // while its delivery is pending, for longer than one sweep.
   std::this_thread::sleep_for(std::chrono::seconds(11));
-  server->Stop();
+  EXPECT_EQ(server->Stop(), 0) << server->Log();
   EXPECT_THAT(server->Log(), HasSubstr("delivery to peer orthanc failed"));
   ASSERT_TRUE(orthanc_->Restart().ok());
-  server->Start();
+  ASSERT_TRUE(server->Start());
   const CommandResult done =
-      Cli(Cat({"watch", job, "--wait-deliveries"}, server->Flag()));
+      Cli(Cat({"watch", job, "--wait-deliveries"}, server->ServerFlag()));
   ASSERT_EQ(done.exit_code, 0) << done.err << server->Log();
   EXPECT_THAT(done.out, HasSubstr("to orthanc: delivered"));
   EXPECT_GT(OrthancInstances().size(), 30u);
@@ -339,15 +302,17 @@ TEST_F(OrthancEndToEndTest, PullFromOrthancEqualsUploadedFiles) {
   ASSERT_TRUE(uploaded.ok()) << uploaded.status();
   ASSERT_EQ(*uploaded, 28);
   auto server = StartServer();
+  ASSERT_TRUE(server->running());
   const std::string pulled = Submit(
       *server, {"--pacs", "orthanc", "--study", study_, "--series", series_});
   const std::string sent = Submit(*server, {kPhantom.string()});
   for (const std::string& job : {pulled, sent}) {
-    const CommandResult w = Cli(Cat({"watch", job, "--quiet"}, server->Flag()));
+    const CommandResult w =
+        Cli(Cat({"watch", job, "--quiet"}, server->ServerFlag()));
     ASSERT_EQ(w.exit_code, 0) << w.err << server->Log();
     const CommandResult f = Cli(
         Cat({"fetch", job, "--out", (dir_.path() / job).string(), "--quiet"},
-            server->Flag()));
+            server->ServerFlag()));
     ASSERT_EQ(f.exit_code, 0) << f.err;
   }
   // Same source instances and job: same mesh bytes, same derived UIDs and
@@ -366,7 +331,7 @@ TEST_F(OrthancEndToEndTest, PullFromOrthancEqualsUploadedFiles) {
       Cli(Cat(Cat({"interpolate"}, kJob),
               Cat({"--pacs", "orthanc", "--study", study_, "--series", series_,
                    "--out", one_call, "--quiet"},
-                  server->Flag())));
+                  server->ServerFlag())));
   ASSERT_EQ(i.exit_code, 0) << i.err << server->Log();
   EXPECT_TRUE(ReadFileOrEmpty(one_call + "/surface.stl") ==
               ReadFileOrEmpty((dir_.path() / sent / "surface.stl").string()));
@@ -374,7 +339,7 @@ TEST_F(OrthancEndToEndTest, PullFromOrthancEqualsUploadedFiles) {
   // A series the peer does not have fails the job, naming the peer.
   const std::string missing = Submit(
       *server, {"--pacs", "orthanc", "--study", study_, "--series", "1.2.3"});
-  const CommandResult w = Cli(Cat({"watch", missing}, server->Flag()));
+  const CommandResult w = Cli(Cat({"watch", missing}, server->ServerFlag()));
   EXPECT_NE(w.exit_code, 0);
   EXPECT_THAT(w.err, HasSubstr("orthanc"));
 }
@@ -396,6 +361,7 @@ TEST_F(OrthancEndToEndTest, SeriesFromOrthancComesBackProcessed) {
   auto server =
       StartServer({"--dicom-listen", absl::StrCat("127.0.0.1:", dicom_port_),
                    "--dicom-ae", "INTERSLICE", "--rules", rules});
+  ASSERT_TRUE(server->running());
   auto studies = orthanc_->GetJson("/studies");
   ASSERT_TRUE(studies.ok() && studies->size() == 1u);
   const std::string study_id = (*studies)[0];
@@ -405,21 +371,30 @@ TEST_F(OrthancEndToEndTest, SeriesFromOrthancComesBackProcessed) {
   const double store_seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0)
           .count();
-  // Source + intensity + SEG + STL.
-  size_t series_count = 0;
-  for (int i = 0; i < 600 && series_count < 4; ++i) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(200));
-    auto s = orthanc_->GetJson("/studies/" + study_id + "/series");
-    if (s.ok()) series_count = s->size();
-  }
+  // The rule's job is listed once the series is complete (stable for 1 s);
+  // its deliveries end when Orthanc has accepted every result, so the counts
+  // below are final, not a snapshot.
+  std::string job;
+  ASSERT_TRUE(WaitFor(
+      [&] {
+        const CommandResult list =
+            Cli(Cat({"list", "--all"}, server->ServerFlag()));
+        job = list.out.substr(0, list.out.find_first_of(" \n"));
+        return !job.empty();
+      },
+      std::chrono::seconds(120)))
+      << server->Log();
+  const CommandResult watch =
+      Cli(Cat({"watch", job, "--wait-deliveries"}, server->ServerFlag()), 600);
+  ASSERT_EQ(watch.exit_code, 0) << watch.err << server->Log();
+  EXPECT_THAT(watch.out, HasSubstr("to orthanc: delivered"));
   const double total =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0)
           .count();
-  ASSERT_EQ(series_count, 4u) << server->Log();
-  // Let the last series' instances arrive, then count them.
-  std::this_thread::sleep_for(std::chrono::seconds(2));
   auto series = orthanc_->GetJson("/studies/" + study_id + "/series?expand");
   ASSERT_TRUE(series.ok());
+  // Source + intensity + SEG + STL.
+  EXPECT_EQ(series->size(), 4u) << series->dump();
   std::map<std::string, size_t> by_description;
   for (const auto& one : *series) {
     by_description[one["MainDicomTags"].value("SeriesDescription", "")] =

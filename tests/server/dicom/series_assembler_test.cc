@@ -39,6 +39,10 @@ class AssemblerTest : public ::testing::Test {
   }
   void TearDown() override { fs::remove_all(root_); }
 
+  // The sleeps of 100 ms in these tests let a series' stable time (0.05 s
+  // with Rules(..., 0.05)) pass on the clock before the test itself calls
+  // CompleteStableSeries: nothing runs concurrently, so they are not
+  // synchronisation, and sleep_for never returns early.
   RuleSet Rules(const std::string& modality, double stable_seconds,
                 bool complete_on_release = false) {
     RuleSet set;
