@@ -259,7 +259,8 @@ TEST(DicomNodeTest, EchoAndAssociationPolicy) {
       {kEchoScu, "-aec", "SOMEONE_ELSE", "127.0.0.1", server.port()});
   EXPECT_NE(unknown_called.exit_code, 0);
   EXPECT_THAT(unknown_called.err, HasSubstr("Called AE Title Not Recognized"));
-  EXPECT_THAT(server.Log(), HasSubstr("STRANGER rejected"));
+  EXPECT_THAT(server.Log(),
+              HasSubstr("calling AE title STRANGER is not in the peers file"));
 }
 
 TEST(DicomNodeTest, UnknownCallersAcceptedWhenThePeersFileSaysSo) {
