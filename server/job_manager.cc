@@ -1047,8 +1047,11 @@ void JobManager::RunOne(const std::shared_ptr<Job>& job) {
     }
     report = hashed;
   }
+  // A write that failed for want of space: RESOURCE_EXHAUSTED "disk full"
+  // rather than INTERNAL with a server path (asked before the outputs go).
+  const absl::Status error =
+      DiskFullAsResourceExhausted(report.status(), spool_->FileSystemFull());
   spool_->RemoveOutputs(id);
-  const absl::Status error = report.status();
   const bool cancelled = error.code() == absl::StatusCode::kCancelled;
   const std::string message = RedactPhi(error.message());
   job->Update([&](JobRecord& r) {
