@@ -66,7 +66,8 @@ Metrics::Metrics() : registry_(std::make_shared<prometheus::Registry>()) {
   for (const char* event :
        {"associations", "associations_rejected", "instances_received",
         "instances_refused", "series_completed", "jobs_created",
-        "series_incomplete", "series_incomplete_dropped"}) {
+        "series_incomplete", "series_incomplete_dropped",
+        "presentation_contexts_refused"}) {
     dicom_->Add({{"event", event}});
   }
   dicom_refused_ =

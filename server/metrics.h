@@ -41,7 +41,9 @@ class Metrics {
   // "associations", "associations_rejected", "instances_received",
   // "instances_refused", "series_completed", "jobs_created",
   // "series_incomplete" (a series became incomplete: a broken transfer),
-  // "series_incomplete_dropped" (an incomplete series waited in vain).
+  // "series_incomplete_dropped" (an incomplete series waited in vain),
+  // "presentation_contexts_refused" (contexts of accepted associations
+  // refused in negotiation, e.g. a getscu's C-GET).
   void DicomEvent(const std::string& event, double n = 1);
   // A connection to the DICOM listener refused or cut, by reason
   // (interslice_dicom_connections_refused_total{reason=...}; the reasons

@@ -63,8 +63,8 @@ struct AssociationRunner::Impl {
   T_ASC_Network* network = nullptr;
   DcmSharedSCPConfig config;
 
-  void Count(const char* event) {
-    if (metrics != nullptr) metrics->DicomEvent(event);
+  void Count(const char* event, double n = 1) {
+    if (metrics != nullptr) metrics->DicomEvent(event, n);
   }
 };
 
@@ -309,13 +309,28 @@ class AssociationScp : public DcmThreadSCP {
                                 DcmSCPActionType& action) override {
     calling_ = Trimmed(params.DULparams.callingAPTitle);
     called_ = Trimmed(params.DULparams.calledAPTitle);
+    params_ = &params;
   }
 
   void notifyAssociationAcknowledge() override {
     impl_->Count("associations");
     association_ = impl_->assembler->BeginAssociation(calling_, called_);
-    spdlog::info("dicom: association {} -> {} from {} accepted",
-                 LogSafe(calling_), LogSafe(called_), LogSafe(source_));
+    auto* params = const_cast<T_ASC_Parameters*>(params_);
+    const int refused = ASC_countPresentationContexts(params) -
+                        ASC_countAcceptedPresentationContexts(params);
+    if (refused > 0) {
+      // E.g. getscu: its C-GET context is refused, its storage contexts
+      // (for the sub-operations) accepted; it then gives up by itself.
+      impl_->Count("presentation_contexts_refused", refused);
+    }
+    spdlog::info(
+        "dicom: association {} -> {} from {} accepted{}", LogSafe(calling_),
+        LogSafe(called_), LogSafe(source_),
+        refused > 0
+            ? absl::StrCat(" (", refused,
+                           " proposed presentation context(s) refused: not "
+                           "served here, e.g. C-FIND, C-MOVE, C-GET)")
+            : "");
   }
 
   void notifyReleaseRequest() override { released_ = true; }
@@ -421,6 +436,7 @@ class AssociationScp : public DcmThreadSCP {
   AssociationRunner::Impl* const impl_;
   const std::string source_;
   std::string calling_, called_;
+  const T_ASC_Parameters* params_ = nullptr;
   const char* rejection_ = nullptr;
   std::string rejection_detail_;
   uint64_t association_ = 0;

@@ -11,7 +11,8 @@
 //    items tile it exactly: application context (10), presentation contexts
 //    (20, at most max_presentation_contexts, each one abstract syntax (30)
 //    and 1..max_transfer_syntaxes transfer syntaxes (40)), user information
-//    (50, at most max_user_items sub-items); UIDs 1..64 bytes;
+//    (50, at most max_user_items sub-items, e.g. one role selection per
+//    context); UIDs 1..64 bytes;
 //  - then only P-DATA-TF (04, at most max_pdata_bytes, PDV items that tile
 //    it, odd context IDs, no reserved control bits), A-RELEASE-RQ/RP (05,
 //    06) and A-ABORT (07) of their fixed length;
@@ -41,7 +42,8 @@ struct PduGuardLimits {
   uint32_t max_command_bytes = 64 * 1024;
   int max_presentation_contexts = 128;
   int max_transfer_syntaxes = 64;
-  int max_user_items = 64;
+  // Role selection (54) can come once per presentation context.
+  int max_user_items = 256;
 };
 
 class PduGuard {

@@ -169,7 +169,8 @@ int StorageScp::port() const { return impl_ ? impl_->gate->port() : 0; }
 StorageScp::~StorageScp() { Stop(); }
 
 void StorageScp::Stop() {
-  if (!impl_) return;
+  // Start() may have failed half-way (the address taken): nothing runs.
+  if (!impl_ || !impl_->gate) return;
   {
     std::lock_guard<std::mutex> lock(impl_->mu);
     if (impl_->stopped) return;
@@ -184,6 +185,7 @@ void StorageScp::Stop() {
   }
   impl_->cv.notify_all();
   for (std::thread& t : impl_->workers) t.join();
+  impl_->workers.clear();
   impl_->gate->Stop();
   spdlog::info("dicom: listener stopped");
 }
