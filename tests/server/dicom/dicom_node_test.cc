@@ -1164,6 +1164,38 @@ TEST(DicomEdgeTest, DrainMakesNoDicomJobs) {
   EXPECT_THAT(again.Log(), HasSubstr("(28 instance(s))"));
 }
 
+// Finding 6: "grew after its job was made" was logged for a series that
+// never had a job (no rule matched it).
+TEST(DicomEdgeTest, GrowthIsCalledAfterAJobOnlyWhenThereWasOne) {
+  TempDir dir;
+  // Two slices: ct-head wants 20 or more, so no rule takes them.
+  DicomServer server(dir, "spool",
+                     {"--dicom-peers", WritePeers(dir), "--rules",
+                      WriteRules(dir, 0.5, false)});
+  ASSERT_TRUE(server.up()) << server.Log();
+  const std::vector<std::string> files = PhantomFiles();
+  ASSERT_EQ(StoreScu(server, {}, {files[0], files[1]}).exit_code, 0);
+  ASSERT_TRUE(WaitUntil(
+      [&] {
+        return server.Log().find("no rule of rule set") != std::string::npos;
+      },
+      30))
+      << server.Log();
+  ASSERT_EQ(StoreScu(server, {}, {files[2]}).exit_code, 0);
+  ASSERT_TRUE(WaitUntil(
+      [&] {
+        const std::string log = server.Log();
+        return log.find("grew") != std::string::npos ||
+               log.find("received more instances") != std::string::npos;
+      },
+      30))
+      << server.Log();
+  EXPECT_THAT(server.Log(),
+              ::testing::Not(HasSubstr("after its job was made")));
+  EXPECT_THAT(server.Log(), HasSubstr("held without a job"));
+  EXPECT_TRUE(server.Jobs().empty());
+}
+
 // Finding 6: refused C-FIND/C-MOVE/C-GET associations were not counted in
 // associations_rejected.
 TEST(DicomEdgeTest, QueryRetrieveAssociationsAreCountedAsRejected) {
