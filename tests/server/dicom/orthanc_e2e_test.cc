@@ -13,8 +13,10 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <iterator>
 #include <map>
 #include <memory>
 #include <set>
@@ -42,7 +44,11 @@ namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 
 const std::string kCli = INTERSLICE_CLI_PATH;
-const std::string kServer = INTERSLICE_SERVER_PATH;
+// INTERSLICE_TEST_SERVER runs these tests against another build of the
+// server (e.g. the one before a fix, to see a regression test fail).
+const std::string kServer = std::getenv("INTERSLICE_TEST_SERVER") != nullptr
+                                ? std::getenv("INTERSLICE_TEST_SERVER")
+                                : INTERSLICE_SERVER_PATH;
 const fs::path kPhantom =
     fs::path(INTERSLICE_SOURCE_DIR) / "data" / "ct-head-phantom-thick";
 // The job: bone of the phantom, one slice inserted per gap (factor 2 keeps
@@ -432,6 +438,98 @@ TEST_F(OrthancEndToEndTest, SeriesFromOrthancComesBackProcessed) {
       "Orthanc -> interslice (C-STORE of 28 instances): %.2f s; to the "
       "results in Orthanc: %.2f s (stable_seconds 1)\n",
       store_seconds, total);
+}
+
+// Issue 22, finding 2, with a real sender: Orthanc killed (SIGKILL) while it
+// sends a series to the node must not make a job, nor results in its own
+// study; after its restart, the series sent again whole makes one job, and
+// the study holds one derived series.
+TEST_F(OrthancEndToEndTest,
+       OrthancKilledMidSendMakesNoResultUntilTheSeriesIsWhole) {
+  absl::StatusOr<int> uploaded = orthanc_->UploadFolder(kPhantom.string());
+  ASSERT_TRUE(uploaded.ok()) << uploaded.status();
+  const std::string rules = (dir_.path() / "rules.yaml").string();
+  std::ofstream(rules)
+      << "stable_seconds: 1\n"
+         "rules:\n"
+         "  - name: ct\n"
+         "    match: {modality: CT}\n"
+         "    complete_on_release: true\n"
+         "    job: {threshold: 300, roi: [208, 208, 0, 304, 304, 28], "
+         "output_series: [intensity], mesh: none, volume: none}\n"
+         "    send_to: [orthanc]\n";
+  auto server =
+      StartServer({"--dicom-listen", absl::StrCat("127.0.0.1:", dicom_port_),
+                   "--dicom-ae", "INTERSLICE", "--rules", rules});
+  auto studies = orthanc_->GetJson("/studies");
+  ASSERT_TRUE(studies.ok() && studies->size() == 1u);
+  const std::string study_id = (*studies)[0];
+  // Orthanc is our child; its process is the one started with its own
+  // configuration file (the fixture does not expose the pid).
+  pid_t orthanc_pid = -1;
+  const std::string config =
+      (dir_.path() / "orthanc" / "orthanc.json").string();
+  for (const auto& e : fs::directory_iterator("/proc")) {
+    std::ifstream in(e.path() / "cmdline");
+    std::string cmdline((std::istreambuf_iterator<char>(in)),
+                        std::istreambuf_iterator<char>());
+    if (cmdline.find(config) != std::string::npos &&
+        cmdline.find(kOrthancBinary) != std::string::npos) {
+      orthanc_pid = std::stoi(e.path().filename().string());
+    }
+  }
+  ASSERT_GT(orthanc_pid, 0);
+  auto received = [&] {
+    int n = 0;
+    std::error_code ec;
+    for (const auto& f : fs::recursive_directory_iterator(
+             dir_.path() / "spool" / "dicom-in" / "series", ec)) {
+      if (f.path().extension() == ".dcm") ++n;
+    }
+    return n;
+  };
+  auto job = orthanc_->PostJson("/modalities/interslice/store",
+                                absl::StrCat(R"({"Resources": [")", study_id,
+                                             R"("], "Asynchronous": true})"));
+  ASSERT_TRUE(job.ok()) << job.status() << orthanc_->log();
+  int at_kill = 0;
+  for (int i = 0; i < 3000 && (at_kill = received()) < 6; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  }
+  ::kill(orthanc_pid, SIGKILL);
+  ASSERT_GE(at_kill, 6) << server->Log();
+  ASSERT_LT(at_kill, 28) << "Orthanc finished before it was killed";
+  for (int i = 0; i < 300; ++i) {
+    if (server->Log().find("is incomplete") != std::string::npos) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  }
+  EXPECT_THAT(server->Log(), ::testing::HasSubstr("is incomplete"));
+  std::this_thread::sleep_for(std::chrono::seconds(3));
+  EXPECT_THAT(server->Log(),
+              ::testing::Not(::testing::HasSubstr("made by rule")));
+
+  ASSERT_TRUE(orthanc_->Restart().ok()) << orthanc_->log();
+  auto again = orthanc_->PostJson("/modalities/interslice/store", study_id);
+  ASSERT_TRUE(again.ok()) << again.status() << orthanc_->log();
+  size_t series_count = 0;
+  for (int i = 0; i < 600 && series_count < 2; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(200));
+    auto s = orthanc_->GetJson("/studies/" + study_id + "/series");
+    if (s.ok()) series_count = s->size();
+  }
+  // Let anything else arrive, then count: the source and one derived series.
+  std::this_thread::sleep_for(std::chrono::seconds(3));
+  auto series = orthanc_->GetJson("/studies/" + study_id + "/series");
+  ASSERT_TRUE(series.ok());
+  EXPECT_EQ(series->size(), 2u) << server->Log();
+  const std::string log = server->Log();
+  size_t jobs = 0;
+  for (size_t at = log.find("made by rule"); at != std::string::npos;
+       at = log.find("made by rule", at + 1)) {
+    ++jobs;
+  }
+  EXPECT_EQ(jobs, 1u) << log;
+  EXPECT_THAT(log, ::testing::HasSubstr("(28 instance(s))"));
 }
 
 }  // namespace
