@@ -1225,6 +1225,34 @@ TEST(DicomEdgeTest, QueryRetrieveAssociationsAreCountedAsRejected) {
               HasSubstr("C-FIND, C-MOVE and C-GET are not served"));
 }
 
+// Issue 22: with TLS the handshake is DCMTK's, in an association worker;
+// one that starts and stalls is cut at the ACSE timeout like a slow
+// request (the deadline runs from the connection), while others are served.
+TEST(DicomEdgeTest, StalledTlsHandshakeIsCutAtTheDeadline) {
+  TempDir dir;
+  MakeCertificates(dir);
+  DicomServer server(dir, "spool",
+                     {"--dicom-peers", WritePeers(dir), "--dicom-tls-cert",
+                      dir / "server.pem", "--dicom-tls-key", dir / "server.key",
+                      "--dicom-tls-ca", dir / "ca.pem"});
+  ASSERT_TRUE(server.up()) << server.Log();
+  // The first bytes of a TLS record header, then nothing.
+  const int stalled = raw::Connect(std::stoi(server.port()));
+  ASSERT_GE(stalled, 0);
+  ASSERT_TRUE(raw::SendAll(stalled, std::string("\x16\x03\x01", 3)));
+  const std::vector<std::string> tls = {
+      "+tls", dir / "client.key", dir / "client.pem", "+cf", dir / "ca.pem"};
+  CommandResult echo = Echo(server, tls);
+  EXPECT_EQ(echo.exit_code, 0) << echo.err << server.Log();
+  EXPECT_TRUE(
+      WaitUntil([&] { return server.Refused("request_deadline") >= 1; }, 30))
+      << server.Log();
+  // The worker is free again: the socket was shut down under DCMTK.
+  EXPECT_FALSE(raw::ReadPdu(stalled, 5).has_value());
+  ::close(stalled);
+  EXPECT_EQ(Echo(server, tls).exit_code, 0);
+}
+
 // Segmentations in the PACS loop (issue 13): a series no rule takes is held
 // in the spool; a DICOM SEG drawn on it, sent afterwards (or before it),
 // makes a fill job by the `fill` rule whose artifacts equal
