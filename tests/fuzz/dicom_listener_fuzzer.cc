@@ -43,9 +43,9 @@ void Check(bool condition) {
   if (!condition) __builtin_trap();
 }
 
-const char* const kSyntaxes[] = {
-    "1.2.840.10008.1.2", "1.2.840.10008.1.2.1", "1.2.840.10008.1.2.2",
-    "1.2.840.10008.1.2.1.99"};
+const char* const kSyntaxes[] = {"1.2.840.10008.1.2", "1.2.840.10008.1.2.1",
+                                 "1.2.840.10008.1.2.2",
+                                 "1.2.840.10008.1.2.1.99"};
 
 // A Part 10 file: preamble, DICM, a meta group naming `syntax` (explicit VR
 // little endian, as DCMTK writes it), then `dataset` as it came.
