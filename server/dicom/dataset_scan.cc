@@ -188,69 +188,96 @@ class InflateSource : public ByteSource {
     std::memcpy(out, out_.data() + out_pos_, n);
     return true;
   }
+  // The end only when the stream ended well: after a data error, a stream
+  // cut short or the size limit, the next Read fails and says why.
   bool AtEnd() override {
     if (out_pos_ < out_.size()) return false;
-    return !Fill();
+    if (Fill()) return false;
+    return !bad_data_ && !too_large_ && !truncated_;
   }
   uint64_t Position() const override { return pos_; }
   uint64_t Size() const override { return kNoEnd; }
   const char* error() const override { return error_; }
 
+  bool too_large() const { return too_large_; }
+  bool bad_data() const { return bad_data_; }
+  bool truncated() const { return truncated_; }
+
  private:
+  // Inflates the next bytes. As DCMTK's reader does (dcistrmz.cc), a zero
+  // byte follows the input (raw deflate may need it to finish), and what
+  // inflate produced before a data error is handed out first: the scan sees
+  // every byte DCMTK's parser would, then fails at the error.
   bool Fill() {
-    if (!ok_ || finished_) return false;
+    if (!ok_ || finished_ || failed_) return false;
     out_.resize(kChunk);
     out_pos_ = 0;
     while (true) {
-      if (z_.avail_in == 0 && !in_->AtEnd()) {
-        const uint64_t left = in_->Size() - in_->Position();
-        const size_t take =
-            static_cast<size_t>(std::min<uint64_t>(kChunk, left));
-        in_buffer_.resize(take);
-        if (!in_->Read(in_buffer_.data(), take)) {
-          error_ = "the deflated data cannot be read";
-          return false;
+      if (z_.avail_in == 0) {
+        if (!in_->AtEnd()) {
+          const uint64_t left = in_->Size() - in_->Position();
+          const size_t take =
+              static_cast<size_t>(std::min<uint64_t>(kChunk, left));
+          in_buffer_.resize(take);
+          if (!in_->Read(in_buffer_.data(), take)) {
+            error_ = "the deflated data cannot be read";
+            failed_ = true;
+            return false;
+          }
+          z_.next_in = in_buffer_.data();
+          z_.avail_in = static_cast<uInt>(take);
+        } else if (!padded_) {
+          padded_ = true;
+          z_.next_in = &pad_;
+          z_.avail_in = 1;
         }
-        z_.next_in = in_buffer_.data();
-        z_.avail_in = static_cast<uInt>(take);
       }
       z_.next_out = out_.data();
       z_.avail_out = static_cast<uInt>(out_.size());
+      const uInt input_before = z_.avail_in;
       const int rc = inflate(&z_, Z_NO_FLUSH);
       const size_t produced = out_.size() - z_.avail_out;
-      if (rc == Z_STREAM_END) finished_ = true;
-      if ((rc != Z_OK && rc != Z_STREAM_END && rc != Z_BUF_ERROR) ||
-          (rc == Z_BUF_ERROR && produced == 0 && z_.avail_in > 0)) {
-        error_ = nullptr;  // bad data, not I/O
+      if (rc == Z_STREAM_END) {
+        finished_ = true;
+      } else if (rc != Z_OK && !(rc == Z_BUF_ERROR && input_before == 0)) {
+        // Z_DATA_ERROR and the like; Z_BUF_ERROR with input left means no
+        // progress is possible either.
         bad_data_ = true;
-        return false;
+        failed_ = true;
       }
       if (produced > 0) {
         total_ += produced;
         if (total_ > max_bytes_) {
           too_large_ = true;
+          failed_ = true;
+          out_.clear();
           return false;
         }
         out_.resize(produced);
         return true;
       }
-      if (finished_ || (z_.avail_in == 0 && in_->AtEnd())) return false;
+      if (finished_ || failed_) return false;
+      if (z_.avail_in == 0 && in_->AtEnd() && padded_) {
+        // The input is used up and the stream never ended.
+        truncated_ = true;
+        failed_ = true;
+        return false;
+      }
     }
   }
 
- public:
-  bool too_large() const { return too_large_; }
-  bool bad_data() const { return bad_data_; }
-
- private:
   static constexpr size_t kChunk = 64 * 1024;
   ByteSource* in_;
   uint64_t max_bytes_;
   z_stream z_;
   bool ok_ = false;
   bool finished_ = false;
+  bool failed_ = false;
   bool too_large_ = false;
   bool bad_data_ = false;
+  bool truncated_ = false;
+  bool padded_ = false;
+  unsigned char pad_ = 0;
   std::vector<unsigned char> in_buffer_;
   std::vector<unsigned char> out_;
   size_t out_pos_ = 0;
@@ -360,6 +387,9 @@ class Scanner {
                                       limits_.max_inflated_bytes, " bytes"));
       }
       if (inflate->bad_data()) return Bad(At(), "corrupt deflated data");
+      if (inflate->truncated()) {
+        return Bad(At(), "the deflated data ends before its end marker");
+      }
     }
     return Bad(At(), "the data ends inside an element");
   }

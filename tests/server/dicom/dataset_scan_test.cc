@@ -8,6 +8,7 @@
 
 #include <filesystem>
 #include <fstream>
+#include <iterator>
 #include <string>
 #include <vector>
 
@@ -99,6 +100,40 @@ TEST_F(ScanTest, DeflatedDataSetIsBoundedWhenInflated) {
   ASSERT_FALSE(r.ok());
   EXPECT_THAT(std::string(r.status().message()),
               HasSubstr("inflates past 100000 bytes"));
+}
+
+// Found by dicom_listener_fuzzer: a deflated stream with a data error after
+// an element DCMTK would read with a 4 GiB length (it allocated that much).
+// The scan must see what inflate produced before the error, and fail.
+TEST_F(ScanTest, DeflatedStreamWithADataErrorFails) {
+  std::ifstream in(std::string(INTERSLICE_SOURCE_DIR) +
+                       "/tests/server/dicom/fuzz_cases/deflated-data-error.bin",
+                   std::ios::binary);
+  const std::string input((std::istreambuf_iterator<char>(in)),
+                          std::istreambuf_iterator<char>());
+  ASSERT_GT(input.size(), 2u);
+  ASSERT_EQ(input[0] % 2, 1);  // the fuzzer's data-set mode
+  ASSERT_EQ(input[1] % 4, 3);  // deflated explicit VR little endian
+  absl::StatusOr<DatasetScanResult> r =
+      ScanDatasetBytes(input.substr(2), "1.2.840.10008.1.2.1.99");
+  ASSERT_FALSE(r.ok());
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument);
+}
+
+// A deflated data set cut short (no end of stream) is not a data set that
+// ends early.
+TEST_F(ScanTest, DeflatedStreamCutShortFails) {
+  const std::string path = Resaved(EXS_DeflatedLittleEndianExplicit, "d.dcm");
+  absl::StatusOr<Part10Meta> meta = ReadPart10Meta(path);
+  ASSERT_TRUE(meta.ok());
+  std::ifstream in(path, std::ios::binary);
+  std::string bytes((std::istreambuf_iterator<char>(in)),
+                    std::istreambuf_iterator<char>());
+  bytes = bytes.substr(static_cast<size_t>(meta->dataset_offset));
+  ASSERT_TRUE(ScanDatasetBytes(bytes, "1.2.840.10008.1.2.1.99").ok());
+  absl::StatusOr<DatasetScanResult> cut = ScanDatasetBytes(
+      bytes.substr(0, bytes.size() / 2), "1.2.840.10008.1.2.1.99");
+  ASSERT_FALSE(cut.ok());
 }
 
 TEST_F(ScanTest, DeepNestingFailsAtTheLimitNotBefore) {
