@@ -337,8 +337,8 @@ absl::Status Bad(uint64_t at, const std::string& what) {
 class Scanner {
  public:
   Scanner(ByteSource* src, Encoding root, const DatasetScanLimits& limits,
-          uint64_t base)
-      : src_(src), limits_(limits), base_(base) {
+          uint64_t base, bool deflated = false)
+      : src_(src), limits_(limits), base_(base), deflated_(deflated) {
     stack_.push_back({Frame::kRoot, kNoEnd, kNoEnd, root, 0});
   }
 
@@ -536,6 +536,12 @@ class Scanner {
       return Bad(At(), "an undefined length on a value that cannot have one");
     }
     if (absl::Status s = CheckFits(length, top); !s.ok()) return s;
+    if (deflated_ && !(group == 0x7FE0 && element == 0x0010) &&
+        length > static_cast<uint64_t>(limits_.max_deflated_value_bytes)) {
+      return Bad(At(), absl::StrCat("a value of ", length,
+                                    " bytes in a deflated data set (at most ",
+                                    limits_.max_deflated_value_bytes, ")"));
+    }
     if (!src_->Skip(length)) return ReadFailure();
     return absl::OkStatus();
   }
@@ -543,6 +549,7 @@ class Scanner {
   ByteSource* src_;
   const DatasetScanLimits limits_;
   const uint64_t base_;  // file offset of the data (for messages)
+  const bool deflated_;
   std::vector<Frame> stack_;
   int64_t elements_ = 0;
   int deepest_ = 0;
@@ -571,7 +578,7 @@ absl::Status ScanWith(ByteSource* src, const std::string& uid,
   if (enc->second) {
     InflateSource inflated(src, static_cast<uint64_t>(std::max<int64_t>(
                                     0, limits.max_inflated_bytes)));
-    Scanner scanner(&inflated, enc->first, limits, 0);
+    Scanner scanner(&inflated, enc->first, limits, 0, /*deflated=*/true);
     return scanner.Run(result);
   }
   Scanner scanner(src, enc->first, limits, base);

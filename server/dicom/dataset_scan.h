@@ -50,6 +50,10 @@ struct DatasetScanLimits {
   int64_t max_elements = 250000;
   // A deflated data set may inflate to at most this many bytes.
   int64_t max_inflated_bytes = int64_t{1} << 30;
+  // In a deflated data set, a value other than the pixel data may hold at
+  // most this many bytes: DCMTK cannot come back to a value in a
+  // compressed stream, so it loads each one into memory as it parses.
+  int64_t max_deflated_value_bytes = int64_t{64} << 20;
 };
 
 struct DatasetScanResult {

@@ -100,6 +100,30 @@ TEST_F(ScanTest, DeflatedDataSetIsBoundedWhenInflated) {
   ASSERT_FALSE(r.ok());
   EXPECT_THAT(std::string(r.status().message()),
               HasSubstr("inflates past 100000 bytes"));
+  // A large value other than the pixel data (DCMTK would load it into
+  // memory): the phantom (pixel data of 512 KiB, no other value above
+  // 2160 bytes) passes a 4 KiB value limit, an 8 KiB private value does not.
+  DatasetScanLimits values;
+  values.max_deflated_value_bytes = 4096;
+  EXPECT_TRUE(ScanPart10File(path, values).ok());
+  DcmFileFormat ff;
+  ASSERT_TRUE(ff.loadFile(path.c_str()).good());
+  ASSERT_TRUE(ff.getDataset()
+                  ->putAndInsertString(DcmTag(0x0009, 0x0010, EVR_LO), "X")
+                  .good());
+  const std::string big(8192, 'x');
+  ASSERT_TRUE(ff.getDataset()
+                  ->putAndInsertUint8Array(
+                      DcmTag(0x0009, 0x1001, EVR_OB),
+                      reinterpret_cast<const Uint8*>(big.data()), big.size())
+                  .good());
+  const std::string with_value = (dir_ / "d-value.dcm").string();
+  ASSERT_TRUE(
+      ff.saveFile(with_value.c_str(), EXS_DeflatedLittleEndianExplicit).good());
+  r = ScanPart10File(with_value, values);
+  ASSERT_FALSE(r.ok());
+  EXPECT_THAT(std::string(r.status().message()),
+              HasSubstr("a value of 8192 bytes in a deflated data set"));
 }
 
 // Found by dicom_listener_fuzzer: a deflated stream with a data error after
