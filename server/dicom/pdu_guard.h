@@ -12,7 +12,8 @@
 //    (20, at most max_presentation_contexts, each one abstract syntax (30)
 //    and 1..max_transfer_syntaxes transfer syntaxes (40)), user information
 //    (50, at most max_user_items sub-items, e.g. one role selection per
-//    context); UIDs 1..64 bytes;
+//    context, each of a known type (51-58) and well-formed by PS3.7
+//    D.3.3); UIDs 1..64 bytes;
 //  - then only P-DATA-TF (04, at most max_pdata_bytes, PDV items that tile
 //    it, odd context IDs, no reserved control bits), A-RELEASE-RQ/RP (05,
 //    06) and A-ABORT (07) of their fixed length;

@@ -3,6 +3,8 @@
 // make DCMTK recurse or allocate without bound fails before it is whole.
 #include "server/dicom/pdu_guard.h"
 
+#include <fstream>
+#include <iterator>
 #include <string>
 #include <vector>
 
@@ -115,6 +117,68 @@ TEST(PduGuardTest, ItemLengthsMustTileTheRequest) {
   PduGuard guard;
   absl::Status s = FeedAll(guard, rq);
   ASSERT_FALSE(s.ok());
+}
+
+// User information sub-items reach DCMTK only well-formed: DCMTK 3.6.7
+// leaks memory on a malformed extended negotiation item (the fuzzer's
+// case), and nothing else of them is needed.
+TEST(PduGuardTest, UserInformationSubItemsMustBeWellFormed) {
+  auto request = [](const std::string& extra) {
+    return raw::AssociateRq(
+        "INTERSLICE", "STORESCU",
+        {{1, UID_CTImageStorage, {UID_LittleEndianExplicitTransferSyntax}}},
+        16384, extra);
+  };
+  auto uid = [](const std::string& u) {
+    return std::string(1, static_cast<char>(u.size() >> 8)) +
+           std::string(1, static_cast<char>(u.size() & 0xFF)) + u;
+  };
+  // Well-formed: a role selection for each of 128 contexts (getscu sends
+  // such), an extended negotiation item, a user identity item.
+  std::string roles;
+  for (int i = 0; i < 128; ++i) {
+    roles += raw::PduItem(0x54, uid(UID_CTImageStorage) + std::string("\1\1"));
+  }
+  PduGuard good;
+  EXPECT_TRUE(
+      FeedAll(good,
+              request(roles + raw::PduItem(0x56, uid("1.2.3") + "\x01\x00") +
+                      raw::PduItem(0x58, std::string("\x01\x00"
+                                                     "\x00\x04"
+                                                     "user"
+                                                     "\x00\x00",
+                                                     10))))
+          .ok());
+  const std::vector<std::pair<std::string, std::string>> bad = {
+      {"extended negotiation UID past its item",
+       raw::PduItem(0x56, "1.2.3.4.5.6.7.8")},
+      {"role selection with a byte too many",
+       raw::PduItem(0x54, uid("1.2.3") + std::string("\1\1\1"))},
+      {"maximum length of 2 bytes", raw::PduItem(0x51, std::string("\0\1"))},
+      {"user identity fields that do not add up",
+       raw::PduItem(0x58, std::string("\x01\x00\x00\x09user", 8))},
+      {"an unknown sub-item type", raw::PduItem(0x5F, "x")},
+  };
+  for (const auto& [what, item] : bad) {
+    PduGuard guard;
+    absl::Status s = FeedAll(guard, request(item));
+    ASSERT_FALSE(s.ok()) << what;
+    EXPECT_THAT(std::string(s.message()),
+                HasSubstr("user information sub-item"))
+        << what;
+  }
+  // The fuzzer's input (after its mode byte).
+  std::ifstream in(
+      std::string(INTERSLICE_SOURCE_DIR) +
+          "/tests/server/dicom/fuzz_cases/extended-negotiation-leak.bin",
+      std::ios::binary);
+  const std::string input((std::istreambuf_iterator<char>(in)),
+                          std::istreambuf_iterator<char>());
+  ASSERT_GT(input.size(), 1u);
+  PduGuard fuzzed;
+  absl::Status s = FeedAll(fuzzed, input.substr(1));
+  ASSERT_FALSE(s.ok());
+  EXPECT_THAT(std::string(s.message()), HasSubstr("sub-item 56"));
 }
 
 TEST(PduGuardTest, CommandSetsCannotNest) {

@@ -71,10 +71,14 @@ std::string Explicit(uint16_t group, uint16_t element, const char* vr,
 
 }  // namespace
 
+std::string PduItem(uint8_t type, const std::string& value) {
+  return Item(type, value);
+}
+
 std::string AssociateRq(const std::string& called_ae,
                         const std::string& calling_ae,
                         const std::vector<PresentationContext>& contexts,
-                        uint32_t max_pdu) {
+                        uint32_t max_pdu, const std::string& extra_user_items) {
   std::string body;
   Be16(body, 1);  // protocol version
   Be16(body, 0);
@@ -91,7 +95,8 @@ std::string AssociateRq(const std::string& called_ae,
   }
   std::string max_length;
   Be32(max_length, max_pdu);
-  std::string user = Item(0x51, max_length) + Item(0x52, "1.2.3.4.5.6.7.8");
+  std::string user =
+      Item(0x51, max_length) + Item(0x52, "1.2.3.4.5.6.7.8") + extra_user_items;
   body += Item(0x50, user);
   return MakePdu(0x01, body);
 }

@@ -19,11 +19,15 @@ struct PresentationContext {
   std::vector<std::string> transfer_syntaxes;
 };
 
-// A-ASSOCIATE-RQ (type 01).
+// A-ASSOCIATE-RQ (type 01); `extra_user_items` are appended to its user
+// information item (after maximum length and implementation class UID).
 std::string AssociateRq(const std::string& called_ae,
                         const std::string& calling_ae,
                         const std::vector<PresentationContext>& contexts,
-                        uint32_t max_pdu = 16384);
+                        uint32_t max_pdu = 16384,
+                        const std::string& extra_user_items = "");
+// An item or sub-item: type, reserved, 2-byte big-endian length, value.
+std::string PduItem(uint8_t type, const std::string& value);
 // P-DATA-TF (type 04) with one PDV item.
 std::string PData(uint8_t context_id, bool command, bool last,
                   const std::string& fragment);
