@@ -17,7 +17,7 @@
 #
 # Environment: INTERSLICE_FUZZ_JOBS (compile jobs, default nproc),
 # INTERSLICE_FUZZ_TARGETS (default "dicom_ingest_fuzzer job_spec_fuzzer
-# upload_stream_fuzzer"),
+# upload_stream_fuzzer dicom_listener_fuzzer"),
 # INTERSLICE_FUZZ_ARGS (more libFuzzer flags for every target, e.g.
 # "-max_len=65536": about twice the executions per second for
 # dicom_ingest_fuzzer, at the price of truncating the 512 x 512 seeds).
@@ -31,7 +31,7 @@ if ! [[ "$seconds" =~ ^[0-9]+$ ]] || [ "$seconds" -lt 1 ]; then
   exit 2
 fi
 jobs="${INTERSLICE_FUZZ_JOBS:-$(nproc)}"
-targets=(${INTERSLICE_FUZZ_TARGETS:-dicom_ingest_fuzzer job_spec_fuzzer upload_stream_fuzzer})
+targets=(${INTERSLICE_FUZZ_TARGETS:-dicom_ingest_fuzzer job_spec_fuzzer upload_stream_fuzzer dicom_listener_fuzzer})
 build="${INTERSLICE_INSTRUMENTED_BUILD_DIR:-$root/build-instrumented}"
 work="$build/fuzz"
 probe="$(mktemp -d)"
@@ -128,6 +128,7 @@ for target in "${targets[@]}"; do
     dicom_ingest_fuzzer) seeds_dicom "$dir/seeds" ;;
     job_spec_fuzzer) seeds_job_spec "$dir/seeds" ;;
     upload_stream_fuzzer) seeds_upload_stream "$dir/seeds" ;;
+    dicom_listener_fuzzer) python3 tests/fuzz/dicom_listener_seeds.py "$dir/seeds" ;;
   esac
   log="$dir/last-run.log"
   echo "fuzz: $target for $seconds s (log: ${log#$root/})"

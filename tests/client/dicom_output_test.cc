@@ -356,7 +356,7 @@ TEST_F(DicomOutputTest, IntensityMethodKeepsSourceSlicesAndSaysWhichItUsed) {
         "--volume none --mesh none --output-series intensity " +
         (method.empty() ? "" : "--intensity-method " + method + " ") +
         "--out " + out.string() + " --report " + report_path.string());
-    ASSERT_EQ(r.exit_code, 0) << r.output;
+    ASSERT_EQ(r.exit_code, 0) << r.out;
     const nlohmann::json report = ReadJson(report_path);
     EXPECT_EQ(report["intensity"]["method"], method.empty() ? "morph" : method);
     auto read = ReadDicomSeries({(out / "series-intensity").string()}, {}, {});
@@ -402,7 +402,7 @@ TEST_F(DicomOutputTest, IntensityMethodKeepsSourceSlicesAndSaysWhichItUsed) {
                                    "--out " +
                                    (dir_ / "bad").string());
   EXPECT_EQ(bad.exit_code, 1);
-  EXPECT_THAT(bad.output,
+  EXPECT_THAT(bad.out,
               HasSubstr("--intensity-method: unknown value 'cubic'"));
 }
 

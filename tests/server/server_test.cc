@@ -216,10 +216,11 @@ TEST(ServerTest, SlabDeconvolutionRunsOnTheServerAsInProcess) {
   const std::vector<std::string> job =
       Cat(kSmallJob, {"--slab-deconvolution", "--method", "direct"});
   const std::string local = RunLocally(dir, job, "local");
-  ServerProcess server(dir / "spool", dir / "server.log", {});
+  ServerProcess server({.spool = dir / "spool", .log = dir / "server.log"});
+  ASSERT_TRUE(server.Start());
   CommandResult r =
       Cli(Cat(Cat({"interpolate"}, job),
-              Cat(server.Server(),
+              Cat(server.ServerFlag(),
                   {"--out", dir / "remote", "--volume", "nii,nrrd", "--mesh",
                    "stl,ply,obj", "--report", dir / "report.json"})));
   ASSERT_EQ(r.exit_code, 0) << r.err << server.Log();
@@ -236,7 +237,8 @@ TEST(ServerTest, SlabDeconvolutionRunsOnTheServerAsInProcess) {
 // methods differ between the source slices only.
 TEST(ServerTest, IntensityMethodChosenOnTheClientRunsOnTheServer) {
   TempDir dir;
-  ServerProcess server(dir / "spool", dir / "server.log", {});
+  ServerProcess server({.spool = dir / "spool", .log = dir / "server.log"});
+  ASSERT_TRUE(server.Start());
   std::map<std::string, DicomSeries> series;
   for (const std::string method : {"linear", "morph"}) {
     const std::vector<std::string> args = {
@@ -251,7 +253,7 @@ TEST(ServerTest, IntensityMethodChosenOnTheClientRunsOnTheServer) {
                 HasSubstr("\"method\": \"" + method + "\""));
     CommandResult r =
         Cli(Cat(Cat({"interpolate"}, kSmallJob),
-                Cat(args, Cat(server.Server(),
+                Cat(args, Cat(server.ServerFlag(),
                               {"--out", dir / ("remote-" + method)}))));
     ASSERT_EQ(r.exit_code, 0) << r.err << server.Log();
     auto a = ReadDicomSeries(

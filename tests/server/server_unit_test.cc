@@ -1,4 +1,5 @@
 // Unit tests of the server library's pure parts.
+#include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
 #include <atomic>
@@ -56,6 +57,34 @@ TEST(StatusMapTest, CodesMapOneToOne) {
   EXPECT_EQ(ToGrpcStatus(absl::DeadlineExceededError("x")).error_code(),
             grpc::DEADLINE_EXCEEDED);
   EXPECT_TRUE(ToGrpcStatus(absl::OkStatus()).ok());
+}
+
+// Issue 22: a job whose output hit a full spool failed INTERNAL with the
+// server's spool path in the client's message.
+TEST(StatusMapTest, FullDiskIsResourceExhaustedWithoutPaths) {
+  const absl::Status write = absl::InternalError(
+      "cannot write /var/tmp/spool/jobs/j1/out/volume.nii.gz: No space left "
+      "on device");
+  const absl::Status mapped = DiskFullAsResourceExhausted(write, false);
+  EXPECT_EQ(mapped.code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_THAT(std::string(mapped.message()),
+              ::testing::StartsWith("disk full"));
+  EXPECT_THAT(std::string(mapped.message()),
+              ::testing::Not(::testing::HasSubstr("/var/tmp")));
+  // A write error the writer did not explain, on a spool with no room.
+  EXPECT_EQ(DiskFullAsResourceExhausted(
+                absl::InternalError("Could not write file"), true)
+                .code(),
+            absl::StatusCode::kResourceExhausted);
+  // Otherwise nothing changes.
+  EXPECT_EQ(DiskFullAsResourceExhausted(
+                absl::InternalError("Could not write file"), false),
+            absl::InternalError("Could not write file"));
+  EXPECT_EQ(
+      DiskFullAsResourceExhausted(absl::InvalidArgumentError("bad"), true),
+      absl::InvalidArgumentError("bad"));
+  EXPECT_EQ(DiskFullAsResourceExhausted(absl::CancelledError("stop"), true),
+            absl::CancelledError("stop"));
 }
 
 TEST(TokenFileTest, OneTokenAloneIsTheDefaultIdentity) {

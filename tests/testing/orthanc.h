@@ -51,6 +51,8 @@ class Orthanc {
   void Stop();
   absl::Status Restart();
   bool running() const { return pid_ > 0; }
+  // The Orthanc process (a child of the test), e.g. to kill it mid-send.
+  pid_t pid() const { return pid_; }
 
   const std::string& ae_title() const { return ae_title_; }
   int dicom_port() const { return dicom_port_; }

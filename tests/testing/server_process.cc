@@ -58,7 +58,7 @@ ServerProcess::~ServerProcess() {
     argv = Cat(argv,
                {"--drain-grace", absl::StrCat(options_.drain_grace_seconds)});
   }
-  argv = Cat(argv, extra);
+  argv = Cat(options_.command_prefix, Cat(argv, extra));
   exit_code_ = -1;
   grpc_port_ = metrics_port_ = dicom_port_ = 0;
   address_.clear();

@@ -42,6 +42,10 @@ struct ServerOptions {
   // --listen. A fixed "127.0.0.1:<FreeTcpPort()>" for servers that must know
   // their address before they start (replicas advertise it).
   std::string listen = "127.0.0.1:0";
+  // A command the server is started under (its argv is appended), e.g.
+  // unshare(1) to give it a mount namespace of its own. It must exec the
+  // server, so that the pid is the server's.
+  std::vector<std::string> command_prefix;
   // More flags, after the defaults. Each default below is passed only when
   // `extra` does not name the flag itself.
   std::vector<std::string> extra;

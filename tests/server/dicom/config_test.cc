@@ -141,6 +141,42 @@ TEST_F(ConfigTest, PeersFileErrorsNameThePeerAndField) {
       HasSubstr("cannot read"));
 }
 
+// Issue 22: a peer may be bound to addresses (allowed_sources).
+TEST_F(ConfigTest, PeerAllowedSources) {
+  absl::StatusOr<PeersConfig> config = LoadPeersConfig(
+      Write("p.yaml",
+            "peers:\n"
+            "  - {name: ct, ae_title: CT1, host: 10.1.2.3,\n"
+            "     allowed_sources: [10.1.0.0/16, 192.168.7.9, 'fd00::/8']}\n"
+            "  - {name: any, ae_title: ANY, host: h}\n"));
+  ASSERT_TRUE(config.ok()) << config.status();
+  const std::vector<SourceNetwork>& nets = config->peers[0].allowed_sources;
+  ASSERT_EQ(nets.size(), 3u);
+  EXPECT_TRUE(config->peers[1].allowed_sources.empty());
+  EXPECT_TRUE(InNetwork("10.1.200.7", nets[0]));
+  EXPECT_FALSE(InNetwork("10.2.0.1", nets[0]));
+  EXPECT_TRUE(InNetwork("192.168.7.9", nets[1]));
+  EXPECT_FALSE(InNetwork("192.168.7.10", nets[1]));
+  EXPECT_TRUE(InNetwork("fd12:3456::1", nets[2]));
+  EXPECT_FALSE(InNetwork("fe80::1", nets[2]));
+  EXPECT_FALSE(InNetwork("10.1.2.3", nets[2]));  // another family
+  // Prefixes that end inside a byte.
+  absl::StatusOr<SourceNetwork> odd = ParseSourceNetwork("172.16.0.0/12");
+  ASSERT_TRUE(odd.ok());
+  EXPECT_TRUE(InNetwork("172.31.255.255", *odd));
+  EXPECT_FALSE(InNetwork("172.32.0.0", *odd));
+  EXPECT_THAT(PeersError("peers:\n  - {name: a, ae_title: A, host: h, "
+                         "allowed_sources: [pacs.example]}\n"),
+              HasSubstr("peer 'a' (#1): allowed_sources[0]: 'pacs.example' "
+                        "is not an IPv4 or IPv6 address"));
+  EXPECT_THAT(PeersError("peers:\n  - {name: a, ae_title: A, host: h, "
+                         "allowed_sources: [10.0.0.0/33]}\n"),
+              HasSubstr("an IPv4 prefix is at most 32 bits"));
+  EXPECT_THAT(PeersError("peers:\n  - {name: a, ae_title: A, host: h, "
+                         "allowed_sources: []}\n"),
+              HasSubstr("allowed_sources: expected a non-empty list"));
+}
+
 TEST_F(ConfigTest, FullRulesFile) {
   absl::StatusOr<RuleSet> set = LoadRulesFile(
       Write("rules.yaml",

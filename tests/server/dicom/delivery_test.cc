@@ -226,11 +226,24 @@ TEST(DeliveryQueueTest, PeerDownThenBackIsDeliveredWithBackoff) {
                 t0.time_since_epoch())
                 .count());
   // Two failed tries while the peer is down, each with the error and a
-  // next attempt in the future.
-  testing::WaitFor([&] { return updates.all().size() >= 2; },
+  // next attempt in the future (each try is also reported as it begins,
+  // without an error yet the first time).
+  auto failed_tries = [&] {
+    std::vector<v1::Delivery> failures;
+    for (const v1::Delivery& u : updates.all()) {
+      if (!u.last_error().empty() && u.next_attempt_unix_ms() > 0 &&
+          (failures.empty() || u.attempts() > failures.back().attempts())) {
+        failures.push_back(u);
+      }
+    }
+    return failures;
+  };
+  testing::WaitFor([&] { return failed_tries().size() >= 2; },
                    std::chrono::seconds(60));
-  const std::vector<v1::Delivery> failures = updates.all();
+  const std::vector<v1::Delivery> failures = failed_tries();
   ASSERT_GE(failures.size(), 2u);
+  EXPECT_EQ(updates.all().front().attempts(), 1);
+  EXPECT_EQ(updates.all().front().last_error(), "");
   for (const v1::Delivery& f : failures) {
     EXPECT_EQ(f.state(), v1::Delivery::PENDING);
     EXPECT_THAT(f.last_error(), HasSubstr("orthanc"));
@@ -272,6 +285,46 @@ TEST(DeliveryQueueTest, GivesUpAfterTheConfiguredTime) {
   EXPECT_EQ(failed->attempts(), 1);
   EXPECT_THAT(failed->last_error(), HasSubstr("down"));
   EXPECT_EQ(queue.pending(), 0);
+}
+
+// Issue 22: a delivery cut by a kill -9 reported "1 attempt(s)" after any
+// number of tries, because the count was stored only after a try ended.
+// The attempt is recorded before it is made: here the peer accepts the TCP
+// connection and never answers, and the record says attempt 1 while the
+// try still hangs.
+TEST(DeliveryQueueTest, AttemptIsRecordedBeforeItIsMade) {
+  const int listener = ::socket(AF_INET, SOCK_STREAM, 0);
+  ASSERT_GE(listener, 0);
+  sockaddr_in addr{};
+  addr.sin_family = AF_INET;
+  addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  ASSERT_EQ(::bind(listener, reinterpret_cast<sockaddr*>(&addr), sizeof(addr)),
+            0);
+  ASSERT_EQ(::listen(listener, 4), 0);  // the kernel accepts; nobody reads
+  socklen_t len = sizeof(addr);
+  ::getsockname(listener, reinterpret_cast<sockaddr*>(&addr), &len);
+  DicomPeer peer;
+  peer.name = "silent";
+  peer.ae_title = "SILENT";
+  peer.host = "127.0.0.1";
+  peer.port = ntohs(addr.sin_port);
+  DeliveryOptions options = FastOptions();
+  options.timeout_seconds = 20;
+  Updates updates;
+  DeliveryQueue queue({peer}, options, updates.callback());
+  queue.Start();
+  v1::Delivery d;
+  d.set_peer("silent");
+  d.set_state(v1::Delivery::PENDING);
+  queue.Add("job3", d, ListDicomFiles(kThick.string()), 0);
+  std::optional<v1::Delivery> started =
+      updates.WaitFor(v1::Delivery::PENDING, std::chrono::seconds(15));
+  ASSERT_TRUE(started.has_value());
+  EXPECT_EQ(started->attempts(), 1);
+  // Recorded as the try began, not after it failed.
+  EXPECT_EQ(started->last_error(), "");
+  ::close(listener);  // the try now fails at once
+  queue.Stop();
 }
 
 TEST(DeliveryQueueTest, UnknownPeerNamesAreInvalidArgument) {

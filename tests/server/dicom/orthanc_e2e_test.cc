@@ -13,8 +13,10 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <iterator>
 #include <map>
 #include <memory>
 #include <set>
@@ -407,6 +409,83 @@ TEST_F(OrthancEndToEndTest, SeriesFromOrthancComesBackProcessed) {
       "Orthanc -> interslice (C-STORE of 28 instances): %.2f s; to the "
       "results in Orthanc: %.2f s (stable_seconds 1)\n",
       store_seconds, total);
+}
+
+// Issue 22, finding 2, with a real sender: Orthanc killed (SIGKILL) while it
+// sends a series to the node must not make a job, nor results in its own
+// study; after its restart, the series sent again whole makes one job, and
+// the study holds one derived series.
+TEST_F(OrthancEndToEndTest,
+       OrthancKilledMidSendMakesNoResultUntilTheSeriesIsWhole) {
+  absl::StatusOr<int> uploaded = orthanc_->UploadFolder(kPhantom.string());
+  ASSERT_TRUE(uploaded.ok()) << uploaded.status();
+  const std::string rules = (dir_.path() / "rules.yaml").string();
+  std::ofstream(rules)
+      << "stable_seconds: 1\n"
+         "rules:\n"
+         "  - name: ct\n"
+         "    match: {modality: CT}\n"
+         "    complete_on_release: true\n"
+         "    job: {threshold: 300, roi: [208, 208, 0, 304, 304, 28], "
+         "output_series: [intensity], mesh: none, volume: none}\n"
+         "    send_to: [orthanc]\n";
+  auto server =
+      StartServer({"--dicom-listen", absl::StrCat("127.0.0.1:", dicom_port_),
+                   "--dicom-ae", "INTERSLICE", "--rules", rules});
+  auto studies = orthanc_->GetJson("/studies");
+  ASSERT_TRUE(studies.ok() && studies->size() == 1u);
+  const std::string study_id = (*studies)[0];
+  const pid_t orthanc_pid = orthanc_->pid();
+  ASSERT_GT(orthanc_pid, 0);
+  auto received = [&] {
+    int n = 0;
+    std::error_code ec;
+    for (const auto& f : fs::recursive_directory_iterator(
+             dir_.path() / "spool" / "dicom-in" / "series", ec)) {
+      if (f.path().extension() == ".dcm") ++n;
+    }
+    return n;
+  };
+  auto job = orthanc_->PostJson("/modalities/interslice/store",
+                                absl::StrCat(R"({"Resources": [")", study_id,
+                                             R"("], "Asynchronous": true})"));
+  ASSERT_TRUE(job.ok()) << job.status() << orthanc_->log();
+  int at_kill = 0;
+  for (int i = 0; i < 3000 && (at_kill = received()) < 6; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  }
+  ::kill(orthanc_pid, SIGKILL);
+  ASSERT_GE(at_kill, 6) << server->Log();
+  ASSERT_LT(at_kill, 28) << "Orthanc finished before it was killed";
+  WaitFor([&] { return server->Log().find("is incomplete") != std::string::npos; },
+          std::chrono::seconds(30));
+  EXPECT_THAT(server->Log(), ::testing::HasSubstr("is incomplete"));
+  std::this_thread::sleep_for(std::chrono::seconds(3));
+  EXPECT_THAT(server->Log(),
+              ::testing::Not(::testing::HasSubstr("made by rule")));
+
+  ASSERT_TRUE(orthanc_->Restart().ok()) << orthanc_->log();
+  auto again = orthanc_->PostJson("/modalities/interslice/store", study_id);
+  ASSERT_TRUE(again.ok()) << again.status() << orthanc_->log();
+  size_t series_count = 0;
+  for (int i = 0; i < 600 && series_count < 2; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(200));
+    auto s = orthanc_->GetJson("/studies/" + study_id + "/series");
+    if (s.ok()) series_count = s->size();
+  }
+  // Let anything else arrive, then count: the source and one derived series.
+  std::this_thread::sleep_for(std::chrono::seconds(3));
+  auto series = orthanc_->GetJson("/studies/" + study_id + "/series");
+  ASSERT_TRUE(series.ok());
+  EXPECT_EQ(series->size(), 2u) << server->Log();
+  const std::string log = server->Log();
+  size_t jobs = 0;
+  for (size_t at = log.find("made by rule"); at != std::string::npos;
+       at = log.find("made by rule", at + 1)) {
+    ++jobs;
+  }
+  EXPECT_EQ(jobs, 1u) << log;
+  EXPECT_THAT(log, ::testing::HasSubstr("(28 instance(s))"));
 }
 
 }  // namespace
