@@ -213,87 +213,124 @@ absl::StatusOr<PreviewImage> RenderFrontView(const PreviewScene& scene,
       Normalised({-kViewDirection[0] - 0.35 * kRight[0] - 0.55 * kDown[0],
                   -kViewDirection[1] - 0.35 * kRight[1] - 0.55 * kDown[1],
                   -kViewDirection[2] - 0.35 * kRight[2] - 0.55 * kDown[2]});
-  std::vector<uint8_t> picture(static_cast<size_t>(width) * height * 3);
-  for (size_t n = 0; n < picture.size(); ++n) picture[n] = kBackground[n % 3];
+  // One ray per pixel centre; pixels whose neighbours see another surface
+  // (or none) are then traced again at 2 x 2 subsamples, which smooths the
+  // silhouettes at little cost.
+  struct Sample {
+    double rgb[3];
+    int surface;  // -1: background
+  };
+  auto trace = [&](std::vector<Intersector>& local, double u,
+                   double v) -> Sample {
+    Vec3 eye{};
+    for (int c = 0; c < 3; ++c) {
+      eye[c] = corner[c] + u * kRight[c] + v * kDown[c];
+    }
+    double best = std::numeric_limits<double>::infinity();
+    Vec3 normal{};
+    int seen = -1;
+    for (size_t s = 0; s < surfaces.size(); ++s) {
+      const Surface& surface = surfaces[s];
+      Ray ray(ToLevelSet(surface, eye), surface.direction);
+      VdbVec3 hit, gradient;
+      double t = 0;
+      if (!local[s].intersectsWS(ray, hit, gradient, t)) continue;
+      const double depth = t / surface.units_per_mm;
+      if (!(depth < best)) continue;
+      best = depth;
+      seen = static_cast<int>(s);
+      // The gradient is in index space; in LPS a normal maps by the
+      // inverse transpose: R * diag(1 / h).
+      const Grid& g = *surface.grid;
+      Vec3 n{};
+      for (int c = 0; c < 3; ++c) {
+        n[c] = g.direction[3 * c] * gradient[0] / g.spacing[0] +
+               g.direction[3 * c + 1] * gradient[1] / g.spacing[1] +
+               g.direction[3 * c + 2] * gradient[2] / g.spacing[2];
+      }
+      normal = Normalised(n);
+    }
+    Sample sample{{0, 0, 0}, seen};
+    if (seen < 0) {
+      for (int c = 0; c < 3; ++c) sample.rgb[c] = kBackground[c];
+      return sample;
+    }
+    // The level set is negative inside: its gradient points out of the
+    // object, towards the viewer on a front face.
+    const double lambert = std::max(0.0, Dot(normal, light));
+    const double shade = kAmbient + (1 - kAmbient) * lambert;
+    for (int c = 0; c < 3; ++c) {
+      sample.rgb[c] = surfaces[seen].rgb[c] * shade;
+    }
+    return sample;
+  };
+  std::vector<Sample> samples(static_cast<size_t>(width) * height);
   std::atomic<bool> cancelled{false};
   std::string failure;
   std::atomic<bool> failed{false};
+  // Runs `pass` on every row, each task with its own intersectors (they
+  // keep per-ray state).
+  auto for_rows = [&](const auto& pass) {
+    tbb::parallel_for(tbb::blocked_range<int>(0, height, 4),
+                      [&](const tbb::blocked_range<int>& rows) {
+                        if (cancelled.load() || failed.load()) return;
+                        if (!context.CheckCancelled().ok()) {
+                          cancelled = true;
+                          return;
+                        }
+                        try {
+                          std::vector<Intersector> local;
+                          local.reserve(surfaces.size());
+                          for (const Surface& s : surfaces)
+                            local.push_back(*s.intersector);
+                          for (int y = rows.begin(); y != rows.end(); ++y)
+                            pass(local, y);
+                        } catch (const std::exception& e) {
+                          if (!failed.exchange(true)) failure = e.what();
+                        }
+                      });
+  };
   if (!empty) {
-    tbb::parallel_for(
-        tbb::blocked_range<int>(0, height, 4),
-        [&](const tbb::blocked_range<int>& rows) {
-          if (cancelled.load() || failed.load()) return;
-          if (!context.CheckCancelled().ok()) {
-            cancelled = true;
-            return;
-          }
-          try {
-            // The intersectors keep per-ray state: one copy per task.
-            std::vector<Intersector> local;
-            local.reserve(surfaces.size());
-            for (const Surface& s : surfaces) local.push_back(*s.intersector);
-            for (int y = rows.begin(); y != rows.end(); ++y) {
-              for (int x = 0; x < width; ++x) {
-                double sum[3] = {0, 0, 0};
-                for (int sy = 0; sy < kSubsamples; ++sy) {
-                  for (int sx = 0; sx < kSubsamples; ++sx) {
-                    const double u = (x + (sx + 0.5) / kSubsamples) * mm;
-                    const double v = (y + (sy + 0.5) / kSubsamples) * mm;
-                    Vec3 eye{};
-                    for (int c = 0; c < 3; ++c) {
-                      eye[c] = corner[c] + u * kRight[c] + v * kDown[c];
-                    }
-                    double best = std::numeric_limits<double>::infinity();
-                    Vec3 normal{};
-                    const Rgb* colour = nullptr;
-                    for (size_t s = 0; s < surfaces.size(); ++s) {
-                      const Surface& surface = surfaces[s];
-                      Ray ray(ToLevelSet(surface, eye), surface.direction);
-                      VdbVec3 hit, gradient;
-                      double t = 0;
-                      if (!local[s].intersectsWS(ray, hit, gradient, t)) {
-                        continue;
-                      }
-                      const double depth = t / surface.units_per_mm;
-                      if (!(depth < best)) continue;
-                      best = depth;
-                      colour = &surface.rgb;
-                      // The gradient is in index space; in LPS a normal
-                      // maps by the inverse transpose: R * diag(1 / h).
-                      const Grid& g = *surface.grid;
-                      Vec3 n{};
-                      for (int c = 0; c < 3; ++c) {
-                        n[c] =
-                            g.direction[3 * c] * gradient[0] / g.spacing[0] +
-                            g.direction[3 * c + 1] * gradient[1] /
-                                g.spacing[1] +
-                            g.direction[3 * c + 2] * gradient[2] / g.spacing[2];
-                      }
-                      normal = Normalised(n);
-                    }
-                    if (colour == nullptr) {
-                      for (int c = 0; c < 3; ++c) sum[c] += kBackground[c];
-                      continue;
-                    }
-                    // The level set is negative inside: its gradient points
-                    // out of the object, towards the viewer on a front face.
-                    const double lambert = std::max(0.0, Dot(normal, light));
-                    const double shade = kAmbient + (1 - kAmbient) * lambert;
-                    for (int c = 0; c < 3; ++c) sum[c] += (*colour)[c] * shade;
-                  }
-                }
-                uint8_t* out =
-                    picture.data() + (static_cast<size_t>(y) * width + x) * 3;
-                for (int c = 0; c < 3; ++c) {
-                  out[c] = static_cast<uint8_t>(std::lround(std::clamp(
-                      sum[c] / (kSubsamples * kSubsamples), 0.0, 255.0)));
-                }
-              }
+    for_rows([&](std::vector<Intersector>& local, int y) {
+      for (int x = 0; x < width; ++x) {
+        samples[static_cast<size_t>(y) * width + x] =
+            trace(local, (x + 0.5) * mm, (y + 0.5) * mm);
+      }
+    });
+    std::vector<Sample> smoothed = samples;
+    for_rows([&](std::vector<Intersector>& local, int y) {
+      for (int x = 0; x < width; ++x) {
+        const int id = samples[static_cast<size_t>(y) * width + x].surface;
+        bool edge = false;
+        for (const auto [dx, dy] : {std::pair{-1, 0}, std::pair{1, 0},
+                                    std::pair{0, -1}, std::pair{0, 1}}) {
+          const int nx = x + dx, ny = y + dy;
+          if (nx < 0 || ny < 0 || nx >= width || ny >= height) continue;
+          edge |= samples[static_cast<size_t>(ny) * width + nx].surface != id;
+        }
+        if (!edge) continue;
+        Sample& out = smoothed[static_cast<size_t>(y) * width + x];
+        for (int c = 0; c < 3; ++c) out.rgb[c] = 0;
+        for (int sy = 0; sy < kSubsamples; ++sy) {
+          for (int sx = 0; sx < kSubsamples; ++sx) {
+            const Sample sub = trace(local, (x + (sx + 0.5) / kSubsamples) * mm,
+                                     (y + (sy + 0.5) / kSubsamples) * mm);
+            for (int c = 0; c < 3; ++c) {
+              out.rgb[c] += sub.rgb[c] / (kSubsamples * kSubsamples);
             }
-          } catch (const std::exception& e) {
-            if (!failed.exchange(true)) failure = e.what();
           }
-        });
+        }
+      }
+    });
+    samples = std::move(smoothed);
+  }
+  std::vector<uint8_t> picture(static_cast<size_t>(width) * height * 3);
+  for (size_t n = 0; n < samples.size(); ++n) {
+    for (int c = 0; c < 3; ++c) {
+      picture[3 * n + c] = empty ? kBackground[c]
+                                 : static_cast<uint8_t>(std::lround(std::clamp(
+                                       samples[n].rgb[c], 0.0, 255.0)));
+    }
   }
   if (cancelled) {
     if (absl::Status s = context.CheckCancelled(); !s.ok()) return s;
