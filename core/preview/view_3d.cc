@@ -124,12 +124,18 @@ absl::StatusOr<PreviewImage> RenderFrontView(const PreviewScene& scene,
       Surface surface;
       surface.grid = &object.surface->grid;
       surface.rgb = object.rgb;
-      const Vec3& sp = surface.grid->spacing;
-      surface.voxel = std::max({sp[0], sp[1], sp[2]});
+      // The largest spacing along the grid axes the rays cross (consecutive
+      // samples of a ray differ by at most that in a distance field).
+      surface.voxel = 0;
+      for (int a = 0; a < 3; ++a) {
+        if (std::abs(Dot(surface.grid->Axis(a), kViewDirection)) > 1e-6) {
+          surface.voxel = std::max(surface.voxel, surface.grid->spacing[a]);
+        }
+      }
       surface.level_set = surface_internal::MakeLevelSet(*object.surface, 0.0f);
       // A uniform voxel, so that the intersector accepts the grid; its
-      // search tests samples within 2 voxels of the surface, which then
-      // covers the coarsest axis.
+      // search tests only samples within 2 voxels of the surface, which
+      // then holds the two samples on either side of every crossing.
       surface.level_set->setTransform(
           openvdb::math::Transform::createLinearTransform(surface.voxel));
       if (surface.level_set->tree().activeVoxelCount() == 0) continue;

@@ -163,8 +163,10 @@ std::set<std::string> JobsIn(const std::string& spool) {
 void ExpectSameFiles(const std::string& expected_dir,
                      const std::string& actual_dir) {
   int files = 0;
-  for (const auto& entry : fs::directory_iterator(expected_dir)) {
-    const std::string name = entry.path().filename().string();
+  // The previews are a folder: its files too.
+  for (const auto& entry : fs::recursive_directory_iterator(expected_dir)) {
+    if (!entry.is_regular_file()) continue;
+    const std::string name = fs::relative(entry.path(), expected_dir).string();
     if (name == "report.json") continue;
     ++files;
     const std::string actual = (fs::path(actual_dir) / name).string();

@@ -143,18 +143,21 @@ std::string Trim(std::string s) {
   return s;
 }
 
+// Every file of `expected_dir`, and of its folders (the previews, a derived
+// series), is in `actual_dir` with the same bytes.
 void ExpectSameFiles(const std::string& expected_dir,
                      const std::string& actual_dir) {
   int files = 0;
-  for (const auto& entry : fs::directory_iterator(expected_dir)) {
-    const std::string name = entry.path().filename().string();
-    if (name == "report.json") continue;
+  for (const auto& entry : fs::recursive_directory_iterator(expected_dir)) {
+    if (!entry.is_regular_file()) continue;
+    const fs::path relative = fs::relative(entry.path(), expected_dir);
+    if (relative == "report.json") continue;
     ++files;
-    const std::string actual = (fs::path(actual_dir) / name).string();
-    ASSERT_TRUE(fs::exists(actual)) << name;
+    const std::string actual = (fs::path(actual_dir) / relative).string();
+    ASSERT_TRUE(fs::exists(actual)) << relative;
     EXPECT_TRUE(ReadFileOrEmpty(entry.path().string()) ==
                 ReadFileOrEmpty(actual))
-        << name << " differs";
+        << relative << " differs";
   }
   EXPECT_GE(files, 5);
 }
@@ -318,11 +321,11 @@ TEST(ServerTest, SlabDeconvolutionRunsOnTheServerAsInProcess) {
       Cat(kSmallJob, {"--slab-deconvolution", "--method", "direct"});
   const std::string local = RunLocally(dir, job, "local");
   ServerProcess server(dir / "spool", dir / "server.log", {});
-  CommandResult r = Cli(Cat(
-      Cat({"interpolate"}, job),
-      Cat(server.Server(), {"--out", dir / "remote", "--volume", "nii,nrrd",
-                            "--mesh", "stl,ply,obj", "--report",
-                            dir / "report.json"})));
+  CommandResult r =
+      Cli(Cat(Cat({"interpolate"}, job),
+              Cat(server.Server(),
+                  {"--out", dir / "remote", "--volume", "nii,nrrd", "--mesh",
+                   "stl,ply,obj", "--report", dir / "report.json"})));
   ASSERT_EQ(r.exit_code, 0) << r.err << server.Log();
   ExpectSameFiles(local, dir / "remote");
   EXPECT_THAT(ReadFileOrEmpty(dir / "report.json"),
@@ -340,7 +343,9 @@ TEST(ServerTest, DicomOutputsMatchRunInPixelsGeometryAndUids) {
                                           "--volume",
                                           "none",
                                           "--mesh",
-                                          "none"};
+                                          "none",
+                                          "--previews",
+                                          "png,dicom"};
   CommandResult local = Cli(
       Cat(Cat({"run"}, kSmallJob),
           Cat(dicom, {"--out", dir / "local", "--quiet", "--threads", "1"})));
@@ -390,11 +395,25 @@ TEST(ServerTest, DicomOutputsMatchRunInPixelsGeometryAndUids) {
            std::string(reinterpret_cast<const char*>(pixels),
                        pixels == nullptr ? 0 : count);
   };
-  for (const char* name : {"seg.dcm", "distance.dcm"}) {
+  // The previews as DICOM too (4 Secondary Capture images), and as PNG.
+  for (const char* name :
+       {"seg.dcm", "distance.dcm", "previews-dicom/IM00001.dcm",
+        "previews-dicom/IM00002.dcm", "previews-dicom/IM00003.dcm",
+        "previews-dicom/IM00004.dcm"}) {
     SCOPED_TRACE(name);
     const std::string local_content = content(fs::path(dir / "local") / name);
     EXPECT_GT(local_content.size(), 1000u);
     EXPECT_TRUE(local_content == content(fs::path(dir / "remote") / name));
+  }
+  for (const char* name :
+       {"axial.png", "coronal.png", "sagittal.png", "3d-front.png"}) {
+    const std::string png =
+        ReadFileOrEmpty((fs::path(dir / "local") / "previews" / name).string());
+    EXPECT_GT(png.size(), 1000u) << name;
+    EXPECT_TRUE(png ==
+                ReadFileOrEmpty(
+                    (fs::path(dir / "remote") / "previews" / name).string()))
+        << name;
   }
 }
 

@@ -38,10 +38,10 @@ const std::string kPhantom =
 // A small job on the phantom: a 96 x 96 region of all 28 slices.
 const char kJobYaml[] =
     "{threshold: 300, roi: [208, 208, 0, 304, 304, 28], mesh: [stl], "
-    "volume: [nii]}";
+    "volume: [nii], previews: [png, dicom]}";
 const std::vector<std::string> kJobArgs = {
-    "--threshold", "300", "--roi",    "208,208,0,304,304,28",
-    "--mesh",      "stl", "--volume", "nii"};
+    "--threshold", "300",      "--roi", "208,208,0,304,304,28", "--mesh",
+    "stl",         "--volume", "nii",   "--previews",           "png,dicom"};
 
 std::vector<std::string> Cat(std::vector<std::string> a,
                              const std::vector<std::string>& b) {
@@ -328,16 +328,25 @@ TEST(DicomNodeTest, PhantomSentWithStorescuMakesTheRulesJob) {
       Cat({kCli, "fetch", jobs[0], "--out", dir / "remote"}, server.Client()),
       120);
   ASSERT_EQ(fetch.exit_code, 0) << fetch.err;
+  // Every file, the previews' included: the same bytes (DICOM files: the
+  // same size; their creation times differ).
   int compared = 0;
-  for (const auto& e : fs::directory_iterator(dir / "local")) {
-    const std::string name = e.path().filename().string();
-    ASSERT_TRUE(fs::exists(fs::path(dir / "remote") / name)) << name;
-    EXPECT_TRUE(ReadFileOrEmpty(e.path().string()) ==
-                ReadFileOrEmpty(dir / ("remote/" + name)))
-        << name << " differs";
+  for (const auto& e : fs::recursive_directory_iterator(dir / "local")) {
+    if (!e.is_regular_file()) continue;
+    const std::string name = fs::relative(e.path(), dir / "local").string();
+    const std::string remote = dir / ("remote/" + name);
+    ASSERT_TRUE(fs::exists(remote)) << name;
+    if (e.path().extension() == ".dcm") {
+      EXPECT_EQ(fs::file_size(e.path()), fs::file_size(remote)) << name;
+    } else {
+      EXPECT_TRUE(ReadFileOrEmpty(e.path().string()) == ReadFileOrEmpty(remote))
+          << name << " differs";
+    }
     ++compared;
   }
-  EXPECT_GE(compared, 2);
+  // distance, mask, surface, its note, 4 PNG and 4 DICOM previews.
+  EXPECT_GE(compared, 12);
+  EXPECT_TRUE(fs::exists(dir / "remote/previews-dicom/IM00004.dcm"));
   const std::string log = server.Log();
   EXPECT_THAT(log, HasSubstr("made by rule ct-head"));
   EXPECT_THAT(log, HasSubstr("STORESCU -> INTERSLICE released: 28 instance(s) "

@@ -59,7 +59,9 @@ const std::vector<std::string> kJob = {"--threshold",
                                        "--mesh",
                                        "stl",
                                        "--volume",
-                                       "none"};
+                                       "none",
+                                       "--previews",
+                                       "png,dicom"};
 
 std::vector<std::string> Cat(std::vector<std::string> a,
                              const std::vector<std::string>& b) {
@@ -253,7 +255,8 @@ TEST_F(OrthancEndToEndTest, ResultsLandInTheStudyAndEqualALocalRun) {
     }
   }
 
-  // One study (the source's), three series: intensity, SEG, STL.
+  // One study (the source's), four series: intensity, SEG, STL and the
+  // previews (Secondary Capture, modality OT, one image per view).
   auto studies = orthanc_->GetJson("/studies?expand");
   ASSERT_TRUE(studies.ok()) << studies.status();
   ASSERT_EQ(studies->size(), 1u);
@@ -266,9 +269,10 @@ TEST_F(OrthancEndToEndTest, ResultsLandInTheStudyAndEqualALocalRun) {
     by_modality[s["MainDicomTags"]["Modality"].get<std::string>()] =
         s["Instances"].size();
   }
-  EXPECT_EQ(by_modality.size(), 3u);
+  EXPECT_EQ(by_modality.size(), 4u);
   EXPECT_EQ(by_modality["SEG"], 1u);
   EXPECT_EQ(by_modality["M3D"], 1u);
+  EXPECT_EQ(by_modality["OT"], 4u);
   EXPECT_GT(by_modality["CT"], 28u);  // more slices than the source
 
   // Every instance equals the local run's instance of the same UID.
@@ -282,7 +286,15 @@ TEST_F(OrthancEndToEndTest, ResultsLandInTheStudyAndEqualALocalRun) {
     auto file = LoadBytes(*bytes);
     DcmDataset& ds = *file->getDataset();
     EXPECT_EQ(Tag(ds, DCM_StudyInstanceUID), study_);
-    EXPECT_EQ(Tag(ds, DCM_FrameOfReferenceUID), frame_);
+    // A preview is a picture, not in patient coordinates: no frame of
+    // reference; it is RGB with its legend burned in.
+    if (Tag(ds, DCM_Modality) == "OT") {
+      EXPECT_EQ(Tag(ds, DCM_FrameOfReferenceUID), "");
+      EXPECT_EQ(Tag(ds, DCM_PhotometricInterpretation), "RGB");
+      EXPECT_EQ(Tag(ds, DCM_BurnedInAnnotation), "YES");
+    } else {
+      EXPECT_EQ(Tag(ds, DCM_FrameOfReferenceUID), frame_);
+    }
     const std::string payload = Payload(ds);
     EXPECT_FALSE(payload.empty()) << uid;
     EXPECT_TRUE(payload == local.at(uid)) << "payload differs: " << uid;
@@ -391,7 +403,8 @@ TEST_F(OrthancEndToEndTest, SeriesFromOrthancComesBackProcessed) {
          "  - name: ct-bone\n"
          "    match: {modality: CT, called_ae: INTERSLICE}\n"
          "    job: {threshold: 300, method: direct, factor: 2, output_series: "
-         "[intensity], seg: true, mesh: [stl], volume: none}\n"
+         "[intensity], seg: true, mesh: [stl], volume: none, previews: "
+         "[dicom]}\n"
          "    send_to: [orthanc]\n";
   auto server =
       StartServer({"--dicom-listen", absl::StrCat("127.0.0.1:", dicom_port_),
@@ -405,9 +418,9 @@ TEST_F(OrthancEndToEndTest, SeriesFromOrthancComesBackProcessed) {
   const double store_seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0)
           .count();
-  // Source + intensity + SEG + STL.
+  // Source + intensity + SEG + STL + previews.
   size_t series_count = 0;
-  for (int i = 0; i < 600 && series_count < 4; ++i) {
+  for (int i = 0; i < 600 && series_count < 5; ++i) {
     std::this_thread::sleep_for(std::chrono::milliseconds(200));
     auto s = orthanc_->GetJson("/studies/" + study_id + "/series");
     if (s.ok()) series_count = s->size();
@@ -415,7 +428,7 @@ TEST_F(OrthancEndToEndTest, SeriesFromOrthancComesBackProcessed) {
   const double total =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0)
           .count();
-  ASSERT_EQ(series_count, 4u) << server->Log();
+  ASSERT_EQ(series_count, 5u) << server->Log();
   // Let the last series' instances arrive, then count them.
   std::this_thread::sleep_for(std::chrono::seconds(2));
   auto series = orthanc_->GetJson("/studies/" + study_id + "/series?expand");
@@ -428,6 +441,7 @@ TEST_F(OrthancEndToEndTest, SeriesFromOrthancComesBackProcessed) {
   EXPECT_EQ(by_description["interslice segmentation"], 1u);
   EXPECT_EQ(by_description["interslice surface mesh (STL)"], 1u);
   EXPECT_EQ(by_description["interslice resampled intensity"], 55u);
+  EXPECT_EQ(by_description["interslice previews"], 4u);
   std::printf(
       "Orthanc -> interslice (C-STORE of 28 instances): %.2f s; to the "
       "results in Orthanc: %.2f s (stable_seconds 1)\n",
