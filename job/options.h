@@ -86,7 +86,7 @@ struct InterpolationOptions {
   std::string mesh = "stl";
   std::string volume = "nii";
   // Previews (core/pipeline JobSpec::preview_formats): PNG by default, on
-  // every door: four small pictures (~0.2 MB) that show a person what the
+  // every door: four small pictures (~0.4 MB) that show a person what the
   // job made; DICOM into the study only when asked, because it adds a
   // series to the patient's record.
   std::string previews = "png";
