@@ -84,8 +84,8 @@ constexpr OptionDef<IO> kInterpolationOptions[] = {
     {"series_number_base", "spec.derived_series.series_number",
      ValueKind::kInteger, &IO::series_number_base,
      "Series numbers of the DICOM outputs: intensity BASE+1, distance "
-     "BASE+2, SEG BASE+3, Encapsulated STL BASE+4 (default 1000 x the "
-     "source's SeriesNumber)"},
+     "BASE+2, SEG BASE+3, Encapsulated STL BASE+4, previews BASE+6 (default "
+     "1000 x the source's SeriesNumber)"},
     {"multiframe_volume", "spec.multiframe_volume", ValueKind::kText,
      &IO::multiframe_volume,
      "Which volume of a multi-frame series to read, as named in the error "
@@ -108,6 +108,12 @@ constexpr OptionDef<IO> kInterpolationOptions[] = {
     {"volume", "spec.outputs.volume_formats", ValueKind::kList, &IO::volume,
      "Volume formats: any of nii (.nii.gz), nrrd, nii-uncompressed (.nii: no "
      "compression time), or none"},
+    {"previews", "spec.previews.formats", ValueKind::kList, &IO::previews,
+     "Previews of what the job made (axial, coronal, sagittal planes with the "
+     "outline and the original slices marked, a 3D front view, each with a "
+     "legend): png (DIR/previews/*.png), dicom (a Secondary Capture series "
+     "DIR/previews-dicom/ in the source's study, sent with the other DICOM "
+     "results), both, or none"},
 };
 
 constexpr OptionDef<FO> kFillOptions[] = {
@@ -166,6 +172,12 @@ constexpr OptionDef<FO> kFillOptions[] = {
     {"random_uids", "spec.random_uids", ValueKind::kFlag, &FO::random_uids,
      "Fresh UIDs on every run (default: derived from the input and the "
      "parameters, so a rerun replaces its objects)"},
+    {"previews", "spec.previews.formats", ValueKind::kList, &FO::previews,
+     "Previews of the fill (axial, coronal, sagittal planes with each filled "
+     "label outlined in its colour and the key slices marked, a 3D front "
+     "view, each with a legend): png (DIR/previews/*.png), dicom (a "
+     "Secondary Capture series DIR/previews-dicom/ in the reference's "
+     "study), both, or none"},
 };
 
 template <typename Options>
@@ -517,6 +529,10 @@ absl::StatusOr<JobSpec> BuildJobSpec(const InterpolationOptions& o) {
       ParseNames(o.volume, {"nii", "nrrd", "nii-uncompressed"}, "volume");
   if (!volume.ok()) return volume.status();
   spec.volume_formats = *volume;
+  absl::StatusOr<std::vector<std::string>> previews =
+      ParseNames(o.previews, {"png", "dicom"}, "previews");
+  if (!previews.ok()) return previews.status();
+  spec.preview_formats = *previews;
   if (absl::Status s = ValidateJobSpec(spec); !s.ok()) return s;
   return spec;
 }
@@ -581,6 +597,10 @@ absl::StatusOr<FillJobSpec> BuildFillJobSpec(const FillJobOptions& o) {
       ParseNames(o.volume, {"nii", "nrrd"}, "volume");
   if (!volume.ok()) return volume.status();
   spec.volume_formats = *volume;
+  absl::StatusOr<std::vector<std::string>> previews =
+      ParseNames(o.previews, {"png", "dicom"}, "previews");
+  if (!previews.ok()) return previews.status();
+  spec.preview_formats = *previews;
   spec.write_seg = o.seg;
   spec.write_rtstruct = o.rtstruct;
   if (absl::Status s = CheckIntensityMethod(o.intensity_method); !s.ok()) {

@@ -86,6 +86,11 @@ struct InterpolationOptions {
   double adaptivity = 0;
   std::string mesh = "stl";
   std::string volume = "nii";
+  // Previews (core/pipeline JobSpec::preview_formats): PNG by default, on
+  // every door: four small pictures (~0.4 MB) that show a person what the
+  // job made; DICOM into the study only when asked, because it adds a
+  // series to the patient's record.
+  std::string previews = "png";
 };
 
 // Raw values of a fill job (`interslice fill`; a rule's `fill:`; the wire
@@ -115,6 +120,7 @@ struct FillJobOptions {
   std::string intensity_method = "morph";
   std::string uid_root;
   bool random_uids = false;
+  std::string previews = "png";  // as InterpolationOptions::previews
 };
 
 // One row of an option table: the option's key, where the wire carries it,
@@ -169,8 +175,9 @@ absl::StatusOr<FillJobSpec> BuildFillJobSpec(const FillJobOptions& options);
 absl::StatusOr<std::vector<int64_t>> ParseSliceList(absl::string_view text);
 
 // The largest series number base: the derived objects are numbered base + 1
-// ... base + 4, which must stay a DICOM IS (a signed 32-bit integer).
-inline constexpr int64_t kMaxSeriesNumberBase = 2147483647 - 4;
+// ... base + 6 (the previews), which must stay a DICOM IS (a signed 32-bit
+// integer).
+inline constexpr int64_t kMaxSeriesNumberBase = 2147483647 - 6;
 
 }  // namespace interslice::job
 

@@ -37,6 +37,10 @@ constexpr std::pair<absl::string_view, v1::MeshFormat> kMeshFormats[] = {
     {"ply", v1::MESH_FORMAT_PLY},
     {"obj", v1::MESH_FORMAT_OBJ},
 };
+constexpr std::pair<absl::string_view, v1::PreviewFormat> kPreviewFormats[] = {
+    {"png", v1::PREVIEW_FORMAT_PNG},
+    {"dicom", v1::PREVIEW_FORMAT_DICOM},
+};
 
 v1::IntensityInterpolation WireIntensityMethod(const std::string& name) {
   for (const auto& [n, wire] : kIntensityMethods) {
@@ -135,6 +139,13 @@ absl::Status CommonFromWire(const v1::JobSpec& p, Options& o) {
   o.adaptivity = p.mesh_adaptivity();
   o.uid_root = p.uid_root();
   o.random_uids = p.random_uids();
+  // Absent: the options' default (PNG); present and empty: none.
+  if (p.has_previews()) {
+    absl::StatusOr<std::string> previews =
+        FormatNames(p.previews().formats(), kPreviewFormats, "previews");
+    if (!previews.ok()) return previews.status();
+    o.previews = *previews;
+  }
   return absl::OkStatus();
 }
 
@@ -160,6 +171,9 @@ void CommonToWire(const Spec& spec, const SolverOptions& solver,
   AddFormats(spec.volume_formats, kVolumeFormats,
              outputs->mutable_volume_formats());
   AddFormats(spec.mesh_formats, kMeshFormats, outputs->mutable_mesh_formats());
+  // Always present, so that "none" travels as none.
+  AddFormats(spec.preview_formats, kPreviewFormats,
+             p.mutable_previews()->mutable_formats());
 }
 
 absl::Status NotForFill(absl::string_view field) {

@@ -14,6 +14,9 @@ packages=(
   libopenvdb-dev libboost-iostreams-dev
   libcli11-dev prometheus-cpp-dev libabsl-dev nlohmann-json3-dev
   zlib1g-dev libdeflate-dev libgdcm-dev libssl-dev
+  # previews (core/preview): Cairo draws the 2D views and writes PNG; the
+  # legend's font is DejaVu Sans, loaded from its file (no fontconfig lookup)
+  libcairo2-dev fonts-dejavu-core
   dicom3tools
   # the DICOM node (server/dicom): configuration files; a real PACS for its
   # end-to-end tests (Orthanc, started by the tests, never as a service)

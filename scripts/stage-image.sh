@@ -7,6 +7,8 @@
 #   OUT_DIR/share/libdcmtk17/   DCMTK's data dictionaries: without them every
 #                  implicit-VR data set (what PACS send by default) is
 #                  unreadable and the DICOM listener aborts each association
+#   OUT_DIR/share/fonts/truetype/dejavu/DejaVuSans.ttf   the previews' legend
+#                  font (core/preview/preview.h)
 #
 #   bash scripts/stage-image.sh SERVER_BINARY CLIENT_BINARY OUT_DIR
 #
@@ -45,4 +47,6 @@ cp -L "$reflection" "$out/lib/"
 strip --strip-unneeded "$out/lib/"*
 cp /usr/share/libdcmtk17/dicom.dic /usr/share/libdcmtk17/private.dic \
   "$out/share/libdcmtk17/"
+mkdir -p "$out/share/fonts/truetype/dejavu"
+cp /usr/share/fonts/truetype/dejavu/DejaVuSans.ttf "$out/share/fonts/truetype/dejavu/"
 echo "stage-image: $(ls "$out/lib" | wc -l) libraries, $(du -sm "$out" | cut -f1) MB in $out"

@@ -230,7 +230,8 @@ id="$("$cli" submit --server "$server" "${job[@]}" --label deploy-test)"
 "$cli" fetch "$id" --out "$work/detached" --server "$server" >/dev/null
 say "phantom through the container (one call, then detached) in $((SECONDS - t)) s"
 "$cli" run "${job[@]}" --out "$work/local" --quiet
-for f in distance.nii.gz mask.nii.gz distance.nrrd mask.nrrd surface.stl surface.ply; do
+for f in distance.nii.gz mask.nii.gz distance.nrrd mask.nrrd surface.stl surface.ply \
+         previews/axial.png previews/coronal.png previews/sagittal.png previews/3d-front.png; do
   for d in daemon detached; do
     cmp -s "$work/local/$f" "$work/$d/$f" || { say "FAILED: $f differs between run and the container ($d)"; exit 1; }
   done

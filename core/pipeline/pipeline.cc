@@ -3,12 +3,14 @@
 #include <sys/resource.h>
 
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <functional>
 #include <limits>
+#include <optional>
 #include <system_error>
 #include <vector>
 
@@ -19,8 +21,10 @@
 #include "core/dicom/series_reader.h"
 #include "core/dicom_out/dicom_writer.h"
 #include "core/dicom_out/encapsulated_stl.h"
+#include "core/dicom_out/preview_series.h"
 #include "core/morph/intensity_morph.h"
 #include "core/morph/morph.h"
+#include "core/preview/preview.h"
 #include "core/sdf/signed_distance.h"
 #include "core/slab/slab_deconvolution.h"
 #include "core/surface/surface.h"
@@ -181,6 +185,90 @@ absl::StatusOr<Volume<float>> DeconvolveSlabsForPlan(
   return std::move(result.slices);
 }
 
+// The outline's colour in the previews of an interpolation.
+constexpr std::array<uint8_t, 3> kOutlineColour = {60, 230, 60};
+
+std::string FormatMm(double v) { return absl::StrFormat("%.4g", v); }
+
+// The previews of the job (JobSpec::preview_formats): the scene of the
+// refined field on the output grid over the grey values as read, with the
+// original slices' true positions marked.
+absl::StatusOr<PreviewSet> RenderJobPreviews(
+    const JobSpec& spec, const DicomSeries& source, const Volume<float>& image,
+    const std::vector<double>& positions, const Volume<float>& field,
+    const JobReport& report, const ComputeContext& context) {
+  const Grid& grid = field.grid;
+  INTERSLICE_ASSIGN_OR_RETURN(const std::optional<float> padding,
+                              SourcePixelPadding(source));
+  PreviewScene scene;
+  scene.grid = grid;
+  const CancellationToken* cancel = context.cancel;
+  scene.intensity = [&image, &positions, &grid, padding,
+                     cancel](const VoxelBox& box) {
+    ComputeContext one_thread;
+    one_thread.threads = 1;
+    one_thread.cancel = cancel;
+    return ResampleSourceSlicesInBox(image, positions, grid, box, padding,
+                                     one_thread);
+  };
+  if (absl::StatusOr<std::optional<SourceWindow>> window =
+          SourceDisplayWindow(source);
+      window.ok() && window->has_value()) {
+    scene.window = DisplayWindow{(*window)->center, (*window)->width};
+  }
+  scene.window_must_show.push_back(spec.lower_threshold);
+  if (spec.upper_threshold.has_value()) {
+    scene.window_must_show.push_back(*spec.upper_threshold);
+  }
+  scene.field = &field;
+  const std::string units = source.modality == "CT" ? " HU" : "";
+  const std::string object =
+      spec.upper_threshold.has_value()
+          ? absl::StrFormat("%g to %g%s", spec.lower_threshold,
+                            *spec.upper_threshold, units)
+          : absl::StrFormat(">= %g%s", spec.lower_threshold, units);
+  scene.objects = {
+      {0, kOutlineColour, &field, absl::StrCat("surface ", object)}};
+  const Vec3 normal = grid.Axis(2);
+  const double first = grid.origin[0] * normal[0] + grid.origin[1] * normal[1] +
+                       grid.origin[2] * normal[2];
+  for (double p : positions) {
+    scene.marked_slices.push_back((p - first) / grid.spacing[2]);
+  }
+  scene.marked_slices_name = "original slices";
+  scene.legend.push_back(absl::StrFormat(
+      "interslice: INTERPOLATED between %d original slices (not acquired)",
+      positions.size()));
+  std::string how = absl::StrCat(
+      "method ", std::string(SolverMethodName(report.solver.method)),
+      ", threshold ", object, ", spacing ", FormatMm(grid.spacing[0]), " x ",
+      FormatMm(grid.spacing[1]), " x ", FormatMm(grid.spacing[2]), " mm");
+  if (spec.slab_deconvolution) absl::StrAppend(&how, ", slab deconvolution");
+  scene.legend.push_back(how);
+  if (report.gantry_tilt_degrees != 0) {
+    scene.legend.push_back(absl::StrFormat(
+        "gantry tilt of %.3g degrees corrected", report.gantry_tilt_degrees));
+  }
+  return RenderPreviews(scene, PreviewOptions(), context);
+}
+
+// The previews as pictures for the DICOM writer.
+std::vector<RgbPicture> Pictures(const std::vector<PreviewImage>& images) {
+  std::vector<RgbPicture> pictures;
+  for (const PreviewImage& image : images) {
+    RgbPicture p;
+    p.name = image.name;
+    p.width = image.width;
+    p.height = image.height;
+    p.rgb = &image.rgb;
+    p.description = image.description;
+    p.patient_orientation = image.patient_orientation;
+    if (image.plane_axis == 2) p.output_slice = image.plane_index;
+    pictures.push_back(p);
+  }
+  return pictures;
+}
+
 }  // namespace
 
 absl::Status ValidateJobSpec(const JobSpec& spec) {
@@ -241,12 +329,19 @@ absl::Status ValidateJobSpec(const JobSpec& spec) {
   if (spec.max_output_voxels <= 0 || spec.max_input_voxels <= 0) {
     return absl::InvalidArgumentError("voxel limits must be positive");
   }
-  // The derived objects are numbered base + 1 ... base + 4, each a DICOM IS
+  // The derived objects are numbered base + 1 ... base + 6, each a DICOM IS
   // (signed 32-bit): refused now rather than after the whole job ran.
-  if (spec.series_number_base > std::numeric_limits<int>::max() - 4) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("series number base must be at most ",
-                     std::numeric_limits<int>::max() - 4));
+  if (spec.series_number_base >
+      std::numeric_limits<int>::max() - kPreviewSeriesNumberOffset) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "series number base must be at most ",
+        std::numeric_limits<int>::max() - kPreviewSeriesNumberOffset));
+  }
+  for (const std::string& f : spec.preview_formats) {
+    if (f != "png" && f != "dicom") {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "unknown preview format '", f, "' (choose from png, dicom)"));
+    }
   }
   // Likewise a malformed UID root.
   if (!spec.uid_root.empty()) {
@@ -271,6 +366,7 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
   const bool wants_distance_map = Contains(spec.output_series, "distance");
   const bool wants_intensity = Contains(spec.output_series, "intensity") ||
                                wants_seg || wants_distance_map;
+  const bool wants_previews = !spec.preview_formats.empty();
 
   // read
   Volume<float> image;
@@ -343,8 +439,9 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
       INTERSLICE_ASSIGN_OR_RETURN(
           slice_maps, ComputeSliceDistanceMaps(image, options, context));
     }
-    // Release the grey values early unless an intensity series needs them.
-    if (!wants_intensity) image = Volume<float>();
+    // Release the grey values early unless an intensity series or the
+    // previews need them.
+    if (!wants_intensity && !wants_previews) image = Volume<float>();
   }
 
   // stack
@@ -421,6 +518,24 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
   }
   INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
 
+  // preview: rendered now, written with the other outputs; a failure is a
+  // note, never the job's failure (JobSpec::preview_formats).
+  std::optional<PreviewSet> previews;
+  if (wants_previews) {
+    StageClock clock(report, context, "preview");
+    absl::StatusOr<PreviewSet> rendered = RenderJobPreviews(
+        spec, source, image, positions, field, report, context);
+    INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
+    if (rendered.ok()) {
+      report.preview_notes = rendered->notes;
+      previews = *std::move(rendered);
+    } else {
+      report.preview_notes.push_back(
+          absl::StrCat("previews skipped: ", rendered.status().message()));
+    }
+    if (!wants_intensity) image = Volume<float>();
+  }
+
   // write: every artifact is independent, so they are written in parallel
   // (gzip of the float volumes dominates this stage).
   {
@@ -486,6 +601,8 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
       std::filesystem::path path;
       std::function<absl::Status()> write;
       absl::Status status;
+      // A preview: its failure is a note in the report, not the job's.
+      bool optional = false;
     };
     std::vector<Task> tasks;
     for (const std::string& format : spec.volume_formats) {
@@ -544,6 +661,40 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
                              dicom_options, path.string());
                        }});
     }
+    std::vector<RgbPicture> pictures;
+    if (previews.has_value() && Contains(spec.preview_formats, "png")) {
+      const auto path = dir / "previews";
+      tasks.push_back(
+          {"previews",
+           path,
+           [&, path] {
+             return WritePreviewPngs(previews->images, path.string()).status();
+           },
+           {},
+           /*optional=*/true});
+    }
+    if (previews.has_value() && Contains(spec.preview_formats, "dicom")) {
+      pictures = Pictures(previews->images);
+      const auto path = dir / "previews-dicom";
+      tasks.push_back(
+          {"previews-dicom",
+           path,
+           [&, path]() -> absl::Status {
+             std::vector<std::string> names;
+             for (const RgbPicture& p : pictures) names.push_back(p.name);
+             // Derived from the intensity series when the job writes it.
+             const DerivedObjectIdentity* referenced =
+                 wants_intensity ? &objects.intensity : nullptr;
+             INTERSLICE_ASSIGN_OR_RETURN(
+                 const DerivedObjectIdentity identity,
+                 PlanPreviewSeries(source, names, dicom_options, referenced));
+             return WritePreviewSeries(source, field.grid, pictures, identity,
+                                       referenced, dicom_options, path.string())
+                 .status();
+           },
+           {},
+           /*optional=*/true});
+    }
     tbb::task_arena arena(context.threads > 0 ? context.threads
                                               : tbb::task_arena::automatic);
     arena.execute([&] {
@@ -551,6 +702,11 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
                         [&](size_t n) { tasks[n].status = tasks[n].write(); });
     });
     for (const Task& task : tasks) {
+      if (task.optional && !task.status.ok()) {
+        report.preview_notes.push_back(absl::StrCat(
+            "previews not written (", task.kind, "): ", task.status.message()));
+        continue;
+      }
       INTERSLICE_RETURN_IF_ERROR(task.status);
       report.artifacts.push_back(
           {task.kind, task.path.string(), PathSize(task.path)});
@@ -617,6 +773,9 @@ std::string JobReportToJson(const JobReport& report) {
   }
   j["mesh"] = {{"vertices", report.mesh_vertices},
                {"triangles", report.mesh_triangles}};
+  bool previews = !report.preview_notes.empty();
+  for (const StageTiming& s : report.stages) previews |= s.stage == "preview";
+  if (previews) j["previews"] = {{"notes", report.preview_notes}};
   ordered_json artifacts = ordered_json::array();
   for (const Artifact& a : report.artifacts) {
     artifacts.push_back(
@@ -709,6 +868,10 @@ absl::StatusOr<JobReport> JobReportFromJson(const std::string& text) {
     }
     report.mesh_vertices = j.at("mesh").at("vertices").get<int64_t>();
     report.mesh_triangles = j.at("mesh").at("triangles").get<int64_t>();
+    if (j.contains("previews")) {
+      report.preview_notes =
+          j.at("previews").at("notes").get<std::vector<std::string>>();
+    }
     for (const json& a : j.at("artifacts")) {
       report.artifacts.push_back({a.at("kind").get<std::string>(),
                                   a.at("path").get<std::string>(),

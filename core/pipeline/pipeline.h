@@ -106,9 +106,27 @@ struct JobSpec {
   // them); random_uids makes new ones on every run.
   bool random_uids = false;
   // Series numbers of the derived objects: intensity base + 1, distance map
-  // base + 2, SEG base + 3; <= 0 = 1000 x the source's SeriesNumber (9000
-  // when it has none).
+  // base + 2, SEG base + 3, Encapsulated STL base + 4, previews base + 6;
+  // <= 0 = 1000 x the source's SeriesNumber (9000 when it has none). At
+  // most INT_MAX - 6.
   int series_number_base = 0;
+  // Previews (core/preview/preview.h): the axial, coronal and sagittal
+  // planes of the output grid through the object with its outline, the
+  // original slices ticked, and a front view of the surface, each with a
+  // legend (method, threshold, spacing, "interpolated"), by format:
+  //   "png"   -> previews/axial.png, coronal.png, sagittal.png,
+  //              3d-front.png (artifact kind "previews", the folder);
+  //   "dicom" -> previews-dicom/IM00001.dcm ... (a Secondary Capture series
+  //              in the source's study, series number base + 6, derived from
+  //              the intensity series when one is written:
+  //              core/dicom_out/preview_series.h; kind "previews-dicom").
+  // Empty (default here; the job layer's default is "png") = none. They are
+  // rendered in stage "preview" after "mesh", from the grey values as read
+  // (ResampleSourceSlicesInBox on three planes) and the refined field. A
+  // preview that cannot be made or written never fails the job: the reason
+  // is in JobReport::preview_notes (and so is anything a person should know
+  // about them, e.g. an empty mask).
+  std::vector<std::string> preview_formats;
   // Multi-frame series holding several volumes: which one (as named in the
   // error listing them); empty = the only one.
   std::string multiframe_volume;
@@ -122,7 +140,7 @@ struct JobSpec {
 };
 
 struct StageTiming {
-  std::string stage;  // read, contour, stack, solve, mesh, write
+  std::string stage;  // read, contour, stack, solve, mesh, preview, write
   double seconds = 0;
 };
 
@@ -172,6 +190,9 @@ struct JobReport {
   double intensity_max_displacement_mm = 0;
   int64_t mesh_vertices = 0;
   int64_t mesh_triangles = 0;
+  // JobSpec::preview_formats only: one sentence each, no patient data (a
+  // preview skipped and why, an empty mask, ...).
+  std::vector<std::string> preview_notes;
   std::vector<Artifact> artifacts;
   int64_t peak_rss_bytes = 0;  // filled by callers that know it (the CLI)
 };
@@ -191,6 +212,7 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
 // "energy_units", "converged"}, "grid": {"size": [x,y,z], "spacing": [...],
 // "origin": [...], "direction": [...], "insertion_factor": n, "max_snap_mm":
 // mm}, "input": {..., "notes": [...]}, "mesh": {...},
+// "previews": {"notes": [...]} (with JobSpec::preview_formats only),
 // "artifacts": [...], "peak_rss_bytes": n}.
 std::string JobReportToJson(const JobReport& report);
 

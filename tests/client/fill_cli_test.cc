@@ -13,8 +13,10 @@
 #include <string>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
 #include "core/dicom/series_reader.h"
+#include "core/dicom_out/label_segmentation.h"
 #include "core/labels/segmentation_reader.h"
 #include "core/volume_io/volume_io.h"
 #include "gmock/gmock.h"
@@ -550,6 +552,81 @@ TEST_F(FillCliTest, SegOnAFinerGridReferencesADerivedIntensitySeries) {
   absl::StatusOr<SegmentationInput> back = ReadDicomSegmentation(seg, derived);
   ASSERT_TRUE(back.ok()) << back.status();
   EXPECT_EQ(CountDiffering(back->labels.data, filled->data), 0);
+}
+
+}  // namespace
+}  // namespace interslice
+
+namespace interslice {
+namespace {
+
+// Previews of a fill: each label outlined in its segment colour, the PNGs
+// and a valid Secondary Capture series in the reference's study; a fill of
+// one label previews too.
+TEST_F(FillCliTest, PreviewsOutlineEachLabelInItsColour) {
+  const std::string labels = (dir_ / "labels.nii.gz").string();
+  ASSERT_TRUE(WriteVolume(*truth_, labels).ok());
+  const fs::path out = dir_ / "out";
+  const fs::path report = dir_ / "report.json";
+  const CommandResult r =
+      RunCli("fill " + labels + " --reference " + kPhantom +
+             " --key-slices 0-27:4 --method linear --seg --previews png,dicom "
+             "--mesh none --volume none --threads 2 --out " +
+             out.string() + " --report " + report.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  for (const char* name :
+       {"axial.png", "coronal.png", "sagittal.png", "3d-front.png"}) {
+    EXPECT_TRUE(fs::exists(out / "previews" / name)) << name;
+  }
+  std::vector<std::string> dicom;
+  for (int n = 1; n <= 4; ++n) {
+    dicom.push_back(
+        (out / "previews-dicom" / absl::StrFormat("IM%05d.dcm", n)).string());
+  }
+  ::interslice::testing::ExpectValidIod(dicom);
+  std::ifstream in(report);
+  const nlohmann::json j = nlohmann::json::parse(in);
+  EXPECT_TRUE(j["stages"].contains("preview"));
+  EXPECT_TRUE(j["previews"]["notes"].empty()) << j["previews"];
+
+  auto seg = ::interslice::testing::LoadDicom((out / "seg.dcm").string());
+  auto axial = ::interslice::testing::LoadDicom(dicom[0]);
+  DcmDataset& ds = *axial->getDataset();
+  EXPECT_EQ(::interslice::testing::GetString(ds, DCM_StudyInstanceUID),
+            ::interslice::testing::GetString(*seg->getDataset(),
+                                             DCM_StudyInstanceUID));
+  EXPECT_THAT(::interslice::testing::GetString(ds, DCM_ImageComments),
+              HasSubstr("axial"));
+  // Both labels' colours are drawn (a 1.5 pixel line covers some pixels
+  // whole, which then hold the exact colour).
+  Uint16 rows = 0, columns = 0;
+  ds.findAndGetUint16(DCM_Rows, rows);
+  ds.findAndGetUint16(DCM_Columns, columns);
+  const Uint8* pixels = nullptr;
+  ASSERT_TRUE(ds.findAndGetUint8Array(DCM_PixelData, pixels).good());
+  for (int label : {1, 2}) {
+    const std::array<uint8_t, 3> rgb = SegmentRgb(DefaultLabelSegment(label));
+    int exact = 0;
+    for (size_t p = 0; p < static_cast<size_t>(rows) * columns; ++p) {
+      exact += pixels[3 * p] == rgb[0] && pixels[3 * p + 1] == rgb[1] &&
+               pixels[3 * p + 2] == rgb[2];
+    }
+    EXPECT_GT(exact, 50) << "label " << label;
+  }
+
+  // One label only (the soft tissue, as label 1): previews too, no note.
+  Volume<uint16_t> one = *truth_;
+  for (uint16_t& v : one.data) v = v == 2 ? 1 : 0;
+  const std::string one_path = (dir_ / "one.nii.gz").string();
+  ASSERT_TRUE(WriteVolume(one, one_path).ok());
+  const CommandResult single =
+      RunCli("fill " + one_path + " --reference " + kPhantom +
+             " --key-slices 0-27:4 --method linear --mesh none --volume none "
+             "--threads 2 --out " +
+             (dir_ / "one").string());
+  ASSERT_EQ(single.exit_code, 0) << single.output;
+  EXPECT_TRUE(fs::exists(dir_ / "one" / "previews" / "3d-front.png"));
+  EXPECT_THAT(single.output, ::testing::Not(HasSubstr("warning")));
 }
 
 }  // namespace

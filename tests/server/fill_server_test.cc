@@ -142,8 +142,10 @@ FillJobReport RunLocally(const std::string& segmentation,
 // label maps agree voxel for voxel (said separately for a clear failure).
 void ExpectSameResults(const std::string& expected, const std::string& actual) {
   int files = 0;
-  for (const auto& e : fs::directory_iterator(expected)) {
-    const std::string name = e.path().filename().string();
+  // The previews are a folder: its files too.
+  for (const auto& e : fs::recursive_directory_iterator(expected)) {
+    if (!e.is_regular_file()) continue;
+    const std::string name = fs::relative(e.path(), expected).string();
     ASSERT_TRUE(fs::exists(fs::path(actual) / name)) << name;
     EXPECT_TRUE(ReadFileOrEmpty(e.path().string()) ==
                 ReadFileOrEmpty((fs::path(actual) / name).string()))

@@ -283,7 +283,9 @@ TEST(ServerTest, DicomOutputsMatchRunInPixelsGeometryAndUids) {
                                           "--volume",
                                           "none",
                                           "--mesh",
-                                          "none"};
+                                          "none",
+                                          "--previews",
+                                          "png,dicom"};
   CommandResult local = Cli(
       Cat(Cat({"run"}, kSmallJob),
           Cat(dicom, {"--out", dir / "local", "--quiet", "--threads", "1"})));
@@ -334,11 +336,25 @@ TEST(ServerTest, DicomOutputsMatchRunInPixelsGeometryAndUids) {
            std::string(reinterpret_cast<const char*>(pixels),
                        pixels == nullptr ? 0 : count);
   };
-  for (const char* name : {"seg.dcm", "distance.dcm"}) {
+  // The previews as DICOM too (4 Secondary Capture images), and as PNG.
+  for (const char* name :
+       {"seg.dcm", "distance.dcm", "previews-dicom/IM00001.dcm",
+        "previews-dicom/IM00002.dcm", "previews-dicom/IM00003.dcm",
+        "previews-dicom/IM00004.dcm"}) {
     SCOPED_TRACE(name);
     const std::string local_content = content(fs::path(dir / "local") / name);
     EXPECT_GT(local_content.size(), 1000u);
     EXPECT_TRUE(local_content == content(fs::path(dir / "remote") / name));
+  }
+  for (const char* name :
+       {"axial.png", "coronal.png", "sagittal.png", "3d-front.png"}) {
+    const std::string png =
+        ReadFileOrEmpty((fs::path(dir / "local") / "previews" / name).string());
+    EXPECT_GT(png.size(), 1000u) << name;
+    EXPECT_TRUE(png ==
+                ReadFileOrEmpty(
+                    (fs::path(dir / "remote") / "previews" / name).string()))
+        << name;
   }
 }
 

@@ -50,10 +50,10 @@ const std::string kPhantom =
 // A small job on the phantom: a 96 x 96 region of all 28 slices.
 const char kJobYaml[] =
     "{threshold: 300, roi: [208, 208, 0, 304, 304, 28], mesh: [stl], "
-    "volume: [nii]}";
+    "volume: [nii], previews: [png, dicom]}";
 const std::vector<std::string> kJobArgs = {
-    "--threshold", "300", "--roi",    "208,208,0,304,304,28",
-    "--mesh",      "stl", "--volume", "nii"};
+    "--threshold", "300",      "--roi", "208,208,0,304,304,28", "--mesh",
+    "stl",         "--volume", "nii",   "--previews",           "png,dicom"};
 
 std::vector<std::string> PhantomFiles() {
   std::vector<std::string> files;
@@ -342,7 +342,11 @@ TEST(DicomNodeTest, PhantomSentWithStorescuMakesTheRulesJob) {
       Cat({kCli, "fetch", jobs[0], "--out", dir / "remote"}, server.Client()),
       120);
   ASSERT_EQ(fetch.exit_code, 0) << fetch.err;
-  ExpectSameFiles(dir / "local", dir / "remote", 2);
+  // Every file, the previews' included (4 PNG, 4 DICOM): the same bytes
+  // (DICOM files: the same size; their creation times differ).
+  ExpectSameFiles(dir / "local", dir / "remote", 12, {},
+                  DicomComparison::kSameSize);
+  EXPECT_TRUE(fs::exists(dir / "remote/previews-dicom/IM00004.dcm"));
   const std::string log = server.Log();
   EXPECT_THAT(log, HasSubstr("made by rule ct-head"));
   EXPECT_THAT(log, HasSubstr("STORESCU -> INTERSLICE released: 28 instance(s) "

@@ -62,7 +62,9 @@ const std::vector<std::string> kJob = {"--threshold",
                                        "--mesh",
                                        "stl",
                                        "--volume",
-                                       "none"};
+                                       "none",
+                                       "--previews",
+                                       "png,dicom"};
 
 CommandResult Cli(const std::vector<std::string>& args, double timeout = 300) {
   return RunCommand(Cat({kCli}, args), timeout);
@@ -214,7 +216,8 @@ TEST_F(OrthancEndToEndTest, ResultsLandInTheStudyAndEqualALocalRun) {
     }
   }
 
-  // One study (the source's), three series: intensity, SEG, STL.
+  // One study (the source's), four series: intensity, SEG, STL and the
+  // previews (Secondary Capture, modality OT, one image per view).
   auto studies = orthanc_->GetJson("/studies?expand");
   ASSERT_TRUE(studies.ok()) << studies.status();
   ASSERT_EQ(studies->size(), 1u);
@@ -227,9 +230,10 @@ TEST_F(OrthancEndToEndTest, ResultsLandInTheStudyAndEqualALocalRun) {
     by_modality[s["MainDicomTags"]["Modality"].get<std::string>()] =
         s["Instances"].size();
   }
-  EXPECT_EQ(by_modality.size(), 3u);
+  EXPECT_EQ(by_modality.size(), 4u);
   EXPECT_EQ(by_modality["SEG"], 1u);
   EXPECT_EQ(by_modality["M3D"], 1u);
+  EXPECT_EQ(by_modality["OT"], 4u);
   EXPECT_GT(by_modality["CT"], 28u);  // more slices than the source
 
   // Every instance equals the local run's instance of the same UID.
@@ -243,7 +247,15 @@ TEST_F(OrthancEndToEndTest, ResultsLandInTheStudyAndEqualALocalRun) {
     auto file = LoadBytes(*bytes);
     DcmDataset& ds = *file->getDataset();
     EXPECT_EQ(Tag(ds, DCM_StudyInstanceUID), study_);
-    EXPECT_EQ(Tag(ds, DCM_FrameOfReferenceUID), frame_);
+    // A preview is a picture, not in patient coordinates: no frame of
+    // reference; it is RGB with its legend burned in.
+    if (Tag(ds, DCM_Modality) == "OT") {
+      EXPECT_EQ(Tag(ds, DCM_FrameOfReferenceUID), "");
+      EXPECT_EQ(Tag(ds, DCM_PhotometricInterpretation), "RGB");
+      EXPECT_EQ(Tag(ds, DCM_BurnedInAnnotation), "YES");
+    } else {
+      EXPECT_EQ(Tag(ds, DCM_FrameOfReferenceUID), frame_);
+    }
     const std::string payload = Payload(ds);
     EXPECT_FALSE(payload.empty()) << uid;
     EXPECT_TRUE(payload == local.at(uid)) << "payload differs: " << uid;
@@ -358,7 +370,8 @@ TEST_F(OrthancEndToEndTest, SeriesFromOrthancComesBackProcessed) {
          "  - name: ct-bone\n"
          "    match: {modality: CT, called_ae: INTERSLICE}\n"
          "    job: {threshold: 300, method: direct, factor: 2, output_series: "
-         "[intensity], seg: true, mesh: [stl], volume: none}\n"
+         "[intensity], seg: true, mesh: [stl], volume: none, previews: "
+         "[dicom]}\n"
          "    send_to: [orthanc]\n";
   auto server =
       StartServer({"--dicom-listen", absl::StrCat("127.0.0.1:", dicom_port_),
@@ -395,8 +408,8 @@ TEST_F(OrthancEndToEndTest, SeriesFromOrthancComesBackProcessed) {
           .count();
   auto series = orthanc_->GetJson("/studies/" + study_id + "/series?expand");
   ASSERT_TRUE(series.ok());
-  // Source + intensity + SEG + STL.
-  EXPECT_EQ(series->size(), 4u) << series->dump();
+  // Source + intensity + SEG + STL + previews.
+  EXPECT_EQ(series->size(), 5u) << series->dump();
   std::map<std::string, size_t> by_description;
   for (const auto& one : *series) {
     by_description[one["MainDicomTags"].value("SeriesDescription", "")] =
@@ -405,6 +418,7 @@ TEST_F(OrthancEndToEndTest, SeriesFromOrthancComesBackProcessed) {
   EXPECT_EQ(by_description["interslice segmentation"], 1u);
   EXPECT_EQ(by_description["interslice surface mesh (STL)"], 1u);
   EXPECT_EQ(by_description["interslice resampled intensity"], 55u);
+  EXPECT_EQ(by_description["interslice previews"], 4u);
   std::printf(
       "Orthanc -> interslice (C-STORE of 28 instances): %.2f s; to the "
       "results in Orthanc: %.2f s (stable_seconds 1)\n",
