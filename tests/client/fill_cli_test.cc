@@ -573,7 +573,7 @@ TEST_F(FillCliTest, PreviewsOutlineEachLabelInItsColour) {
              " --key-slices 0-27:4 --method linear --seg --previews png,dicom "
              "--mesh none --volume none --threads 2 --out " +
              out.string() + " --report " + report.string());
-  ASSERT_EQ(r.exit_code, 0) << r.output;
+  ASSERT_EQ(r.exit_code, 0) << r.out;
   for (const char* name :
        {"axial.png", "coronal.png", "sagittal.png", "3d-front.png"}) {
     EXPECT_TRUE(fs::exists(out / "previews" / name)) << name;
@@ -624,9 +624,9 @@ TEST_F(FillCliTest, PreviewsOutlineEachLabelInItsColour) {
              " --key-slices 0-27:4 --method linear --mesh none --volume none "
              "--threads 2 --out " +
              (dir_ / "one").string());
-  ASSERT_EQ(single.exit_code, 0) << single.output;
+  ASSERT_EQ(single.exit_code, 0) << single.out;
   EXPECT_TRUE(fs::exists(dir_ / "one" / "previews" / "3d-front.png"));
-  EXPECT_THAT(single.output, ::testing::Not(HasSubstr("warning")));
+  EXPECT_THAT(single.out, ::testing::Not(HasSubstr("warning")));
 }
 
 }  // namespace
