@@ -24,9 +24,6 @@ packages=(
   yamllint
   # libFuzzer targets (scripts/fuzz.sh): clang with its sanitizer runtimes
   clang libclang-rt-14-dev
-  # nibabel reads fill's label maps back as a user's tools would
-  # (tests/core/labels/label_map_io_test: it fails under CI=true without it)
-  python3-nibabel
 )
 # Node.js for the viewer test (tests/viewer: a DICOM SEG loaded as OHIF v3
 # loads it): Debian's nodejs + npm unless node and npm are already there (a
@@ -52,7 +49,7 @@ viewer_npm() {
 if [ "${1:-}" = "--image" ]; then
   not_for_image=" libgtest-dev libgmock-dev libbenchmark-dev dicom3tools "
   not_for_image+=" git orthanc orthanc-dicomweb yamllint clang "
-  not_for_image+=" libclang-rt-14-dev nodejs npm python3-nibabel "
+  not_for_image+=" libclang-rt-14-dev nodejs npm "
   kept=()
   for p in "${packages[@]}"; do
     [[ $not_for_image == *" $p "* ]] || kept+=("$p")
@@ -60,9 +57,10 @@ if [ "${1:-}" = "--image" ]; then
   packages=("${kept[@]}")
   viewer_npm() { :; }
 fi
-# Extra packages for the evaluation report (scripts/eval.sh): plots.
+# Extra packages for the evaluation report (scripts/eval.sh): plots; nibabel
+# reads label maps back as a user's tools would (tests/core/volume_io).
 if [ "${1:-}" = "--eval" ]; then
-  packages+=(python3-matplotlib python3-numpy)
+  packages+=(python3-matplotlib python3-numpy python3-nibabel)
 fi
 
 missing=()

@@ -10,8 +10,8 @@
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
 #include "core/common/status_macros.h"
-#include "core/morph/demons_filter.h"
 #include "itkConnectedComponentImageFilter.h"
+#include "itkFastSymmetricForcesDemonsRegistrationFilter.h"
 #include "itkImage.h"
 #include "itkMultiResolutionPDEDeformableRegistration.h"
 #include "itkVector.h"
@@ -130,9 +130,8 @@ absl::StatusOr<std::vector<float>> RegisterSlices(const float* fixed,
   int levels = options.levels;
   while (levels > 1 && (std::min(mx, my) >> (levels - 1)) < 4) --levels;
 
-  // ITK's fast symmetric-forces demons, its field smoothing done by a
-  // direct loop with bit-identical results (demons_filter.h).
-  using Demons = morph_internal::DemonsFilter;
+  using Demons =
+      itk::FastSymmetricForcesDemonsRegistrationFilter<Image, Image, Field>;
   using MultiResolution =
       itk::MultiResolutionPDEDeformableRegistration<Image, Image, Field, float>;
   Field::Pointer field;
