@@ -22,6 +22,9 @@
 #  5. SIGTERM under load: 8 one-call jobs in flight, then SIGTERM: the server
 #     exits 0; each client either got its result (reference bytes) or a clear
 #     "shutting down" answer.
+#  6. the DICOM edge (bench/dicom_load_fault.sh, its own server and an
+#     Orthanc): hostile instances and PDUs, senders and the server killed at
+#     random points, floods while a real storescu sends, a full spool.
 # Every client here is one peer (127.0.0.1), so the per-peer upload limit is
 # raised to 64 (the server tests check that limit); stalled uploads are then
 # held off by the idle timeout (10 s here) and by uploads taking no queue
@@ -218,3 +221,7 @@ for j in $(seq 8); do
 done
 echo "server exit code $server_rc; clients: $done_ok finished with the reference bytes, $drained told 'shutting down', $other other"
 echo "server peak RSS: $((server_peak / 1024)) MiB"
+
+# 6. the DICOM edge
+echo "== 6. DICOM edge (bench/dicom_load_fault.sh)"
+bash "$root/bench/dicom_load_fault.sh" "$build"

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Whole-job benchmark (issue 12): the three jobs of the speed table on the
+# Whole-job benchmark: the three jobs of the speed table on the
 # shipped thick CT phantom to 0.45 mm, and a large synthetic thick series,
 # each run as its own `interslice run` process so that its peak memory
 # (/usr/bin/time's maximum resident set size) is its own. With --before, a

@@ -20,6 +20,8 @@ pkg_check_modules(FFTW3F REQUIRED IMPORTED_TARGET fftw3f)
 pkg_check_modules(FFTW3 REQUIRED IMPORTED_TARGET fftw3)
 # libdeflate: parallel block compression of .nii.gz / .nrrd (core/volume_io).
 pkg_check_modules(LIBDEFLATE REQUIRED IMPORTED_TARGET libdeflate)
+# Cairo with its FreeType font backend: the previews (core/preview).
+pkg_check_modules(CAIRO REQUIRED IMPORTED_TARGET cairo cairo-ft freetype2)
 
 # OpenVDB ships only FindOpenVDB.cmake in the multiarch cmake folder.
 if(CMAKE_LIBRARY_ARCHITECTURE)

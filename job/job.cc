@@ -91,10 +91,10 @@ std::vector<std::string> FillSummary(const FillJobReport& report,
         info.key_slices.size(), info.drawn_slices, info.output_voxels));
   }
   lines.push_back(absl::StrFormat(
-      "  time      read %.2fs fill %.2fs mesh %.2fs write %.2fs; gap voxels "
-      "closed %d",
+      "  time      read %.2fs fill %.2fs mesh %.2fs preview %.2fs write %.2fs; "
+      "gap voxels closed %d",
       report.read_seconds, report.fill_seconds, report.mesh_seconds,
-      report.write_seconds, report.gap_voxels_closed));
+      report.preview_seconds, report.write_seconds, report.gap_voxels_closed));
   return lines;
 }
 
@@ -105,7 +105,9 @@ class InterpolationJob final : public JobKind {
   absl::string_view name() const override { return "interpolate"; }
   int min_upload_files() const override { return 1; }
   bool writes_dicom() const override {
-    return !spec_.output_series.empty() || spec_.write_seg;
+    return !spec_.output_series.empty() || spec_.write_seg ||
+           std::find(spec_.preview_formats.begin(), spec_.preview_formats.end(),
+                     "dicom") != spec_.preview_formats.end();
   }
 
   absl::Status UseSpool(const std::string& upload_dir,
@@ -126,6 +128,7 @@ class InterpolationJob final : public JobKind {
     result.stages = report->stages;
     result.artifacts = report->artifacts;
     result.peak_rss_bytes = report->peak_rss_bytes;
+    result.warnings = report->preview_notes;
     result.summary = InterpolationSummary(*report, spec_.output_dir);
     if (relative_paths_) {
       for (Artifact& a : report->artifacts) a.path = FileName(a.path);
@@ -202,12 +205,17 @@ class FillJob final : public JobKind {
     JobResult result;
     result.stages = {{"read", report->read_seconds},
                      {"fill", report->fill_seconds},
-                     {"mesh", report->mesh_seconds},
-                     {"write", report->write_seconds}};
+                     {"mesh", report->mesh_seconds}};
+    if (!spec_.preview_formats.empty()) {
+      result.stages.push_back({"preview", report->preview_seconds});
+    }
+    result.stages.push_back({"write", report->write_seconds});
     for (const FillArtifact& a : report->artifacts) {
       result.artifacts.push_back({a.kind, a.path, a.size_bytes});
     }
     result.warnings = report->warnings;
+    result.warnings.insert(result.warnings.end(), report->preview_notes.begin(),
+                           report->preview_notes.end());
     result.summary = FillSummary(*report, spec_.output_dir);
     result.peak_rss_bytes = PeakRssBytes();
     if (relative_paths_) {
@@ -290,6 +298,7 @@ std::string MediaTypeForArtifact(const std::string& name) {
   if (absl::EndsWith(name, ".obj")) return "model/obj";
   if (absl::EndsWith(name, ".dcm")) return "application/dicom";
   if (absl::EndsWith(name, ".txt")) return "text/plain";
+  if (absl::EndsWith(name, ".png")) return "image/png";
   return "application/octet-stream";
 }
 

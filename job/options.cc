@@ -71,6 +71,12 @@ constexpr OptionDef<IO> kInterpolationOptions[] = {
      ValueKind::kText, &IO::dicom_compression,
      "Pixel data of the DICOM intensity series: none (native) or rle (RLE "
      "Lossless: the same values, fewer bytes)"},
+    {"intensity_method", "spec.derived_series.intensity_method",
+     ValueKind::kText, &IO::intensity_method,
+     "Grey values of the DICOM intensity series between source slices: morph "
+     "(carried along the motion between neighbouring slices, locally linear "
+     "where the registration is unreliable; docs/eval/intensity.md) or "
+     "linear (the two bracketing slices blended)"},
     {"uid_root", "spec.uid_root", ValueKind::kText, &IO::uid_root,
      "UID root for the new DICOM UIDs (default 2.25 + UUID)"},
     {"random_uids", "spec.random_uids", ValueKind::kFlag, &IO::random_uids,
@@ -79,8 +85,8 @@ constexpr OptionDef<IO> kInterpolationOptions[] = {
     {"series_number_base", "spec.derived_series.series_number",
      ValueKind::kInteger, &IO::series_number_base,
      "Series numbers of the DICOM outputs: intensity BASE+1, distance "
-     "BASE+2, SEG BASE+3, Encapsulated STL BASE+4 (default 1000 x the "
-     "source's SeriesNumber)"},
+     "BASE+2, SEG BASE+3, Encapsulated STL BASE+4, previews BASE+6 (default "
+     "1000 x the source's SeriesNumber)"},
     {"multiframe_volume", "spec.multiframe_volume", ValueKind::kText,
      &IO::multiframe_volume,
      "Which volume of a multi-frame series to read, as named in the error "
@@ -103,6 +109,12 @@ constexpr OptionDef<IO> kInterpolationOptions[] = {
     {"volume", "spec.outputs.volume_formats", ValueKind::kList, &IO::volume,
      "Volume formats: any of nii (.nii.gz), nrrd, nii-uncompressed (.nii: no "
      "compression time), or none"},
+    {"previews", "spec.previews.formats", ValueKind::kList, &IO::previews,
+     "Previews of what the job made (axial, coronal, sagittal planes with the "
+     "outline and the original slices marked, a 3D front view, each with a "
+     "legend): png (DIR/previews/*.png), dicom (a Secondary Capture series "
+     "DIR/previews-dicom/ in the source's study, sent with the other DICOM "
+     "results), both, or none"},
 };
 
 constexpr OptionDef<FO> kFillOptions[] = {
@@ -152,6 +164,10 @@ constexpr OptionDef<FO> kFillOptions[] = {
     {"rtstruct", "spec.fill.rtstruct", ValueKind::kFlag, &FO::rtstruct,
      "Write the filled labels as an RTSTRUCT of closed planar contours "
      "(DIR/rtstruct.dcm; default: on for RTSTRUCT input)"},
+    {"intensity_method", "spec.fill.intensity_method", ValueKind::kText,
+     &FO::intensity_method,
+     "Grey values of the intensity series a finer grid (--factor, --spacing) "
+     "writes for the DICOM outputs to lie on: morph or linear (as run)"},
     {"label_names", "spec.fill.label_names_file", ValueKind::kText,
      &FO::label_names,
      "Names, colours and codes of a label map's labels for seg.dcm and "
@@ -165,6 +181,12 @@ constexpr OptionDef<FO> kFillOptions[] = {
     {"random_uids", "spec.random_uids", ValueKind::kFlag, &FO::random_uids,
      "Fresh UIDs on every run (default: derived from the input and the "
      "parameters, so a rerun replaces its objects)"},
+    {"previews", "spec.previews.formats", ValueKind::kList, &FO::previews,
+     "Previews of the fill (axial, coronal, sagittal planes with each filled "
+     "label outlined in its colour and the key slices marked, a 3D front "
+     "view, each with a legend): png (DIR/previews/*.png), dicom (a "
+     "Secondary Capture series DIR/previews-dicom/ in the reference's "
+     "study), both, or none"},
 };
 
 template <typename Options>
@@ -348,6 +370,15 @@ absl::Status CheckBand(const std::optional<double>& band) {
   return absl::OkStatus();
 }
 
+absl::Status CheckIntensityMethod(const std::string& method) {
+  if (method != "morph" && method != "linear") {
+    return OptionError("intensity_method",
+                       absl::StrCat("unknown value '", method,
+                                    "' (choose from morph, linear)"));
+  }
+  return absl::OkStatus();
+}
+
 absl::Status CheckAdaptivity(double adaptivity) {
   if (!(adaptivity >= 0 && adaptivity <= 1)) {
     return OptionError("adaptivity", "must be in [0, 1]");
@@ -478,6 +509,10 @@ absl::StatusOr<JobSpec> BuildJobSpec(const InterpolationOptions& o) {
                                     "' (choose from none, rle)"));
   }
   spec.dicom_compression = o.dicom_compression;
+  if (absl::Status s = CheckIntensityMethod(o.intensity_method); !s.ok()) {
+    return s;
+  }
+  spec.intensity_method = o.intensity_method;
   spec.write_seg = o.seg;
   spec.uid_root = o.uid_root;
   spec.random_uids = o.random_uids;
@@ -503,6 +538,10 @@ absl::StatusOr<JobSpec> BuildJobSpec(const InterpolationOptions& o) {
       ParseNames(o.volume, {"nii", "nrrd", "nii-uncompressed"}, "volume");
   if (!volume.ok()) return volume.status();
   spec.volume_formats = *volume;
+  absl::StatusOr<std::vector<std::string>> previews =
+      ParseNames(o.previews, {"png", "dicom"}, "previews");
+  if (!previews.ok()) return previews.status();
+  spec.preview_formats = *previews;
   if (absl::Status s = ValidateJobSpec(spec); !s.ok()) return s;
   return spec;
 }
@@ -567,8 +606,16 @@ absl::StatusOr<FillJobSpec> BuildFillJobSpec(const FillJobOptions& o) {
       ParseNames(o.volume, {"nii", "nrrd"}, "volume");
   if (!volume.ok()) return volume.status();
   spec.volume_formats = *volume;
+  absl::StatusOr<std::vector<std::string>> previews =
+      ParseNames(o.previews, {"png", "dicom"}, "previews");
+  if (!previews.ok()) return previews.status();
+  spec.preview_formats = *previews;
   spec.write_seg = o.seg;
   spec.write_rtstruct = o.rtstruct;
+  if (absl::Status s = CheckIntensityMethod(o.intensity_method); !s.ok()) {
+    return s;
+  }
+  spec.intensity_method = o.intensity_method;
   spec.uid_root = o.uid_root;
   spec.random_uids = o.random_uids;
   if (!o.label_names.empty()) {

@@ -77,6 +77,7 @@ struct InterpolationOptions {
   std::string output_series;  // "mask,distance,intensity"
   bool seg = false;
   std::string dicom_compression = "none";
+  std::string intensity_method = "morph";
   std::string uid_root;
   bool random_uids = false;
   std::optional<int64_t> series_number_base;
@@ -85,6 +86,11 @@ struct InterpolationOptions {
   double adaptivity = 0;
   std::string mesh = "stl";
   std::string volume = "nii";
+  // Previews (core/pipeline JobSpec::preview_formats): PNG by default, on
+  // every door: four small pictures (~0.4 MB) that show a person what the
+  // job made; DICOM into the study only when asked, because it adds a
+  // series to the patient's record.
+  std::string previews = "png";
 };
 
 // Raw values of a fill job (`interslice fill`; a rule's `fill:`; the wire
@@ -111,8 +117,10 @@ struct FillJobOptions {
   std::string volume = "nii";
   bool seg = false;
   std::optional<bool> rtstruct;  // unset: on for RTSTRUCT input
+  std::string intensity_method = "morph";
   std::string uid_root;
   bool random_uids = false;
+  std::string previews = "png";  // as InterpolationOptions::previews
   // A label map's names, colours and codes (a .csv/.txt colour table or
   // .json sidecar): a path on the command line, the uploaded file's name on
   // the wire. Not a rules-file key: DICOM input names its own segments.
@@ -171,8 +179,9 @@ absl::StatusOr<FillJobSpec> BuildFillJobSpec(const FillJobOptions& options);
 absl::StatusOr<std::vector<int64_t>> ParseSliceList(absl::string_view text);
 
 // The largest series number base: the derived objects are numbered base + 1
-// ... base + 4, which must stay a DICOM IS (a signed 32-bit integer).
-inline constexpr int64_t kMaxSeriesNumberBase = 2147483647 - 4;
+// ... base + 6 (the previews), which must stay a DICOM IS (a signed 32-bit
+// integer).
+inline constexpr int64_t kMaxSeriesNumberBase = 2147483647 - 6;
 
 }  // namespace interslice::job
 

@@ -27,11 +27,39 @@ constexpr std::pair<absl::string_view, v1::VolumeFormat> kVolumeFormats[] = {
     {"nrrd", v1::VOLUME_FORMAT_NRRD},
     {"nii-uncompressed", v1::VOLUME_FORMAT_NIFTI_UNCOMPRESSED},
 };
+constexpr std::pair<absl::string_view, v1::IntensityInterpolation>
+    kIntensityMethods[] = {
+        {"linear", v1::INTENSITY_INTERPOLATION_LINEAR},
+        {"morph", v1::INTENSITY_INTERPOLATION_MORPH},
+};
 constexpr std::pair<absl::string_view, v1::MeshFormat> kMeshFormats[] = {
     {"stl", v1::MESH_FORMAT_STL},
     {"ply", v1::MESH_FORMAT_PLY},
     {"obj", v1::MESH_FORMAT_OBJ},
 };
+constexpr std::pair<absl::string_view, v1::PreviewFormat> kPreviewFormats[] = {
+    {"png", v1::PREVIEW_FORMAT_PNG},
+    {"dicom", v1::PREVIEW_FORMAT_DICOM},
+};
+
+v1::IntensityInterpolation WireIntensityMethod(const std::string& name) {
+  for (const auto& [n, wire] : kIntensityMethods) {
+    if (n == name) return wire;
+  }
+  return v1::INTENSITY_INTERPOLATION_UNSPECIFIED;
+}
+
+// The option name of a wire intensity method; UNSPECIFIED gives the
+// options' default.
+absl::StatusOr<std::string> IntensityMethodName(int wire,
+                                                const std::string& unset) {
+  if (wire == v1::INTENSITY_INTERPOLATION_UNSPECIFIED) return unset;
+  for (const auto& [n, w] : kIntensityMethods) {
+    if (w == wire) return std::string(n);
+  }
+  return OptionError("intensity_method",
+                     absl::StrCat("unknown intensity method ", wire));
+}
 
 v1::SolverMethod WireMethod(SolverMethod m) {
   for (const auto& [core, wire] : kMethods) {
@@ -111,6 +139,13 @@ absl::Status CommonFromWire(const v1::JobSpec& p, Options& o) {
   o.adaptivity = p.mesh_adaptivity();
   o.uid_root = p.uid_root();
   o.random_uids = p.random_uids();
+  // Absent: the options' default (PNG); present and empty: none.
+  if (p.has_previews()) {
+    absl::StatusOr<std::string> previews =
+        FormatNames(p.previews().formats(), kPreviewFormats, "previews");
+    if (!previews.ok()) return previews.status();
+    o.previews = *previews;
+  }
   return absl::OkStatus();
 }
 
@@ -136,6 +171,9 @@ void CommonToWire(const Spec& spec, const SolverOptions& solver,
   AddFormats(spec.volume_formats, kVolumeFormats,
              outputs->mutable_volume_formats());
   AddFormats(spec.mesh_formats, kMeshFormats, outputs->mutable_mesh_formats());
+  // Always present, so that "none" travels as none.
+  AddFormats(spec.preview_formats, kPreviewFormats,
+             p.mutable_previews()->mutable_formats());
 }
 
 absl::Status NotForFill(absl::string_view field) {
@@ -172,6 +210,8 @@ v1::JobSpec ToWire(const JobSpec& spec) {
     p.mutable_derived_series()->set_pixel_compression(
         v1::DICOM_PIXEL_COMPRESSION_RLE_LOSSLESS);
   }
+  p.mutable_derived_series()->set_intensity_method(
+      WireIntensityMethod(spec.intensity_method));
   p.mutable_segmentation()->set_enabled(spec.write_seg);
   for (const std::string& content : spec.output_series) {
     p.mutable_derived_series()->add_contents(content);
@@ -194,6 +234,7 @@ v1::JobSpec ToWire(const FillJobSpec& spec,
   }
   fill->set_seg(spec.write_seg);
   if (spec.write_rtstruct.has_value()) fill->set_rtstruct(*spec.write_rtstruct);
+  fill->set_intensity_method(WireIntensityMethod(spec.intensity_method));
   // Unset method = the fill's default (auto, per label).
   if (spec.fill.method == FillMethod::kSolver) {
     p.set_method(WireMethod(spec.fill.solver.method));
@@ -243,6 +284,10 @@ absl::StatusOr<InterpolationOptions> InterpolationOptionsFromWire(
           "dicom_compression",
           absl::StrCat("unknown compression ", d.pixel_compression()));
   }
+  absl::StatusOr<std::string> intensity =
+      IntensityMethodName(d.intensity_method(), o.intensity_method);
+  if (!intensity.ok()) return intensity.status();
+  o.intensity_method = *intensity;
   o.seg = p.segmentation().enabled();
   o.multiframe_volume = p.multiframe_volume();
   if (p.has_outputs()) {
@@ -302,6 +347,10 @@ absl::StatusOr<FillJobOptions> FillOptionsFromWire(const v1::JobSpec& p) {
   o.method = *method;
   o.seg = f.seg();
   if (f.has_rtstruct()) o.rtstruct = f.rtstruct();
+  absl::StatusOr<std::string> intensity =
+      IntensityMethodName(f.intensity_method(), o.intensity_method);
+  if (!intensity.ok()) return intensity.status();
+  o.intensity_method = *intensity;
   if (p.has_outputs()) {
     absl::StatusOr<std::string> volume =
         FormatNames(p.outputs().volume_formats(), kVolumeFormats, "volume");

@@ -5,7 +5,7 @@
 #
 #   scripts/bench.sh [--out DIR] [--before BIN] [--large] [--whole-only]
 #
-# The whole-job table (bench/whole_jobs.sh: the three jobs of issue 12, each
+# The whole-job table (bench/whole_jobs.sh: the three jobs of the speed table, each
 # in its own process for its peak memory) goes to DIR/whole-job.md; with
 # --before BIN (an older `interslice`), both binaries run interleaved in the
 # same run. --large adds the synthetic 100 x 5 mm series to 0.7 mm;
@@ -39,7 +39,7 @@ whole_args=(--after ./build/client/interslice --repeat 3 --out "$out/whole-job-t
 load_before="$(cut -d' ' -f1-3 /proc/loadavg)"
 bash "$repo/bench/whole_jobs.sh" "${whole_args[@]}"
 {
-  echo "# Whole jobs (issue 12)"
+  echo "# Whole jobs"
   echo
   echo "- date: $(date -u +%Y-%m-%dT%H:%MZ), commit: $(git rev-parse --short HEAD 2>/dev/null || echo unknown)"
   echo "- machine: $(nproc) cores, $(awk '/MemTotal/ {printf "%.1f GiB", $2/1048576}' /proc/meminfo);" \

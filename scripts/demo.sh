@@ -31,9 +31,11 @@ port="$(head -n1 "$work/ports")"
   --out "$out-daemon" --report "$out-daemon/report.json" --deadline 900
 kill -TERM "$server"
 wait "$server" || true
-for f in distance.nii.gz mask.nii.gz distance.nrrd mask.nrrd surface.stl surface.ply; do
+for f in distance.nii.gz mask.nii.gz distance.nrrd mask.nrrd surface.stl surface.ply \
+         previews/axial.png previews/coronal.png previews/sagittal.png previews/3d-front.png; do
   cmp -s "$out/$f" "$out-daemon/$f" || { echo "demo: $f differs between run and daemon" >&2; exit 1; }
 done
 echo
 echo "Outputs are in $out (in-process) and $out-daemon (through the daemon; identical files)."
-echo "Open surface.stl in any mesh viewer, distance.nii.gz / mask.nii.gz in 3D Slicer."
+echo "Open surface.stl in any mesh viewer, distance.nii.gz / mask.nii.gz in 3D Slicer;"
+echo "previews/*.png show the outline, the original slices and the surface at a glance."

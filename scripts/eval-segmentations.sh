@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Drop-k on multi-label segmentations (issue 13): keep every k-th slice of a
+# Drop-k on multi-label segmentations: keep every k-th slice of a
 # fully drawn label map, fill the rest with nearest-slice copy, linear
 # stacking, the paper's refinement (cg, direct) and the default method auto
 # (per-label choice on held-out key slices), and score every label on the

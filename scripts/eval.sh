@@ -69,9 +69,13 @@ if [ "$run" = 1 ]; then
   fi
   ninja -C "$build" -j2 interslice_eval
   rm -rf "$out/raw" "$out"/*.png
-  args=(--thin "$series" --threshold "$threshold" --out "$out" --threads "$threads")
+  # The series as paths relative to the repository (results.json and the
+  # report name no folder of one machine); interslice_eval runs from it.
+  cd "$repo"
+  args=(--thin "$(realpath --relative-to="$repo" "$series")" --threshold "$threshold"
+        --out "$out" --threads "$threads")
   if [ -n "$thick" ]; then
-    args+=(--thick "$thick")
+    args+=(--thick "$(realpath --relative-to="$repo" "$thick")")
   else
     args+=(--experiments dropk,artificial,convergence)
   fi

@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
-# Builds the libFuzzer targets (tests/fuzz) with clang, ASan and UBSan in
-# build-fuzz/, makes their seed corpora and runs each one.
+# Runs each libFuzzer target (tests/fuzz) from the instrumented build
+# (build-instrumented/: clang, ASan, UBSan, libFuzzer coverage;
+# scripts/build-instrumented.sh builds it, the same folder as the sanitized
+# test suite), after making its seed corpus.
 #
 #   bash scripts/fuzz.sh [SECONDS_PER_TARGET]    (default 30)
 #
@@ -9,13 +11,13 @@
 # and libFuzzer come from scripts/install-deps.sh. Exits non-zero when a
 # target crashes, leaks, times out (-timeout=10 s per input) or exceeds
 # -rss_limit_mb=2048; the input that did it is kept in
-# build-fuzz/fuzz/<target>/crashes/ (reproduce: build-fuzz/tests/fuzz/<target>
-# <file>). What each target found stays in build-fuzz/fuzz/<target>/corpus/
-# and seeds the next run.
+# build-instrumented/fuzz/<target>/crashes/ (reproduce:
+# build-instrumented/tests/fuzz/<target> <file>). What each target found
+# stays in build-instrumented/fuzz/<target>/corpus/ and seeds the next run.
 #
 # Environment: INTERSLICE_FUZZ_JOBS (compile jobs, default nproc),
 # INTERSLICE_FUZZ_TARGETS (default "dicom_ingest_fuzzer job_spec_fuzzer
-# upload_stream_fuzzer"),
+# upload_stream_fuzzer dicom_listener_fuzzer"),
 # INTERSLICE_FUZZ_ARGS (more libFuzzer flags for every target, e.g.
 # "-max_len=65536": about twice the executions per second for
 # dicom_ingest_fuzzer, at the price of truncating the 512 x 512 seeds).
@@ -29,28 +31,14 @@ if ! [[ "$seconds" =~ ^[0-9]+$ ]] || [ "$seconds" -lt 1 ]; then
   exit 2
 fi
 jobs="${INTERSLICE_FUZZ_JOBS:-$(nproc)}"
-targets=(${INTERSLICE_FUZZ_TARGETS:-dicom_ingest_fuzzer job_spec_fuzzer upload_stream_fuzzer})
-build="$root/build-fuzz"
+targets=(${INTERSLICE_FUZZ_TARGETS:-dicom_ingest_fuzzer job_spec_fuzzer upload_stream_fuzzer dicom_listener_fuzzer})
+build="${INTERSLICE_INSTRUMENTED_BUILD_DIR:-$root/build-instrumented}"
 work="$build/fuzz"
-
-# clang with the libFuzzer runtime (Debian: clang and libclang-rt-14-dev).
 probe="$(mktemp -d)"
 trap 'rm -rf "$probe"' EXIT
-printf 'extern "C" int LLVMFuzzerTestOneInput(const unsigned char*, unsigned long) { return 0; }\n' \
-  >"$probe/probe.cc"
-if ! command -v clang++ >/dev/null ||
-   ! clang++ -fsanitize=fuzzer,address,undefined "$probe/probe.cc" -o "$probe/probe" 2>"$probe/err"; then
-  cat "$probe/err" >&2 || true
-  echo "fuzz: clang++ cannot link -fsanitize=fuzzer; install the Debian packages clang and" \
-       "libclang-rt-14-dev (scripts/install-deps.sh)" >&2
-  exit 1
-fi
 
 start=$(date +%s)
-CC=clang CXX=clang++ cmake -S . -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
-  -DINTERSLICE_BUILD_FUZZERS=ON -DINTERSLICE_BUILD_TESTS=OFF \
-  -DINTERSLICE_BUILD_BENCHMARKS=OFF -DINTERSLICE_BUILD_TOOLS=OFF >/dev/null
-cmake --build "$build" -j"$jobs" --target "${targets[@]}"
+JOBS="$jobs" bash scripts/build-instrumented.sh "${targets[@]}"
 echo "fuzz: built in $(($(date +%s) - start)) s"
 
 # ---- Seed corpora (made afresh each run; nothing of it is committed) ------
@@ -140,14 +128,16 @@ for target in "${targets[@]}"; do
     dicom_ingest_fuzzer) seeds_dicom "$dir/seeds" ;;
     job_spec_fuzzer) seeds_job_spec "$dir/seeds" ;;
     upload_stream_fuzzer) seeds_upload_stream "$dir/seeds" ;;
+    dicom_listener_fuzzer) python3 tests/fuzz/dicom_listener_seeds.py "$dir/seeds" ;;
   esac
   log="$dir/last-run.log"
   echo "fuzz: $target for $seconds s (log: ${log#$root/})"
   set +e
-  # The test suite's LeakSanitizer suppressions (tools/sanitizers/lsan.supp:
-  # GDCM's JPEG 2000 codec leaks libopenjp2 objects on undecodable frames).
+  # The test suite's suppressions (tools/sanitizers/: GDCM's JPEG 2000
+  # codec leaks libopenjp2 objects on undecodable frames; ITK's scanline
+  # filters offset a null pointer).
   LSAN_OPTIONS="suppressions=$root/tools/sanitizers/lsan.supp:print_suppressions=0${LSAN_OPTIONS:+:$LSAN_OPTIONS}" \
-  UBSAN_OPTIONS="print_stacktrace=1:halt_on_error=1${UBSAN_OPTIONS:+:$UBSAN_OPTIONS}" \
+  UBSAN_OPTIONS="print_stacktrace=1:halt_on_error=1:suppressions=$root/tools/sanitizers/ubsan.supp${UBSAN_OPTIONS:+:$UBSAN_OPTIONS}" \
     "$build/tests/fuzz/$target" -max_total_time="$seconds" -rss_limit_mb=2048 -timeout=10 \
       -print_final_stats=1 -artifact_prefix="$dir/crashes/" ${INTERSLICE_FUZZ_ARGS:-} \
       "$dir/corpus" "$dir/seeds" \

@@ -14,6 +14,9 @@ packages=(
   libopenvdb-dev libboost-iostreams-dev
   libcli11-dev prometheus-cpp-dev libabsl-dev nlohmann-json3-dev
   zlib1g-dev libdeflate-dev libgdcm-dev libssl-dev
+  # previews (core/preview): Cairo draws the 2D views and writes PNG; the
+  # legend's font is DejaVu Sans, loaded from its file (no fontconfig lookup)
+  libcairo2-dev fonts-dejavu-core
   dicom3tools
   # the DICOM node (server/dicom): configuration files; a real PACS for its
   # end-to-end tests (Orthanc, started by the tests, never as a service)
@@ -22,7 +25,8 @@ packages=(
   libcurl4-openssl-dev
   # deploy/ manifests are linted in CI
   yamllint
-  # libFuzzer targets (scripts/fuzz.sh): clang with its sanitizer runtimes
+  # the instrumented build (scripts/build-instrumented.sh: the sanitized suite
+  # and the libFuzzer targets): clang with its sanitizer and libFuzzer runtimes
   clang libclang-rt-14-dev
 )
 # Node.js for the viewer test (tests/viewer: a DICOM SEG loaded as OHIF v3

@@ -1012,9 +1012,13 @@ absl::Status JobManager::Publish(const std::shared_ptr<Job>& job,
 }
 
 void JobManager::FailJob(const std::shared_ptr<Job>& job,
-                         const absl::Status& error, int64_t now,
+                         const absl::Status& cause, int64_t now,
                          int64_t expires) {
   const std::string& id = job->id();
+  // A write that failed for want of space: RESOURCE_EXHAUSTED "disk full"
+  // rather than INTERNAL with a server path (asked before the outputs go).
+  const absl::Status error =
+      DiskFullAsResourceExhausted(cause, spool_->FileSystemFull());
   spool_->RemoveOutputs(id);
   const bool cancelled = error.code() == absl::StatusCode::kCancelled;
   const std::string message = RedactPhi(error.message());

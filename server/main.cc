@@ -126,8 +126,10 @@ int main(int argc, char** argv) {
                  "Write the bound gRPC and metrics ports (and the DICOM port "
                  "with --dicom-listen) here after start-up, one a line");
   app.add_option("--dicom-listen", o.dicom_listen,
-                 "Receive series as a DICOM Storage SCP on HOST:PORT (port 0 "
-                 "picks one); see docs/dicom-node.md");
+                 "Receive series as a DICOM Storage SCP on HOST:PORT, exactly "
+                 "that address (numeric IPv4 or [IPv6]; * or 0.0.0.0 for every "
+                 "IPv4 interface, [::] for every interface; port 0 picks "
+                 "one); see docs/dicom-node.md");
   app.add_option("--dicom-ae", o.dicom_ae_titles,
                  "AE title(s) the DICOM listener answers to (repeatable; "
                  "default INTERSLICE); rules bind to them with "
@@ -142,12 +144,36 @@ int main(int argc, char** argv) {
                  "Simultaneous DICOM associations")
       ->check(CLI::Range(1, 1000))
       ->capture_default_str();
+  app.add_option("--dicom-max-associations-per-source",
+                 o.dicom_max_associations_per_source,
+                 "Simultaneous DICOM associations from one address (0 = half "
+                 "of --dicom-max-associations)")
+      ->check(CLI::Range(0, 1000))
+      ->capture_default_str();
+  app.add_option("--dicom-max-pending", o.dicom_max_pending,
+                 "Connections waiting for their association request; beyond, "
+                 "the oldest waiting one is closed")
+      ->check(CLI::Range(1, 100000))
+      ->capture_default_str();
+  app.add_option("--dicom-max-pending-per-source",
+                 o.dicom_max_pending_per_source,
+                 "Connections from one address waiting for their association "
+                 "request; beyond, its oldest waiting one is closed")
+      ->check(CLI::Range(1, 100000))
+      ->capture_default_str();
   app.add_option("--dicom-max-pdu", o.dicom_max_pdu,
                  "Largest PDU the listener receives, bytes")
       ->check(CLI::Range(4096, 131072))
       ->capture_default_str();
   app.add_option("--dicom-acse-timeout", o.dicom_acse_timeout_seconds,
-                 "Seconds a peer may take to open or release an association")
+                 "Seconds from a connection until its association request has "
+                 "arrived whole (and for a release)")
+      ->check(CLI::Range(0.1, 3600.0))
+      ->capture_default_str();
+  app.add_option("--dicom-pdu-timeout", o.dicom_pdu_timeout_seconds,
+                 "Seconds a PDU may take to arrive whole from its first byte "
+                 "(slower senders are cut off)")
+      ->check(CLI::Range(0.1, 3600.0))
       ->capture_default_str();
   app.add_option("--dicom-dimse-timeout", o.dicom_dimse_timeout_seconds,
                  "Seconds a peer may stay silent within an association")

@@ -65,9 +65,22 @@ Metrics::Metrics() : registry_(std::make_shared<prometheus::Registry>()) {
                 .Register(*registry_);
   for (const char* event :
        {"associations", "associations_rejected", "instances_received",
-        "instances_refused", "series_completed", "jobs_created"}) {
+        "instances_refused", "series_completed", "jobs_created",
+        "series_incomplete", "series_incomplete_dropped",
+        "presentation_contexts_refused"}) {
     dicom_->Add({{"event", event}});
   }
+  dicom_refused_ =
+      &prometheus::BuildCounter()
+           .Name("interslice_dicom_connections_refused_total")
+           .Help(
+               "Connections to the DICOM listener refused or cut, by reason "
+               "(before or during an association)")
+           .Register(*registry_);
+}
+
+void Metrics::DicomConnectionRefused(const std::string& reason) {
+  dicom_refused_->Add({{"reason", reason}}).Increment();
 }
 
 void Metrics::DicomEvent(const std::string& event, double n) {

@@ -39,8 +39,16 @@ class Metrics {
   void DicomInstancesFailed(const std::string& peer, double n);
   // The DICOM listener (interslice_dicom_events_total{event=...}):
   // "associations", "associations_rejected", "instances_received",
-  // "instances_refused", "series_completed", "jobs_created".
+  // "instances_refused", "series_completed", "jobs_created",
+  // "series_incomplete" (a series became incomplete: a broken transfer),
+  // "series_incomplete_dropped" (an incomplete series waited in vain),
+  // "presentation_contexts_refused" (contexts of accepted associations
+  // refused in negotiation, e.g. a getscu's C-GET).
   void DicomEvent(const std::string& event, double n = 1);
+  // A connection to the DICOM listener refused or cut, by reason
+  // (interslice_dicom_connections_refused_total{reason=...}; the reasons
+  // are listed in server/dicom/connection_gate.h).
+  void DicomConnectionRefused(const std::string& reason);
 
  private:
   std::shared_ptr<prometheus::Registry> registry_;
@@ -54,6 +62,7 @@ class Metrics {
   prometheus::Counter* bytes_out_;
   prometheus::Family<prometheus::Counter>* dicom_sent_;
   prometheus::Family<prometheus::Counter>* dicom_send_failed_;
+  prometheus::Family<prometheus::Counter>* dicom_refused_;
   int port_ = 0;
 };
 

@@ -229,14 +229,7 @@ absl::StatusOr<std::unique_ptr<dicom::StorageScp>> StartDicomListener(
         absl::StrCat("--dicom-listen: expected HOST:PORT, got '",
                      LogSafe(options.dicom_listen), "'"));
   }
-  const std::string host = options.dicom_listen.substr(0, colon);
-  if (!host.empty() && host != "0.0.0.0" && host != "[::]" && host != "*") {
-    // DCMTK 3.6.7's SCP pool binds every interface.
-    spdlog::warn(
-        "dicom: --dicom-listen host {} is not honoured: DCMTK listens "
-        "on every interface; restrict access with a firewall",
-        LogSafe(host));
-  }
+  o.host = options.dicom_listen.substr(0, colon);
   o.port = port;
   o.ae_titles = options.dicom_ae_titles;
   if (o.ae_titles.empty()) o.ae_titles = {"INTERSLICE"};
@@ -250,6 +243,10 @@ absl::StatusOr<std::unique_ptr<dicom::StorageScp>> StartDicomListener(
     o.peers = *std::move(peers);
   }
   o.max_associations = options.dicom_max_associations;
+  o.max_associations_per_source = options.dicom_max_associations_per_source;
+  o.max_pending = options.dicom_max_pending;
+  o.max_pending_per_source = options.dicom_max_pending_per_source;
+  o.pdu_timeout_seconds = options.dicom_pdu_timeout_seconds;
   if (options.dicom_max_pdu < 4096 || options.dicom_max_pdu > 131072) {
     return absl::InvalidArgumentError(
         "--dicom-max-pdu must be between 4096 and 131072 bytes");
@@ -545,11 +542,13 @@ int RunServer(ServerOptions options) {
                  options.drain_grace_seconds);
     health->SetServingStatus(false);
     health->SetServingStatus("interslice.v1.InterSlice", false);
-    // No new associations; those in progress end (bounded by the DIMSE
-    // timeout) with their instances kept, to be completed after a restart.
-    if (dicom_scp) dicom_scp->Stop();
-    if (assembler) assembler->Stop();
+    // No new jobs from here on, from DICOM either: the manager refuses them
+    // and the assembler stops completing series before the listener waits
+    // for the associations in progress (bounded by the DIMSE timeout); what
+    // they store is kept and completed after a restart.
     manager.BeginDrain();
+    if (assembler) assembler->Stop();
+    if (dicom_scp) dicom_scp->Stop();
     manager.Shutdown(std::chrono::milliseconds(
         static_cast<int64_t>(options.drain_grace_seconds * 1000)));
     // Deliveries still PENDING stay in the spool records for the restart.

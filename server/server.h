@@ -76,9 +76,13 @@ struct ServerOptions {
   std::string dicom_peers_file;  // YAML/JSON; see server/dicom/config.h
   std::string rules_file;        // YAML/JSON; see server/dicom/config.h
   int dicom_max_associations = 8;
+  int dicom_max_associations_per_source = 0;  // 0: half of the above
+  int dicom_max_pending = 64;
+  int dicom_max_pending_per_source = 16;
   int64_t dicom_max_pdu = 65536;
   double dicom_acse_timeout_seconds = 10;
   double dicom_dimse_timeout_seconds = 60;
+  double dicom_pdu_timeout_seconds = 30;
   int64_t dicom_max_series_instances = 10000;
   int64_t dicom_max_series_bytes = int64_t{4} << 30;
   // DICOM TLS: all three, or none. Peers must present a certificate signed

@@ -2,6 +2,7 @@
 
 #include <fcntl.h>
 #include <sys/stat.h>
+#include <sys/statvfs.h>
 #include <unistd.h>
 
 #include <cerrno>
@@ -168,5 +169,11 @@ bool Spool::TryReserve(int64_t bytes) {
 }
 
 void Spool::Release(int64_t bytes) { used_ -= bytes; }
+
+bool Spool::FileSystemFull() const {
+  struct statvfs fs;
+  if (::statvfs(root_.c_str(), &fs) != 0) return false;
+  return static_cast<uint64_t>(fs.f_bavail) * fs.f_frsize < (1u << 20);
+}
 
 }  // namespace interslice::server

@@ -51,6 +51,10 @@ class Spool {
 
   // Quota: bytes reserved for uploads plus bytes of stored results.
   bool TryReserve(int64_t bytes);
+  // Whether the file system under the spool has (almost) no room left:
+  // less than 1 MiB available to us (statvfs). Explains a job's write
+  // error as a full disk.
+  bool FileSystemFull() const;
   void Release(int64_t bytes);
   void Add(int64_t bytes) { used_ += bytes; }
   int64_t used_bytes() const { return used_; }

@@ -1,7 +1,10 @@
 #include "server/status_map.h"
 
 #include <cctype>
+#include <cerrno>
+#include <cstring>
 
+#include "absl/strings/match.h"
 #include "server/log_safe.h"
 
 namespace interslice::server {
@@ -47,6 +50,25 @@ grpc::Status ToGrpcStatus(const absl::Status& status) {
   if (status.ok()) return grpc::Status::OK;
   return grpc::Status(static_cast<grpc::StatusCode>(status.code()),
                       RedactPhi(status.message()));
+}
+
+absl::Status DiskFullAsResourceExhausted(const absl::Status& status,
+                                         bool disk_full) {
+  if (status.ok() || status.code() == absl::StatusCode::kCancelled ||
+      status.code() == absl::StatusCode::kResourceExhausted) {
+    return status;
+  }
+  const bool says_so =
+      absl::StrContains(status.message(), std::strerror(ENOSPC)) ||
+      absl::StrContains(status.message(), std::strerror(EDQUOT));
+  const bool unexplained = status.code() == absl::StatusCode::kInternal ||
+                           status.code() == absl::StatusCode::kUnknown;
+  if (says_so || (disk_full && unexplained)) {
+    return absl::ResourceExhaustedError(
+        "disk full: the server has no room left for this job's files; "
+        "retry when space is free");
+  }
+  return status;
 }
 
 }  // namespace interslice::server

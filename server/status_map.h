@@ -24,6 +24,14 @@ grpc::Status ToGrpcStatus(const absl::Status& status);
 // message may quote client text, such as JobSpec.multiframe_volume.
 std::string RedactPhi(absl::string_view message);
 
+// A job's failure caused by a full disk becomes RESOURCE_EXHAUSTED "disk
+// full" (issue 22: it was INTERNAL naming the server's spool path): when the
+// message carries the system's words for ENOSPC or EDQUOT, or `disk_full`
+// (the spool's file system had no room left when the job failed) and the
+// code is INTERNAL or UNKNOWN. Any other status is returned as it is.
+absl::Status DiskFullAsResourceExhausted(const absl::Status& status,
+                                         bool disk_full);
+
 }  // namespace interslice::server
 
 #endif  // INTERSLICE_SERVER_STATUS_MAP_H_

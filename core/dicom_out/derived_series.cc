@@ -142,7 +142,8 @@ std::vector<Window> SourceWindows(DcmItem& source_header) {
 }
 
 absl::StatusOr<Encoding> ChooseEncoding(const DicomSeries& source,
-                                        const Volume<float>& values) {
+                                        const Volume<float>& values,
+                                        const DicomWriteOptions& options) {
   INTERSLICE_ASSIGN_OR_RETURN(const Range range, FiniteRange(values.data));
   Encoding e;
   const DicomSliceInfo& first = source.slices.front();
@@ -153,9 +154,15 @@ absl::StatusOr<Encoding> ChooseEncoding(const DicomSeries& source,
   e.window_width = std::max(1.0, range.max - range.min);
   e.rescale_type = source.modality == "CT" ? "HU" : "US";
   e.description =
-      "source modality values at the output slice positions, linearly "
-      "interpolated between the two nearest source slices at their true "
-      "positions";
+      options.intensity_interpolation ==
+              DicomWriteOptions::IntensityInterpolation::kMorph
+          ? "source modality values at the output slice positions, carried "
+            "along the motion registered between the two nearest source "
+            "slices (registration-based interpolation, Penney et al. 2004), "
+            "linearly interpolated where the registration is unreliable"
+          : "source modality values at the output slice positions, linearly "
+            "interpolated between the two nearest source slices at their true "
+            "positions";
   return e;
 }
 
@@ -278,7 +285,7 @@ absl::StatusOr<std::vector<std::string>> WriteIntensitySeries(
                               LoadSourceHeader(source));
   DcmDataset& src = *source_file->getDataset();
   INTERSLICE_ASSIGN_OR_RETURN(const Encoding encoding,
-                              ChooseEncoding(source, values));
+                              ChooseEncoding(source, values, options));
   std::vector<Window> windows = SourceWindows(src);
   if (windows.empty()) {
     windows.push_back({encoding.window_center, encoding.window_width, ""});
@@ -395,7 +402,16 @@ absl::StatusOr<std::vector<std::string>> WriteIntensitySeries(
     }
     ds.putAndInsertString(DCM_DerivationDescription, derivation.c_str());
     const double position = SlicePositionAlongNormal(grid, k);
-    for (int64_t s : NearestSourceSlices(source, position)) {
+    std::vector<int64_t> references = NearestSourceSlices(source, position);
+    if (references.size() == 2 &&
+        options.intensity_interpolation ==
+            DicomWriteOptions::IntensityInterpolation::kMorph) {
+      // The morph's value tangents come from the outer neighbours too.
+      if (references[0] > 0) references.push_back(references[0] - 1);
+      if (references[1] + 1 < static_cast<int64_t>(source.slices.size()))
+        references.push_back(references[1] + 1);
+    }
+    for (int64_t s : references) {
       // An anonymised source slice without a SOP Instance UID cannot be
       // referenced.
       if (source.slices[s].sop_instance_uid.empty() ||

@@ -45,7 +45,11 @@
 //   type 2 attributes absent there are written empty.
 // - Series numbers: options.series_number_base, else 1000 x the source's
 //   SeriesNumber, else 9000; the intensity series gets base + 1, the distance
-//   map base + 2, the SEG base + 3, the Encapsulated STL mesh base + 4.
+//   map base + 2, the SEG base + 3, the Encapsulated STL mesh base + 4, a
+//   fill's RTSTRUCT base + 5 and the previews base + 6 (preview_series.h).
+//   A base that leaves no room for base + 6 in a DICOM IS (signed 32 bits)
+//   is INVALID_ARGUMENT; 1000 x a source number that does is replaced by
+//   9000.
 // - Equipment (Manufacturer etc.) describes interslice, the creator of the
 //   derived objects, not the scanner.
 //
@@ -103,6 +107,15 @@ struct DicomWriteOptions {
   // samples only, and Float Pixel Data has no encapsulated transfer syntax).
   enum class PixelEncoding { kNative, kRleLossless };
   PixelEncoding intensity_encoding = PixelEncoding::kNative;
+  // How the intensity series' values between source slices were made, for
+  // what the series says of itself: kLinear (ResampleSourceSlices) or kMorph
+  // (core/morph MorphIntensity: carried along the motion between the source
+  // slices). It changes the DerivationDescription and, for kMorph, the
+  // SourceImageSequence of an output slice between two source slices also
+  // lists their outer neighbours, whose values shape it (the value tangents).
+  enum class IntensityInterpolation { kLinear, kMorph };
+  IntensityInterpolation intensity_interpolation =
+      IntensityInterpolation::kLinear;
 };
 
 // The identity of one derived object: series UID, SOP instance UIDs (one per
@@ -165,6 +178,26 @@ absl::StatusOr<Volume<float>> ResampleSourceSlices(
     const Volume<float>& image, const std::vector<double>& positions_mm,
     const Grid& target, std::optional<float> pixel_padding,
     const ComputeContext& context);
+
+// ResampleSourceSlices on the part `box` of `target` only: the same values
+// at those voxels, on CropGrid(target, box), computing only them (e.g. one
+// plane for a preview; the source image is cropped in-plane to the box).
+// INVALID_ARGUMENT for a box not valid for `target`, else as
+// ResampleSourceSlices.
+absl::StatusOr<Volume<float>> ResampleSourceSlicesInBox(
+    const Volume<float>& image, const std::vector<double>& positions_mm,
+    const Grid& target, const VoxelBox& box, std::optional<float> pixel_padding,
+    const ComputeContext& context);
+
+// The source's first display window (WindowCenter / WindowWidth of the first
+// source file), modality units, if it has one with a positive width.
+// FAILED_PRECONDITION when the first source file cannot be read again.
+struct SourceWindow {
+  double center = 0;
+  double width = 0;
+};
+absl::StatusOr<std::optional<SourceWindow>> SourceDisplayWindow(
+    const DicomSeries& source);
 
 // The source's pixel padding, in modality units (PixelPaddingValue x
 // RescaleSlope + RescaleIntercept of the first source slice), if it has one.

@@ -16,6 +16,7 @@
 #include "core/common/status_macros.h"
 #include "core/dicom_out/dicom_out_internal.h"
 #include "core/dicom_out/dicom_writer.h"
+#include "core/dicom_out/preview_series.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
@@ -93,7 +94,84 @@ std::string ImageSopClass(const DicomSeries& source) {
   return UID_SecondaryCaptureImageStorage;
 }
 
+// The base of the derived series numbers (dicom_writer.h, "Identity"),
+// leaving room for the last of them, the previews (preview_series.h).
+absl::StatusOr<int64_t> SeriesNumberBase(DcmItem& header,
+                                         const DicomWriteOptions& options) {
+  constexpr int64_t kLast = kPreviewSeriesNumberOffset;
+  int64_t base = options.series_number_base;
+  if (base <= 0) {
+    const std::optional<int64_t> number = SourceSeriesNumber(header);
+    base = kFallbackSeriesNumberBase;
+    // IS holds a signed 32-bit value; 1000 x a huge source number would not.
+    if (number.has_value() && *number > 0 &&
+        *number * 1000 + kLast <= std::numeric_limits<int32_t>::max()) {
+      base = *number * 1000;
+    }
+  }
+  if (base + kLast > std::numeric_limits<int32_t>::max()) {
+    return absl::InvalidArgumentError(absl::StrFormat(
+        "series number base %d leaves no room for the derived series", base));
+  }
+  return base;
+}
+
+// The study and frame of reference every object of the job shares.
+absl::Status SetStudyAndFrame(const DicomSeries& source, const UidNamer& namer,
+                              DerivedObjectIdentity& object) {
+  object.study_instance_uid = source.study_instance_uid;
+  if (object.study_instance_uid.empty()) {
+    INTERSLICE_ASSIGN_OR_RETURN(object.study_instance_uid, namer.Uid("study"));
+  }
+  object.frame_of_reference_uid = source.frame_of_reference_uid;
+  if (object.frame_of_reference_uid.empty()) {
+    INTERSLICE_ASSIGN_OR_RETURN(object.frame_of_reference_uid,
+                                namer.Uid("frame-of-reference"));
+  }
+  return absl::OkStatus();
+}
+
 }  // namespace
+
+absl::StatusOr<DerivedObjectIdentity> PlanPreviewSeries(
+    const DicomSeries& source, const std::vector<std::string>& names,
+    const DicomWriteOptions& options, const DerivedObjectIdentity* same_study) {
+  if (names.empty()) {
+    return absl::InvalidArgumentError("the preview series has no pictures");
+  }
+  for (size_t n = 0; n < names.size(); ++n) {
+    for (size_t m = 0; m < n; ++m) {
+      if (names[n] == names[m]) {
+        return absl::InvalidArgumentError(absl::StrCat(
+            "the preview series names the picture ", names[n], " twice"));
+      }
+    }
+  }
+  INTERSLICE_ASSIGN_OR_RETURN(const UidNamer namer,
+                              UidNamer::Create(source, options));
+  INTERSLICE_ASSIGN_OR_RETURN(std::unique_ptr<DcmFileFormat> header,
+                              dicom_out_internal::LoadSourceHeader(source));
+  INTERSLICE_ASSIGN_OR_RETURN(const int64_t base,
+                              SeriesNumberBase(*header->getDataset(), options));
+  DerivedObjectIdentity previews;
+  if (same_study != nullptr) {
+    previews.study_instance_uid = same_study->study_instance_uid;
+    previews.frame_of_reference_uid = same_study->frame_of_reference_uid;
+  } else {
+    INTERSLICE_RETURN_IF_ERROR(SetStudyAndFrame(source, namer, previews));
+  }
+  INTERSLICE_ASSIGN_OR_RETURN(previews.series_instance_uid,
+                              namer.Uid("previews/series"));
+  for (const std::string& name : names) {
+    INTERSLICE_ASSIGN_OR_RETURN(std::string uid,
+                                namer.Uid(absl::StrCat("previews/", name)));
+    previews.sop_instance_uids.push_back(std::move(uid));
+  }
+  previews.series_number = static_cast<int>(base + kPreviewSeriesNumberOffset);
+  previews.sop_class_uid = UID_SecondaryCaptureImageStorage;
+  previews.series_description = "interslice previews";
+  return previews;
+}
 
 absl::StatusOr<DerivedObjects> PlanDerivedObjects(
     const DicomSeries& source, int64_t output_slices,
@@ -106,22 +184,8 @@ absl::StatusOr<DerivedObjects> PlanDerivedObjects(
   INTERSLICE_ASSIGN_OR_RETURN(std::unique_ptr<DcmFileFormat> header,
                               dicom_out_internal::LoadSourceHeader(source));
 
-  int64_t base = options.series_number_base;
-  if (base <= 0) {
-    const std::optional<int64_t> number =
-        SourceSeriesNumber(*header->getDataset());
-    base = kFallbackSeriesNumberBase;
-    // IS holds a signed 32-bit value; 1000 x a huge source number would not.
-    if (number.has_value() && *number > 0 &&
-        *number * 1000 + 4 <= std::numeric_limits<int32_t>::max()) {
-      base = *number * 1000;
-    }
-  }
-  if (base + 4 > std::numeric_limits<int32_t>::max()) {
-    return absl::InvalidArgumentError(absl::StrFormat(
-        "series number base %d leaves no room for the derived series", base));
-  }
-
+  INTERSLICE_ASSIGN_OR_RETURN(const int64_t base,
+                              SeriesNumberBase(*header->getDataset(), options));
   // An anonymised source may have no study or frame of reference: the
   // job's objects then share new ones (type 1 in every IOD written here).
   std::string study = source.study_instance_uid;

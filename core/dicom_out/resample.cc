@@ -199,4 +199,37 @@ absl::StatusOr<std::optional<float>> SourcePixelPadding(
                                                  first.rescale_intercept));
 }
 
+absl::StatusOr<Volume<float>> ResampleSourceSlicesInBox(
+    const Volume<float>& image, const std::vector<double>& positions_mm,
+    const Grid& target, const VoxelBox& box, std::optional<float> pixel_padding,
+    const ComputeContext& context) {
+  INTERSLICE_RETURN_IF_ERROR(ValidateVoxelBox(box, target));
+  if (image.grid.size[0] != target.size[0] ||
+      image.grid.size[1] != target.size[1]) {
+    return absl::InvalidArgumentError(
+        "resampling: the source slices and the target differ in size");
+  }
+  // Every source slice, cropped in-plane to the box: its in-plane origin
+  // then equals the cropped target's.
+  const VoxelBox in_plane{{box.begin[0], box.begin[1], 0},
+                          {box.end[0], box.end[1], image.grid.size[2]}};
+  const Volume<float> cropped = CropVolume(image, in_plane);
+  return ResampleSourceSlices(cropped, positions_mm, CropGrid(target, box),
+                              pixel_padding, context);
+}
+
+absl::StatusOr<std::optional<SourceWindow>> SourceDisplayWindow(
+    const DicomSeries& source) {
+  INTERSLICE_ASSIGN_OR_RETURN(std::unique_ptr<DcmFileFormat> file,
+                              dicom_out_internal::LoadSourceHeader(source));
+  DcmDataset& header = *file->getDataset();
+  Float64 center = 0, width = 0;
+  if (header.findAndGetFloat64(DCM_WindowCenter, center, 0).bad() ||
+      header.findAndGetFloat64(DCM_WindowWidth, width, 0).bad() ||
+      !(width > 0) || !std::isfinite(center) || !std::isfinite(width)) {
+    return std::optional<SourceWindow>();
+  }
+  return std::optional<SourceWindow>(SourceWindow{center, width});
+}
+
 }  // namespace interslice

@@ -1,7 +1,9 @@
 #include "core/labels/fill_job.h"
 
+#include <algorithm>
 #include <chrono>
 #include <filesystem>
+#include <optional>
 #include <system_error>
 #include <utility>
 
@@ -11,11 +13,14 @@
 #include "core/dicom/series_reader.h"
 #include "core/dicom_out/dicom_writer.h"
 #include "core/dicom_out/label_segmentation.h"
+#include "core/dicom_out/preview_series.h"
 #include "core/dicom_out/rtstruct.h"
 #include "core/labels/label_contours.h"
 #include "core/labels/label_map_io.h"
 #include "core/labels/segment_names.h"
 #include "core/labels/segmentation_reader.h"
+#include "core/morph/intensity_morph.h"
+#include "core/preview/preview.h"
 #include "core/surface/surface.h"
 #include "core/volume_io/volume_io.h"
 #include "nlohmann/json.hpp"
@@ -32,6 +37,19 @@ int64_t FileSize(const std::string& path) {
   std::error_code ec;
   const auto size = std::filesystem::file_size(path, ec);
   return ec ? 0 : static_cast<int64_t>(size);
+}
+
+int64_t FolderSize(const std::string& path) {
+  int64_t total = 0;
+  std::error_code ec;
+  for (const auto& entry : std::filesystem::directory_iterator(path, ec)) {
+    total += FileSize(entry.path().string());
+  }
+  return total;
+}
+
+bool Contains(const std::vector<std::string>& list, const std::string& item) {
+  return std::find(list.begin(), list.end(), item) != list.end();
 }
 
 // Prefixes a status message with what was being done.
@@ -72,6 +90,7 @@ absl::Status WriteDicomOutputs(const FillJobSpec& spec,
                                const SegmentationInput& input,
                                const FillResult& result, bool write_rtstruct,
                                bool derive_series,
+                               const std::vector<RgbPicture>& previews,
                                const ComputeContext& context,
                                FillJobReport& report) {
   const std::filesystem::path dir(spec.output_dir);
@@ -80,15 +99,22 @@ absl::Status WriteDicomOutputs(const FillJobSpec& spec,
   options.uid_root = spec.uid_root;
   options.random_uids = spec.random_uids;
   options.derivation_key = DerivationKey(spec, input.labels, result.factor);
+  // The grey values of a derived series depend on how they are interpolated
+  // (a linear series keeps the UIDs it always had).
+  if (derive_series && spec.intensity_method != "linear") {
+    absl::StrAppend(&options.derivation_key, "\nintensity ",
+                    spec.intensity_method);
+  }
   options.derivation_description =
       "interslice fill between key slices (Csebfalvi et al. 2001)";
   INTERSLICE_ASSIGN_OR_RETURN(
       const DerivedObjects objects,
       PlanDerivedObjects(source, grid.size[2], options));
   DerivedObjectIdentity referenced;
+  const bool seg_or_rtstruct = spec.write_seg || write_rtstruct;
   if (!derive_series) {
     INTERSLICE_ASSIGN_OR_RETURN(referenced, ReferencedImagesOfSource(source));
-  } else {
+  } else if (seg_or_rtstruct) {
     // A finer grid has slices the reference series has no image for (and a
     // multi-frame or anonymised reference cannot be referenced image by
     // image): the objects lie on a derived intensity series, as run's do.
@@ -98,9 +124,21 @@ absl::Status WriteDicomOutputs(const FillJobSpec& spec,
     }
     INTERSLICE_ASSIGN_OR_RETURN(std::optional<float> padding,
                                 SourcePixelPadding(source));
-    INTERSLICE_ASSIGN_OR_RETURN(
-        Volume<float> intensity,
-        ResampleSourceSlices(source.image, positions, grid, padding, context));
+    // The grey values as `run` makes them (pipeline.h, intensity_method).
+    Volume<float> intensity;
+    if (spec.intensity_method == "morph") {
+      options.intensity_interpolation =
+          DicomWriteOptions::IntensityInterpolation::kMorph;
+      INTERSLICE_ASSIGN_OR_RETURN(
+          MorphedIntensity morphed,
+          MorphIntensity(source.image, positions, grid, padding, nullptr,
+                         IntensityMorphOptions(), context));
+      intensity = std::move(morphed.values);
+    } else {
+      INTERSLICE_ASSIGN_OR_RETURN(
+          intensity, ResampleSourceSlices(source.image, positions, grid,
+                                          padding, context));
+    }
     const std::string folder = (dir / "series-intensity").string();
     INTERSLICE_ASSIGN_OR_RETURN(
         std::vector<std::string> written,
@@ -157,7 +195,101 @@ absl::Status WriteDicomOutputs(const FillJobSpec& spec,
                  "writing rtstruct.dcm"));
     report.artifacts.push_back({"rtstruct", 0, path, FileSize(path)});
   }
+  if (!previews.empty()) {
+    // Derived from the images the labels lie on: the reference's own, or
+    // the intensity series written beside them; on a finer grid without a
+    // SEG or RTSTRUCT, from the reference series as a whole.
+    const DerivedObjectIdentity* on =
+        !derive_series || seg_or_rtstruct ? &referenced : nullptr;
+    std::vector<std::string> names;
+    for (const RgbPicture& p : previews) names.push_back(p.name);
+    const std::string folder = (dir / "previews-dicom").string();
+    absl::StatusOr<DerivedObjectIdentity> identity =
+        PlanPreviewSeries(source, names, options, &objects.segmentation);
+    absl::Status written = identity.status();
+    if (identity.ok()) {
+      written = WritePreviewSeries(source, grid, previews, *identity, on,
+                                   options, folder)
+                    .status();
+    }
+    if (written.ok()) {
+      report.artifacts.push_back(
+          {"previews-dicom", 0, folder, FolderSize(folder)});
+    } else {
+      report.preview_notes.push_back(absl::StrCat(
+          "previews not written (previews-dicom): ", written.message()));
+    }
+  }
   return absl::OkStatus();
+}
+
+// The previews of the fill: the reference's grey values on the output grid,
+// each filled label outlined in its colour, the key slices ticked, and the
+// labels' fields as surfaces (FillJobSpec::preview_formats).
+absl::StatusOr<PreviewSet> RenderFillPreviews(const FillJobSpec& spec,
+                                              const DicomSeries& source,
+                                              const SegmentationInput& input,
+                                              const FillResult& result,
+                                              const ComputeContext& context) {
+  const Grid& grid = result.labels.grid;
+  INTERSLICE_ASSIGN_OR_RETURN(const std::optional<float> padding,
+                              SourcePixelPadding(source));
+  std::vector<double> positions;
+  for (const DicomSliceInfo& slice : source.slices) {
+    positions.push_back(slice.position_along_normal);
+  }
+  PreviewScene scene;
+  scene.grid = grid;
+  const CancellationToken* cancel = context.cancel;
+  const Volume<float>& image = source.image;
+  scene.intensity = [&image, positions, &grid, padding,
+                     cancel](const VoxelBox& box) {
+    ComputeContext one_thread;
+    one_thread.threads = 1;
+    one_thread.cancel = cancel;
+    return ResampleSourceSlicesInBox(image, positions, grid, box, padding,
+                                     one_thread);
+  };
+  if (absl::StatusOr<std::optional<SourceWindow>> window =
+          SourceDisplayWindow(source);
+      window.ok() && window->has_value()) {
+    scene.window = DisplayWindow{(*window)->center, (*window)->width};
+  }
+  scene.labels = &result.labels;
+  std::vector<int64_t> keys;
+  std::string methods;
+  for (const LabelFillInfo& info : result.per_label) {
+    LabelSegment segment = DefaultLabelSegment(info.label);
+    for (const LabelSegment& s : input.segments) {
+      if (s.number == info.label) segment = s;
+    }
+    // Segment names are typed by people: only the number is drawn.
+    scene.objects.push_back({info.label, SegmentRgb(segment),
+                             info.field.data.empty() ? nullptr : &info.field,
+                             absl::StrCat("label ", info.label)});
+    keys.insert(keys.end(), info.key_slices.begin(), info.key_slices.end());
+    absl::StrAppend(&methods, methods.empty() ? "" : ", ", info.label, " ",
+                    info.method);
+  }
+  std::sort(keys.begin(), keys.end());
+  keys.erase(std::unique(keys.begin(), keys.end()), keys.end());
+  for (int64_t k : keys) {
+    scene.marked_slices.push_back(static_cast<double>(k * result.factor));
+  }
+  scene.marked_slices_name = "key slices";
+  scene.legend.push_back(absl::StrFormat(
+      "interslice fill: labels FILLED between %d key slices (not drawn)",
+      keys.size()));
+  const std::string method =
+      spec.fill.method == FillMethod::kAuto
+          ? (result.per_label.size() <= 6
+                 ? absl::StrCat("auto (label ", methods, ")")
+                 : std::string("auto (chosen per label: see the report)"))
+          : std::string(SolverMethodName(spec.fill.solver.method));
+  scene.legend.push_back(
+      absl::StrFormat("method %s, spacing %.4g x %.4g x %.4g mm", method,
+                      grid.spacing[0], grid.spacing[1], grid.spacing[2]));
+  return RenderPreviews(scene, PreviewOptions(), context);
 }
 
 }  // namespace
@@ -185,9 +317,20 @@ absl::Status ValidateFillJobSpec(const FillJobSpec& spec) {
           "fill: unknown mesh format '", f, "' (expected stl, ply or obj)"));
     }
   }
+  if (spec.intensity_method != "linear" && spec.intensity_method != "morph") {
+    return absl::InvalidArgumentError(
+        absl::StrCat("fill: unknown intensity method '", spec.intensity_method,
+                     "' (choose from linear, morph)"));
+  }
   if (!(spec.mesh_adaptivity >= 0 && spec.mesh_adaptivity <= 1)) {
     return absl::InvalidArgumentError(
         "fill: mesh adaptivity must be in [0, 1]");
+  }
+  for (const std::string& f : spec.preview_formats) {
+    if (f != "png" && f != "dicom") {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "fill: unknown preview format '", f, "' (expected png or dicom)"));
+    }
   }
   // A malformed UID root fails now, not after the fill.
   if (!spec.uid_root.empty()) {
@@ -228,9 +371,10 @@ absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
   // Its geometry, UIDs and files are kept for the DICOM outputs; the grey
   // values only for a derived intensity series.
   DicomSeries source = *std::move(series);
+  const bool wants_previews = !spec.preview_formats.empty();
   const bool dicom_out_possible =
       spec.write_seg || spec.write_rtstruct != false;
-  if (!dicom_out_possible || !derive_series) {
+  if ((!dicom_out_possible || !derive_series) && !wants_previews) {
     std::vector<float>().swap(source.image.data);
   }
 
@@ -278,7 +422,10 @@ absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
         "segments itself");
   }
   const bool write_rtstruct = spec.write_rtstruct.value_or(input.rtstruct);
-  if (!spec.write_seg && !write_rtstruct) {
+  // The grey values stay for a derived intensity series and the previews.
+  const bool needs_grey_values =
+      derive_series && (spec.write_seg || write_rtstruct);
+  if (!needs_grey_values && !wants_previews) {
     std::vector<float>().swap(source.image.data);
   }
   report.read_seconds = SecondsSince(start);
@@ -286,7 +433,7 @@ absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
   start = std::chrono::steady_clock::now();
   context.Report({.stage = "fill"});
   FillOptions fill = spec.fill;
-  fill.keep_fields = !spec.mesh_formats.empty();
+  fill.keep_fields = !spec.mesh_formats.empty() || wants_previews;
   if (input.rtstruct) fill.contours = &input.contours;
   INTERSLICE_ASSIGN_OR_RETURN(FillResult result,
                               FillBetweenSlices(input.labels, fill, context));
@@ -326,6 +473,26 @@ absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
   }
   report.mesh_seconds = SecondsSince(start);
 
+  // Previews: rendered now, written with the other outputs; a failure is a
+  // note, never the job's.
+  std::optional<PreviewSet> previews;
+  if (wants_previews) {
+    start = std::chrono::steady_clock::now();
+    context.Report({.stage = "preview"});
+    absl::StatusOr<PreviewSet> rendered =
+        RenderFillPreviews(spec, source, input, result, context);
+    INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
+    if (rendered.ok()) {
+      report.preview_notes = rendered->notes;
+      previews = *std::move(rendered);
+    } else {
+      report.preview_notes.push_back(
+          absl::StrCat("previews skipped: ", rendered.status().message()));
+    }
+    if (!needs_grey_values) std::vector<float>().swap(source.image.data);
+    report.preview_seconds = SecondsSince(start);
+  }
+
   start = std::chrono::steady_clock::now();
   context.Report({.stage = "write"});
   std::error_code ec;
@@ -354,10 +521,34 @@ absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
       report.artifacts.push_back({"surface", label, path, FileSize(path)});
     }
   }
-  if (spec.write_seg || write_rtstruct) {
+  if (previews.has_value() && Contains(spec.preview_formats, "png")) {
+    const std::string folder = (dir / "previews").string();
+    absl::Status written = WritePreviewPngs(previews->images, folder).status();
+    if (written.ok()) {
+      report.artifacts.push_back({"previews", 0, folder, FolderSize(folder)});
+    } else {
+      report.preview_notes.push_back(
+          absl::StrCat("previews not written (previews): ", written.message()));
+    }
+  }
+  std::vector<RgbPicture> pictures;
+  if (previews.has_value() && Contains(spec.preview_formats, "dicom")) {
+    for (const PreviewImage& image : previews->images) {
+      RgbPicture p;
+      p.name = image.name;
+      p.width = image.width;
+      p.height = image.height;
+      p.rgb = &image.rgb;
+      p.description = image.description;
+      p.patient_orientation = image.patient_orientation;
+      if (image.plane_axis == 2) p.output_slice = image.plane_index;
+      pictures.push_back(p);
+    }
+  }
+  if (spec.write_seg || write_rtstruct || !pictures.empty()) {
     INTERSLICE_RETURN_IF_ERROR(WriteDicomOutputs(spec, source, input, result,
                                                  write_rtstruct, derive_series,
-                                                 context, report));
+                                                 pictures, context, report));
   }
   report.write_seconds = SecondsSince(start);
   for (LabelFillInfo& info : result.per_label) {
@@ -372,8 +563,11 @@ std::string FillJobReportToJson(const FillJobReport& report) {
   ordered_json j;
   j["stages"] = {{"read", report.read_seconds},
                  {"fill", report.fill_seconds},
-                 {"mesh", report.mesh_seconds},
-                 {"write", report.write_seconds}};
+                 {"mesh", report.mesh_seconds}};
+  if (report.preview_seconds > 0 || !report.preview_notes.empty()) {
+    j["stages"]["preview"] = report.preview_seconds;
+  }
+  j["stages"]["write"] = report.write_seconds;
   const Grid& g = report.output_grid;
   j["grid"] = {{"size", g.size},
                {"spacing", g.spacing},
@@ -408,6 +602,9 @@ std::string FillJobReportToJson(const FillJobReport& report) {
   j["gap_voxels_closed"] = report.gap_voxels_closed;
   j["key_voxels_restored"] = report.key_voxels_restored;
   j["warnings"] = report.warnings;
+  if (report.preview_seconds > 0 || !report.preview_notes.empty()) {
+    j["previews"] = {{"notes", report.preview_notes}};
+  }
   ordered_json artifacts = ordered_json::array();
   for (const FillArtifact& a : report.artifacts) {
     artifacts.push_back({{"kind", a.kind},

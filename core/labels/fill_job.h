@@ -26,6 +26,13 @@
 //   filled labels as CLOSED_PLANAR contours per ROI and slice
 //   (core/dicom_out/rtstruct.h; ROI numbers = labels, names and colours from
 //   the input).
+//   preview_formats "png" -> previews/*.png, "dicom" -> previews-dicom/ (a
+//   Secondary Capture series): the reference's grey values on the output
+//   grid's axial, coronal and sagittal planes with each filled label
+//   outlined in its segment colour, the key slices (of every label) ticked,
+//   and the labels' surfaces from the front (core/preview), as for
+//   core/pipeline's JobSpec::preview_formats: a preview that cannot be made
+//   or written is a note (FillJobReport::preview_notes), never a failure.
 //   Both reference the reference series' images and frame of reference when
 //   the output grid is the reference grid (factor 1). On a finer grid
 //   (--factor/--spacing), or for a reference whose slices cannot be
@@ -67,14 +74,20 @@ struct FillJobSpec {
   double mesh_adaptivity = 0;  // OpenVDB adaptivity in [0, 1]
   bool write_seg = false;
   std::optional<bool> write_rtstruct;  // unset: on for RTSTRUCT input
+  // The grey values of series-intensity/ (written on a finer grid): "morph"
+  // (default) or "linear", as JobSpec::intensity_method (pipeline.h).
+  std::string intensity_method = "morph";
   std::string uid_root;                // DicomWriteOptions::uid_root
   bool random_uids = false;            // DicomWriteOptions::random_uids
+  // "png", "dicom" (above); empty = none.
+  std::vector<std::string> preview_formats;
   std::string output_dir;
   int64_t max_input_voxels = int64_t{1} << 31;
 };
 
 struct FillArtifact {
-  // "labels", "surface", "seg", "rtstruct", "series-intensity"
+  // "labels", "surface", "seg", "rtstruct", "series-intensity", "previews",
+  // "previews-dicom"
   std::string kind;
   int label = 0;  // surfaces: the label; else 0
   std::string path;
@@ -83,7 +96,7 @@ struct FillArtifact {
 
 struct FillJobReport {
   double read_seconds = 0, fill_seconds = 0, mesh_seconds = 0,
-         write_seconds = 0;
+         preview_seconds = 0, write_seconds = 0;
   Grid input_grid, output_grid;
   int factor = 1;
   std::string method;  // "auto", "linear", "cg", "direct"
@@ -100,6 +113,9 @@ struct FillJobReport {
   int64_t gap_voxels_closed = 0;
   int64_t key_voxels_restored = 0;
   std::vector<std::string> warnings;
+  // With preview_formats: one sentence each (a preview skipped and why, an
+  // empty label, ...).
+  std::vector<std::string> preview_notes;
   std::vector<FillArtifact> artifacts;
 };
 
@@ -109,15 +125,18 @@ absl::Status ValidateFillJobSpec(const FillJobSpec& spec);
 // Runs the job. Errors from reading (the label map, the reference series),
 // CheckSameGrid, FillBetweenSlices, meshing and writing, each naming the
 // file or label. Progress: context.progress hears "read", "fill" (then the
-// stages FillBetweenSlices reports), "mesh" (when meshes are asked for) and
-// "write", each at fraction 0 when it begins.
+// stages FillBetweenSlices reports), "mesh" (when meshes are asked for),
+// "preview" (when previews are) and "write", each at fraction 0 when it
+// begins.
 absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
                                          const ComputeContext& context);
 
-// {"stages": {...}, "grid": {...}, "method", "labels": [{"label",
+// {"stages": {...} ("preview" with previews), "grid": {...}, "method",
+// "labels": [{"label",
 // "key_slices", "drawn_slices", "method", "voxels", "iterations",
 // "relative_residual"}], "gap_voxels_closed", "key_voxels_restored",
-// "warnings": [...], "artifacts": [...]}.
+// "warnings": [...], "previews": {"notes": [...]} (with previews),
+// "artifacts": [...]}.
 std::string FillJobReportToJson(const FillJobReport& report);
 
 }  // namespace interslice

@@ -10,6 +10,7 @@
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
 #include "core/common/status_macros.h"
+#include "core/morph/morph_internal.h"
 #include "itkConnectedComponentImageFilter.h"
 #include "itkFastSymmetricForcesDemonsRegistrationFilter.h"
 #include "itkImage.h"
@@ -20,6 +21,9 @@
 
 namespace interslice {
 namespace {
+
+using morph_internal::MonotoneTangent;
+using morph_internal::Sample;
 
 using Image = itk::Image<float, 2>;
 using Displacement = itk::Vector<float, 2>;
@@ -55,40 +59,6 @@ std::vector<float> ClipAndShrink(const float* in, int64_t nx, int64_t ny, int d,
   return out;
 }
 
-// Bilinear sample of an nx*ny plane at continuous pixel (x, y), clamped to
-// the border.
-inline float Sample(const float* plane, int64_t nx, int64_t ny, double x,
-                    double y) {
-  x = std::clamp(x, 0.0, static_cast<double>(nx - 1));
-  y = std::clamp(y, 0.0, static_cast<double>(ny - 1));
-  const int64_t i0 =
-      std::min<int64_t>(static_cast<int64_t>(x), nx - 2 < 0 ? 0 : nx - 2);
-  const int64_t j0 =
-      std::min<int64_t>(static_cast<int64_t>(y), ny - 2 < 0 ? 0 : ny - 2);
-  const int64_t i1 = std::min(i0 + 1, nx - 1), j1 = std::min(j0 + 1, ny - 1);
-  const double fx = x - i0, fy = y - j0;
-  const double a = plane[i0 + nx * j0] * (1 - fx) + plane[i1 + nx * j0] * fx;
-  const double b = plane[i0 + nx * j1] * (1 - fx) + plane[i1 + nx * j1] * fx;
-  return static_cast<float>(a * (1 - fy) + b * fy);
-}
-
-// The tangent at a key slice of the monotone (PCHIP) value interpolation,
-// per output slice: the weighted harmonic mean of the slopes of the gaps on
-// either side (Fritsch & Carlson 1980, "Monotone piecewise cubic
-// interpolation", SIAM J. Numer. Anal. 17(2); the weights of Fritsch &
-// Butland 1984 for uneven gaps, as in MATLAB's pchip), zero where the slopes
-// differ in sign or one is zero (a local extremum or plateau at the key
-// slice). |tangent| <= 3 min(|slope_before|, |slope_after|), so every Hermite
-// piece stays between its two key values. `before`/`after`: slopes (value per
-// output slice) of the gaps of `len_before`/`len_after` output slices.
-inline double MonotoneTangent(double before, double after, double len_before,
-                              double len_after) {
-  if (!(before * after > 0)) return 0.0;
-  const double w1 = 2 * len_after + len_before;
-  const double w2 = len_after + 2 * len_before;
-  return (w1 + w2) / (w1 / before + w2 / after);
-}
-
 absl::Status ValidateOptions(const MorphOptions& o) {
   if (o.levels < 1 || o.levels > 8)
     return absl::InvalidArgumentError("morph: levels must be in [1, 8]");
@@ -113,15 +83,43 @@ absl::Status ValidateOptions(const MorphOptions& o) {
 
 }  // namespace
 
-absl::StatusOr<std::vector<float>> RegisterSlices(const float* fixed,
-                                                  const float* moving,
-                                                  int64_t nx, int64_t ny,
-                                                  const MorphOptions& options) {
+absl::Status ValidateMorphOptions(const MorphOptions& options) {
+  return ValidateOptions(options);
+}
+
+void CoarseDisplacement::Sample(double x, double y, float& out_x,
+                                float& out_y) const {
+  // Coarse pixel c's centre is at fine coordinate c d + (d - 1) / 2.
+  const double half = (downsample - 1) / 2.0;
+  const double cx = (x - half) / downsample, cy = (y - half) / downsample;
+  out_x = downsample * morph_internal::Sample(ux.data(), mx, my, cx, cy);
+  out_y = downsample * morph_internal::Sample(uy.data(), mx, my, cx, cy);
+}
+
+std::vector<float> CoarseDisplacement::Upsample() const {
+  std::vector<float> u(2 * nx * ny, 0.0f);
+  for (int64_t j = 0; j < ny; ++j)
+    for (int64_t i = 0; i < nx; ++i)
+      Sample(static_cast<double>(i), static_cast<double>(j), u[i + nx * j],
+             u[nx * ny + i + nx * j]);
+  return u;
+}
+
+absl::StatusOr<CoarseDisplacement> RegisterSlicesCoarse(
+    const float* fixed, const float* moving, int64_t nx, int64_t ny,
+    const MorphOptions& options) {
   INTERSLICE_RETURN_IF_ERROR(ValidateOptions(options));
   if (nx < 1 || ny < 1) return absl::InvalidArgumentError("morph: empty slice");
-  std::vector<float> u(2 * nx * ny, 0.0f);
-  if (options.iterations == 0) return u;
+  CoarseDisplacement out;
+  out.nx = nx;
+  out.ny = ny;
   const int d = options.downsample;
+  out.downsample = d;
+  out.mx = (nx + d - 1) / d;
+  out.my = (ny + d - 1) / d;
+  out.ux.assign(out.mx * out.my, 0.0f);
+  out.uy.assign(out.mx * out.my, 0.0f);
+  if (options.iterations == 0) return out;
   int64_t mx = 0, my = 0;
   const float clip = static_cast<float>(options.clip_mm);
   const std::vector<float> f = ClipAndShrink(fixed, nx, ny, d, clip, mx, my);
@@ -158,22 +156,24 @@ absl::StatusOr<std::vector<float>> RegisterSlices(const float* fixed,
     return absl::InternalError(
         absl::StrCat("morph: ITK registration: ", e.what()));
   }
-  // Upsample: coarse pixel c covers fine pixels [c d, c d + d); its centre is
-  // at fine coordinate c d + (d - 1) / 2. Displacements scale by d.
-  std::vector<float> cx(mx * my), cy(mx * my);
   const Displacement* buffer = field->GetBufferPointer();
   for (int64_t c = 0; c < mx * my; ++c) {
-    cx[c] = buffer[c][0];
-    cy[c] = buffer[c][1];
+    out.ux[c] = buffer[c][0];
+    out.uy[c] = buffer[c][1];
   }
-  const double half = (d - 1) / 2.0;
-  for (int64_t j = 0; j < ny; ++j)
-    for (int64_t i = 0; i < nx; ++i) {
-      const double x = (i - half) / d, y = (j - half) / d;
-      u[i + nx * j] = d * Sample(cx.data(), mx, my, x, y);
-      u[nx * ny + i + nx * j] = d * Sample(cy.data(), mx, my, x, y);
-    }
-  return u;
+  return out;
+}
+
+absl::StatusOr<std::vector<float>> RegisterSlices(const float* fixed,
+                                                  const float* moving,
+                                                  int64_t nx, int64_t ny,
+                                                  const MorphOptions& options) {
+  INTERSLICE_ASSIGN_OR_RETURN(
+      const CoarseDisplacement coarse,
+      RegisterSlicesCoarse(fixed, moving, nx, ny, options));
+  // Upsample: coarse pixel c covers fine pixels [c d, c d + d); its centre is
+  // at fine coordinate c d + (d - 1) / 2. Displacements scale by d.
+  return coarse.Upsample();
 }
 
 absl::StatusOr<MorphedField> StackMorph(const Volume<float>& slice_maps,

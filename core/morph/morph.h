@@ -210,6 +210,37 @@ absl::StatusOr<std::vector<float>> RegisterSlices(const float* fixed,
                                                   int64_t nx, int64_t ny,
                                                   const MorphOptions& options);
 
+// The displacement RegisterSlices computes, before it is upsampled: on the
+// registration's own lattice of mx x my = ceil(nx / d) x ceil(ny / d)
+// pixels (d = options.downsample; coarse pixel c covers fine pixels
+// [c d, c d + d) in each axis), in pixels of the coarse lattice (times d
+// for fine pixels, which Sample and Upsample apply). Holding this instead of
+// the full-resolution field takes 1/d^2 of the memory (e.g. 128 KB per gap of a
+// 512x512 series at d = 4); Sample() gives exactly the value RegisterSlices
+// writes at a fine pixel.
+struct CoarseDisplacement {
+  int64_t nx = 0, ny = 0;  // the fine lattice
+  int64_t mx = 0, my = 0;  // the coarse lattice
+  int downsample = 1;
+  std::vector<float> ux, uy;  // mx*my each, i fastest; coarse pixels
+
+  // u in fine pixels at fine pixel (x, y) (continuous): bilinear on the
+  // coarse lattice, clamped at its border, times d, as RegisterSlices
+  // upsamples.
+  void Sample(double x, double y, float& out_x, float& out_y) const;
+  // The full-resolution field (RegisterSlices' layout: ux plane, uy plane).
+  std::vector<float> Upsample() const;
+};
+
+// INVALID_ARGUMENT naming the first option out of range (see MorphOptions).
+absl::Status ValidateMorphOptions(const MorphOptions& options);
+
+// RegisterSlices without the upsampling: the same registration, the same
+// errors. With options.iterations == 0 the field is zero.
+absl::StatusOr<CoarseDisplacement> RegisterSlicesCoarse(
+    const float* fixed, const float* moving, int64_t nx, int64_t ny,
+    const MorphOptions& options);
+
 }  // namespace interslice
 
 #endif  // INTERSLICE_CORE_MORPH_MORPH_H_

@@ -3,12 +3,14 @@
 #include <sys/resource.h>
 
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <functional>
 #include <limits>
+#include <optional>
 #include <system_error>
 #include <vector>
 
@@ -19,7 +21,10 @@
 #include "core/dicom/series_reader.h"
 #include "core/dicom_out/dicom_writer.h"
 #include "core/dicom_out/encapsulated_stl.h"
+#include "core/dicom_out/preview_series.h"
+#include "core/morph/intensity_morph.h"
 #include "core/morph/morph.h"
+#include "core/preview/preview.h"
 #include "core/sdf/signed_distance.h"
 #include "core/slab/slab_deconvolution.h"
 #include "core/surface/surface.h"
@@ -104,6 +109,11 @@ std::string DerivationKey(const JobSpec& spec, const Grid& output_grid) {
       EnergyUnitsName(spec.solver.units), spec.solver.max_iterations,
       spec.solver.tolerance, spec.strict_spacing ? 1 : 0,
       spec.multiframe_volume);
+  // Linear is what every job did before the option existed: its key (and
+  // so its UIDs) stays as it was.
+  if (spec.intensity_method != "linear") {
+    absl::StrAppend(&key, " intensity=", spec.intensity_method);
+  }
   if (spec.roi.has_value()) {
     absl::StrAppend(&key, " roi=", absl::StrJoin(spec.roi->begin, ","), ",",
                     absl::StrJoin(spec.roi->end, ","));
@@ -175,6 +185,90 @@ absl::StatusOr<Volume<float>> DeconvolveSlabsForPlan(
   return std::move(result.slices);
 }
 
+// The outline's colour in the previews of an interpolation.
+constexpr std::array<uint8_t, 3> kOutlineColour = {60, 230, 60};
+
+std::string FormatMm(double v) { return absl::StrFormat("%.4g", v); }
+
+// The previews of the job (JobSpec::preview_formats): the scene of the
+// refined field on the output grid over the grey values as read, with the
+// original slices' true positions marked.
+absl::StatusOr<PreviewSet> RenderJobPreviews(
+    const JobSpec& spec, const DicomSeries& source, const Volume<float>& image,
+    const std::vector<double>& positions, const Volume<float>& field,
+    const JobReport& report, const ComputeContext& context) {
+  const Grid& grid = field.grid;
+  INTERSLICE_ASSIGN_OR_RETURN(const std::optional<float> padding,
+                              SourcePixelPadding(source));
+  PreviewScene scene;
+  scene.grid = grid;
+  const CancellationToken* cancel = context.cancel;
+  scene.intensity = [&image, &positions, &grid, padding,
+                     cancel](const VoxelBox& box) {
+    ComputeContext one_thread;
+    one_thread.threads = 1;
+    one_thread.cancel = cancel;
+    return ResampleSourceSlicesInBox(image, positions, grid, box, padding,
+                                     one_thread);
+  };
+  if (absl::StatusOr<std::optional<SourceWindow>> window =
+          SourceDisplayWindow(source);
+      window.ok() && window->has_value()) {
+    scene.window = DisplayWindow{(*window)->center, (*window)->width};
+  }
+  scene.window_must_show.push_back(spec.lower_threshold);
+  if (spec.upper_threshold.has_value()) {
+    scene.window_must_show.push_back(*spec.upper_threshold);
+  }
+  scene.field = &field;
+  const std::string units = source.modality == "CT" ? " HU" : "";
+  const std::string object =
+      spec.upper_threshold.has_value()
+          ? absl::StrFormat("%g to %g%s", spec.lower_threshold,
+                            *spec.upper_threshold, units)
+          : absl::StrFormat(">= %g%s", spec.lower_threshold, units);
+  scene.objects = {
+      {0, kOutlineColour, &field, absl::StrCat("surface ", object)}};
+  const Vec3 normal = grid.Axis(2);
+  const double first = grid.origin[0] * normal[0] + grid.origin[1] * normal[1] +
+                       grid.origin[2] * normal[2];
+  for (double p : positions) {
+    scene.marked_slices.push_back((p - first) / grid.spacing[2]);
+  }
+  scene.marked_slices_name = "original slices";
+  scene.legend.push_back(absl::StrFormat(
+      "interslice: INTERPOLATED between %d original slices (not acquired)",
+      positions.size()));
+  std::string how = absl::StrCat(
+      "method ", std::string(SolverMethodName(report.solver.method)),
+      ", threshold ", object, ", spacing ", FormatMm(grid.spacing[0]), " x ",
+      FormatMm(grid.spacing[1]), " x ", FormatMm(grid.spacing[2]), " mm");
+  if (spec.slab_deconvolution) absl::StrAppend(&how, ", slab deconvolution");
+  scene.legend.push_back(how);
+  if (report.gantry_tilt_degrees != 0) {
+    scene.legend.push_back(absl::StrFormat(
+        "gantry tilt of %.3g degrees corrected", report.gantry_tilt_degrees));
+  }
+  return RenderPreviews(scene, PreviewOptions(), context);
+}
+
+// The previews as pictures for the DICOM writer.
+std::vector<RgbPicture> Pictures(const std::vector<PreviewImage>& images) {
+  std::vector<RgbPicture> pictures;
+  for (const PreviewImage& image : images) {
+    RgbPicture p;
+    p.name = image.name;
+    p.width = image.width;
+    p.height = image.height;
+    p.rgb = &image.rgb;
+    p.description = image.description;
+    p.patient_orientation = image.patient_orientation;
+    if (image.plane_axis == 2) p.output_slice = image.plane_index;
+    pictures.push_back(p);
+  }
+  return pictures;
+}
+
 }  // namespace
 
 absl::Status ValidateJobSpec(const JobSpec& spec) {
@@ -208,6 +302,11 @@ absl::Status ValidateJobSpec(const JobSpec& spec) {
         absl::StrCat("unknown DICOM compression '", spec.dicom_compression,
                      "' (choose from none, rle)"));
   }
+  if (spec.intensity_method != "linear" && spec.intensity_method != "morph") {
+    return absl::InvalidArgumentError(
+        absl::StrCat("unknown intensity method '", spec.intensity_method,
+                     "' (choose from linear, morph)"));
+  }
   for (const std::string& f : spec.output_series) {
     if (f != "mask" && f != "distance" && f != "intensity") {
       return absl::InvalidArgumentError(
@@ -230,12 +329,19 @@ absl::Status ValidateJobSpec(const JobSpec& spec) {
   if (spec.max_output_voxels <= 0 || spec.max_input_voxels <= 0) {
     return absl::InvalidArgumentError("voxel limits must be positive");
   }
-  // The derived objects are numbered base + 1 ... base + 4, each a DICOM IS
+  // The derived objects are numbered base + 1 ... base + 6, each a DICOM IS
   // (signed 32-bit): refused now rather than after the whole job ran.
-  if (spec.series_number_base > std::numeric_limits<int>::max() - 4) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("series number base must be at most ",
-                     std::numeric_limits<int>::max() - 4));
+  if (spec.series_number_base >
+      std::numeric_limits<int>::max() - kPreviewSeriesNumberOffset) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "series number base must be at most ",
+        std::numeric_limits<int>::max() - kPreviewSeriesNumberOffset));
+  }
+  for (const std::string& f : spec.preview_formats) {
+    if (f != "png" && f != "dicom") {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "unknown preview format '", f, "' (choose from png, dicom)"));
+    }
   }
   // Likewise a malformed UID root.
   if (!spec.uid_root.empty()) {
@@ -260,6 +366,7 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
   const bool wants_distance_map = Contains(spec.output_series, "distance");
   const bool wants_intensity = Contains(spec.output_series, "intensity") ||
                                wants_seg || wants_distance_map;
+  const bool wants_previews = !spec.preview_formats.empty();
 
   // read
   Volume<float> image;
@@ -332,8 +439,9 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
       INTERSLICE_ASSIGN_OR_RETURN(
           slice_maps, ComputeSliceDistanceMaps(image, options, context));
     }
-    // Release the grey values early unless an intensity series needs them.
-    if (!wants_intensity) image = Volume<float>();
+    // Release the grey values early unless an intensity series or the
+    // previews need them.
+    if (!wants_intensity && !wants_previews) image = Volume<float>();
   }
 
   // stack
@@ -410,6 +518,24 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
   }
   INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
 
+  // preview: rendered now, written with the other outputs; a failure is a
+  // note, never the job's failure (JobSpec::preview_formats).
+  std::optional<PreviewSet> previews;
+  if (wants_previews) {
+    StageClock clock(report, context, "preview");
+    absl::StatusOr<PreviewSet> rendered = RenderJobPreviews(
+        spec, source, image, positions, field, report, context);
+    INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
+    if (rendered.ok()) {
+      report.preview_notes = rendered->notes;
+      previews = *std::move(rendered);
+    } else {
+      report.preview_notes.push_back(
+          absl::StrCat("previews skipped: ", rendered.status().message()));
+    }
+    if (!wants_intensity) image = Volume<float>();
+  }
+
   // write: every artifact is independent, so they are written in parallel
   // (gzip of the float volumes dominates this stage).
   {
@@ -446,9 +572,26 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
           PlanDerivedObjects(source, field.grid.size[2], dicom_options));
       INTERSLICE_ASSIGN_OR_RETURN(const std::optional<float> padding,
                                   SourcePixelPadding(source));
-      INTERSLICE_ASSIGN_OR_RETURN(
-          intensity,
-          ResampleSourceSlices(image, positions, field.grid, padding, context));
+      report.intensity_method = spec.intensity_method;
+      if (spec.intensity_method == "morph") {
+        dicom_options.intensity_interpolation =
+            DicomWriteOptions::IntensityInterpolation::kMorph;
+        INTERSLICE_ASSIGN_OR_RETURN(
+            MorphedIntensity morphed,
+            MorphIntensity(image, positions, field.grid, padding, nullptr,
+                           IntensityMorphOptions(), context));
+        intensity = std::move(morphed.values);
+        const IntensityMorphStatistics& stats = morphed.statistics;
+        report.intensity_gaps = stats.gaps;
+        report.intensity_gaps_not_registered = stats.gaps_not_registered;
+        report.intensity_fallback_fraction = stats.fallback_fraction;
+        report.intensity_mean_displacement_mm = stats.mean_displacement_mm;
+        report.intensity_max_displacement_mm = stats.max_displacement_mm;
+      } else {
+        INTERSLICE_ASSIGN_OR_RETURN(
+            intensity, ResampleSourceSlices(image, positions, field.grid,
+                                            padding, context));
+      }
       image = Volume<float>();
     }
 
@@ -458,6 +601,8 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
       std::filesystem::path path;
       std::function<absl::Status()> write;
       absl::Status status;
+      // A preview: its failure is a note in the report, not the job's.
+      bool optional = false;
     };
     std::vector<Task> tasks;
     for (const std::string& format : spec.volume_formats) {
@@ -516,6 +661,40 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
                              dicom_options, path.string());
                        }});
     }
+    std::vector<RgbPicture> pictures;
+    if (previews.has_value() && Contains(spec.preview_formats, "png")) {
+      const auto path = dir / "previews";
+      tasks.push_back(
+          {"previews",
+           path,
+           [&, path] {
+             return WritePreviewPngs(previews->images, path.string()).status();
+           },
+           {},
+           /*optional=*/true});
+    }
+    if (previews.has_value() && Contains(spec.preview_formats, "dicom")) {
+      pictures = Pictures(previews->images);
+      const auto path = dir / "previews-dicom";
+      tasks.push_back(
+          {"previews-dicom",
+           path,
+           [&, path]() -> absl::Status {
+             std::vector<std::string> names;
+             for (const RgbPicture& p : pictures) names.push_back(p.name);
+             // Derived from the intensity series when the job writes it.
+             const DerivedObjectIdentity* referenced =
+                 wants_intensity ? &objects.intensity : nullptr;
+             INTERSLICE_ASSIGN_OR_RETURN(
+                 const DerivedObjectIdentity identity,
+                 PlanPreviewSeries(source, names, dicom_options, referenced));
+             return WritePreviewSeries(source, field.grid, pictures, identity,
+                                       referenced, dicom_options, path.string())
+                 .status();
+           },
+           {},
+           /*optional=*/true});
+    }
     tbb::task_arena arena(context.threads > 0 ? context.threads
                                               : tbb::task_arena::automatic);
     arena.execute([&] {
@@ -523,6 +702,11 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
                         [&](size_t n) { tasks[n].status = tasks[n].write(); });
     });
     for (const Task& task : tasks) {
+      if (task.optional && !task.status.ok()) {
+        report.preview_notes.push_back(absl::StrCat(
+            "previews not written (", task.kind, "): ", task.status.message()));
+        continue;
+      }
       INTERSLICE_RETURN_IF_ERROR(task.status);
       report.artifacts.push_back(
           {task.kind, task.path.string(), PathSize(task.path)});
@@ -578,8 +762,20 @@ std::string JobReportToJson(const JobReport& report) {
         {"residual_before", report.slab_residual_before},
         {"residual_after", report.slab_residual_after}};
   }
+  if (!report.intensity_method.empty()) {
+    j["intensity"] = {
+        {"method", report.intensity_method},
+        {"gaps", report.intensity_gaps},
+        {"gaps_not_registered", report.intensity_gaps_not_registered},
+        {"fallback_fraction", report.intensity_fallback_fraction},
+        {"mean_displacement_mm", report.intensity_mean_displacement_mm},
+        {"max_displacement_mm", report.intensity_max_displacement_mm}};
+  }
   j["mesh"] = {{"vertices", report.mesh_vertices},
                {"triangles", report.mesh_triangles}};
+  bool previews = !report.preview_notes.empty();
+  for (const StageTiming& s : report.stages) previews |= s.stage == "preview";
+  if (previews) j["previews"] = {{"notes", report.preview_notes}};
   ordered_json artifacts = ordered_json::array();
   for (const Artifact& a : report.artifacts) {
     artifacts.push_back(
@@ -656,8 +852,26 @@ absl::StatusOr<JobReport> JobReportFromJson(const std::string& text) {
       report.slab_residual_before = slab.at("residual_before").get<double>();
       report.slab_residual_after = slab.at("residual_after").get<double>();
     }
+    // Absent in reports without an intensity series (and in older ones).
+    if (j.contains("intensity")) {
+      const json& intensity = j.at("intensity");
+      report.intensity_method = intensity.at("method").get<std::string>();
+      report.intensity_gaps = intensity.at("gaps").get<int>();
+      report.intensity_gaps_not_registered =
+          intensity.at("gaps_not_registered").get<int>();
+      report.intensity_fallback_fraction =
+          intensity.at("fallback_fraction").get<double>();
+      report.intensity_mean_displacement_mm =
+          intensity.at("mean_displacement_mm").get<double>();
+      report.intensity_max_displacement_mm =
+          intensity.at("max_displacement_mm").get<double>();
+    }
     report.mesh_vertices = j.at("mesh").at("vertices").get<int64_t>();
     report.mesh_triangles = j.at("mesh").at("triangles").get<int64_t>();
+    if (j.contains("previews")) {
+      report.preview_notes =
+          j.at("previews").at("notes").get<std::vector<std::string>>();
+    }
     for (const json& a : j.at("artifacts")) {
       report.artifacts.push_back({a.at("kind").get<std::string>(),
                                   a.at("path").get<std::string>(),

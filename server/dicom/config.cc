@@ -1,9 +1,11 @@
 #include "server/dicom/config.h"
 
+#include <arpa/inet.h>
 #include <yaml-cpp/yaml.h>
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <limits>
 #include <optional>
 #include <set>
@@ -532,7 +534,9 @@ absl::StatusOr<PeersConfig> LoadPeersConfig(const std::string& path) {
       return ctx.Error("",
                        absl::StrCat("expected a mapping, got ", KindName(p)));
     }
-    keys = CheckKeys(p, ctx, "", {"name", "ae_title", "host", "port", "tls"});
+    keys = CheckKeys(
+        p, ctx, "",
+        {"name", "ae_title", "host", "port", "tls", "allowed_sources"});
     if (!keys.ok()) return keys;
     DicomPeer peer;
     for (const char* required : {"name", "ae_title", "host"}) {
@@ -567,9 +571,77 @@ absl::StatusOr<PeersConfig> LoadPeersConfig(const std::string& path) {
       if (!tls.ok()) return tls.status();
       peer.tls = *tls;
     }
+    if (const YAML::Node sources = p["allowed_sources"]; sources) {
+      if (!sources.IsSequence() || sources.size() == 0) {
+        return ctx.Error("allowed_sources",
+                         "expected a non-empty list of addresses or networks "
+                         "(\"10.0.0.0/8\", \"192.168.1.7\")");
+      }
+      for (size_t k = 0; k < sources.size(); ++k) {
+        const std::string field = absl::StrCat("allowed_sources[", k, "]");
+        absl::StatusOr<std::string> text = GetString(sources[k], ctx, field);
+        if (!text.ok()) return text.status();
+        absl::StatusOr<SourceNetwork> network = ParseSourceNetwork(*text);
+        if (!network.ok()) return ctx.Error(field, network.status().message());
+        peer.allowed_sources.push_back(*std::move(network));
+      }
+    }
     config.peers.push_back(std::move(peer));
   }
   return config;
+}
+
+absl::StatusOr<SourceNetwork> ParseSourceNetwork(const std::string& text) {
+  const std::string trimmed(absl::StripAsciiWhitespace(text));
+  SourceNetwork network;
+  network.text = trimmed;
+  std::string address = trimmed;
+  int prefix = -1;
+  if (const size_t slash = trimmed.find('/'); slash != std::string::npos) {
+    address = trimmed.substr(0, slash);
+    if (!absl::SimpleAtoi(trimmed.substr(slash + 1), &prefix)) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("'", trimmed,
+                       "': the prefix length after / "
+                       "is not a number"));
+    }
+  }
+  if (inet_pton(AF_INET, address.c_str(), network.address) == 1) {
+    network.family = 4;
+    if (prefix < 0) prefix = 32;
+    if (prefix > 32) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("'", trimmed, "': an IPv4 prefix is at most 32 bits"));
+    }
+  } else if (inet_pton(AF_INET6, address.c_str(), network.address) == 1) {
+    network.family = 6;
+    if (prefix < 0) prefix = 128;
+    if (prefix > 128) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("'", trimmed, "': an IPv6 prefix is at most 128 bits"));
+    }
+  } else {
+    return absl::InvalidArgumentError(
+        absl::StrCat("'", trimmed,
+                     "' is not an IPv4 or IPv6 address (no host names: the "
+                     "listener checks the connection's address)"));
+  }
+  network.prefix_bits = prefix;
+  return network;
+}
+
+bool InNetwork(const std::string& address, const SourceNetwork& network) {
+  unsigned char bytes[16] = {};
+  const int family = network.family == 4 ? AF_INET : AF_INET6;
+  if (inet_pton(family, address.c_str(), bytes) != 1) return false;
+  const int full = network.prefix_bits / 8;
+  const int rest = network.prefix_bits % 8;
+  if (std::memcmp(bytes, network.address, static_cast<size_t>(full)) != 0) {
+    return false;
+  }
+  if (rest == 0) return true;
+  const unsigned char mask = static_cast<unsigned char>(0xFF << (8 - rest));
+  return (bytes[full] & mask) == (network.address[full] & mask);
 }
 
 absl::StatusOr<std::vector<DicomPeer>> LoadPeersFile(const std::string& path) {

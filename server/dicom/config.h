@@ -7,7 +7,11 @@
 //   accept_unknown_callers: false     # optional; default false
 //   peers:
 //     - {name: orthanc, ae_title: ORTHANC, host: 127.0.0.1, port: 4242,
-//        tls: false}                  # port default 104, tls default false
+//        tls: false,                  # port default 104, tls default false
+//        allowed_sources: [127.0.0.1, 10.20.0.0/16]}
+//                                     # optional: the addresses or networks
+//                                     # associations calling as this AE
+//                                     # title may come from
 //
 // Rules file:
 //   stable_seconds: 30                # optional, > 0 (fractions allowed)
@@ -54,6 +58,12 @@ struct PeersConfig {
 };
 
 absl::StatusOr<PeersConfig> LoadPeersConfig(const std::string& path);
+
+// "10.0.0.0/8", "192.168.1.7", "fd00::/8", "::1" (no names).
+absl::StatusOr<SourceNetwork> ParseSourceNetwork(const std::string& text);
+// Whether `address` (numeric IPv4 or IPv6 text, as the listener reports
+// peers) lies in `network`.
+bool InNetwork(const std::string& address, const SourceNetwork& network);
 // The peers only (the sender's view).
 absl::StatusOr<std::vector<DicomPeer>> LoadPeersFile(const std::string& path);
 

@@ -289,6 +289,9 @@ void DeliveryQueue::Loop() {
 void DeliveryQueue::Try(Entry& entry) {
   v1::Delivery& d = entry.state;
   d.set_attempts(d.attempts() + 1);
+  // Recorded before the try: a process killed during it (kill -9, power
+  // cut) still counts the attempt after its restart.
+  on_update_(entry.job_id, d);
   const auto peer =
       std::find_if(peers_.begin(), peers_.end(),
                    [&](const DicomPeer& p) { return p.name == d.peer(); });

@@ -19,7 +19,8 @@
 //   through `on_update` (the job manager stores it in the job's status and
 //   spool record, which is what makes deliveries survive a restart: at
 //   start-up the manager Add()s the PENDING ones again, keeping their
-//   attempts and next attempt time).
+//   attempts and next attempt time). A try is reported (attempts + 1, still
+//   PENDING) before it is made, so that a kill during it still counts it.
 // - Sending again is harmless: the derived objects have fixed SOP Instance
 //   UIDs, so a PACS replaces (or ignores) the copy.
 // - Metrics: instances sent and failed per peer name (no UIDs). Logs name

@@ -8,7 +8,9 @@
 #ifndef INTERSLICE_SERVER_DICOM_PEER_H_
 #define INTERSLICE_SERVER_DICOM_PEER_H_
 
+#include <cstdint>
 #include <string>
+#include <vector>
 
 namespace interslice::server::dicom {
 
@@ -20,12 +22,24 @@ struct DicomTlsFiles {
   std::string ca_certificates;  // PEM: CAs that sign peer certificates
 };
 
+// An address range: the first `prefix_bits` bits of `address` (IPv4 in the
+// first 4 bytes, family 4; IPv6, family 6), as "10.1.0.0/16" or "::1".
+struct SourceNetwork {
+  int family = 4;
+  unsigned char address[16] = {};
+  int prefix_bits = 32;
+  std::string text;  // as written, for messages
+};
+
 struct DicomPeer {
   std::string name;      // how rules and clients refer to it ("orthanc")
   std::string ae_title;  // 1-16 characters, no backslash
   std::string host;
   int port = 104;
   bool tls = false;  // associations with this peer use TLS
+  // Associations calling as this peer's AE title are accepted only from
+  // these addresses (empty: from anywhere).
+  std::vector<SourceNetwork> allowed_sources;
 };
 
 }  // namespace interslice::server::dicom

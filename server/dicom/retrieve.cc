@@ -13,6 +13,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "core/dicom/series_reader.h"
+#include "server/dicom/dataset_scan.h"
 #include "server/dicom/scu.h"
 #include "server/dicom/tls.h"
 // osconfig.h must precede every other DCMTK header.
@@ -62,67 +63,60 @@ class GetScu : public DcmSCU {
   using DcmSCU::useSecureConnection;
 
  protected:
-  OFCondition handleSTORERequest(const T_ASC_PresentationContextID /*presID*/,
-                                 DcmDataset* incoming, OFBool& continue_session,
-                                 Uint16& status) override {
-    std::unique_ptr<DcmDataset> dataset(incoming);  // ours to delete
-    continue_session = OFTrue;
-    if (!error.ok() || dataset == nullptr) {
-      status = STATUS_STORE_Refused_OutOfResources;
-      continue_session = OFFalse;
-      return EC_Normal;
-    }
-    if (instances + 1 > options_.max_instances) {
-      error = absl::ResourceExhaustedError(absl::StrCat(
-          "the series on the peer has more than ", options_.max_instances,
-          " instances (the server's limit per job)"));
-      status = STATUS_STORE_Refused_OutOfResources;
-      continue_session = OFFalse;
-      return EC_Normal;
-    }
+  // Bit-preserving (setStorageMode): DCMTK writes each sub-operation's data
+  // set to a file of our naming as it arrives (never the peer's SOP Instance
+  // UID as a name), unparsed; the file is scanned (dataset_scan.h) before
+  // anything in the server process parses it, so a hostile peer cannot
+  // exhaust a parser's stack (issue 22). DCMTK answers success when this
+  // returns a good condition, "cannot understand" (and ends the retrieval)
+  // otherwise; `error` says why.
+  OFCondition handleSTORERequestFile(T_ASC_PresentationContextID* presID,
+                                     const OFString& /*peer_named*/,
+                                     T_DIMSE_C_StoreRQ* request) override {
     const std::string name = absl::StrFormat("pacs-%06d.dcm", instances + 1);
     const std::string path = (fs::path(dest_) / name).string();
     const std::string temp = path + ".part";
-    DcmFileFormat file(dataset.get(), /*deepCopy=*/OFFalse);
-    // Kept in the transfer syntax it arrived in (the reader decodes it).
-    const E_TransferSyntax xfer = dataset->getOriginalXfer();
     OFCondition cond =
-        file.saveFile(OFFilename(temp.c_str()),
-                      xfer == EXS_Unknown ? EXS_LittleEndianExplicit : xfer);
-    // The file format borrowed the dataset; take it back before both die.
-    file.getAndRemoveDataset();
+        DcmSCU::handleSTORERequestFile(presID, OFString(temp.c_str()), request);
     std::error_code ec;
-    const int64_t size =
-        cond.good() ? static_cast<int64_t>(fs::file_size(temp, ec)) : 0;
-    if (cond.bad() || ec || !SyncPath(temp, false)) {
+    auto refuse = [&](absl::Status why) {
       fs::remove(temp, ec);
-      error = absl::InternalError(absl::StrCat(
-          "cannot write a retrieved instance to the job's folder: ",
-          cond.bad() ? cond.text() : "write/sync failed"));
-      status = STATUS_STORE_Refused_OutOfResources;
-      continue_session = OFFalse;
-      return EC_Normal;
+      if (error.ok()) error = std::move(why);
+      return makeOFCondition(OFM_dcmnet, 0x200, OF_error,
+                             "instance refused by the retriever");
+    };
+    if (!error.ok()) return refuse(error);
+    if (cond.bad()) {
+      fs::remove(temp, ec);
+      return cond;  // DCMTK deleted it; a network or disk error
+    }
+    if (instances + 1 > options_.max_instances) {
+      return refuse(absl::ResourceExhaustedError(absl::StrCat(
+          "the series on the peer has more than ", options_.max_instances,
+          " instances (the server's limit per job)")));
+    }
+    const int64_t size = static_cast<int64_t>(fs::file_size(temp, ec));
+    if (ec || !SyncPath(temp, false)) {
+      return refuse(absl::InternalError(
+          "cannot write a retrieved instance to the job's folder: write/sync "
+          "failed"));
     }
     if (bytes + size > options_.max_bytes) {
-      fs::remove(temp, ec);
-      error = absl::ResourceExhaustedError(absl::StrCat(
+      return refuse(absl::ResourceExhaustedError(absl::StrCat(
           "the series on the peer is larger than ", options_.max_bytes,
-          " bytes (the server's upload limit per job)"));
-      status = STATUS_STORE_Refused_OutOfResources;
-      continue_session = OFFalse;
-      return EC_Normal;
+          " bytes (the server's upload limit per job)")));
+    }
+    if (absl::StatusOr<DatasetScanResult> scan = ScanPart10File(temp);
+        !scan.ok()) {
+      return refuse(absl::InvalidArgumentError(absl::StrCat(
+          "an instance from the peer was refused: ", scan.status().message())));
     }
     fs::rename(temp, path, ec);
     if (ec) {
-      fs::remove(temp, ec);
-      error = absl::InternalError("cannot rename a retrieved instance");
-      status = STATUS_STORE_Refused_OutOfResources;
-      continue_session = OFFalse;
-      return EC_Normal;
+      return refuse(absl::InternalError("cannot rename a retrieved instance"));
     }
     ++instances;
     bytes += size;
-    status = STATUS_Success;
     return EC_Normal;
   }
 
@@ -144,6 +138,8 @@ absl::StatusOr<RetrieveResult> RetrieveSeries(
   GetScu scu(dest_dir, options);
   ConfigureScu(scu, peer, options.calling_ae_title, options.max_pdu_bytes,
                options.timeout_seconds);
+  scu.setStorageMode(DCMSCU_STORAGE_BIT_PRESERVING);
+  scu.setStorageDir(OFString(dest_dir.c_str()));
 
   OFList<OFString> model_syntaxes;
   model_syntaxes.push_back(UID_LittleEndianExplicitTransferSyntax);

@@ -5,8 +5,11 @@
 //
 // Contract:
 // - Every received instance is written to `dest_dir` (which must exist) as
-//   a Part 10 file under a temporary name, fsynced and renamed (the folder
-//   is fsynced at the end), so the job later reads only complete files.
+//   a Part 10 file under a temporary name as it arrives, byte for byte
+//   (nothing parses it on the way), checked by the bounded scan of
+//   dataset_scan.h, fsynced and renamed (the folder is fsynced at the end),
+//   so the job later reads only complete, well-formed files; one that fails
+//   the scan ends the retrieval (INVALID_ARGUMENT naming the peer's fault).
 // - Sub-operations are accepted for the CT/MR image storage SOP classes the
 //   reader handles (classic, enhanced, legacy converted) in every transfer
 //   syntax it decodes (DecodableTransferSyntaxes), so a peer never sends
@@ -14,7 +17,8 @@
 //   selection, as C-GET requires).
 // - Limits: more than `max_instances` instances or `max_bytes` bytes in all
 //   ends the retrieval with RESOURCE_EXHAUSTED (the instance that crosses
-//   the line is answered "out of resources" and not kept).
+//   the line is not kept; DCMTK's bit-preserving path answers it "cannot
+//   understand").
 // - Errors: UNAVAILABLE naming the peer when it cannot be reached or rejects
 //   the association; FAILED_PRECONDITION with the peer's status when it
 //   refuses the C-GET (e.g. unknown calling AE, no C-GET support);

@@ -19,6 +19,7 @@
 #include "dcmtk/dcmdata/dcuid.h"
 #include "nlohmann/json.hpp"
 #include "core/common/sha256.h"
+#include "server/dicom/dataset_scan.h"
 #include "server/job_manager.h"
 #include "server/log_safe.h"
 #include "server/metrics.h"
@@ -29,6 +30,11 @@ namespace interslice::server::dicom {
 namespace {
 
 namespace fs = std::filesystem;
+
+// In a series folder: one file per association storing into it right now,
+// and the record of why the series is incomplete.
+constexpr char kOpenPrefix[] = "open-";
+constexpr char kIncompleteFile[] = "incomplete.json";
 
 void FsyncPath(const std::string& path, bool directory) {
   const int fd =
@@ -269,10 +275,11 @@ absl::Status SeriesAssembler::Recover() {
     fs::remove_all(entry.path(), ec);
   }
   const auto now = std::chrono::steady_clock::now();
-  int recovered = 0;
+  int recovered = 0, interrupted = 0;
   for (const auto& entry :
        fs::directory_iterator(fs::path(options_.root) / "series", ec)) {
     if (!entry.is_directory()) continue;
+    const std::string key = entry.path().filename().string();
     Pending p;
     std::ifstream origin(entry.path() / "origin.json");
     nlohmann::json j = nlohmann::json::parse(origin, nullptr, false);
@@ -280,20 +287,38 @@ absl::Status SeriesAssembler::Recover() {
       p.called_ae = j.value("called_ae", "");
       p.calling_ae = j.value("calling_ae", "");
     }
+    bool was_open = false;
     for (const auto& f : fs::directory_iterator(entry.path(), ec)) {
+      const std::string name = f.path().filename().string();
+      if (absl::StartsWith(name, kOpenPrefix)) {
+        was_open = true;
+        fs::remove(f.path(), ec);
+        continue;
+      }
       if (f.path().extension() != ".dcm") continue;
       ++p.instances;
       p.bytes += static_cast<int64_t>(f.file_size(ec));
     }
-    if (p.instances == 0 || p.called_ae.empty()) {
+    if (p.called_ae.empty() || (p.instances == 0 && !was_open)) {
       fs::remove_all(entry.path(), ec);
       continue;
     }
-    // The stable wait starts over: the server cannot know how long it was
-    // down, and a sender may still be retrying.
+    // The waits start over: the server cannot know how long it was down,
+    // and a sender may still be retrying.
     p.last_arrival = now;
+    std::ifstream incomplete(entry.path() / kIncompleteFile);
+    nlohmann::json k = nlohmann::json::parse(incomplete, nullptr, false);
+    if (k.is_object()) p.incomplete = k.value("reason", "incomplete");
     if (spool_ != nullptr) spool_->Add(p.bytes);
-    pending_[entry.path().filename().string()] = p;
+    Pending& kept = pending_[key] = p;
+    if (was_open) {
+      // An association was storing into it when the server stopped: what
+      // it would have sent next never arrived.
+      MarkIncomplete(key, kept,
+                     "the server stopped while it was being received");
+      ++interrupted;
+    }
+    FsyncPath(entry.path().string(), true);
     ++recovered;
   }
   int64_t unmatched_bytes =
@@ -302,8 +327,9 @@ absl::Status SeriesAssembler::Recover() {
   if (recovered > 0) {
     spdlog::info(
         "dicom: {} series received before the restart wait for "
-        "completion again",
-        recovered);
+        "completion again ({} of them interrupted mid-association, now "
+        "incomplete)",
+        recovered, interrupted);
   }
   return absl::OkStatus();
 }
@@ -336,9 +362,116 @@ std::string SeriesAssembler::StagingPath() {
       .string();
 }
 
+uint64_t SeriesAssembler::BeginAssociation(const std::string& calling_ae,
+                                           const std::string& called_ae) {
+  std::lock_guard<std::mutex> lock(mu_);
+  const uint64_t id = ++next_association_;
+  Association& a = associations_[id];
+  a.calling_ae = calling_ae;
+  a.called_ae = called_ae;
+  return id;
+}
+
+void SeriesAssembler::MarkIncomplete(const std::string& key, Pending& p,
+                                     const std::string& reason) {
+  // Only an association that begins after this moment can complete it.
+  p.incomplete_after = next_association_;
+  p.release_requested = false;
+  if (p.incomplete.has_value()) return;
+  p.incomplete = reason;
+  nlohmann::json j = {{"reason", reason}, {"since_unix_ms", UnixMillisNow()}};
+  if (absl::Status s = WriteFileAtomically(
+          (fs::path(SeriesDir(key)) / kIncompleteFile).string(), j.dump());
+      !s.ok()) {
+    // Kept in memory all the same; after a restart the open-<n> files of
+    // an interrupted association mark it again.
+    spdlog::error("dicom: cannot record that a series is incomplete: {}",
+                  LogSafe(s.message()));
+  }
+  if (metrics_ != nullptr) metrics_->DicomEvent("series_incomplete");
+  spdlog::warn(
+      "dicom: a series from {} -> {} ({} instance(s)) is incomplete: {}; it "
+      "makes no job until a sender completes it, and is dropped if nothing "
+      "of it arrives for {} s",
+      LogSafe(p.calling_ae), LogSafe(p.called_ae), p.instances, reason,
+      options_.unmatched_retention_seconds);
+}
+
+std::string SeriesAssembler::NewestHeld(const std::string& key) const {
+  std::error_code ec;
+  std::string held;
+  for (const auto& entry :
+       fs::directory_iterator(fs::path(options_.root) / "unmatched", ec)) {
+    const std::string name = entry.path().filename().string();
+    // <key>-<ms>: names sort by time within a key while the times have as
+    // many digits, which holds for centuries.
+    if (absl::StartsWith(name, key + "-") && entry.path().string() > held) {
+      held = entry.path().string();
+    }
+  }
+  return held;
+}
+
+// Hard-links (or copies) the instances of `from` that `dir` lacks into it.
+// Returns the instances and bytes added.
+static std::pair<int64_t, int64_t> CarryInstances(const std::string& from,
+                                                  const std::string& dir) {
+  std::error_code ec;
+  int64_t n = 0, bytes = 0;
+  for (const auto& f : fs::directory_iterator(from, ec)) {
+    if (f.path().extension() != ".dcm") continue;
+    const fs::path target = fs::path(dir) / f.path().filename();
+    if (fs::exists(target, ec)) continue;  // a newer copy arrived
+    std::error_code link;
+    fs::create_hard_link(f.path(), target, link);
+    if (link) fs::copy_file(f.path(), target, link);
+    if (link) continue;
+    ++n;
+    bytes += static_cast<int64_t>(fs::file_size(target, ec));
+  }
+  return {n, bytes};
+}
+
+absl::Status SeriesAssembler::StartSeries(const std::string& key, Pending& p,
+                                          const Association& a) {
+  std::error_code ec;
+  const std::string dir = SeriesDir(key);
+  fs::create_directories(dir, ec);
+  if (ec) return absl::ResourceExhaustedError("cannot create a series folder");
+  nlohmann::json origin = {{"called_ae", a.called_ae},
+                           {"calling_ae", a.calling_ae}};
+  if (absl::Status s = WriteFileAtomically(
+          (fs::path(dir) / "origin.json").string(), origin.dump());
+      !s.ok()) {
+    fs::remove_all(dir, ec);
+    return absl::ResourceExhaustedError(s.message());
+  }
+  p.called_ae = a.called_ae;
+  p.calling_ae = a.calling_ae;
+  // The series was complete before (its job made, or no rule matched) and
+  // is held: the next job takes those instances too.
+  const std::string held = NewestHeld(key);
+  if (!held.empty()) {
+    const bool had_job = fs::exists(fs::path(held) / "job", ec);
+    const auto [n, bytes] = CarryInstances(held, dir);
+    p.instances += n;
+    p.bytes += bytes;
+    p.carried = n;
+    // Hard links share the held copy's blocks; counted again all the same,
+    // as a job's hard-linked upload is.
+    if (spool_ != nullptr) spool_->Add(bytes);
+    spdlog::info(
+        "dicom: a series from {} -> {} that {} received more instances; "
+        "it waits for completion again with its {} earlier instance(s)",
+        LogSafe(a.calling_ae), LogSafe(a.called_ae),
+        had_job ? "already made its job" : "was held without a job", n);
+  }
+  FsyncPath((fs::path(options_.root) / "series").string(), true);
+  return absl::OkStatus();
+}
+
 absl::StatusOr<std::string> SeriesAssembler::AddInstance(
-    const std::string& calling_ae, const std::string& called_ae,
-    const std::string& staged) {
+    uint64_t association, const std::string& staged, int64_t received_bytes) {
   std::error_code ec;
   struct Cleanup {
     const std::string& path;
@@ -347,15 +480,38 @@ absl::StatusOr<std::string> SeriesAssembler::AddInstance(
       if (!keep) ::unlink(path.c_str());
     }
   } cleanup{staged};
+  // Refused before its series is known: every series of the association
+  // misses an instance.
+  auto refuse_unknown = [&](absl::Status status) -> absl::Status {
+    InstanceRefused(association);
+    return status;
+  };
   const int64_t size = static_cast<int64_t>(fs::file_size(staged, ec));
-  if (ec) return absl::InternalError("a received instance vanished");
+  if (ec) {
+    return refuse_unknown(absl::InternalError("a received instance vanished"));
+  }
+  // The meta group is ours (DCMTK wrote it); what follows is as received.
+  absl::StatusOr<Part10Meta> meta = ReadPart10Meta(staged);
+  if (!meta.ok()) return refuse_unknown(meta.status());
+  if (received_bytes >= 0 && size - meta->dataset_offset != received_bytes) {
+    // The writer's buffered tail was lost (a full disk shows at close).
+    return refuse_unknown(absl::ResourceExhaustedError(
+        "the disk is full: a received instance could not be written whole"));
+  }
+  // Bounded first: DCMTK's parser below reads only what passed.
+  if (absl::StatusOr<DatasetScanResult> scan =
+          ScanPart10File(staged, options_.scan_limits);
+      !scan.ok()) {
+    return refuse_unknown(scan.status());
+  }
   InstanceIds ids;
   {
     DcmFileFormat ff;
     if (ff.loadFileUntilTag(staged.c_str(), EXS_Unknown, EGL_noChange,
                             DCM_MaxReadLength, ERM_autoDetect, DCM_PixelData)
             .bad()) {
-      return absl::InvalidArgumentError("the instance is not readable DICOM");
+      return refuse_unknown(
+          absl::InvalidArgumentError("the instance is not readable DICOM"));
     }
     DcmDataset* ds = ff.getDataset();
     ids.study_uid = GetString(ds, DCM_StudyInstanceUID);
@@ -363,91 +519,154 @@ absl::StatusOr<std::string> SeriesAssembler::AddInstance(
     ids.sop_instance_uid = GetString(ds, DCM_SOPInstanceUID);
   }
   if (ids.series_uid.empty() || ids.sop_instance_uid.empty()) {
-    return absl::InvalidArgumentError(
-        "the instance has no Series or SOP Instance UID");
+    return refuse_unknown(absl::InvalidArgumentError(
+        "the instance has no Series or SOP Instance UID"));
+  }
+  std::string called_ae;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    auto a = associations_.find(association);
+    if (a == associations_.end()) {
+      return absl::InternalError("an instance outside an association");
+    }
+    called_ae = a->second.called_ae;
   }
   const std::string key = Key(called_ae, ids.study_uid, ids.series_uid);
   const std::string dir = SeriesDir(key);
   const std::string target =
       (fs::path(dir) / InstanceName(ids.sop_instance_uid)).string();
-  if (absl::Status s = FsyncFile(staged); !s.ok()) return s;
+  absl::Status synced = FsyncFile(staged);
 
   std::lock_guard<std::mutex> lock(mu_);
+  Association& a = associations_[association];
   auto it = pending_.find(key);
-  const bool fresh = it == pending_.end();
-  Pending& p = fresh ? pending_[key] : it->second;
-  auto forget_fresh = [&] {
-    if (fresh) pending_.erase(key);
+  // A refusal of an instance whose series is known: the series misses it.
+  auto refuse = [&](absl::Status status) -> absl::Status {
+    a.refused.insert(key);
+    auto p = pending_.find(key);
+    if (p != pending_.end()) {
+      MarkIncomplete(
+          key, p->second,
+          absl::StrCat("an instance was refused (", status.message(), ")"));
+    }
+    return status;
   };
+  if (!synced.ok()) return refuse(synced);
+  const bool fresh = it == pending_.end();
+  Pending candidate;
+  Pending& p = fresh ? candidate : it->second;
   const bool replaces = !fresh && fs::exists(target, ec);
   if (!replaces && p.instances + 1 > options_.max_instances_per_series) {
-    forget_fresh();
-    return absl::ResourceExhaustedError(absl::StrCat(
-        "the series already holds ", p.instances, " instances, the limit"));
+    return refuse(absl::ResourceExhaustedError(absl::StrCat(
+        "the series already holds ", p.instances, " instances, the limit")));
   }
   if (p.bytes + size > options_.max_bytes_per_series) {
-    forget_fresh();
-    return absl::ResourceExhaustedError(
-        "the series would exceed the byte limit per series");
+    return refuse(absl::ResourceExhaustedError(
+        "the series would exceed the byte limit per series"));
   }
   if (spool_ != nullptr && !spool_->TryReserve(size)) {
-    forget_fresh();
-    return absl::ResourceExhaustedError("the spool quota is reached");
+    return refuse(absl::ResourceExhaustedError("the spool quota is reached"));
   }
+  Pending* series = &p;
   if (fresh) {
-    fs::create_directories(dir, ec);
-    nlohmann::json origin = {{"called_ae", called_ae},
-                             {"calling_ae", calling_ae}};
-    absl::Status s =
-        ec ? absl::ResourceExhaustedError("cannot create a series folder")
-           : WriteFileAtomically((fs::path(dir) / "origin.json").string(),
-                                 origin.dump());
-    if (!s.ok()) {
+    if (absl::Status s = StartSeries(key, candidate, a); !s.ok()) {
       if (spool_ != nullptr) spool_->Release(size);
-      fs::remove_all(dir, ec);
-      forget_fresh();
-      return absl::ResourceExhaustedError(s.message());
+      return refuse(s);
     }
-    FsyncPath((fs::path(options_.root) / "series").string(), true);
-    p.called_ae = called_ae;
-    if (submitted_.count(key) > 0) {
-      spdlog::info(
-          "dicom: a series from {} -> {} grew after its job was made; its "
-          "new instances will make a new job when complete",
-          LogSafe(calling_ae), LogSafe(called_ae));
+    series = &(pending_[key] = candidate);
+  }
+  // While the association stores into the series, a file says so: a
+  // restart then knows the transfer was interrupted.
+  const bool first_of_association = series->open.count(association) == 0;
+  if (first_of_association) {
+    const std::string marker =
+        (fs::path(dir) / absl::StrCat(kOpenPrefix, association)).string();
+    const int fd = ::open(marker.c_str(), O_CREAT | O_WRONLY | O_CLOEXEC, 0600);
+    if (fd < 0) {
+      if (spool_ != nullptr) spool_->Release(size);
+      return refuse(absl::ResourceExhaustedError(
+          "the disk is full: cannot record a transfer in progress"));
     }
+    ::close(fd);
+    series->open.insert(association);
+    a.series.insert(key);
   }
   int64_t replaced_bytes = 0;
-  if (replaces)
+  const bool replaced = fs::exists(target, ec);
+  if (replaced) {
     replaced_bytes = static_cast<int64_t>(fs::file_size(target, ec));
+  }
   if (::rename(staged.c_str(), target.c_str()) != 0) {
     if (spool_ != nullptr) spool_->Release(size);
-    if (fresh) {
-      fs::remove_all(dir, ec);
-      forget_fresh();
-    }
-    return absl::ResourceExhaustedError("cannot keep a received instance");
+    return refuse(absl::ResourceExhaustedError(
+        "the disk is full: cannot keep a received instance"));
   }
   cleanup.keep = true;
   FsyncPath(dir, true);
-  if (replaces && spool_ != nullptr) spool_->Release(replaced_bytes);
-  if (!replaces) ++p.instances;
-  p.bytes += size - replaced_bytes;
-  p.calling_ae = calling_ae;
-  p.last_arrival = std::chrono::steady_clock::now();
+  if (replaced && spool_ != nullptr) spool_->Release(replaced_bytes);
+  if (!replaced) ++series->instances;
+  series->bytes += size - replaced_bytes;
+  series->last_arrival = std::chrono::steady_clock::now();
+  series->release_requested = false;
   return key;
 }
 
-void SeriesAssembler::AssociationReleased(
-    const std::set<std::string>& series_keys) {
+void SeriesAssembler::InstanceRefused(uint64_t association) {
+  std::lock_guard<std::mutex> lock(mu_);
+  auto a = associations_.find(association);
+  if (a == associations_.end()) return;
+  a->second.tainted = true;
+  for (const std::string& key : a->second.series) {
+    auto p = pending_.find(key);
+    if (p != pending_.end()) {
+      MarkIncomplete(key, p->second,
+                     "its association had an instance refused that could not "
+                     "be read");
+    }
+  }
+}
+
+void SeriesAssembler::EndAssociation(uint64_t association, bool released) {
   bool any = false;
   {
     std::lock_guard<std::mutex> lock(mu_);
-    for (const std::string& key : series_keys) {
-      auto it = pending_.find(key);
-      if (it == pending_.end()) continue;
-      it->second.release_requested = true;
-      any = true;
+    auto it = associations_.find(association);
+    if (it == associations_.end()) return;
+    const Association a = std::move(it->second);
+    associations_.erase(it);
+    std::set<std::string> keys = a.series;
+    keys.insert(a.refused.begin(), a.refused.end());
+    for (const std::string& key : keys) {
+      auto pit = pending_.find(key);
+      if (pit == pending_.end()) continue;
+      Pending& p = pit->second;
+      const std::string dir = SeriesDir(key);
+      if (p.open.erase(association) > 0) {
+        std::error_code ec;
+        fs::remove(fs::path(dir) / absl::StrCat(kOpenPrefix, association), ec);
+      }
+      const bool clean = released && !a.tainted && a.refused.count(key) == 0;
+      if (!clean) {
+        MarkIncomplete(key, p,
+                       released ? "an instance of it was refused"
+                                : "its association ended without a normal "
+                                  "release (aborted, cut off or lost)");
+      } else if (p.incomplete.has_value() && association > p.incomplete_after) {
+        // A transfer that began after the series became incomplete stored
+        // into it and ended well: the sender completed it.
+        std::error_code ec;
+        fs::remove(fs::path(dir) / kIncompleteFile, ec);
+        spdlog::info(
+            "dicom: a series from {} -> {} ({} instance(s)) is complete again "
+            "after a later transfer of it",
+            LogSafe(p.calling_ae), LogSafe(p.called_ae), p.instances);
+        p.incomplete.reset();
+      }
+      if (clean && p.open.empty() && !p.incomplete.has_value()) {
+        p.release_requested = true;
+        any = true;
+      }
+      FsyncPath(dir, true);
     }
   }
   if (any) cv_.notify_all();
@@ -464,20 +683,20 @@ int SeriesAssembler::CompleteStableSeries() {
     std::lock_guard<std::mutex> lock(mu_);
     for (auto it = pending_.begin(); it != pending_.end();) {
       Pending& p = it->second;
-      bool done = now - p.last_arrival >= stable;
-      if (!done && p.release_requested) {
-        // Only a rule with complete_on_release cuts the wait short; which
-        // rule matches is known from the files, read outside the lock below
-        // (a cheap header scan), so the candidate is checked there.
-        done = true;
-      }
-      if (!done) {
+      // Never while a transfer into it is open, never when incomplete.
+      if (!p.open.empty() || p.incomplete.has_value()) {
         ++it;
         continue;
       }
-      if (p.release_requested && now - p.last_arrival < stable) {
-        // Decide on the rule now: the files are all there (the association
-        // released), reading their headers is cheap.
+      const bool stable_over = now - p.last_arrival >= stable;
+      if (!stable_over && !p.release_requested) {
+        ++it;
+        continue;
+      }
+      if (!stable_over) {
+        // Released normally before the stable wait ended: only a rule with
+        // complete_on_release cuts the wait short. The files are all there
+        // (and passed the bounded scan), so their headers are read now.
         SeriesFacts facts = ReadSeriesFacts(SeriesDir(it->first));
         facts.calling_ae = p.calling_ae;
         facts.called_ae = p.called_ae;
@@ -489,7 +708,7 @@ int SeriesAssembler::CompleteStableSeries() {
         }
       }
       // Out of series/, so that a new instance of the series starts a new
-      // folder (and later a new job) instead of joining this one.
+      // folder instead of joining this one while its job is made.
       const std::string dir = (fs::path(options_.root) / "completing" /
                                absl::StrCat(it->first, "-", ++next_completion_))
                                   .string();
@@ -500,7 +719,6 @@ int SeriesAssembler::CompleteStableSeries() {
         ++it;
         continue;
       }
-      submitted_.insert(it->first);
       ready.emplace_back(it->first, it->second);
       dirs.push_back(dir);
       it = pending_.erase(it);
@@ -514,7 +732,6 @@ int SeriesAssembler::CompleteStableSeries() {
 
 void SeriesAssembler::Complete(const std::string& key, const Pending& p,
                                const std::string& dir) {
-  std::error_code ec;
   if (metrics_ != nullptr) metrics_->DicomEvent("series_completed");
   SeriesFacts facts = ReadSeriesFacts(dir);
   facts.calling_ae = p.calling_ae;
@@ -553,23 +770,18 @@ void SeriesAssembler::Complete(const std::string& key, const Pending& p,
         LogSafe(rule->name), from, LogSafe(job.status().message()));
     return;
   }
-  const bool fill_rules =
-      std::any_of(rules_.rules.begin(), rules_.rules.end(),
-                  [](const Rule& r) { return r.job.has_fill(); });
-  if (fill_rules) {
-    // A segmentation drawn on this series may follow: held (with the
-    // unmatched series, for the retention time), counted in the quota
-    // again although the job's copy shares its disk blocks.
-    if (spool_ != nullptr) spool_->Add(p.bytes);
-    KeepUnmatched(key, dir);
-  } else {
-    fs::remove_all(dir, ec);
-  }
+  // Held for the retention time: a segmentation drawn on it may follow,
+  // and so may more instances of it (the next job then takes all of them).
+  // Counted in the quota again although the job's copy shares its blocks.
+  if (spool_ != nullptr) spool_->Add(p.bytes);
+  KeepUnmatched(key, dir, *job);
   if (metrics_ != nullptr) metrics_->DicomEvent("jobs_created");
   spdlog::info(
       "dicom: job={} made by rule {} for a series from {} ({} "
-      "instance(s))",
-      *job, LogSafe(rule->name), from, p.instances);
+      "instance(s){})",
+      *job, LogSafe(rule->name), from, p.instances,
+      p.carried > 0 ? absl::StrCat(", ", p.carried, " of them held from before")
+                    : "");
 }
 
 void SeriesAssembler::PutBack(const std::string& key, const Pending& p,
@@ -583,29 +795,94 @@ void SeriesAssembler::PutBack(const std::string& key, const Pending& p,
     again.release_requested = false;
     pending_[key] = again;
   } else {
-    // New instances arrived meanwhile: merge ours into their folder.
+    // New instances arrived meanwhile: merge ours into their folder (theirs
+    // are newer where both have an instance).
     for (const auto& f : fs::directory_iterator(dir, ec)) {
       if (f.path().extension() != ".dcm") continue;
-      fs::rename(f.path(), fs::path(back) / f.path().filename(), ec);
+      const fs::path target = fs::path(back) / f.path().filename();
+      if (fs::exists(target, ec)) continue;
+      fs::rename(f.path(), target, ec);
     }
     fs::remove_all(dir, ec);
     auto it = pending_.find(key);
     if (it != pending_.end()) {
-      it->second.instances += p.instances;
-      it->second.bytes += p.bytes;
+      int64_t n = 0, bytes = 0;
+      for (const auto& f : fs::directory_iterator(back, ec)) {
+        if (f.path().extension() != ".dcm") continue;
+        ++n;
+        bytes += static_cast<int64_t>(f.file_size(ec));
+      }
+      // Counted so far: theirs and ours; now: what the folder holds.
+      if (spool_ != nullptr) spool_->Add(bytes - it->second.bytes - p.bytes);
+      it->second.instances = n;
+      it->second.bytes = bytes;
       if (!it->second.waiting_since) it->second.waiting_since = p.waiting_since;
     }
   }
-  submitted_.erase(key);
 }
 
 void SeriesAssembler::KeepUnmatched(const std::string& key,
-                                    const std::string& dir) {
+                                    const std::string& dir,
+                                    const std::string& job_id) {
   std::error_code ec;
+  if (!job_id.empty()) {
+    std::ofstream(fs::path(dir) / "job") << job_id << "\n";
+  }
+  const std::string previous = NewestHeld(key);
   const std::string kept = (fs::path(options_.root) / "unmatched" /
                             absl::StrCat(key, "-", UnixMillisNow()))
                                .string();
   fs::rename(dir, kept, ec);
+  if (ec) return;
+  // The older copy is a subset of this one (its instances were carried
+  // over when the series grew): no longer needed.
+  if (!previous.empty() && previous != kept) {
+    const int64_t bytes = TreeSize(previous);
+    fs::remove_all(previous, ec);
+    if (spool_ != nullptr) spool_->Release(bytes);
+  }
+  // Instances that arrived while this copy was being completed form a new
+  // series already: it takes the completed ones too.
+  std::lock_guard<std::mutex> lock(mu_);
+  auto it = pending_.find(key);
+  if (it != pending_.end()) {
+    const auto [n, bytes] = CarryInstances(kept, SeriesDir(key));
+    it->second.instances += n;
+    it->second.bytes += bytes;
+    it->second.carried += n;
+    if (spool_ != nullptr) spool_->Add(bytes);
+  }
+}
+
+void SeriesAssembler::DropStaleIncomplete() {
+  const auto now = std::chrono::steady_clock::now();
+  const auto wait =
+      std::chrono::duration<double>(options_.unmatched_retention_seconds);
+  std::vector<std::pair<std::string, Pending>> dropped;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    for (auto it = pending_.begin(); it != pending_.end();) {
+      const Pending& p = it->second;
+      if (!p.incomplete.has_value() || !p.open.empty() ||
+          now - p.last_arrival < wait) {
+        ++it;
+        continue;
+      }
+      std::error_code ec;
+      fs::remove_all(SeriesDir(it->first), ec);
+      if (spool_ != nullptr) spool_->Release(p.bytes);
+      dropped.emplace_back(it->first, p);
+      it = pending_.erase(it);
+    }
+  }
+  for (const auto& [key, p] : dropped) {
+    if (metrics_ != nullptr) metrics_->DicomEvent("series_incomplete_dropped");
+    spdlog::warn(
+        "dicom: an incomplete series from {} -> {} ({} instance(s); {}) "
+        "received nothing for {} s and was dropped; no job was made of it",
+        LogSafe(p.calling_ae), LogSafe(p.called_ae), p.instances,
+        p.incomplete.value_or(""), options_.unmatched_retention_seconds);
+  }
 }
 
 void SeriesAssembler::CompleteFill(const std::string& key, const Pending& p,
@@ -721,9 +998,10 @@ void SeriesAssembler::Loop() {
     lock.unlock();
     CompleteStableSeries();
     const auto now = std::chrono::steady_clock::now();
-    if (now - last_sweep_ > std::chrono::seconds(10)) {
+    if (now - last_sweep_ > std::chrono::seconds(1)) {
       last_sweep_ = now;
       SweepUnmatched();
+      DropStaleIncomplete();
     }
     lock.lock();
   }

@@ -9,21 +9,45 @@
 //                           (back to series/ after a restart)
 //   series/<key>/           one per series being received: the instances
 //                           (<sha256 of SOP Instance UID>.dcm: a re-sent
-//                           instance replaces itself) and origin.json
-//   unmatched/<key>-<time>/ series no rule matched, kept for the retention
-//                           time
+//                           instance replaces itself), origin.json, one
+//                           open-<n> file per association storing into it
+//                           right now, and incomplete.json once it is
+//                           incomplete (below)
+//   unmatched/<key>-<time>/ complete series held for the retention time:
+//                           those no rule matched, and those whose job was
+//                           made (a `job` file names the job)
 // <key> is the SHA-256 of called AE, study and series UID (hex), so that no
 // UID appears in a path or log line. Everything under series/ survives a
-// restart: Open() takes it up again, and its stable wait starts over.
+// restart: Open() takes it up again, and its waits start over.
 //
-// Completeness: a series is complete when no instance of it arrived for the
-// rule set's stable_seconds, or as soon as the association that sent it
-// releases normally when the rule that matches it has complete_on_release.
-// Then the first matching rule's job is submitted (files hard-linked into
-// the job's upload folder) and the series folder is removed; instances of
-// the same series that arrive after that form a new series folder and a new
-// job later (logged), never touching the running one. Instances of an
-// aborted association stay with their series.
+// Completeness (issue 22: a broken transfer must never become a result):
+// - Every instance arrives within an association (BeginAssociation ..
+//   EndAssociation). An association that ends any other way than a normal
+//   release (the peer aborts or vanishes, a timeout or protocol violation
+//   cuts it, the server stops or dies) leaves every series it stored into
+//   INCOMPLETE; so does a refused instance of the series (limits, disk
+//   full), and a refused instance whose series could not be read (not
+//   DICOM, disk full while it arrived) taints every series its association
+//   stored into. A series with an open-<n> file at start-up was being
+//   received when the server stopped: incomplete.
+// - An incomplete series never makes a job. It waits for its missing part:
+//   an association that begins after it became incomplete, stores into it
+//   and is released normally with nothing refused makes it complete again
+//   (a sender's retry of the whole series, or of what was missing). If no
+//   instance of it arrives for unmatched_retention_seconds it is dropped:
+//   logged (AE titles, instance count, reason; no patient data), counted
+//   (series_incomplete_dropped) and deleted.
+// - A complete series makes its job when no association that stored into
+//   it is still open and either no instance arrived for the rule set's
+//   stable_seconds, or (rule complete_on_release) the last such
+//   association was released normally.
+// - After its job is made the series is held in unmatched/ for the
+//   retention time. Instances of it that arrive later join the held ones
+//   (hard links) in a new series folder, so that the next job is made on
+//   the whole series, never on the late instances alone; its results
+//   replace the earlier job's as far as the derived UIDs allow (see
+//   docs/dicom-node.md). Past the retention time a late instance starts a
+//   series of its own.
 //
 // Segmentations (issue 13): a SEG or RTSTRUCT series is matched against the
 // fill rules only (config.h). When one matches, the series its first
@@ -31,19 +55,18 @@
 // ReferencedFrameOfReferenceSequence > RTReferencedStudySequence >
 // RTReferencedSeriesSequence), received by the same called AE in the same
 // study, must be held in the spool:
-//   - in unmatched/ (complete and no rule matched it, or, when the rule set
-//     has fill rules, complete and its job made: such series are kept there
-//     too; the newest copy): the fill job is made on it at once (its files
-//     hard-linked; the folder stays for other segmentations until its
-//     retention ends);
+//   - in unmatched/ (the newest copy): the fill job is made on it at once
+//     (its files hard-linked; the folder stays for other segmentations
+//     until its retention ends);
 //   - still in series/ (not complete yet), or not received (yet): the
 //     segmentation waits in series/, tried again after every stable wait,
 //     until it has waited unmatched_retention_seconds; then it goes to
 //     unmatched/ (logged). The wait starts over after a restart.
-// Without fill rules, a series whose job was made is deleted at once.
 //
-// Logs name AE titles, rule names, counts and the rule set file, never
-// patient data or UIDs.
+// Received files are read with DCMTK only after the bounded scan of
+// dataset_scan.h passed (at AddInstance), so no instance can exhaust the
+// parser's stack here. Logs name AE titles, rule names, counts and the rule
+// set file, never patient data or UIDs.
 #ifndef INTERSLICE_SERVER_DICOM_SERIES_ASSEMBLER_H_
 #define INTERSLICE_SERVER_DICOM_SERIES_ASSEMBLER_H_
 
@@ -63,6 +86,7 @@
 #include "absl/status/statusor.h"
 #include "interslice/v1/interslice.pb.h"
 #include "server/dicom/config.h"
+#include "server/dicom/dataset_scan.h"
 
 namespace interslice::server {
 class Spool;
@@ -77,6 +101,8 @@ struct AssemblerOptions {
   int64_t max_bytes_per_series = int64_t{4} << 30;
   // Unmatched series are deleted this long after they completed.
   double unmatched_retention_seconds = 24 * 3600;
+  // The bounded scan every received instance passes before it is parsed.
+  DatasetScanLimits scan_limits;
   // How often the stable wait is checked (tests shorten the rule set's
   // stable_seconds, not this).
   std::chrono::milliseconds poll_interval{200};
@@ -120,19 +146,32 @@ class SeriesAssembler {
   // A fresh path under incoming/ for an instance about to be received.
   std::string StagingPath();
 
-  // Blocking. Takes the received file at `staged` (deleted in every case)
-  // into its series: fsync, rename, fsync of the folder, before returning
-  // OK (then, and only then, the C-STORE may answer success).
-  // RESOURCE_EXHAUSTED: the spool quota or a per-series limit is reached;
-  // INVALID_ARGUMENT: the header lacks study/series/SOP instance UIDs or is
-  // not DICOM. Returns the series key.
-  absl::StatusOr<std::string> AddInstance(const std::string& calling_ae,
-                                          const std::string& called_ae,
-                                          const std::string& staged);
+  // An association was accepted: its id for the calls below.
+  uint64_t BeginAssociation(const std::string& calling_ae,
+                            const std::string& called_ae);
 
-  // An association released normally after storing into `series_keys`:
-  // complete those whose matching rule has complete_on_release.
-  void AssociationReleased(const std::set<std::string>& series_keys);
+  // Blocking. Takes the received file at `staged` (deleted in every case)
+  // into its series: the bounded scan (dataset_scan.h), the header's UIDs,
+  // fsync, rename, fsync of the folder, before returning OK (then, and only
+  // then, the C-STORE may answer success). `received_bytes`: the data set's
+  // bytes as they arrived (the listener counts them; -1: unknown); a file
+  // holding fewer was cut short by a full disk.
+  // RESOURCE_EXHAUSTED: the spool quota or a per-series limit is reached,
+  // or the disk is full (the series is then incomplete); INVALID_ARGUMENT:
+  // the data set is not well-formed within the scan's limits, or the header
+  // lacks the series or SOP instance UID. Every refusal marks what the
+  // instance belonged to incomplete: its series, or (series unknown) every
+  // series of the association. Returns the series key.
+  absl::StatusOr<std::string> AddInstance(uint64_t association,
+                                          const std::string& staged,
+                                          int64_t received_bytes = -1);
+
+  // An instance of `association` was refused before its series was known:
+  // every series the association stores into is incomplete.
+  void InstanceRefused(uint64_t association);
+
+  // The association ended: released normally, or not (see above).
+  void EndAssociation(uint64_t association, bool released);
 
   // Blocking: complete every series whose stable wait is over now (the
   // background thread calls this; tests may too). Returns how many were
@@ -143,6 +182,11 @@ class SeriesAssembler {
   // background thread calls this every 10 s; tests may too).
   void SweepUnmatched();
 
+  // Blocking: drops incomplete series that received nothing for the
+  // retention time (the background thread calls this every second; tests
+  // may too).
+  void DropStaleIncomplete();
+
   int pending_series();
 
  private:
@@ -151,10 +195,27 @@ class SeriesAssembler {
     int64_t instances = 0;
     int64_t bytes = 0;
     std::chrono::steady_clock::time_point last_arrival;
+    // Associations storing into it now.
+    std::set<uint64_t> open;
+    // The last association to end was released normally with nothing
+    // refused (complete_on_release may complete it).
     bool release_requested = false;
+    // Incomplete (see above): why, and the newest association id at that
+    // moment (only a later association can make it complete again).
+    std::optional<std::string> incomplete;
+    uint64_t incomplete_after = 0;
+    // Instances taken over from the held copy of the series (its job was
+    // made or no rule matched it) when it grew later.
+    int64_t carried = 0;
     // A segmentation waiting for its referenced series: since when (the
     // first try); unset otherwise.
     std::optional<std::chrono::steady_clock::time_point> waiting_since;
+  };
+  struct Association {
+    std::string calling_ae, called_ae;
+    std::set<std::string> series;   // keys stored into
+    std::set<std::string> refused;  // keys of which an instance was refused
+    bool tainted = false;           // an instance of unknown series refused
   };
 
   SeriesAssembler(const AssemblerOptions& options, RuleSet rules, Spool* spool,
@@ -172,9 +233,20 @@ class SeriesAssembler {
   // with instances that arrived meanwhile).
   void PutBack(const std::string& key, const Pending& pending,
                const std::string& dir);
-  // Moves a completed folder to unmatched/ (kept for the retention time).
-  void KeepUnmatched(const std::string& key, const std::string& dir);
+  // Moves a completed folder to unmatched/ (kept for the retention time),
+  // with a `job` file naming its job when one was made; an older held copy
+  // of the same series is deleted.
+  void KeepUnmatched(const std::string& key, const std::string& dir,
+                     const std::string& job_id = "");
+  // With mu_ held: marks the series incomplete (persisted) unless it is.
+  void MarkIncomplete(const std::string& key, Pending& pending,
+                      const std::string& reason);
+  // With mu_ held: the first instance of a series that is not pending:
+  // creates its folder, with the held copy's instances when there is one.
+  absl::Status StartSeries(const std::string& key, Pending& pending,
+                           const Association& association);
   std::string SeriesDir(const std::string& key) const;
+  std::string NewestHeld(const std::string& key) const;
 
   const AssemblerOptions options_;
   const RuleSet rules_;
@@ -185,9 +257,8 @@ class SeriesAssembler {
   std::mutex mu_;
   std::condition_variable cv_;
   std::map<std::string, Pending> pending_;
-  // Series whose job was made: a later instance of one starts a new series
-  // (logged as such).
-  std::set<std::string> submitted_;
+  std::map<uint64_t, Association> associations_;
+  uint64_t next_association_ = 0;
   uint64_t next_staging_ = 0;
   uint64_t next_completion_ = 0;
   bool stopping_ = false;

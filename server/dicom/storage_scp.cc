@@ -1,74 +1,25 @@
 #include "server/dicom/storage_scp.h"
 
-#include <arpa/inet.h>
-#include <netinet/in.h>
-#include <sys/socket.h>
 #include <unistd.h>
 
-#include <atomic>
-#include <chrono>
+#include <algorithm>
+#include <condition_variable>
+#include <deque>
+#include <map>
 #include <mutex>
-#include <set>
+#include <thread>
 
-#include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
-#include "core/dicom/series_reader.h"
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcuid.h"
-#include "dcmtk/dcmnet/diutil.h"
-#include "dcmtk/dcmnet/scppool.h"
-#include "dcmtk/dcmnet/scpthrd.h"
-#include "dcmtk/dcmtls/tlslayer.h"
+#include "server/dicom/association.h"
+#include "server/dicom/connection_gate.h"
 #include "server/dicom/series_assembler.h"
-#include "server/dicom/tls.h"
 #include "server/log_safe.h"
 #include "server/metrics.h"
 #include "spdlog/spdlog.h"
 
 namespace interslice::server::dicom {
-namespace {
-
-std::string Trimmed(const char* text) {
-  return std::string(absl::StripAsciiWhitespace(text == nullptr ? "" : text));
-}
-
-// A port the kernel considers free now (for --dicom-listen HOST:0): DCMTK's
-// pool binds the port it is given and cannot report an ephemeral one. The
-// window between this probe and DCMTK's bind is tiny; a lost race is a
-// start-up error, never a wrong port.
-absl::StatusOr<int> PickFreePort() {
-  const int fd = ::socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0);
-  if (fd < 0) return absl::InternalError("cannot create a socket");
-  sockaddr_in addr{};
-  addr.sin_family = AF_INET;
-  addr.sin_addr.s_addr = htonl(INADDR_ANY);
-  addr.sin_port = 0;
-  socklen_t len = sizeof(addr);
-  if (::bind(fd, reinterpret_cast<sockaddr*>(&addr), sizeof(addr)) != 0 ||
-      ::getsockname(fd, reinterpret_cast<sockaddr*>(&addr), &len) != 0) {
-    ::close(fd);
-    return absl::UnavailableError("cannot find a free port for DICOM");
-  }
-  ::close(fd);
-  return static_cast<int>(ntohs(addr.sin_port));
-}
-
-// Whether something is bound to `port` (DCMTK's listener, once it runs).
-bool PortTaken(int port) {
-  const int fd = ::socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0);
-  if (fd < 0) return false;
-  sockaddr_in addr{};
-  addr.sin_family = AF_INET;
-  addr.sin_addr.s_addr = htonl(INADDR_ANY);
-  addr.sin_port = htons(static_cast<uint16_t>(port));
-  const bool taken =
-      ::bind(fd, reinterpret_cast<sockaddr*>(&addr), sizeof(addr)) != 0 &&
-      errno == EADDRINUSE;
-  ::close(fd);
-  return taken;
-}
-
-}  // namespace
 
 std::vector<std::string> AcceptedStorageSopClasses() {
   // SEG and RTSTRUCT: segmentations drawn on a series held in the spool;
@@ -85,212 +36,52 @@ std::vector<std::string> AcceptedStorageSopClasses() {
 
 struct StorageScp::Impl {
   StorageScpOptions options;
-  SeriesAssembler* assembler = nullptr;
-  Metrics* metrics = nullptr;
-  DicomTlsLayer tls;
-  std::unique_ptr<DcmBaseSCPPool> pool;
-  std::thread thread;
-  std::atomic<bool> finished{false};
+  std::unique_ptr<RefusalLog> refusals;
+  std::unique_ptr<ConnectionGate> gate;
+  std::unique_ptr<AssociationRunner> runner;
+  std::vector<std::thread> workers;
   std::mutex mu;
-  OFCondition result;
+  std::condition_variable cv;
+  std::deque<ReadyConnection> queue;
+  int idle = 0;  // workers waiting for a connection (not counting queued)
+  std::map<std::string, int> per_source;  // queued or running
+  int per_source_limit = 1;
+  bool stopping = false;
   bool stopped = false;
 
-  void Count(const char* event) {
-    if (metrics != nullptr) metrics->DicomEvent(event);
+  // On the gate's thread: never blocks.
+  Handoff Take(ReadyConnection& c) {
+    std::lock_guard<std::mutex> lock(mu);
+    if (stopping) return Handoff::kBusy;
+    if (idle <= static_cast<int>(queue.size())) return Handoff::kBusy;
+    int& mine = per_source[c.source];
+    if (mine >= per_source_limit) {
+      if (mine == 0) per_source.erase(c.source);
+      return Handoff::kSourceBusy;
+    }
+    ++mine;
+    queue.push_back(std::move(c));
+    cv.notify_one();
+    return Handoff::kTaken;
+  }
+
+  void Work() {
+    std::unique_lock<std::mutex> lock(mu);
+    while (true) {
+      ++idle;
+      cv.wait(lock, [this] { return stopping || !queue.empty(); });
+      --idle;
+      if (queue.empty()) return;  // stopping, nothing left
+      ReadyConnection c = std::move(queue.front());
+      queue.pop_front();
+      const std::string source = c.source;
+      lock.unlock();
+      runner->Serve(std::move(c));
+      lock.lock();
+      if (--per_source[source] <= 0) per_source.erase(source);
+    }
   }
 };
-
-namespace {
-
-// One association: its AE titles, the series it stored into, and how it
-// ended. DcmThreadSCP runs the DCMTK association state machine.
-class AssociationScp : public DcmThreadSCP {
- public:
-  explicit AssociationScp(StorageScp::Impl* impl) : impl_(impl) {}
-
- protected:
-  OFBool checkCalledAETitleAccepted(const OFString& called) override {
-    const std::string ae = Trimmed(called.c_str());
-    for (const std::string& ours : impl_->options.ae_titles) {
-      if (ours == ae) return OFTrue;
-    }
-    impl_->Count("associations_rejected");
-    spdlog::warn(
-        "dicom: association from {} rejected: called AE title {} "
-        "is not served here",
-        LogSafe(calling_), LogSafe(ae));
-    return OFFalse;
-  }
-
-  OFBool checkCallingAETitleAccepted(const OFString& calling) override {
-    const std::string ae = Trimmed(calling.c_str());
-    if (impl_->options.peers.accept_unknown_callers) return OFTrue;
-    for (const DicomPeer& peer : impl_->options.peers.peers) {
-      if (peer.ae_title == ae) return OFTrue;
-    }
-    impl_->Count("associations_rejected");
-    spdlog::warn(
-        "dicom: association from calling AE title {} rejected: not "
-        "in the peers file",
-        LogSafe(ae));
-    return OFFalse;
-  }
-
-  void notifyAssociationRequest(const T_ASC_Parameters& params,
-                                DcmSCPActionType& action) override {
-    calling_ = Trimmed(params.DULparams.callingAPTitle);
-    called_ = Trimmed(params.DULparams.calledAPTitle);
-    touched_.clear();
-    stored_ = refused_ = 0;
-    released_ = false;
-    acknowledged_ = false;
-    receiving_ = cut_off_ = false;
-  }
-
-  void notifyAssociationAcknowledge() override {
-    acknowledged_ = true;
-    impl_->Count("associations");
-    spdlog::info("dicom: association {} -> {} accepted", LogSafe(calling_),
-                 LogSafe(called_));
-  }
-
-  void notifyReleaseRequest() override { released_ = true; }
-
-  // Called while a data set streams in: an instance larger than a whole
-  // series may be is cut off here, by aborting the association, instead of
-  // being written to the end first.
-  void notifyRECEIVEProgress(const unsigned long bytes) override {
-    if (receiving_ && !cut_off_ && static_cast<int64_t>(bytes) > allowance_) {
-      cut_off_ = true;
-      spdlog::warn(
-          "dicom: association {} -> {} aborted: an instance passed {} bytes, "
-          "the limit per series",
-          LogSafe(calling_), LogSafe(called_), allowance_);
-      abortAssociation();
-    }
-  }
-
-  void notifyAssociationTermination() override {
-    if (!acknowledged_) return;
-    if (released_) {
-      impl_->assembler->AssociationReleased(touched_);
-    }
-    spdlog::info(
-        "dicom: association {} -> {} {}: {} instance(s) kept, {} refused",
-        LogSafe(calling_), LogSafe(called_), released_ ? "released" : "aborted",
-        stored_, refused_);
-  }
-
-  OFCondition handleIncomingCommand(
-      T_DIMSE_Message* message,
-      const DcmPresentationContextInfo& info) override {
-    if (message->CommandField == DIMSE_C_STORE_RQ) {
-      return HandleStore(message->msg.CStoreRQ, info);
-    }
-    return DcmThreadSCP::handleIncomingCommand(message, info);
-  }
-
- private:
-  OFCondition HandleStore(T_DIMSE_C_StoreRQ& request,
-                          const DcmPresentationContextInfo& info) {
-    const std::string staged = impl_->assembler->StagingPath();
-    allowance_ = impl_->assembler->max_instance_bytes();
-    receiving_ = true;
-    OFCondition cond = receiveSTORERequest(request, info.presentationContextID,
-                                           OFString(staged.c_str()));
-    receiving_ = false;
-    if (cut_off_ && cond.good()) cond = DUL_PEERABORTEDASSOCIATION;
-    if (cond.bad()) {
-      // The association ends (DcmSCP aborts it); nothing was acknowledged.
-      // DCMTK's reason (network or parsing, no data-set values) says why.
-      spdlog::warn("dicom: receiving an instance from {} failed: {}",
-                   LogSafe(calling_), LogSafe(cond.text()));
-      ::unlink(staged.c_str());
-      return cond;
-    }
-    Uint16 status = STATUS_Success;
-    if (info.abstractSyntax != request.AffectedSOPClassUID) {
-      ::unlink(staged.c_str());
-      status = STATUS_STORE_Error_DataSetDoesNotMatchSOPClass;
-    } else {
-      absl::StatusOr<std::string> key =
-          impl_->assembler->AddInstance(calling_, called_, staged);
-      if (key.ok()) {
-        touched_.insert(*key);
-      } else if (key.status().code() == absl::StatusCode::kResourceExhausted) {
-        status = STATUS_STORE_Refused_OutOfResources;
-        spdlog::warn("dicom: instance from {} refused (out of resources): {}",
-                     LogSafe(calling_), LogSafe(key.status().message()));
-      } else {
-        status = STATUS_STORE_Error_CannotUnderstand;
-        spdlog::warn("dicom: instance from {} refused: {}", LogSafe(calling_),
-                     LogSafe(key.status().message()));
-      }
-    }
-    if (status == STATUS_Success) {
-      ++stored_;
-      impl_->Count("instances_received");
-    } else {
-      ++refused_;
-      impl_->Count("instances_refused");
-    }
-    return sendSTOREResponse(info.presentationContextID, request, status);
-  }
-
-  StorageScp::Impl* const impl_;
-  std::string calling_, called_;
-  std::set<std::string> touched_;
-  int64_t stored_ = 0, refused_ = 0;
-  bool released_ = false;
-  bool acknowledged_ = false;
-  bool receiving_ = false;
-  bool cut_off_ = false;
-  int64_t allowance_ = 0;
-};
-
-// DcmSCPPool<> default-constructs its workers; ours need the listener's
-// state, so the pool is spelled out (the same three forwarding calls).
-class Pool : public DcmBaseSCPPool {
- public:
-  explicit Pool(StorageScp::Impl* impl) : impl_(impl) {}
-
- protected:
-  struct Worker : public DcmBaseSCPPool::DcmBaseSCPWorker,
-                  private AssociationScp {
-    Worker(Pool& pool, StorageScp::Impl* impl)
-        : DcmBaseSCPWorker(pool), AssociationScp(impl) {}
-    OFCondition setSharedConfig(const DcmSharedSCPConfig& config) override {
-      return AssociationScp::setSharedConfig(config);
-    }
-    OFBool busy() override { return AssociationScp::isConnected(); }
-    OFCondition setAssociation(T_ASC_Association* assoc) override {
-      handed_over_ = std::chrono::steady_clock::now();
-      return DcmBaseSCPWorker::setAssociation(assoc);
-    }
-    OFCondition workerListen(T_ASC_Association* const assoc) override {
-      OFCondition result = AssociationScp::run(assoc);
-      // DCMTK 3.6.7's pool deletes a worker when its thread ends, while
-      // the accepting thread may still be inside OFThread::start() writing
-      // the new thread's id into that worker (a use after free, seen as
-      // heap corruption after associations rejected within microseconds).
-      // A worker therefore lives at least this long after it was handed
-      // its association; start() has long returned by then.
-      std::this_thread::sleep_until(handed_over_ +
-                                    std::chrono::milliseconds(500));
-      return result;
-    }
-    std::chrono::steady_clock::time_point handed_over_;
-  };
-
-  DcmBaseSCPWorker* createSCPWorker() override {
-    return new Worker(*this, impl_);
-  }
-
- private:
-  StorageScp::Impl* const impl_;
-};
-
-}  // namespace
 
 absl::StatusOr<std::unique_ptr<StorageScp>> StorageScp::Start(
     const StorageScpOptions& options, SeriesAssembler* assembler,
@@ -307,130 +98,95 @@ absl::StatusOr<std::unique_ptr<StorageScp>> StorageScp::Start(
     return absl::InvalidArgumentError(
         "--dicom-max-pdu must be between 4096 and 131072 bytes");
   }
+  if (options.max_pending < 1 || options.max_pending_per_source < 1 ||
+      options.max_associations_per_source < 0) {
+    return absl::InvalidArgumentError(
+        "--dicom-max-pending and --dicom-max-pending-per-source must be >= 1");
+  }
+  if (!(options.acse_timeout_seconds > 0) ||
+      !(options.pdu_timeout_seconds > 0) ||
+      !(options.dimse_timeout_seconds > 0)) {
+    return absl::InvalidArgumentError(
+        "--dicom-acse-timeout, --dicom-pdu-timeout and --dicom-dimse-timeout "
+        "must be > 0");
+  }
   std::unique_ptr<StorageScp> scp(new StorageScp());
   scp->impl_ = std::make_unique<Impl>();
   Impl& impl = *scp->impl_;
   impl.options = options;
-  impl.assembler = assembler;
-  impl.metrics = metrics;
+  impl.per_source_limit = options.max_associations_per_source > 0
+                              ? options.max_associations_per_source
+                              : std::max(1, (options.max_associations + 1) / 2);
+  impl.refusals = std::make_unique<RefusalLog>(metrics);
 
-  const bool any_tls = !options.tls.certificate.empty() ||
-                       !options.tls.private_key.empty() ||
-                       !options.tls.ca_certificates.empty();
-  if (any_tls) {
-    absl::StatusOr<DicomTlsLayer> tls =
-        MakeDicomTls(options.tls, /*server_role=*/true);
-    if (!tls.ok()) return tls.status();
-    impl.tls = *std::move(tls);
+  GateOptions gate;
+  gate.host = options.host;
+  gate.port = options.port;
+  gate.request_timeout_seconds = options.acse_timeout_seconds;
+  gate.max_pending = options.max_pending;
+  gate.max_pending_per_source = options.max_pending_per_source;
+  gate.tls = !options.tls.certificate.empty();
+  gate.send_timeout_seconds = options.dimse_timeout_seconds;
+  gate.guard.max_pdata_bytes = options.max_pdu_bytes + 64;
+  absl::StatusOr<std::unique_ptr<ConnectionGate>> bound =
+      ConnectionGate::Bind(gate, impl.refusals.get());
+  if (!bound.ok()) return bound.status();
+  impl.gate = *std::move(bound);
+  absl::StatusOr<std::unique_ptr<AssociationRunner>> runner =
+      AssociationRunner::Create(options, assembler, metrics,
+                                impl.refusals.get(), impl.gate.get());
+  if (!runner.ok()) return runner.status();
+  impl.runner = *std::move(runner);
+  for (int i = 0; i < options.max_associations; ++i) {
+    impl.workers.emplace_back([&impl] { impl.Work(); });
   }
-
-  int port = options.port;
-  if (port == 0) {
-    absl::StatusOr<int> free_port = PickFreePort();
-    if (!free_port.ok()) return free_port.status();
-    port = *free_port;
-  } else if (PortTaken(port)) {
-    return absl::UnavailableError(absl::StrCat(
-        "cannot listen for DICOM on port ", port, ": it is in use"));
-  }
-
-  auto pool = std::make_unique<Pool>(&impl);
-  DcmSCPConfig& cfg = pool->getConfig();
-  cfg.setPort(static_cast<Uint16>(port));
-  cfg.setAETitle(options.ae_titles.front().c_str());
-  // Several called AE titles: answer with the one that was called
-  // (checkCalledAETitleAccepted decides which are served).
-  cfg.setRespondWithCalledAETitle(OFTrue);
-  cfg.setMaxReceivePDULength(options.max_pdu_bytes);
-  // Non-blocking accept with a 1 s tick, so that Stop() is noticed.
-  cfg.setConnectionBlockingMode(DUL_NOBLOCK);
-  cfg.setConnectionTimeout(1);
-  cfg.setDIMSEBlockingMode(DIMSE_NONBLOCKING);
-  cfg.setDIMSETimeout(
-      static_cast<Uint32>(std::max(1.0, options.dimse_timeout_seconds)));
-  cfg.setACSETimeout(
-      static_cast<Uint32>(std::max(1.0, options.acse_timeout_seconds)));
-  cfg.setHostLookupEnabled(OFFalse);
-  if (impl.tls) cfg.setTransportLayer(impl.tls.get());
-
-  // Storage: exactly what the reader decodes. Compressed syntaxes first, so
-  // that a sender is never asked to decompress what we can read as is.
-  std::vector<TransferSyntaxInfo> decodable = DecodableTransferSyntaxes();
-  OFList<OFString> storage_syntaxes;
-  for (int pass = 0; pass < 2; ++pass) {
-    for (const TransferSyntaxInfo& ts : decodable) {
-      const bool encapsulated = DcmXfer(ts.uid.c_str()).isEncapsulated();
-      if (encapsulated == (pass == 0)) {
-        storage_syntaxes.push_back(ts.uid.c_str());
-      }
+  {
+    // Every worker waits before the first connection is handed over.
+    std::unique_lock<std::mutex> lock(impl.mu);
+    while (impl.idle < options.max_associations) {
+      lock.unlock();
+      std::this_thread::sleep_for(std::chrono::milliseconds(1));
+      lock.lock();
     }
   }
-  for (const std::string& sop : AcceptedStorageSopClasses()) {
-    OFCondition cond =
-        cfg.addPresentationContext(sop.c_str(), storage_syntaxes);
-    if (cond.bad()) {
-      return absl::InternalError(
-          absl::StrCat("DICOM listener set-up: ", cond.text()));
-    }
-  }
-  OFList<OFString> echo_syntaxes;
-  echo_syntaxes.push_back(UID_LittleEndianExplicitTransferSyntax);
-  echo_syntaxes.push_back(UID_LittleEndianImplicitTransferSyntax);
-  echo_syntaxes.push_back(UID_BigEndianExplicitTransferSyntax);
-  OFCondition cond =
-      cfg.addPresentationContext(UID_VerificationSOPClass, echo_syntaxes);
-  if (cond.bad()) {
-    return absl::InternalError(
-        absl::StrCat("DICOM listener set-up: ", cond.text()));
-  }
-  pool->setMaxThreads(static_cast<Uint16>(options.max_associations));
-  impl.pool = std::move(pool);
-
   Impl* raw = &impl;
-  impl.thread = std::thread([raw] {
-    OFCondition result = raw->pool->listen();
-    std::lock_guard<std::mutex> lock(raw->mu);
-    raw->result = result;
-    raw->finished = true;
-  });
-  // Ready once DCMTK holds the port (or failed to take it).
-  const auto give_up =
-      std::chrono::steady_clock::now() + std::chrono::seconds(10);
-  while (!impl.finished && !PortTaken(port) &&
-         std::chrono::steady_clock::now() < give_up) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(20));
-  }
-  if (impl.finished || !PortTaken(port)) {
-    impl.pool->stopAfterCurrentAssociations();
-    impl.thread.join();
-    std::lock_guard<std::mutex> lock(impl.mu);
-    return absl::UnavailableError(absl::StrCat(
-        "cannot listen for DICOM on port ", port, ": ", impl.result.text()));
-  }
-  scp->port_ = port;
+  impl.gate->Start([raw](ReadyConnection& c) { return raw->Take(c); });
   std::string titles;
   for (const std::string& ae : options.ae_titles) {
     absl::StrAppend(&titles, titles.empty() ? "" : ", ", ae);
   }
   spdlog::info(
-      "dicom: listening on port {} as {}{} ({} peer(s), at most {} "
-      "association(s))",
-      port, LogSafe(titles), impl.tls ? " with TLS" : "",
-      options.peers.peers.size(), options.max_associations);
+      "dicom: listening on {} port {} as {}{} ({} peer(s), at most {} "
+      "association(s), {} from one address)",
+      LogSafe(impl.gate->address()), impl.gate->port(), LogSafe(titles),
+      gate.tls ? " with TLS" : "", options.peers.peers.size(),
+      options.max_associations, impl.per_source_limit);
   return scp;
 }
+
+int StorageScp::port() const { return impl_ ? impl_->gate->port() : 0; }
 
 StorageScp::~StorageScp() { Stop(); }
 
 void StorageScp::Stop() {
-  if (!impl_) return;
+  // Start() may have failed half-way (the address taken): nothing runs.
+  if (!impl_ || !impl_->gate) return;
   {
     std::lock_guard<std::mutex> lock(impl_->mu);
     if (impl_->stopped) return;
     impl_->stopped = true;
   }
-  impl_->pool->stopAfterCurrentAssociations();
-  if (impl_->thread.joinable()) impl_->thread.join();
+  // No new connections; those in an association end by themselves (their
+  // deadlines still run: the gate watches them until it stops).
+  impl_->gate->StopAccepting();
+  {
+    std::lock_guard<std::mutex> lock(impl_->mu);
+    impl_->stopping = true;
+  }
+  impl_->cv.notify_all();
+  for (std::thread& t : impl_->workers) t.join();
+  impl_->workers.clear();
+  impl_->gate->Stop();
   spdlog::info("dicom: listener stopped");
 }
 

@@ -1,38 +1,34 @@
-// The DICOM listener: a Storage SCP on DCMTK's SCP pool (DcmBaseSCPPool with
-// a DcmThreadSCP worker per association; no PDU code of our own).
+// The DICOM listener: a Storage SCP. The gate (connection_gate.h) owns the
+// listening socket and every connection until its association request has
+// arrived; a fixed pool of association workers then runs DCMTK's association
+// state machine (association.h) on it.
 //
 // Services: Verification (C-ECHO) and Storage (C-STORE) of CT Image, Enhanced
-// CT Image, Legacy Converted Enhanced CT Image, MR Image, Enhanced MR Image
-// and Legacy Converted Enhanced MR Image. Storage presentation contexts
-// accept exactly the transfer syntaxes core's reader decodes
-// (DecodableTransferSyntaxes()); a context proposing none of them, or an
-// abstract syntax not listed, is refused in negotiation.
+// CT Image, Legacy Converted Enhanced CT Image, MR Image, Enhanced MR Image,
+// Legacy Converted Enhanced MR Image, Segmentation and RT Structure Set.
+// Storage presentation contexts accept exactly the transfer syntaxes core's
+// reader decodes (DecodableTransferSyntaxes()); a context proposing none of
+// them, or an abstract syntax not listed, is refused in negotiation.
 //
-// Association policy: the called AE title must be one of options.ae_titles;
-// the calling AE title must be a peer's (unless accept_unknown_callers).
-// Otherwise the association is rejected (A-ASSOCIATE-RJ). At most
-// max_associations at once (more: rejected, "local limit exceeded").
-// Timeouts: ACSE (association set-up and release) and DIMSE (waiting for the
-// next message or data) bound how long a silent peer holds its worker.
+// Association policy (association.h): called AE title one of
+// options.ae_titles; calling AE title a peer's (unless
+// accept_unknown_callers), from the peer's allowed_sources when it lists
+// any. At most max_associations at once, at most
+// max_associations_per_source from one address (more: A-ASSOCIATE-RJ,
+// "local limit exceeded").
 //
-// C-STORE: the data set streams into a file in the spool, which the
-// SeriesAssembler fsyncs and renames into its series before the response
-// leaves: success means kept. Spool quota or per-series limits reached:
-// 0xA700 (Refused: out of resources) and the file is deleted. Not DICOM /
-// no UIDs: 0xC000 (Error: cannot understand). A data set that grows past the
-// per-series byte limit while it streams in is cut off by aborting the
-// association (the peer loses that association only).
+// Timeouts: the association request must arrive whole within
+// acse_timeout_seconds of the connection; within an association each PDU
+// within pdu_timeout_seconds of its first byte, and DCMTK waits at most
+// dimse_timeout_seconds for the next message.
 //
-// DCMTK 3.6.7's SCP pool listens on every interface; the HOST part of
-// --dicom-listen is checked but only loopback/any are meaningful (see
-// docs/dicom-node.md).
+// C-STORE: see association.h (success means kept: fsynced in the spool).
 #ifndef INTERSLICE_SERVER_DICOM_STORAGE_SCP_H_
 #define INTERSLICE_SERVER_DICOM_STORAGE_SCP_H_
 
 #include <cstdint>
 #include <memory>
 #include <string>
-#include <thread>
 #include <vector>
 
 #include "absl/status/statusor.h"
@@ -48,13 +44,23 @@ namespace interslice::server::dicom {
 class SeriesAssembler;
 
 struct StorageScpOptions {
+  // The address to listen on, exactly: a numeric IPv4 or IPv6 address, ""
+  // or "*" (every IPv4 interface), "::" (every interface).
+  std::string host = "127.0.0.1";
   int port = 0;  // 0: a free port is chosen (see StorageScp::port())
   std::vector<std::string> ae_titles = {"INTERSLICE"};
   PeersConfig peers;
   int max_associations = 8;
+  // 0: half of max_associations, at least 1.
+  int max_associations_per_source = 0;
+  // Connections waiting for their association request, in all and from one
+  // address (beyond: the oldest waiting one is closed).
+  int max_pending = 64;
+  int max_pending_per_source = 16;
   uint32_t max_pdu_bytes = 65536;  // what we announce to receive
   double acse_timeout_seconds = 10;
   double dimse_timeout_seconds = 60;
+  double pdu_timeout_seconds = 30;
   // All three set: TLS (server/dicom/tls.h), peers must present a
   // certificate a listed CA signed. All empty: plain TCP.
   DicomTlsFiles tls;
@@ -62,16 +68,18 @@ struct StorageScpOptions {
 
 class StorageScp {
  public:
-  // Binds the port and starts listening on a thread of its own. `assembler`
-  // and `metrics` (may be null) must outlive the listener.
+  // Binds the address and starts the gate and the association workers.
+  // `assembler` and `metrics` (may be null) must outlive the listener.
+  // UNAVAILABLE with one line when the address cannot be bound (in use, not
+  // this host's); INVALID_ARGUMENT for bad options.
   static absl::StatusOr<std::unique_ptr<StorageScp>> Start(
       const StorageScpOptions& options, SeriesAssembler* assembler,
       Metrics* metrics);
   ~StorageScp();  // Stop()
 
-  int port() const { return port_; }
-  // Stops accepting associations and waits (bounded by the DIMSE timeout)
-  // for those in progress to end.
+  int port() const;
+  // Stops accepting connections (waiting ones are closed) and waits for the
+  // associations in progress to end (bounded by the timeouts).
   void Stop();
 
   struct Impl;
@@ -79,7 +87,6 @@ class StorageScp {
  private:
   StorageScp() = default;
   std::unique_ptr<Impl> impl_;
-  int port_ = 0;
 };
 
 // The storage SOP classes offered (UIDs), in the order offered.

@@ -1,8 +1,9 @@
 // End-to-end tests of the `interslice` binary: real processes, real data.
-#include <sys/wait.h>
+#include "tests/testing/cli.h"
+
+#include <unistd.h>
 
 #include <algorithm>
-#include <array>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -14,35 +15,15 @@
 #include "gtest/gtest.h"
 #include "nlohmann/json.hpp"
 #include "tests/testing/mesh_checks.h"
+#include "tests/testing/process.h"
 
 namespace interslice {
 namespace {
 
 namespace fs = std::filesystem;
 
-struct CommandResult {
-  int exit_code = -1;
-  std::string output;  // stdout and stderr
-};
-
-CommandResult RunCommand(const std::string& command_line) {
-  const std::string command = command_line + " 2>&1";
-  CommandResult result;
-  FILE* pipe = popen(command.c_str(), "r");
-  if (pipe == nullptr) return result;
-  std::array<char, 4096> buffer;
-  size_t n;
-  while ((n = fread(buffer.data(), 1, buffer.size(), pipe)) > 0) {
-    result.output.append(buffer.data(), n);
-  }
-  const int status = pclose(pipe);
-  result.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  return result;
-}
-
-CommandResult RunCli(const std::string& arguments) {
-  return RunCommand(std::string(INTERSLICE_CLI_PATH) + " " + arguments);
-}
+using testing::CommandResult;
+using testing::RunCli;
 
 class CliTest : public ::testing::Test {
  protected:
@@ -65,8 +46,8 @@ const std::string kPhantom =
 TEST_F(CliTest, HelpExitsZero) {
   const CommandResult r = RunCli("run --help");
   EXPECT_EQ(r.exit_code, 0);
-  EXPECT_THAT(r.output, ::testing::HasSubstr("--threshold"));
-  EXPECT_THAT(r.output, ::testing::HasSubstr("--method"));
+  EXPECT_THAT(r.out, ::testing::HasSubstr("--threshold"));
+  EXPECT_THAT(r.out, ::testing::HasSubstr("--method"));
 }
 
 TEST_F(CliTest, BadInputGivesOneLineAndExitCodeOne) {
@@ -98,12 +79,11 @@ TEST_F(CliTest, BadInputGivesOneLineAndExitCodeOne) {
   };
   for (const Case& c : cases) {
     const CommandResult r = RunCli(c.args);
-    EXPECT_EQ(r.exit_code, 1) << c.args << "\n" << r.output;
-    EXPECT_THAT(r.output, ::testing::HasSubstr(c.message)) << c.args;
+    EXPECT_EQ(r.exit_code, 1) << c.args << "\n" << r.out;
+    EXPECT_THAT(r.out, ::testing::HasSubstr(c.message)) << c.args;
     // One line: the reason, and nothing else.
-    EXPECT_EQ(std::count(r.output.begin(), r.output.end(), '\n'), 1)
-        << c.args << "\n"
-        << r.output;
+    EXPECT_EQ(std::count(r.out.begin(), r.out.end(), '\n'), 1) << c.args << "\n"
+                                                               << r.out;
   }
   EXPECT_FALSE(fs::exists(dir_ / "out" / "surface.stl"));
 }
@@ -117,7 +97,7 @@ TEST_F(CliTest, RunWritesVolumesMeshAndReport) {
       " --threshold 300 --roi 200,40,0,296,136,4 --method direct --factor 5 "
       "--mesh stl,ply,obj --volume nii,nrrd --out " +
       out.string() + " --report " + report.string());
-  ASSERT_EQ(r.exit_code, 0) << r.output;
+  ASSERT_EQ(r.exit_code, 0) << r.out;
   for (const char* name :
        {"distance.nii.gz", "mask.nii.gz", "distance.nrrd", "mask.nrrd",
         "surface.stl", "surface.ply", "surface.obj"}) {
@@ -165,7 +145,7 @@ TEST_F(CliTest, CgLinearDirectAndMorphAllRun) {
                " --threshold 300 --roi 200,40,1,264,104,3 --method " + method +
                " --iterations 5 --volume none --mesh stl --quiet --out " +
                out.string() + " --report " + (out / "r.json").string());
-    ASSERT_EQ(r.exit_code, 0) << method << ": " << r.output;
+    ASSERT_EQ(r.exit_code, 0) << method << ": " << r.out;
     std::ifstream in(out / "r.json");
     const nlohmann::json j = nlohmann::json::parse(in);
     EXPECT_EQ(j["solver"]["method"], method);
@@ -184,7 +164,7 @@ TEST_F(CliTest, ShippedPhantomGivesIsotropicVolumeAndWatertightSkull) {
                                  " --threshold 300 --method direct --quiet "
                                  "--volume nrrd --mesh stl,ply --out " +
                                  out.string() + " --report " + report.string());
-  ASSERT_EQ(r.exit_code, 0) << r.output;
+  ASSERT_EQ(r.exit_code, 0) << r.out;
   std::ifstream in(report);
   const nlohmann::json j = nlohmann::json::parse(in);
   const double sx = j["grid"]["spacing"][0], sy = j["grid"]["spacing"][1],

@@ -3,15 +3,14 @@
 // a missing slice (made here from the shipped files with DCMTK), and a
 // tilted head CT. Real processes; consumers other than our own reader (ITK's
 // GDCM series reader, dciodvfy) check what a viewer or PACS would see.
-#include <sys/wait.h>
 #include <unistd.h>
 
 #include <algorithm>
-#include <array>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <string>
 #include <vector>
 
@@ -24,6 +23,9 @@
 #include "itkImage.h"
 #include "itkImageSeriesReader.h"
 #include "nlohmann/json.hpp"
+#include "tests/testing/cli.h"
+#include "tests/testing/dciodvfy.h"
+#include "tests/testing/process.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
@@ -37,29 +39,8 @@ namespace {
 namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 
-struct CommandResult {
-  int exit_code = -1;
-  std::string output;  // stdout and stderr
-};
-
-CommandResult RunCommand(const std::string& command_line) {
-  const std::string command = command_line + " 2>&1";
-  CommandResult result;
-  FILE* pipe = popen(command.c_str(), "r");
-  if (pipe == nullptr) return result;
-  std::array<char, 4096> buffer;
-  size_t n;
-  while ((n = fread(buffer.data(), 1, buffer.size(), pipe)) > 0) {
-    result.output.append(buffer.data(), n);
-  }
-  const int status = pclose(pipe);
-  result.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  return result;
-}
-
-CommandResult RunCli(const std::string& arguments) {
-  return RunCommand(std::string(INTERSLICE_CLI_PATH) + " " + arguments);
-}
+using testing::CommandResult;
+using testing::RunCli;
 
 const fs::path kPhantom =
     fs::path(INTERSLICE_SOURCE_DIR) / "data/ct-head-phantom-thick";
@@ -87,21 +68,10 @@ std::vector<fs::path> SortedFiles(const fs::path& folder) {
   return files;
 }
 
+// dciodvfy's problems with one file (tests/testing/dciodvfy.h: its error
+// lines, and a non-zero exit status), appended to `errors`.
 int DciodvfyErrors(const fs::path& file, std::string* errors) {
-  const CommandResult v = RunCommand("dciodvfy '" + file.string() + "'");
-  int count = 0;
-  size_t start = 0;
-  while (start < v.output.size()) {
-    size_t end = v.output.find('\n', start);
-    if (end == std::string::npos) end = v.output.size();
-    const std::string line = v.output.substr(start, end - start);
-    if (line.find("Error") != std::string::npos) {
-      ++count;
-      *errors += file.filename().string() + ": " + line + "\n";
-    }
-    start = end + 1;
-  }
-  return count;
+  return testing::DciodvfyErrors({file.string()}, errors);
 }
 
 std::string GetString(DcmItem& item, const DcmTagKey& tag) {
@@ -276,7 +246,7 @@ TEST_F(DicomOutputTest, ShippedPhantomObjectsValidateAndLieOnTheReportGrid) {
       "--volume nrrd --mesh none --output-series intensity,distance --seg "
       "--out " +
       out.string() + " --report " + report_path.string());
-  ASSERT_EQ(r.exit_code, 0) << r.output;
+  ASSERT_EQ(r.exit_code, 0) << r.out;
   const nlohmann::json report = ReadJson(report_path);
   EXPECT_FALSE(fs::exists(out / "series-mask"));
   EXPECT_FALSE(fs::exists(out / "series-distance"));
@@ -351,10 +321,13 @@ TEST_F(DicomOutputTest, UnevenGapsAndMissingSlicesArePlacedByTruePositions) {
         "run " + source.string() + " --threshold 300 --roi 150,100,0,350,300," +
         std::to_string(c.slices.size()) +
         " --method direct --quiet --volume none --mesh none --seg "
-        "--out " +
+        "--intensity-method linear --out " +
         out.string() + " --report " + report_path.string());
-    ASSERT_EQ(r.exit_code, 0) << r.output;
+    ASSERT_EQ(r.exit_code, 0) << r.out;
     const nlohmann::json report = ReadJson(report_path);
+    // The placement is checked against the linear blend's formula below (the
+    // morph's own placement on uneven gaps: tests/core/morph).
+    EXPECT_EQ(report["intensity"]["method"], "linear");
     double max_gap = 0;
     for (size_t i = 1; i < c.positions.size(); ++i) {
       max_gap = std::max(max_gap, c.positions[i] - c.positions[i - 1]);
@@ -366,6 +339,71 @@ TEST_F(DicomOutputTest, UnevenGapsAndMissingSlicesArePlacedByTruePositions) {
     std::string errors;
     EXPECT_EQ(DciodvfyErrors(out / "seg.dcm", &errors), 0) << errors;
   }
+}
+
+// --intensity-method: the morph (default) and the linear blend keep the
+// source slices bit for bit and differ between them; each is named in the
+// report, the objects validate, and the two get different UIDs.
+TEST_F(DicomOutputTest, IntensityMethodKeepsSourceSlicesAndSaysWhichItUsed) {
+  std::map<std::string, DicomSeries> series;
+  for (const std::string method : {"", "linear", "morph"}) {
+    const std::string name = method.empty() ? "default" : method;
+    const fs::path out = dir_ / ("intensity-" + name);
+    const fs::path report_path = dir_ / ("intensity-" + name + ".json");
+    const CommandResult r = RunCli(
+        "run " + kPhantom.string() +
+        " --threshold 300 --roi 150,100,0,350,300,6 --method direct --quiet "
+        "--volume none --mesh none --output-series intensity " +
+        (method.empty() ? "" : "--intensity-method " + method + " ") +
+        "--out " + out.string() + " --report " + report_path.string());
+    ASSERT_EQ(r.exit_code, 0) << r.out;
+    const nlohmann::json report = ReadJson(report_path);
+    EXPECT_EQ(report["intensity"]["method"], method.empty() ? "morph" : method);
+    auto read = ReadDicomSeries({(out / "series-intensity").string()}, {}, {});
+    ASSERT_TRUE(read.ok()) << read.status();
+    std::string errors;
+    EXPECT_EQ(DciodvfyErrors(out / "series-intensity" / "IM00002.dcm", &errors),
+              0)
+        << errors;
+    series.emplace(name, *std::move(read));
+  }
+  auto source = ReadDicomSeries({kPhantom.string()}, {}, {});
+  ASSERT_TRUE(source.ok()) << source.status();
+  const DicomSeries& linear = series["linear"];
+  const DicomSeries& morph = series["morph"];
+  EXPECT_TRUE(series["default"].image.data == morph.image.data);
+  EXPECT_EQ(series["default"].series_instance_uid, morph.series_instance_uid);
+  EXPECT_NE(linear.series_instance_uid, morph.series_instance_uid);
+  ASSERT_EQ(linear.image.grid.size, morph.image.grid.size);
+  const int64_t plane = linear.image.grid.size[0] * linear.image.grid.size[1];
+  int64_t differing_planes = 0, source_planes = 0;
+  for (int64_t k = 0; k < linear.image.grid.size[2]; ++k) {
+    const bool same = std::equal(linear.image.data.begin() + k * plane,
+                                 linear.image.data.begin() + (k + 1) * plane,
+                                 morph.image.data.begin() + k * plane);
+    // A slice at a source slice's position is that slice in both.
+    bool on_source = false;
+    for (const DicomSliceInfo& s : source->slices) {
+      on_source =
+          on_source || std::abs(s.position_along_normal -
+                                linear.slices[k].position_along_normal) < 1e-3;
+    }
+    if (on_source) {
+      ++source_planes;
+      EXPECT_TRUE(same) << "source slice at output slice " << k;
+    } else if (!same) {
+      ++differing_planes;
+    }
+  }
+  EXPECT_EQ(source_planes, 6);
+  EXPECT_GT(differing_planes, 0);
+  const CommandResult bad = RunCli("run " + kPhantom.string() +
+                                   " --threshold 300 --intensity-method cubic "
+                                   "--out " +
+                                   (dir_ / "bad").string());
+  EXPECT_EQ(bad.exit_code, 1);
+  EXPECT_THAT(bad.out,
+              HasSubstr("--intensity-method: unknown value 'cubic'"));
 }
 
 // --dicom-compression rle: the intensity series is RLE Lossless and reads
@@ -381,7 +419,7 @@ TEST_F(DicomOutputTest, RleIntensitySeriesReadsAsTheNativeOne) {
         RunCli(common + "--dicom-compression " + mode + " --out " +
                (dir_ / mode).string() + " --report " +
                (dir_ / (std::string(mode) + ".json")).string());
-    ASSERT_EQ(r.exit_code, 0) << r.output;
+    ASSERT_EQ(r.exit_code, 0) << r.out;
   }
   const fs::path rle = dir_ / "rle" / "series-intensity";
   const std::vector<fs::path> files = SortedFiles(rle);
@@ -405,7 +443,7 @@ TEST_F(DicomOutputTest, RleIntensitySeriesReadsAsTheNativeOne) {
   const CommandResult bad = RunCli(common + "--dicom-compression jpeg --out " +
                                    (dir_ / "x").string());
   EXPECT_EQ(bad.exit_code, 1);
-  EXPECT_THAT(bad.output, HasSubstr("--dicom-compression"));
+  EXPECT_THAT(bad.out, HasSubstr("--dicom-compression"));
 }
 
 // A tilted head CT: the tilt is corrected, reported and summarised, and the
@@ -418,8 +456,8 @@ TEST_F(DicomOutputTest, TiltedSeriesIsCorrectedAndReported) {
              " --threshold 300 --method direct --volume none --mesh none "
              "--output-series intensity --out " +
              out.string() + " --report " + report_path.string());
-  ASSERT_EQ(r.exit_code, 0) << r.output;
-  EXPECT_THAT(r.output, HasSubstr("gantry tilt of 18.5 degrees"));
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  EXPECT_THAT(r.out, HasSubstr("gantry tilt of 18.5 degrees"));
   const nlohmann::json report = ReadJson(report_path);
   EXPECT_NEAR(std::abs(report["input"]["gantry_tilt_degrees"].get<double>()),
               18.5, 0.1);
@@ -456,7 +494,7 @@ TEST_F(DicomOutputTest, AnonymisedSourceGivesValidObjectsThatBelongTogether) {
              "--quiet --volume none --mesh none --seg --output-series "
              "intensity,distance --out " +
              out.string());
-  ASSERT_EQ(r.exit_code, 0) << r.output;
+  ASSERT_EQ(r.exit_code, 0) << r.out;
   const std::vector<fs::path> files = SortedFiles(out / "series-intensity");
   ASSERT_FALSE(files.empty());
   std::string errors;
@@ -489,7 +527,7 @@ TEST_F(DicomOutputTest, RerunKeepsUidsAndRandomUidsDoNot) {
                " --roi 200,60,0,260,120,28 --method linear "
                "--quiet --volume none --mesh none --seg --out " +
                out.string() + " " + extra);
-    EXPECT_EQ(r.exit_code, 0) << r.output;
+    EXPECT_EQ(r.exit_code, 0) << r.out;
     std::vector<std::string> uids;
     for (const fs::path& f :
          {out / "seg.dcm", out / "series-intensity" / "IM00001.dcm",

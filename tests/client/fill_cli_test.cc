@@ -1,6 +1,5 @@
 // End-to-end tests of `interslice fill`: the real binary on the shipped
 // thick CT phantom, with a two-label segmentation made from it.
-#include <sys/wait.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -14,15 +13,19 @@
 #include <string>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
 #include "core/dicom/series_reader.h"
+#include "core/dicom_out/label_segmentation.h"
 #include "core/labels/segmentation_reader.h"
 #include "core/volume_io/volume_io.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "nlohmann/json.hpp"
 #include "tests/core/dicom_out/dicom_test_util.h"
+#include "tests/testing/cli.h"
 #include "tests/testing/mesh_checks.h"
+#include "tests/testing/process.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
@@ -35,26 +38,8 @@ namespace {
 namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 
-struct CommandResult {
-  int exit_code = -1;
-  std::string output;
-};
-
-CommandResult RunCli(const std::string& arguments) {
-  const std::string command =
-      std::string(INTERSLICE_CLI_PATH) + " " + arguments + " 2>&1";
-  CommandResult result;
-  FILE* pipe = popen(command.c_str(), "r");
-  if (pipe == nullptr) return result;
-  std::array<char, 4096> buffer;
-  size_t n;
-  while ((n = fread(buffer.data(), 1, buffer.size(), pipe)) > 0) {
-    result.output.append(buffer.data(), n);
-  }
-  const int status = pclose(pipe);
-  result.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  return result;
-}
+using testing::CommandResult;
+using testing::RunCli;
 
 // Every 2nd slice of the 5 mm series is a key slice (10 mm gaps).
 constexpr int64_t kStep = 2;
@@ -116,7 +101,7 @@ TEST_F(FillCliTest, FillsEverySecondSliceOfTwoTouchingLabels) {
                                  " --threads 2 "
                                  "--mesh stl,ply --volume nii,nrrd --out " +
                                  out.string() + " --report " + report.string());
-  ASSERT_EQ(r.exit_code, 0) << r.output;
+  ASSERT_EQ(r.exit_code, 0) << r.out;
 
   absl::StatusOr<Volume<float>> filled =
       ReadVolumeAsFloat((out / "labels.nrrd").string());
@@ -247,11 +232,10 @@ TEST_F(FillCliTest, BadInputGivesOneLineAndExitCodeOne) {
   };
   for (const Case& c : cases) {
     const CommandResult r = RunCli(c.args);
-    EXPECT_EQ(r.exit_code, 1) << c.args << "\n" << r.output;
-    EXPECT_THAT(r.output, HasSubstr(c.message)) << c.args;
-    EXPECT_EQ(std::count(r.output.begin(), r.output.end(), '\n'), 1)
-        << c.args << "\n"
-        << r.output;
+    EXPECT_EQ(r.exit_code, 1) << c.args << "\n" << r.out;
+    EXPECT_THAT(r.out, HasSubstr(c.message)) << c.args;
+    EXPECT_EQ(std::count(r.out.begin(), r.out.end(), '\n'), 1) << c.args << "\n"
+                                                               << r.out;
   }
   EXPECT_FALSE(fs::exists(dir_ / "out" / "labels.nii.gz"));
 }
@@ -267,7 +251,7 @@ TEST_F(FillCliTest, ReadsAndFillsADicomSeg) {
                            "--method direct --factor 5 --seg --volume nrrd "
                            "--mesh none --quiet --out " +
                            run.string());
-  ASSERT_EQ(r.exit_code, 0) << r.output;
+  ASSERT_EQ(r.exit_code, 0) << r.out;
   absl::StatusOr<DicomSeries> series = ReadDicomSeries(
       {(run / "series-intensity").string()}, {}, ComputeContext{.threads = 1});
   ASSERT_TRUE(series.ok()) << series.status();
@@ -321,7 +305,7 @@ TEST_F(FillCliTest, ReadsAndFillsADicomSeg) {
              " --key-slices 0-15:5 --method direct --mesh none --volume nrrd "
              "--out " +
              out.string() + " --report " + report.string());
-  ASSERT_EQ(r.exit_code, 0) << r.output;
+  ASSERT_EQ(r.exit_code, 0) << r.out;
   absl::StatusOr<Volume<float>> filled =
       ReadVolumeAsFloat((out / "labels.nrrd").string());
   ASSERT_TRUE(filled.ok()) << filled.status();
@@ -373,7 +357,7 @@ TEST_F(FillCliTest, WritesSegAndRtStructOfALabelMap) {
              " --key-slices 0-27:3 --method linear --mesh none --volume nrrd "
              "--seg --rtstruct --threads 2 --quiet --out " +
              out.string() + " --report " + report.string());
-  ASSERT_EQ(r.exit_code, 0) << r.output;
+  ASSERT_EQ(r.exit_code, 0) << r.out;
   const std::string seg = (out / "seg.dcm").string();
   const std::string rt = (out / "rtstruct.dcm").string();
   ::interslice::testing::ExpectValidIod({seg, rt});
@@ -553,7 +537,7 @@ TEST_F(FillCliTest, RtStructInIsFilledFromItsPolygonsAndWrittenBack) {
              " --method linear --mesh none --volume nrrd --seg --threads 2 "
              "--quiet --out " +
              out.string() + " --report " + report.string());
-  ASSERT_EQ(r.exit_code, 0) << r.output;
+  ASSERT_EQ(r.exit_code, 0) << r.out;
   const std::string seg = (out / "seg.dcm").string();
   const std::string rt = (out / "rtstruct.dcm").string();
   ::interslice::testing::ExpectValidIod({seg, rt});
@@ -625,7 +609,7 @@ TEST_F(FillCliTest, SegOnAFinerGridReferencesADerivedIntensitySeries) {
              " --factor 2 --method linear --mesh none --volume nrrd --seg "
              "--quiet --out " +
              out.string());
-  ASSERT_EQ(r.exit_code, 0) << r.output;
+  ASSERT_EQ(r.exit_code, 0) << r.out;
   EXPECT_FALSE(fs::exists(out / "rtstruct.dcm"));  // not by default here
   const std::string seg = (out / "seg.dcm").string();
   ::interslice::testing::ExpectValidIod({seg});
@@ -640,6 +624,81 @@ TEST_F(FillCliTest, SegOnAFinerGridReferencesADerivedIntensitySeries) {
   absl::StatusOr<SegmentationInput> back = ReadDicomSegmentation(seg, derived);
   ASSERT_TRUE(back.ok()) << back.status();
   EXPECT_EQ(CountDiffering(back->labels.data, filled->data), 0);
+}
+
+}  // namespace
+}  // namespace interslice
+
+namespace interslice {
+namespace {
+
+// Previews of a fill: each label outlined in its segment colour, the PNGs
+// and a valid Secondary Capture series in the reference's study; a fill of
+// one label previews too.
+TEST_F(FillCliTest, PreviewsOutlineEachLabelInItsColour) {
+  const std::string labels = (dir_ / "labels.nii.gz").string();
+  ASSERT_TRUE(WriteVolume(*truth_, labels).ok());
+  const fs::path out = dir_ / "out";
+  const fs::path report = dir_ / "report.json";
+  const CommandResult r =
+      RunCli("fill " + labels + " --reference " + kPhantom +
+             " --key-slices 0-27:4 --method linear --seg --previews png,dicom "
+             "--mesh none --volume none --threads 2 --out " +
+             out.string() + " --report " + report.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  for (const char* name :
+       {"axial.png", "coronal.png", "sagittal.png", "3d-front.png"}) {
+    EXPECT_TRUE(fs::exists(out / "previews" / name)) << name;
+  }
+  std::vector<std::string> dicom;
+  for (int n = 1; n <= 4; ++n) {
+    dicom.push_back(
+        (out / "previews-dicom" / absl::StrFormat("IM%05d.dcm", n)).string());
+  }
+  ::interslice::testing::ExpectValidIod(dicom);
+  std::ifstream in(report);
+  const nlohmann::json j = nlohmann::json::parse(in);
+  EXPECT_TRUE(j["stages"].contains("preview"));
+  EXPECT_TRUE(j["previews"]["notes"].empty()) << j["previews"];
+
+  auto seg = ::interslice::testing::LoadDicom((out / "seg.dcm").string());
+  auto axial = ::interslice::testing::LoadDicom(dicom[0]);
+  DcmDataset& ds = *axial->getDataset();
+  EXPECT_EQ(::interslice::testing::GetString(ds, DCM_StudyInstanceUID),
+            ::interslice::testing::GetString(*seg->getDataset(),
+                                             DCM_StudyInstanceUID));
+  EXPECT_THAT(::interslice::testing::GetString(ds, DCM_ImageComments),
+              HasSubstr("axial"));
+  // Both labels' colours are drawn (a 1.5 pixel line covers some pixels
+  // whole, which then hold the exact colour).
+  Uint16 rows = 0, columns = 0;
+  ds.findAndGetUint16(DCM_Rows, rows);
+  ds.findAndGetUint16(DCM_Columns, columns);
+  const Uint8* pixels = nullptr;
+  ASSERT_TRUE(ds.findAndGetUint8Array(DCM_PixelData, pixels).good());
+  for (int label : {1, 2}) {
+    const std::array<uint8_t, 3> rgb = SegmentRgb(DefaultLabelSegment(label));
+    int exact = 0;
+    for (size_t p = 0; p < static_cast<size_t>(rows) * columns; ++p) {
+      exact += pixels[3 * p] == rgb[0] && pixels[3 * p + 1] == rgb[1] &&
+               pixels[3 * p + 2] == rgb[2];
+    }
+    EXPECT_GT(exact, 50) << "label " << label;
+  }
+
+  // One label only (the soft tissue, as label 1): previews too, no note.
+  Volume<uint16_t> one = *truth_;
+  for (uint16_t& v : one.data) v = v == 2 ? 1 : 0;
+  const std::string one_path = (dir_ / "one.nii.gz").string();
+  ASSERT_TRUE(WriteVolume(one, one_path).ok());
+  const CommandResult single =
+      RunCli("fill " + one_path + " --reference " + kPhantom +
+             " --key-slices 0-27:4 --method linear --mesh none --volume none "
+             "--threads 2 --out " +
+             (dir_ / "one").string());
+  ASSERT_EQ(single.exit_code, 0) << single.output;
+  EXPECT_TRUE(fs::exists(dir_ / "one" / "previews" / "3d-front.png"));
+  EXPECT_THAT(single.output, ::testing::Not(HasSubstr("warning")));
 }
 
 }  // namespace

@@ -25,7 +25,7 @@
 namespace {
 
 using interslice::server::IsLogSafe;
-using interslice::server::Sha256;
+using interslice::Sha256;
 using interslice::server::UploadStep;
 using interslice::server::UploadStream;
 using interslice::server::UploadStreamLimits;

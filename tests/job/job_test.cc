@@ -127,16 +127,18 @@ TEST(JobKindTest, InterpolationRunsAndReportsInOneShape) {
   ASSERT_TRUE(in_place.ok()) << in_place.status();
   std::vector<std::string> stages;
   for (const StageTiming& t : in_place->stages) stages.push_back(t.stage);
-  EXPECT_EQ(stages, (std::vector<std::string>{"read", "contour", "stack",
-                                              "solve", "mesh", "write"}));
-  // distance, mask, surface and its coordinates note.
-  ASSERT_EQ(in_place->artifacts.size(), 4u);
+  EXPECT_EQ(stages,
+            (std::vector<std::string>{"read", "contour", "stack", "solve",
+                                      "mesh", "preview", "write"}));
+  // distance, mask, surface and its coordinates note, the previews (PNG by
+  // default).
+  ASSERT_EQ(in_place->artifacts.size(), 5u);
   for (const Artifact& a : in_place->artifacts) {
     EXPECT_TRUE(fs::exists(a.path)) << a.path;
     EXPECT_EQ(fs::path(a.path).parent_path(), local);
   }
   EXPECT_GT(in_place->peak_rss_bytes, 0);
-  EXPECT_THAT(in_place->summary.front(), HasSubstr("wrote 4 file(s)"));
+  EXPECT_THAT(in_place->summary.front(), HasSubstr("wrote 5 file(s)"));
   nlohmann::json report = nlohmann::json::parse(in_place->report_json);
   EXPECT_EQ(report["artifacts"][0]["path"], in_place->artifacts[0].path);
 
@@ -157,10 +159,22 @@ TEST(JobKindTest, InterpolationRunsAndReportsInOneShape) {
     const fs::path b = in_place->artifacts[n].path;
     EXPECT_EQ(a.parent_path(), output);
     EXPECT_EQ(report["artifacts"][n]["path"], a.filename().string());
-    std::ifstream fa(a, std::ios::binary), fb(b, std::ios::binary);
-    const std::string da((std::istreambuf_iterator<char>(fa)), {});
-    const std::string db((std::istreambuf_iterator<char>(fb)), {});
-    EXPECT_EQ(da, db) << a.filename() << " differs from the in-place run";
+    // A folder (the previews): each of its files.
+    std::vector<std::pair<fs::path, fs::path>> files = {{a, b}};
+    if (fs::is_directory(a)) {
+      files.clear();
+      for (const auto& entry : fs::directory_iterator(b)) {
+        files.push_back({a / entry.path().filename(), entry.path()});
+      }
+      EXPECT_EQ(files.size(), 4u) << a;
+    }
+    for (const auto& [x, y] : files) {
+      std::ifstream fa(x, std::ios::binary), fb(y, std::ios::binary);
+      const std::string da((std::istreambuf_iterator<char>(fa)), {});
+      const std::string db((std::istreambuf_iterator<char>(fb)), {});
+      EXPECT_FALSE(db.empty()) << y;
+      EXPECT_EQ(da, db) << x << " differs from the in-place run";
+    }
   }
 }
 

@@ -71,6 +71,7 @@ TEST(OptionTableTest, SetOptionByKeyGivesTheSameSpecAsTypedValues) {
   typed.adaptivity = 0.25;
   typed.mesh = "stl,ply";
   typed.volume = "nrrd";
+  typed.previews = "dicom,png";
   InterpolationOptions by_key = Minimal();
   for (auto [key, text] : std::vector<std::pair<std::string, std::string>>{
            {"upper", "2000"},
@@ -88,7 +89,8 @@ TEST(OptionTableTest, SetOptionByKeyGivesTheSameSpecAsTypedValues) {
            {"band", "3.5"},
            {"adaptivity", "0.25"},
            {"mesh", "stl,ply"},
-           {"volume", "nrrd"}}) {
+           {"volume", "nrrd"},
+           {"previews", "dicom,png"}}) {
     ASSERT_TRUE(SetOption(by_key, key, text).ok()) << key;
   }
   absl::StatusOr<JobSpec> a = BuildJobSpec(typed);
@@ -101,6 +103,16 @@ TEST(OptionTableTest, SetOptionByKeyGivesTheSameSpecAsTypedValues) {
   EXPECT_EQ(a->z_resolution.factor, 3);
   EXPECT_EQ(a->series_number_base, 4000);
   EXPECT_EQ(a->mesh_formats, (std::vector<std::string>{"stl", "ply"}));
+  EXPECT_EQ(a->preview_formats, (std::vector<std::string>{"dicom", "png"}));
+  // The default on every door: PNG; "none" turns them off; a fill the same.
+  EXPECT_EQ(BuildJobSpec(Minimal())->preview_formats,
+            std::vector<std::string>{"png"});
+  ASSERT_TRUE(SetOption(by_key, "previews", "none").ok());
+  EXPECT_TRUE(BuildJobSpec(by_key)->preview_formats.empty());
+  ASSERT_TRUE(SetOption(by_key, "previews", "gif").ok());
+  EXPECT_EQ(ErrorOptionKey(BuildJobSpec(by_key).status()), "previews");
+  EXPECT_EQ(BuildFillJobSpec(MinimalFill())->preview_formats,
+            std::vector<std::string>{"png"});
 }
 
 TEST(OptionTableTest, SetOptionRefusesWrongTypesAndUnknownKeys) {
@@ -138,7 +150,7 @@ TEST(BuildJobSpecTest, ErrorsNameTheOption) {
            {"mesh", "vrml", "unknown value 'vrml'"},
            {"volume", "mha", "unknown value 'mha'"},
            {"dicom_compression", "jpeg", "unknown value 'jpeg'"},
-           {"series_number_base", "0", "must be between 1 and 2147483643"},
+           {"series_number_base", "0", "must be between 1 and 2147483641"},
            {"upper", "-5000", "not below the threshold"},
        }) {
     InterpolationOptions o = Minimal();
@@ -159,27 +171,28 @@ TEST(BuildJobSpecTest, ErrorsNameTheOption) {
   EXPECT_EQ(ErrorOptionKey(BuildJobSpec(none).status()), "threshold");
 }
 
-// The derived objects are numbered base + 1 ... base + 4: the largest base
-// whose + 4 is still a DICOM IS (signed 32-bit) is accepted, one more is
-// not, by every door and by the core itself before anything runs.
-TEST(BuildJobSpecTest, SeriesNumberBaseLeavesRoomForFourObjects) {
+// The derived objects are numbered base + 1 ... base + 6 (the previews): the
+// largest base whose + 6 is still a DICOM IS (signed 32-bit) is accepted,
+// one more is not, by every door and by the core itself before anything
+// runs.
+TEST(BuildJobSpecTest, SeriesNumberBaseLeavesRoomForSixObjects) {
   InterpolationOptions o = Minimal();
   o.series_number_base = kMaxSeriesNumberBase;
   ASSERT_TRUE(BuildJobSpec(o).ok());
-  EXPECT_EQ(kMaxSeriesNumberBase + 4, 2147483647);
+  EXPECT_EQ(kMaxSeriesNumberBase + 6, 2147483647);
   o.series_number_base = kMaxSeriesNumberBase + 1;
   EXPECT_EQ(ErrorOptionKey(BuildJobSpec(o).status()), "series_number_base");
   v1::JobSpec wire;
   wire.set_threshold(300);
-  wire.mutable_derived_series()->set_series_number(2147483644);
+  wire.mutable_derived_series()->set_series_number(2147483642);
   EXPECT_THAT(std::string(JobSpecFromWire(wire).status().message()),
               HasSubstr("spec.derived_series.series_number: must be between"));
   JobSpec core;
   core.inputs = {"in"};
   core.output_dir = "out";
-  core.series_number_base = 2147483644;
+  core.series_number_base = 2147483642;
   EXPECT_EQ(ValidateJobSpec(core).code(), absl::StatusCode::kInvalidArgument);
-  core.series_number_base = 2147483643;
+  core.series_number_base = 2147483641;
   EXPECT_TRUE(ValidateJobSpec(core).ok());
   core.uid_root = "1.2.x";
   EXPECT_EQ(ValidateJobSpec(core).code(), absl::StatusCode::kInvalidArgument);

@@ -27,6 +27,17 @@ TEST(WireTest, DefaultsMatchTheCli) {
   EXPECT_EQ(spec->solver.max_iterations, 15);
   EXPECT_EQ(spec->volume_formats, std::vector<std::string>{"nii"});
   EXPECT_EQ(spec->mesh_formats, std::vector<std::string>{"stl"});
+  // Previews: PNG unless the wire says otherwise, as on the command line.
+  EXPECT_EQ(spec->preview_formats, std::vector<std::string>{"png"});
+  p.mutable_previews();  // present and empty: none
+  EXPECT_TRUE(JobSpecFromWire(p)->preview_formats.empty());
+  p.mutable_previews()->add_formats(v1::PREVIEW_FORMAT_DICOM);
+  EXPECT_EQ(JobSpecFromWire(p)->preview_formats,
+            std::vector<std::string>{"dicom"});
+  p.mutable_previews()->add_formats(static_cast<v1::PreviewFormat>(7));
+  EXPECT_THAT(std::string(JobSpecFromWire(p).status().message()),
+              HasSubstr("spec.previews.formats: unknown format 7"));
+  p.clear_previews();
   p.set_tolerance(1e-3);
   EXPECT_EQ(JobSpecFromWire(p)->solver.max_iterations, 100000);
   p.mutable_outputs();  // present and empty: no files
@@ -119,8 +130,10 @@ TEST(WireTest, InterpolationSpecsRoundTrip) {
   cases[1].output_series = "intensity,distance,mask";
   cases[1].seg = true;
   cases[1].dicom_compression = "rle";
-  cases[1].series_number_base = 2147483643;
+  cases[1].series_number_base = 2147483641;
+  cases[1].previews = "png,dicom";
   cases[1].slab_deconvolution = true;
+  cases[1].intensity_method = "linear";
   cases[1].volume = "nii-uncompressed,nrrd";
   cases[1].mesh = "obj";
   cases[2].method = "morph";
@@ -138,6 +151,7 @@ TEST(WireTest, InterpolationSpecsRoundTrip) {
   cases[3].iterations = 0;
   cases[3].mesh = "none";
   cases[3].volume = "none";
+  cases[3].previews = "none";
   for (size_t n = 0; n < cases.size(); ++n) {
     absl::StatusOr<JobSpec> spec = BuildJobSpec(cases[n]);
     ASSERT_TRUE(spec.ok()) << n << ": " << spec.status();
@@ -155,7 +169,9 @@ TEST(WireTest, InterpolationSpecsRoundTrip) {
     EXPECT_EQ(back->output_series, spec->output_series);
     EXPECT_EQ(back->volume_formats, spec->volume_formats);
     EXPECT_EQ(back->mesh_formats, spec->mesh_formats);
+    EXPECT_EQ(back->preview_formats, spec->preview_formats);
     EXPECT_EQ(back->slab_deconvolution, spec->slab_deconvolution);
+    EXPECT_EQ(back->intensity_method, spec->intensity_method);
     EXPECT_EQ(back->series_number_base, spec->series_number_base);
     EXPECT_EQ(back->series_instance_uid, spec->series_instance_uid);
     EXPECT_TRUE(back->inputs.empty());
@@ -177,6 +193,7 @@ TEST(WireTest, FillSpecsRoundTripAndRefuseInterpolationFields) {
   o.volume = "nii,nrrd";
   o.rtstruct = false;
   o.seg = true;
+  o.previews = "dicom";
   absl::StatusOr<FillJobSpec> spec = BuildFillJobSpec(o);
   ASSERT_TRUE(spec.ok()) << spec.status();
   const v1::JobSpec wire = ToWire(*spec, "labels.nrrd");
@@ -188,6 +205,7 @@ TEST(WireTest, FillSpecsRoundTripAndRefuseInterpolationFields) {
             wire.SerializeAsString());
   EXPECT_EQ(back->fill.labels, (std::vector<int>{2, 1}));
   EXPECT_EQ(back->write_rtstruct, std::optional<bool>(false));
+  EXPECT_EQ(back->preview_formats, std::vector<std::string>{"dicom"});
   // auto is the wire's unset method.
   o.method = "auto";
   const v1::JobSpec automatic = ToWire(*BuildFillJobSpec(o), "x.nrrd");

@@ -1,4 +1,4 @@
-// Fill jobs through the daemon (issue 13): a real interslice-server process
+// Fill jobs through the daemon: a real interslice-server process
 // on loopback, driven by the real `interslice` client (`fill --server`,
 // `fetch`) and, for detached jobs and malformed specs, by a gRPC stub. The
 // artifacts must equal those of RunFillJob in this process, voxel for voxel
@@ -6,14 +6,10 @@
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 #include <openssl/evp.h>
-#include <signal.h>
-#include <sys/wait.h>
-#include <unistd.h>
 
 #include <chrono>
 #include <filesystem>
 #include <fstream>
-#include <thread>
 
 #include "absl/strings/str_cat.h"
 #include "core/dicom/series_reader.h"
@@ -23,7 +19,9 @@
 #include "grpcpp/grpcpp.h"
 #include "interslice/v1/interslice.grpc.pb.h"
 #include "nlohmann/json.hpp"
-#include "tests/server/process.h"
+#include "tests/testing/process.h"
+#include "tests/testing/server_process.h"
+#include "tests/testing/temp_dir.h"
 
 namespace interslice::testing {
 namespace {
@@ -32,74 +30,13 @@ namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 
 const std::string kCli = INTERSLICE_CLI_PATH;
-const std::string kServer = INTERSLICE_SERVER_PATH;
 const std::string kSeries = std::string(INTERSLICE_TEST_DATA_DIR) + "/ct-thick";
 
-std::vector<std::string> Cat(std::vector<std::string> a,
-                             const std::vector<std::string>& b) {
-  a.insert(a.end(), b.begin(), b.end());
-  return a;
+// A gRPC stub talking to the server.
+std::unique_ptr<v1::InterSlice::Stub> StubTo(const ServerProcess& server) {
+  return v1::InterSlice::NewStub(grpc::CreateChannel(
+      server.address(), grpc::InsecureChannelCredentials()));
 }
-
-class TempDir {
- public:
-  TempDir() {
-    char name[] = "/tmp/interslice-fill-server-test-XXXXXX";
-    path_ = mkdtemp(name);
-  }
-  ~TempDir() {
-    std::error_code ec;
-    fs::remove_all(path_, ec);
-  }
-  std::string operator/(const std::string& name) const {
-    return (fs::path(path_) / name).string();
-  }
-
- private:
-  std::string path_;
-};
-
-// One server process (one worker, two solver threads: the results must not
-// depend on the thread count), stopped with SIGTERM.
-class ServerProcess {
- public:
-  explicit ServerProcess(const TempDir& dir)
-      : spool_(dir / "spool"), log_(dir / "server.log") {
-    const std::string port_file = spool_ + ".port";
-    pid_ = StartProcess({kServer, "--listen", "127.0.0.1:0", "--spool", spool_,
-                         "--port-file", port_file, "--workers", "1",
-                         "--threads-per-job", "2", "--drain-grace", "0"},
-                        log_);
-    for (int i = 0;
-         i < 500 && !fs::exists(port_file) && WaitProcess(pid_, 0) == -1; ++i) {
-      std::this_thread::sleep_for(std::chrono::milliseconds(20));
-    }
-    std::ifstream in(port_file);
-    int port = 0;
-    in >> port;
-    address_ = absl::StrCat("127.0.0.1:", port);
-  }
-  ~ServerProcess() {
-    kill(pid_, SIGTERM);
-    const int rc = WaitProcess(pid_, 60);
-    EXPECT_EQ(rc, 0) << "interslice-server did not exit cleanly\n" << Log();
-    if (rc == -1) {
-      kill(pid_, SIGKILL);
-      waitpid(pid_, nullptr, 0);
-    }
-  }
-  std::vector<std::string> Server() const { return {"--server", address_}; }
-  std::unique_ptr<v1::InterSlice::Stub> Stub() const {
-    return v1::InterSlice::NewStub(
-        grpc::CreateChannel(address_, grpc::InsecureChannelCredentials()));
-  }
-  std::string Log() const { return ReadFileOrEmpty(log_); }
-
- private:
-  std::string spool_, log_;
-  pid_t pid_ = -1;
-  std::string address_;
-};
 
 CommandResult Cli(const std::vector<std::string>& args, double timeout = 300) {
   return RunCommand(Cat({kCli}, args), timeout);
@@ -133,7 +70,7 @@ std::vector<UploadFile> SeriesFiles(const std::string& dir) {
 // A detached job by Submit: the status and, if OK, the job id.
 grpc::Status Submit(const ServerProcess& server, const v1::JobSpec& spec,
                     const std::vector<UploadFile>& files, std::string* id) {
-  auto stub = server.Stub();
+  auto stub = StubTo(server);
   grpc::ClientContext context;
   context.set_deadline(std::chrono::system_clock::now() +
                        std::chrono::seconds(60));
@@ -170,7 +107,7 @@ grpc::Status Submit(const ServerProcess& server, const v1::JobSpec& spec,
 
 // Waits for the end of a detached job.
 v1::JobStatus WaitForEnd(const ServerProcess& server, const std::string& id) {
-  auto stub = server.Stub();
+  auto stub = StubTo(server);
   grpc::ClientContext context;
   context.set_deadline(std::chrono::system_clock::now() +
                        std::chrono::seconds(240));
@@ -206,8 +143,10 @@ FillJobReport RunLocally(const std::string& segmentation,
 // label maps agree voxel for voxel (said separately for a clear failure).
 void ExpectSameResults(const std::string& expected, const std::string& actual) {
   int files = 0;
-  for (const auto& e : fs::directory_iterator(expected)) {
-    const std::string name = e.path().filename().string();
+  // The previews are a folder: its files too.
+  for (const auto& e : fs::recursive_directory_iterator(expected)) {
+    if (!e.is_regular_file()) continue;
+    const std::string name = fs::relative(e.path(), expected).string();
     ASSERT_TRUE(fs::exists(fs::path(actual) / name)) << name;
     EXPECT_TRUE(ReadFileOrEmpty(e.path().string()) ==
                 ReadFileOrEmpty((fs::path(actual) / name).string()))
@@ -257,14 +196,17 @@ TEST(FillServerTest, LabelMapFilledByTheServerEqualsInProcess) {
   const std::string labels = WriteLabelMap(dir / "drawn.nii.gz");
   const FillJobReport local = RunLocally(labels, kSeries, dir / "local");
   ASSERT_EQ(local.per_label.size(), 2u);
-  ServerProcess server(dir);
+  // One worker, two solver threads: the results must not depend on the
+  // thread count.
+  ServerProcess server({.spool = dir / "spool", .log = dir / "server.log"});
+  ASSERT_TRUE(server.Start());
 
   // One call: `interslice fill --server` writes the same files.
   CommandResult r =
       Cli(Cat({"fill", labels, "--reference", kSeries, "--method", "direct",
                "--volume", "nii,nrrd", "--mesh", "stl", "--out", dir / "remote",
                "--report", dir / "remote.json"},
-              server.Server()));
+              server.ServerFlag()));
   ASSERT_EQ(r.exit_code, 0) << r.err << server.Log();
   ExpectSameResults(dir / "local", dir / "remote");
   // The report is `interslice fill --report`'s, paths in the output folder.
@@ -300,7 +242,7 @@ TEST(FillServerTest, LabelMapFilledByTheServerEqualsInProcess) {
     kinds.push_back(a.kind());
   EXPECT_THAT(kinds, ::testing::Contains("labels"));
   EXPECT_THAT(kinds, ::testing::Contains("surface"));
-  r = Cli(Cat({"fetch", id, "--out", dir / "fetched"}, server.Server()));
+  r = Cli(Cat({"fetch", id, "--out", dir / "fetched"}, server.ServerFlag()));
   ASSERT_EQ(r.exit_code, 0) << r.err;
   ExpectSameResults(dir / "local", dir / "fetched");
 }
@@ -319,14 +261,17 @@ TEST(FillServerTest, DicomSegFilledByTheServerEqualsInProcess) {
   const FillJobReport local =
       RunLocally(seg, reference, dir / "local", {0, 5, 10, 15});
   EXPECT_EQ(local.input_kind, "seg-binary");
-  ServerProcess server(dir);
+  // One worker, two solver threads: the results must not depend on the
+  // thread count.
+  ServerProcess server({.spool = dir / "spool", .log = dir / "server.log"});
+  ASSERT_TRUE(server.Start());
   // The SEG sits in the series' folder: the client must not upload it as a
   // slice of the series too.
   fs::copy_file(seg, reference + "/seg.dcm");
   r = Cli(Cat({"fill", reference + "/seg.dcm", "--reference", reference,
                "--key-slices", "0-15:5", "--method", "direct", "--volume",
                "nii,nrrd", "--mesh", "stl", "--out", dir / "remote"},
-              server.Server()));
+              server.ServerFlag()));
   ASSERT_EQ(r.exit_code, 0) << r.err << server.Log();
   ExpectSameResults(dir / "local", dir / "remote");
 }
@@ -337,7 +282,10 @@ TEST(FillServerTest, DicomSegFilledByTheServerEqualsInProcess) {
 TEST(FillServerTest, BadFillSpecsAreRefusedWithTheReason) {
   TempDir dir;
   const std::string labels = WriteLabelMap(dir / "drawn.nii.gz");
-  ServerProcess server(dir);
+  // One worker, two solver threads: the results must not depend on the
+  // thread count.
+  ServerProcess server({.spool = dir / "spool", .log = dir / "server.log"});
+  ASSERT_TRUE(server.Start());
   std::vector<UploadFile> files = SeriesFiles(kSeries);
   files.push_back({labels, "drawn.nii.gz"});
   v1::JobSpec good;
@@ -445,7 +393,7 @@ TEST(FillServerTest, BadFillSpecsAreRefusedWithTheReason) {
   // client says so in one line.
   CommandResult r = Cli(Cat({"fill", labels, "--reference", kSeries, "--labels",
                              "1,9", "--mesh", "none", "--out", dir / "out"},
-                            server.Server()));
+                            server.ServerFlag()));
   EXPECT_EQ(r.exit_code, 1);
   EXPECT_THAT(r.err, HasSubstr("9"));
   EXPECT_THAT(r.err, HasSubstr("interslice: error:"));
@@ -455,7 +403,7 @@ TEST(FillServerTest, BadFillSpecsAreRefusedWithTheReason) {
   std::ofstream(unknown) << "1,Bone\n9,Nothing\n";
   r = Cli(Cat({"fill", labels, "--reference", kSeries, "--label-names",
                unknown, "--seg", "--mesh", "none", "--out", dir / "unknown"},
-              server.Server()));
+              server.ServerFlag()));
   EXPECT_EQ(r.exit_code, 1);
   EXPECT_THAT(r.err, HasSubstr("interslice: error: the label names name label "
                                "9, which the label map does not hold"));
@@ -465,7 +413,7 @@ TEST(FillServerTest, BadFillSpecsAreRefusedWithTheReason) {
   std::ofstream(bad_row) << "1,Bone,0,0\n";
   r = Cli(Cat({"fill", labels, "--reference", kSeries, "--label-names",
                bad_row, "--seg", "--mesh", "none", "--out", dir / "bad-row"},
-              server.Server()));
+              server.ServerFlag()));
   EXPECT_EQ(r.exit_code, 1);
   EXPECT_THAT(r.err, HasSubstr("label-names.csv line 1: expected "
                                "label,name[,R,G,B[,code]] (4 fields)"));
@@ -474,7 +422,7 @@ TEST(FillServerTest, BadFillSpecsAreRefusedWithTheReason) {
   // The server carries on.
   r = Cli(Cat({"fill", labels, "--reference", kSeries, "--mesh", "none",
                "--out", dir / "ok"},
-              server.Server()));
+              server.ServerFlag()));
   EXPECT_EQ(r.exit_code, 0) << r.err;
   EXPECT_TRUE(fs::exists(dir / "ok/labels.nii.gz"));
 }
@@ -502,9 +450,9 @@ TEST(FillServerTest, LabelNamesReachTheServersSegAndRtStruct) {
       "--mesh",  "none", "--volume",    "nrrd",          "--quiet"};
   CommandResult local = Cli(Cat(job, {"--out", dir / "local"}));
   ASSERT_EQ(local.exit_code, 0) << local.err;
-  ServerProcess server(dir);
+  ServerProcess server({.spool = dir / "spool", .log = dir / "server.log"});
   CommandResult r =
-      Cli(Cat(Cat(job, {"--out", dir / "remote"}), server.Server()));
+      Cli(Cat(Cat(job, {"--out", dir / "remote"}), server.ServerFlag()));
   ASSERT_EQ(r.exit_code, 0) << r.err << server.Log();
 
   absl::StatusOr<DicomSeries> series =
@@ -543,28 +491,28 @@ TEST(FillServerTest, SubmittedFillIsWatchedListedAndFetched) {
   TempDir dir;
   const std::string labels = WriteLabelMap(dir / "drawn.nii.gz");
   RunLocally(labels, kSeries, dir / "local");
-  ServerProcess server(dir);
+  ServerProcess server({.spool = dir / "spool", .log = dir / "server.log"});
   CommandResult r = Cli(Cat(
       {"fill", labels, "--reference", kSeries, "--method", "direct",
        "--volume", "nii,nrrd", "--mesh", "stl", "--submit", "--label",
        "fill of the week", "--deadline", "600"},
-      server.Server()));
+      server.ServerFlag()));
   ASSERT_EQ(r.exit_code, 0) << r.err << server.Log();
   std::string id = r.out;
   while (!id.empty() && (id.back() == '\n' || id.back() == '\r')) id.pop_back();
   ASSERT_FALSE(id.empty());
   EXPECT_EQ(id.find('\n'), std::string::npos) << "one line: the id";
 
-  CommandResult list = Cli(Cat({"list", "--all"}, server.Server()));
+  CommandResult list = Cli(Cat({"list", "--all"}, server.ServerFlag()));
   ASSERT_EQ(list.exit_code, 0) << list.err;
   EXPECT_THAT(list.out, HasSubstr(id));
   EXPECT_THAT(list.out, HasSubstr("fill of the week"));
-  CommandResult watch = Cli(Cat({"watch", id, "--quiet"}, server.Server()));
+  CommandResult watch = Cli(Cat({"watch", id, "--quiet"}, server.ServerFlag()));
   ASSERT_EQ(watch.exit_code, 0) << watch.err << server.Log();
   EXPECT_THAT(watch.out, HasSubstr("job " + id + " succeeded"));
   r = Cli(Cat({"fetch", id, "--out", dir / "fetched", "--report",
                dir / "fetched.json"},
-              server.Server()));
+              server.ServerFlag()));
   ASSERT_EQ(r.exit_code, 0) << r.err;
   ExpectSameResults(dir / "local", dir / "fetched");
   std::ifstream in(dir / "fetched.json");
@@ -572,7 +520,7 @@ TEST(FillServerTest, SubmittedFillIsWatchedListedAndFetched) {
   EXPECT_EQ(report["input"], "label-map");
   EXPECT_EQ(report["method"], "direct");
   // A finished job cannot be cancelled any more: it says so.
-  CommandResult cancel = Cli(Cat({"cancel", id}, server.Server()));
+  CommandResult cancel = Cli(Cat({"cancel", id}, server.ServerFlag()));
   EXPECT_EQ(cancel.exit_code, 0) << cancel.err;
   EXPECT_THAT(cancel.out, HasSubstr("job " + id + ": succeeded"));
 
@@ -580,17 +528,17 @@ TEST(FillServerTest, SubmittedFillIsWatchedListedAndFetched) {
   // cancelled (or, on a fast machine, succeeded before the cancel arrived).
   r = Cli(Cat({"fill", labels, "--reference", kSeries, "--method", "auto",
                "--factor", "4", "--submit"},
-              server.Server()));
+              server.ServerFlag()));
   ASSERT_EQ(r.exit_code, 0) << r.err;
   std::string second = r.out;
   while (!second.empty() && second.back() == '\n') second.pop_back();
-  cancel = Cli(Cat({"cancel", second}, server.Server()));
+  cancel = Cli(Cat({"cancel", second}, server.ServerFlag()));
   EXPECT_EQ(cancel.exit_code, 0) << cancel.err;
   const v1::JobStatus ended = WaitForEnd(server, second);
   EXPECT_TRUE(ended.state() == v1::JOB_STATE_CANCELLED ||
               ended.state() == v1::JOB_STATE_SUCCEEDED)
       << ended.state();
-  watch = Cli(Cat({"watch", second, "--quiet"}, server.Server()));
+  watch = Cli(Cat({"watch", second, "--quiet"}, server.ServerFlag()));
   if (ended.state() == v1::JOB_STATE_CANCELLED) {
     EXPECT_EQ(watch.exit_code, 1);
     EXPECT_THAT(watch.err, HasSubstr("cancelled"));
@@ -606,7 +554,7 @@ TEST(FillServerTest, SubmittedFillIsWatchedListedAndFetched) {
            {{}, "--out is required (or --submit for a detached job)"},
        }) {
     r = Cli(Cat(Cat({"fill", labels, "--reference", kSeries}, args),
-                server.Server()));
+                server.ServerFlag()));
     EXPECT_EQ(r.exit_code, 1) << message;
     EXPECT_THAT(r.err, HasSubstr(message));
   }

@@ -173,7 +173,9 @@ TEST(ForwardedStreamTest, OwnerStoppingAtAnyMomentEndsTheCallCleanly) {
       last = status.sequence();
     }
     // Stop the owner while the proxy is between reads or writes; the
-    // caller pauses so that large writes wait for flow control.
+    // caller pauses so that large writes wait for flow control. (The random
+    // pauses vary the interleaving from round to round; they synchronise
+    // nothing.)
     std::thread stopper([&] {
       std::this_thread::sleep_for(std::chrono::microseconds(random() % 3000));
       owner->Shutdown(std::chrono::system_clock::now());

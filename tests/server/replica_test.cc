@@ -3,11 +3,6 @@
 // and the real `interslice` client round-robin over all three.
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
-#include <netinet/in.h>
-#include <signal.h>
-#include <sys/socket.h>
-#include <sys/wait.h>
-#include <unistd.h>
 
 #include <algorithm>
 #include <chrono>
@@ -23,7 +18,11 @@
 #include "grpcpp/grpcpp.h"
 #include "interslice/v1/interslice.grpc.pb.h"
 #include "server/forwarding.h"
-#include "tests/server/process.h"
+#include "tests/testing/files.h"
+#include "tests/testing/process.h"
+#include "tests/testing/server_process.h"
+#include "tests/testing/temp_dir.h"
+#include "tests/testing/wait_for.h"
 
 namespace interslice::testing {
 namespace {
@@ -31,7 +30,6 @@ namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 
 const std::string kCli = INTERSLICE_CLI_PATH;
-const std::string kServer = INTERSLICE_SERVER_PATH;
 const std::string kSeries = std::string(INTERSLICE_TEST_DATA_DIR) + "/ct-thick";
 // Small and fast: a 96 x 96 region of the 4 slices.
 const std::vector<std::string> kSmallJob = {kSeries, "--threshold", "300",
@@ -44,12 +42,6 @@ const std::vector<std::string> kLongJob = {
     "--iterations", "100000000"};
 constexpr int kJobs = 30;
 
-std::vector<std::string> Cat(std::vector<std::string> a,
-                             const std::vector<std::string>& b) {
-  a.insert(a.end(), b.begin(), b.end());
-  return a;
-}
-
 CommandResult Cli(const std::vector<std::string>& args, double timeout = 120) {
   return RunCommand(Cat({kCli}, args), timeout);
 }
@@ -59,97 +51,21 @@ std::string Trim(std::string s) {
   return s;
 }
 
-// A port free at the moment (the servers need their addresses before they
-// start, to advertise them, and keep them across a restart).
-int FreePort() {
-  const int fd = socket(AF_INET, SOCK_STREAM, 0);
-  sockaddr_in addr{};
-  addr.sin_family = AF_INET;
-  addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  addr.sin_port = 0;
-  bind(fd, reinterpret_cast<sockaddr*>(&addr), sizeof(addr));
-  socklen_t len = sizeof(addr);
-  getsockname(fd, reinterpret_cast<sockaddr*>(&addr), &len);
-  close(fd);
-  return ntohs(addr.sin_port);
+// A replica in `dir`: a fixed loopback port taken before it starts (it
+// advertises its address to the others, and keeps it across a restart),
+// one worker on one thread. Not started.
+std::unique_ptr<ServerProcess> Replica(const std::string& dir,
+                                       std::vector<std::string> extra = {},
+                                       const std::string& tls_ca_file = "") {
+  const std::string address = absl::StrCat("127.0.0.1:", FreeTcpPort());
+  return std::make_unique<ServerProcess>(
+      ServerOptions{.spool = dir + "/spool",
+                    .log = dir + "/server.log",
+                    .listen = address,
+                    .extra = Cat({"--advertise", address}, extra),
+                    .threads_per_job = 1,
+                    .tls_ca_file = tls_ca_file});
 }
-
-class Replica {
- public:
-  Replica(std::string dir, int port, std::vector<std::string> extra = {})
-      : dir_(std::move(dir)),
-        address_(absl::StrCat("127.0.0.1:", port)),
-        extra_(std::move(extra)) {
-    Start();
-  }
-  ~Replica() {
-    if (pid_ > 0) {
-      kill(pid_, SIGTERM);
-      const int rc = WaitProcess(pid_, 60);
-      EXPECT_EQ(rc, 0) << "interslice-server did not exit cleanly\n" << Log();
-      if (rc == -1) Kill9();
-    }
-  }
-  void Start() {
-    const std::string port_file = dir_ + "/port";
-    std::error_code ec;
-    fs::remove(port_file, ec);
-    std::vector<std::string> argv = {kServer,
-                                     "--listen",
-                                     address_,
-                                     "--advertise",
-                                     address_,
-                                     "--spool",
-                                     dir_ + "/spool",
-                                     "--port-file",
-                                     port_file,
-                                     "--workers",
-                                     "1",
-                                     "--threads-per-job",
-                                     "1",
-                                     "--drain-grace",
-                                     "0"};
-    argv.insert(argv.end(), extra_.begin(), extra_.end());
-    pid_ = StartProcess(argv, dir_ + "/server.log");
-    for (int i = 0;
-         i < 500 && !fs::exists(port_file) && WaitProcess(pid_, 0) == -1; ++i) {
-      std::this_thread::sleep_for(std::chrono::milliseconds(20));
-    }
-    ASSERT_TRUE(fs::exists(port_file)) << Log();
-  }
-  void Kill9() {
-    kill(pid_, SIGKILL);
-    waitpid(pid_, nullptr, 0);
-    pid_ = -1;
-  }
-  const std::string& address() const { return address_; }
-  std::string spool() const { return dir_ + "/spool"; }
-  std::string Log() const { return ReadFileOrEmpty(dir_ + "/server.log"); }
-
- private:
-  std::string dir_;
-  std::string address_;
-  std::vector<std::string> extra_;
-  pid_t pid_ = -1;
-};
-
-class TempDir {
- public:
-  TempDir() {
-    char name[] = "/tmp/interslice-replica-test-XXXXXX";
-    path_ = mkdtemp(name);
-  }
-  ~TempDir() {
-    std::error_code ec;
-    fs::remove_all(path_, ec);
-  }
-  std::string operator/(const std::string& name) const {
-    return (fs::path(path_) / name).string();
-  }
-
- private:
-  std::string path_;
-};
 
 std::set<std::string> JobsIn(const std::string& spool) {
   std::set<std::string> ids;
@@ -160,20 +76,11 @@ std::set<std::string> JobsIn(const std::string& spool) {
   return ids;
 }
 
+// The files of a run through the server equal the in-process run's (the
+// report differs: timings).
 void ExpectSameFiles(const std::string& expected_dir,
                      const std::string& actual_dir) {
-  int files = 0;
-  for (const auto& entry : fs::directory_iterator(expected_dir)) {
-    const std::string name = entry.path().filename().string();
-    if (name == "report.json") continue;
-    ++files;
-    const std::string actual = (fs::path(actual_dir) / name).string();
-    ASSERT_TRUE(fs::exists(actual)) << actual;
-    EXPECT_TRUE(ReadFileOrEmpty(entry.path().string()) ==
-                ReadFileOrEmpty(actual))
-        << actual << " differs";
-  }
-  EXPECT_GE(files, 4);
+  testing::ExpectSameFiles(expected_dir, actual_dir, 4, {"report.json"});
 }
 
 std::unique_ptr<v1::InterSlice::Stub> StubTo(const std::string& address) {
@@ -203,12 +110,12 @@ TEST(ReplicaTest, AnyReplicaAnswersForAnyJobAndAKilledOneComesBack) {
       Cat(kOutputs, {"--out", dir / "local", "--quiet", "--threads", "1"})));
   ASSERT_EQ(local_run.exit_code, 0) << local_run.err;
 
-  std::vector<std::unique_ptr<Replica>> replicas;
+  std::vector<std::unique_ptr<ServerProcess>> replicas;
   std::vector<std::string> addresses;
   for (int i = 0; i < 3; ++i) {
     fs::create_directories(dir / absl::StrCat("r", i));
-    replicas.push_back(
-        std::make_unique<Replica>(dir / absl::StrCat("r", i), FreePort()));
+    replicas.push_back(Replica(dir / absl::StrCat("r", i)));
+    ASSERT_TRUE(replicas.back()->Start());
     addresses.push_back(replicas.back()->address());
   }
   const std::vector<std::string> balanced = {
@@ -245,11 +152,12 @@ TEST(ReplicaTest, AnyReplicaAnswersForAnyJobAndAKilledOneComesBack) {
   CommandResult cancel = Cli({"cancel", long_id, "--server", addresses[0]});
   EXPECT_EQ(cancel.exit_code, 0) << cancel.err;
   v1::JobStatus status;
-  for (int i = 0; i < 500; ++i) {
-    ASSERT_TRUE(FirstStatus(addresses[1], long_id, &status).ok());
-    if (status.state() == v1::JOB_STATE_CANCELLED) break;
-    std::this_thread::sleep_for(std::chrono::milliseconds(20));
-  }
+  WaitFor(
+      [&] {
+        return FirstStatus(addresses[1], long_id, &status).ok() &&
+               status.state() == v1::JOB_STATE_CANCELLED;
+      },
+      std::chrono::seconds(60));
   EXPECT_EQ(status.state(), v1::JOB_STATE_CANCELLED);
 
   // Replica 1 dies (SIGKILL) in the middle; the balanced channel carries on
@@ -261,7 +169,7 @@ TEST(ReplicaTest, AnyReplicaAnswersForAnyJobAndAKilledOneComesBack) {
       std::max_element(held.begin(), held.end()) - held.begin());
   std::cerr << "jobs per replica before the kill: " << held[0] << " " << held[1]
             << " " << held[2] << "\n";
-  replicas[victim]->Kill9();
+  replicas[victim]->Kill();
   for (int i = kJobs / 2; i < kJobs; ++i) {
     submit();
     if (HasFatalFailure()) return;
@@ -287,12 +195,14 @@ TEST(ReplicaTest, AnyReplicaAnswersForAnyJobAndAKilledOneComesBack) {
     waiting = StartProcess(
         {kCli, "watch", ids[dead_job], "--quiet", "--server", addresses[0]},
         dir / "waiting-watch.log");
+    // A check that something does NOT happen: the watch is still waiting
+    // 1.5 s later (a sleep, not a wait for a condition).
     std::this_thread::sleep_for(std::chrono::milliseconds(1500));
     EXPECT_EQ(WaitProcess(waiting, 0), -1)
         << ReadFileOrEmpty(dir / "waiting-watch.log");
   }
   // ...and the owner comes back with its spool: the waiting watch ends.
-  replicas[victim]->Start();
+  ASSERT_TRUE(replicas[victim]->Start());
   if (waiting > 0) {
     EXPECT_EQ(WaitProcess(waiting, 60), 0)
         << ReadFileOrEmpty(dir / "waiting-watch.log");
@@ -324,7 +234,7 @@ TEST(ReplicaTest, AnyReplicaAnswersForAnyJobAndAKilledOneComesBack) {
   }
   // Forwarded calls are not forwarded again, and forged ids naming hosts
   // outside the replica set are unknown jobs (no connection to them).
-  for (const std::string forged :
+  for (const std::string& forged :
        {"0123456789abcdef" + server::JobIdSuffix("10.1.2.3:50051"),
         "0123456789abcdef" + server::JobIdSuffix("example.com:443")}) {
     const grpc::Status s = FirstStatus(addresses[0], forged, &status);
@@ -344,12 +254,12 @@ TEST(ReplicaTest, ForwardedCallsActAsTheCaller) {
     std::ofstream(dir / "alice") << "alice-token\n";
     std::ofstream(dir / "bob") << "bob-token\n";
   }
-  std::vector<std::unique_ptr<Replica>> replicas;
+  std::vector<std::unique_ptr<ServerProcess>> replicas;
   for (int i = 0; i < 2; ++i) {
     fs::create_directories(dir / absl::StrCat("r", i));
-    replicas.push_back(std::make_unique<Replica>(
-        dir / absl::StrCat("r", i), FreePort(),
-        std::vector<std::string>{"--auth-token-file", dir / "tokens"}));
+    replicas.push_back(Replica(dir / absl::StrCat("r", i),
+                               {"--auth-token-file", dir / "tokens"}));
+    ASSERT_TRUE(replicas.back()->Start());
   }
   const std::string a = replicas[0]->address();
   const std::string b = replicas[1]->address();
@@ -386,15 +296,16 @@ TEST(ReplicaTest, ForwardingOverTls) {
       << ReadFileOrEmpty(dir / "openssl.log");
   const std::vector<std::string> tls = {"--tls-cert", dir / "server.pem",
                                         "--tls-key", dir / "server.key"};
-  std::vector<std::unique_ptr<Replica>> replicas;
+  std::vector<std::unique_ptr<ServerProcess>> replicas;
   for (int i = 0; i < 2; ++i) {
     fs::create_directories(dir / absl::StrCat("r", i));
     std::vector<std::string> extra = tls;
     // Replica 1 trusts no CA for its peers but the system's: forwarding
     // from it must fail verification.
     if (i == 0) extra = Cat(extra, {"--peer-tls-ca", dir / "ca.pem"});
-    replicas.push_back(std::make_unique<Replica>(dir / absl::StrCat("r", i),
-                                                 FreePort(), extra));
+    replicas.push_back(
+        Replica(dir / absl::StrCat("r", i), extra, dir / "ca.pem"));
+    ASSERT_TRUE(replicas.back()->Start());
   }
   const std::vector<std::string> ca = {"--tls-ca", dir / "ca.pem"};
   CommandResult submit =

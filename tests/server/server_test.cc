@@ -21,7 +21,11 @@
 #include "dcmtk/dcmdata/dcfilefo.h"
 #include "grpcpp/grpcpp.h"
 #include "interslice/v1/interslice.grpc.pb.h"
-#include "tests/server/process.h"
+#include "tests/testing/files.h"
+#include "tests/testing/process.h"
+#include "tests/testing/server_process.h"
+#include "tests/testing/temp_dir.h"
+#include "tests/testing/wait_for.h"
 
 namespace interslice::testing {
 namespace {
@@ -30,7 +34,6 @@ using ::testing::HasSubstr;
 using ::testing::Not;
 
 const std::string kCli = INTERSLICE_CLI_PATH;
-const std::string kServer = INTERSLICE_SERVER_PATH;
 const std::string kSeries = std::string(INTERSLICE_TEST_DATA_DIR) + "/ct-thick";
 // Small and fast: a 160 x 160 region of the 4 slices.
 const std::vector<std::string> kSmallJob = {kSeries, "--threshold", "300",
@@ -39,100 +42,6 @@ const std::vector<std::string> kSmallJob = {kSeries, "--threshold", "300",
 const std::vector<std::string> kLongJob = {
     kSeries,        "--threshold", "300", "--roi", "100,100,0,400,400,4",
     "--iterations", "100000000"};
-
-std::vector<std::string> Cat(std::vector<std::string> a,
-                             const std::vector<std::string>& b) {
-  a.insert(a.end(), b.begin(), b.end());
-  return a;
-}
-
-class TempDir {
- public:
-  TempDir() {
-    char name[] = "/tmp/interslice-server-test-XXXXXX";
-    path_ = mkdtemp(name);
-  }
-  ~TempDir() {
-    std::error_code ec;
-    fs::remove_all(path_, ec);
-  }
-  std::string operator/(const std::string& name) const {
-    return (fs::path(path_) / name).string();
-  }
-  const std::string& path() const { return path_; }
-
- private:
-  std::string path_;
-};
-
-class ServerProcess {
- public:
-  ServerProcess(const std::string& spool, const std::string& log,
-                std::vector<std::string> extra = {})
-      : spool_(spool), log_(log), extra_(std::move(extra)) {
-    Start();
-  }
-  // Stops the server with SIGTERM, as an operator would, so that it exits
-  // through main: a sanitized build (scripts/test-sanitizers.sh) then runs
-  // its exit-time leak check, and a finding (exit code 86) fails the test.
-  ~ServerProcess() {
-    if (pid_ > 0) {
-      const int rc = Terminate(60);
-      EXPECT_EQ(rc, 0) << "interslice-server did not exit cleanly\n" << Log();
-      if (rc == -1) Kill9();
-    }
-  }
-  void Start() {
-    const std::string port_file = spool_ + ".port";
-    std::error_code ec;
-    fs::remove(port_file, ec);
-    std::vector<std::string> argv = {kServer,   "--listen", "127.0.0.1:0",
-                                     "--spool", spool_,     "--port-file",
-                                     port_file};
-    // One worker with two solver threads unless the test says otherwise.
-    if (std::find(extra_.begin(), extra_.end(), "--workers") == extra_.end()) {
-      argv = Cat(argv, {"--workers", "1"});
-    }
-    if (std::find(extra_.begin(), extra_.end(), "--threads-per-job") ==
-        extra_.end()) {
-      argv = Cat(argv, {"--threads-per-job", "2"});
-    }
-    // Cancel what still runs at SIGTERM at once (the destructor's stop).
-    if (std::find(extra_.begin(), extra_.end(), "--drain-grace") ==
-        extra_.end()) {
-      argv = Cat(argv, {"--drain-grace", "0"});
-    }
-    pid_ = StartProcess(Cat(argv, extra_), log_);
-    for (int i = 0;
-         i < 500 && !fs::exists(port_file) && WaitProcess(pid_, 0) == -1; ++i) {
-      std::this_thread::sleep_for(std::chrono::milliseconds(20));
-    }
-    std::ifstream in(port_file);
-    int port = 0;
-    in >> port;
-    address_ = absl::StrCat("127.0.0.1:", port);
-  }
-  void Kill9() {
-    kill(pid_, SIGKILL);
-    waitpid(pid_, nullptr, 0);
-    pid_ = -1;
-  }
-  int Terminate(double timeout) {
-    kill(pid_, SIGTERM);
-    const int rc = WaitProcess(pid_, timeout);
-    if (rc != -1) pid_ = -1;
-    return rc;
-  }
-  const std::string& address() const { return address_; }
-  std::vector<std::string> Server() const { return {"--server", address_}; }
-  std::string Log() const { return ReadFileOrEmpty(log_); }
-
- private:
-  std::string spool_, log_;
-  std::vector<std::string> extra_;
-  pid_t pid_ = -1;
-  std::string address_;
-};
 
 CommandResult Cli(const std::vector<std::string>& args, double timeout = 120) {
   return RunCommand(Cat({kCli}, args), timeout);
@@ -143,20 +52,11 @@ std::string Trim(std::string s) {
   return s;
 }
 
+// The files of a run through the server equal the in-process run's (the
+// report differs: timings).
 void ExpectSameFiles(const std::string& expected_dir,
                      const std::string& actual_dir) {
-  int files = 0;
-  for (const auto& entry : fs::directory_iterator(expected_dir)) {
-    const std::string name = entry.path().filename().string();
-    if (name == "report.json") continue;
-    ++files;
-    const std::string actual = (fs::path(actual_dir) / name).string();
-    ASSERT_TRUE(fs::exists(actual)) << name;
-    EXPECT_TRUE(ReadFileOrEmpty(entry.path().string()) ==
-                ReadFileOrEmpty(actual))
-        << name << " differs";
-  }
-  EXPECT_GE(files, 5);
+  testing::ExpectSameFiles(expected_dir, actual_dir, 5, {"report.json"});
 }
 
 // The in-process reference, on one thread.
@@ -176,9 +76,9 @@ std::unique_ptr<v1::InterSlice::Stub> Stub(const ServerProcess& server) {
 }
 
 // Waits until the job's status satisfies `done` (or 60 s pass).
-v1::JobStatus WaitFor(const ServerProcess& server, const std::string& id,
-                      const std::function<bool(const v1::JobStatus&)>& done,
-                      const std::string& token = "") {
+v1::JobStatus WatchUntil(const ServerProcess& server, const std::string& id,
+                         const std::function<bool(const v1::JobStatus&)>& done,
+                         const std::string& token = "") {
   auto stub = Stub(server);
   grpc::ClientContext context;
   if (!token.empty()) context.AddMetadata("authorization", "Bearer " + token);
@@ -283,29 +183,28 @@ class RawUpload {
   bool finished_ = false;
 };
 
+// Waits (up to 60 s) until the spool holds `n` job folders.
 void WaitForJobFolders(const std::string& spool, int n) {
-  for (int i = 0; i < 500 && CountJobs(spool) != n; ++i) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(20));
-  }
+  WaitFor([&] { return CountJobs(spool) == n; }, std::chrono::seconds(60));
 }
 
 TEST(ServerTest, OneCallGivesTheSameFilesAsRun) {
   TempDir dir;
   const std::string local = RunLocally(dir, kSmallJob, "local");
-  ServerProcess server(dir / "spool", dir / "server.log",
-                       {"--workers", "2", "--threads-per-job", "2"});
+  ServerProcess server({.spool = dir / "spool",
+                        .log = dir / "server.log",
+                        .extra = {"--workers", "2", "--threads-per-job", "2"}});
+  ASSERT_TRUE(server.Start());
   CommandResult r =
       Cli(Cat(Cat({"interpolate"}, kSmallJob),
-              Cat(server.Server(),
+              Cat(server.ServerFlag(),
                   {"--out", dir / "remote", "--volume", "nii,nrrd", "--mesh",
                    "stl,ply,obj", "--report", dir / "report.json"})));
   ASSERT_EQ(r.exit_code, 0) << r.err << server.Log();
   ExpectSameFiles(local, dir / "remote");
   EXPECT_THAT(ReadFileOrEmpty(dir / "report.json"), HasSubstr("\"solver\""));
   // The one-call job leaves nothing in the spool.
-  for (int i = 0; i < 100 && CountJobs(dir / "spool") > 0; ++i) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));
-  }
+  WaitForJobFolders(dir / "spool", 0);
   EXPECT_EQ(CountJobs(dir / "spool"), 0);
 }
 
@@ -317,12 +216,13 @@ TEST(ServerTest, SlabDeconvolutionRunsOnTheServerAsInProcess) {
   const std::vector<std::string> job =
       Cat(kSmallJob, {"--slab-deconvolution", "--method", "direct"});
   const std::string local = RunLocally(dir, job, "local");
-  ServerProcess server(dir / "spool", dir / "server.log", {});
-  CommandResult r = Cli(Cat(
-      Cat({"interpolate"}, job),
-      Cat(server.Server(), {"--out", dir / "remote", "--volume", "nii,nrrd",
-                            "--mesh", "stl,ply,obj", "--report",
-                            dir / "report.json"})));
+  ServerProcess server({.spool = dir / "spool", .log = dir / "server.log"});
+  ASSERT_TRUE(server.Start());
+  CommandResult r =
+      Cli(Cat(Cat({"interpolate"}, job),
+              Cat(server.ServerFlag(),
+                  {"--out", dir / "remote", "--volume", "nii,nrrd", "--mesh",
+                   "stl,ply,obj", "--report", dir / "report.json"})));
   ASSERT_EQ(r.exit_code, 0) << r.err << server.Log();
   ExpectSameFiles(local, dir / "remote");
   EXPECT_THAT(ReadFileOrEmpty(dir / "report.json"),
@@ -332,6 +232,49 @@ TEST(ServerTest, SlabDeconvolutionRunsOnTheServerAsInProcess) {
 // DICOM outputs through the daemon are the objects `run` writes: the same
 // pixel data, geometry and (derived, not random) UIDs; only creation dates
 // and times may differ.
+// --intensity-method reaches the server: each method's intensity series from
+// the daemon is the one `run` writes with it (pixels and UIDs), and the two
+// methods differ between the source slices only.
+TEST(ServerTest, IntensityMethodChosenOnTheClientRunsOnTheServer) {
+  TempDir dir;
+  ServerProcess server({.spool = dir / "spool", .log = dir / "server.log"});
+  ASSERT_TRUE(server.Start());
+  std::map<std::string, DicomSeries> series;
+  for (const std::string method : {"linear", "morph"}) {
+    const std::vector<std::string> args = {
+        "--output-series", "intensity", "--volume",           "none",
+        "--mesh",          "none",      "--intensity-method", method};
+    CommandResult local = Cli(Cat(
+        Cat({"run"}, kSmallJob),
+        Cat(args, {"--out", dir / ("local-" + method), "--quiet", "--threads",
+                   "1", "--report", dir / ("report-" + method + ".json")})));
+    ASSERT_EQ(local.exit_code, 0) << local.err;
+    EXPECT_THAT(ReadFileOrEmpty(dir / ("report-" + method + ".json")),
+                HasSubstr("\"method\": \"" + method + "\""));
+    CommandResult r =
+        Cli(Cat(Cat({"interpolate"}, kSmallJob),
+                Cat(args, Cat(server.ServerFlag(),
+                              {"--out", dir / ("remote-" + method)}))));
+    ASSERT_EQ(r.exit_code, 0) << r.err << server.Log();
+    auto a = ReadDicomSeries(
+        {(fs::path(dir / ("local-" + method)) / "series-intensity").string()},
+        {}, {});
+    auto b = ReadDicomSeries(
+        {(fs::path(dir / ("remote-" + method)) / "series-intensity").string()},
+        {}, {});
+    ASSERT_TRUE(a.ok()) << a.status();
+    ASSERT_TRUE(b.ok()) << b.status();
+    EXPECT_TRUE(a->image.data == b->image.data) << method;
+    EXPECT_EQ(a->series_instance_uid, b->series_instance_uid) << method;
+    series.emplace(method, *std::move(a));
+  }
+  // Different grey values between the source slices, different UIDs (a
+  // PACS must not take one for the other).
+  EXPECT_FALSE(series["linear"].image.data == series["morph"].image.data);
+  EXPECT_NE(series["linear"].series_instance_uid,
+            series["morph"].series_instance_uid);
+}
+
 TEST(ServerTest, DicomOutputsMatchRunInPixelsGeometryAndUids) {
   TempDir dir;
   const std::vector<std::string> dicom = {"--output-series",
@@ -340,15 +283,18 @@ TEST(ServerTest, DicomOutputsMatchRunInPixelsGeometryAndUids) {
                                           "--volume",
                                           "none",
                                           "--mesh",
-                                          "none"};
+                                          "none",
+                                          "--previews",
+                                          "png,dicom"};
   CommandResult local = Cli(
       Cat(Cat({"run"}, kSmallJob),
           Cat(dicom, {"--out", dir / "local", "--quiet", "--threads", "1"})));
   ASSERT_EQ(local.exit_code, 0) << local.err;
-  ServerProcess server(dir / "spool", dir / "server.log", {});
+  ServerProcess server({.spool = dir / "spool", .log = dir / "server.log"});
+  ASSERT_TRUE(server.Start());
   CommandResult r =
       Cli(Cat(Cat({"interpolate"}, kSmallJob),
-              Cat(dicom, Cat(server.Server(), {"--out", dir / "remote"}))));
+              Cat(dicom, Cat(server.ServerFlag(), {"--out", dir / "remote"}))));
   ASSERT_EQ(r.exit_code, 0) << r.err << server.Log();
   const auto a = ReadDicomSeries(
       {(fs::path(dir / "local") / "series-intensity").string()}, {}, {});
@@ -390,11 +336,25 @@ TEST(ServerTest, DicomOutputsMatchRunInPixelsGeometryAndUids) {
            std::string(reinterpret_cast<const char*>(pixels),
                        pixels == nullptr ? 0 : count);
   };
-  for (const char* name : {"seg.dcm", "distance.dcm"}) {
+  // The previews as DICOM too (4 Secondary Capture images), and as PNG.
+  for (const char* name :
+       {"seg.dcm", "distance.dcm", "previews-dicom/IM00001.dcm",
+        "previews-dicom/IM00002.dcm", "previews-dicom/IM00003.dcm",
+        "previews-dicom/IM00004.dcm"}) {
     SCOPED_TRACE(name);
     const std::string local_content = content(fs::path(dir / "local") / name);
     EXPECT_GT(local_content.size(), 1000u);
     EXPECT_TRUE(local_content == content(fs::path(dir / "remote") / name));
+  }
+  for (const char* name :
+       {"axial.png", "coronal.png", "sagittal.png", "3d-front.png"}) {
+    const std::string png =
+        ReadFileOrEmpty((fs::path(dir / "local") / "previews" / name).string());
+    EXPECT_GT(png.size(), 1000u) << name;
+    EXPECT_TRUE(png ==
+                ReadFileOrEmpty(
+                    (fs::path(dir / "remote") / "previews" / name).string()))
+        << name;
   }
 }
 
@@ -412,21 +372,23 @@ TEST(ArtifactNameTest, OnlyPlainNamesWithOneFolderLevelAreSafe) {
 TEST(ServerTest, DetachedJobGivesTheSameFilesAsRun) {
   TempDir dir;
   const std::string local = RunLocally(dir, kSmallJob, "local");
-  ServerProcess server(dir / "spool", dir / "server.log",
-                       {"--threads-per-job", "1"});
+  ServerProcess server({.spool = dir / "spool",
+                        .log = dir / "server.log",
+                        .extra = {"--threads-per-job", "1"}});
+  ASSERT_TRUE(server.Start());
   CommandResult submit =
       Cli(Cat(Cat({"submit"}, kSmallJob),
-              Cat(server.Server(), {"--volume", "nii,nrrd", "--mesh",
-                                    "stl,ply,obj", "--label", "t"})));
+              Cat(server.ServerFlag(), {"--volume", "nii,nrrd", "--mesh",
+                                        "stl,ply,obj", "--label", "t"})));
   ASSERT_EQ(submit.exit_code, 0) << submit.err;
   const std::string id = Trim(submit.out);
-  CommandResult watch = Cli(Cat({"watch", id, "--quiet"}, server.Server()));
+  CommandResult watch = Cli(Cat({"watch", id, "--quiet"}, server.ServerFlag()));
   ASSERT_EQ(watch.exit_code, 0) << watch.err;
-  CommandResult list = Cli(Cat({"list", "--all"}, server.Server()));
+  CommandResult list = Cli(Cat({"list", "--all"}, server.ServerFlag()));
   EXPECT_THAT(list.out, HasSubstr(id));
   CommandResult fetch = Cli(Cat({"fetch", id, "--out", dir / "remote",
                                  "--report", dir / "remote/report.json"},
-                                server.Server()));
+                                server.ServerFlag()));
   ASSERT_EQ(fetch.exit_code, 0) << fetch.err;
   ExpectSameFiles(local, dir / "remote");
   // Spool files are private.
@@ -441,68 +403,74 @@ TEST(ServerTest, DetachedJobGivesTheSameFilesAsRun) {
 
 TEST(ServerTest, CancelStopsARunningSolve) {
   TempDir dir;
-  ServerProcess server(dir / "spool", dir / "server.log");
-  CommandResult submit = Cli(Cat(Cat({"submit"}, kLongJob), server.Server()));
+  ServerProcess server({.spool = dir / "spool", .log = dir / "server.log"});
+  ASSERT_TRUE(server.Start());
+  CommandResult submit =
+      Cli(Cat(Cat({"submit"}, kLongJob), server.ServerFlag()));
   ASSERT_EQ(submit.exit_code, 0) << submit.err;
   const std::string id = Trim(submit.out);
-  ASSERT_TRUE(Solving(WaitFor(server, id, Solving)));
-  CommandResult cancel = Cli(Cat({"cancel", id}, server.Server()));
+  ASSERT_TRUE(Solving(WatchUntil(server, id, Solving)));
+  CommandResult cancel = Cli(Cat({"cancel", id}, server.ServerFlag()));
   EXPECT_EQ(cancel.exit_code, 0) << cancel.err;
-  const v1::JobStatus end = WaitFor(server, id, Ended);
+  const v1::JobStatus end = WatchUntil(server, id, Ended);
   EXPECT_EQ(end.state(), v1::JOB_STATE_CANCELLED);
-  CommandResult watch = Cli(Cat({"watch", id, "--quiet"}, server.Server()));
+  CommandResult watch = Cli(Cat({"watch", id, "--quiet"}, server.ServerFlag()));
   EXPECT_EQ(watch.exit_code, 1);
   EXPECT_THAT(watch.err, HasSubstr("cancelled"));
 }
 
 TEST(ServerTest, DeadlineExpiryFailsTheCallAndCancelsTheJob) {
   TempDir dir;
-  ServerProcess server(dir / "spool", dir / "server.log");
+  ServerProcess server({.spool = dir / "spool", .log = dir / "server.log"});
+  ASSERT_TRUE(server.Start());
   CommandResult r =
       Cli(Cat(Cat({"interpolate"}, kLongJob),
-              Cat(server.Server(),
+              Cat(server.ServerFlag(),
                   {"--out", dir / "out", "--deadline", "3", "--quiet"})));
   EXPECT_EQ(r.exit_code, 1);
   EXPECT_THAT(r.err, HasSubstr("deadline expired"));
   EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << r.err;
   // The job stops and its files go.
-  for (int i = 0; i < 200 && CountJobs(dir / "spool") > 0; ++i) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));
-  }
+  WaitForJobFolders(dir / "spool", 0);
   EXPECT_EQ(CountJobs(dir / "spool"), 0) << server.Log();
 }
 
 TEST(ServerTest, FullQueueAnswersResourceExhausted) {
   TempDir dir;
-  ServerProcess server(dir / "spool", dir / "server.log",
-                       {"--max-queued", "1"});
-  CommandResult a = Cli(Cat(Cat({"submit"}, kLongJob), server.Server()));
+  ServerProcess server({.spool = dir / "spool",
+                        .log = dir / "server.log",
+                        .extra = {"--max-queued", "1"}});
+  ASSERT_TRUE(server.Start());
+  CommandResult a = Cli(Cat(Cat({"submit"}, kLongJob), server.ServerFlag()));
   ASSERT_EQ(a.exit_code, 0) << a.err;
-  WaitFor(server, Trim(a.out), Solving);  // the worker is busy
-  CommandResult b = Cli(Cat(Cat({"submit"}, kSmallJob), server.Server()));
+  WatchUntil(server, Trim(a.out), Solving);  // the worker is busy
+  CommandResult b = Cli(Cat(Cat({"submit"}, kSmallJob), server.ServerFlag()));
   ASSERT_EQ(b.exit_code, 0) << b.err;  // waits in the queue
-  CommandResult c = Cli(Cat(Cat({"submit"}, kSmallJob), server.Server()));
+  CommandResult c = Cli(Cat(Cat({"submit"}, kSmallJob), server.ServerFlag()));
   EXPECT_EQ(c.exit_code, 1);
   EXPECT_THAT(c.err, HasSubstr("queue is full"));
   CommandResult d = Cli(Cat(Cat({"interpolate"}, kSmallJob),
-                            Cat(server.Server(), {"--out", dir / "o"})));
+                            Cat(server.ServerFlag(), {"--out", dir / "o"})));
   EXPECT_EQ(d.exit_code, 1);
   EXPECT_THAT(d.err, HasSubstr("queue is full"));
-  EXPECT_EQ(Cli(Cat({"cancel", Trim(a.out)}, server.Server())).exit_code, 0);
+  EXPECT_EQ(Cli(Cat({"cancel", Trim(a.out)}, server.ServerFlag())).exit_code,
+            0);
   // The queued job then runs.
-  EXPECT_EQ(WaitFor(server, Trim(b.out), Ended).state(),
+  EXPECT_EQ(WatchUntil(server, Trim(b.out), Ended).state(),
             v1::JOB_STATE_SUCCEEDED);
 }
 
 TEST(ServerTest, OversizeJobsAreRejectedBeforeAllocation) {
   TempDir dir;
   ServerProcess server(
-      dir / "spool", dir / "server.log",
-      {"--max-voxels", "100000", "--max-upload-bytes", "3000000"});
+      {.spool = dir / "spool",
+       .log = dir / "server.log",
+       .extra = {"--max-voxels", "100000", "--max-upload-bytes", "3000000"}});
+  ASSERT_TRUE(server.Start());
   // Output grid 160 x 160 x 34 > 100000 voxels: refused by the size check
   // that precedes the allocation of the refined grid.
   CommandResult r = Cli(Cat(Cat({"interpolate"}, kSmallJob),
-                            Cat(server.Server(), {"--out", dir / "o"})));
+                            Cat(server.ServerFlag(), {"--out", dir / "o"})));
   EXPECT_EQ(r.exit_code, 1);
   EXPECT_THAT(r.err, HasSubstr("refused the job"));
   // An upload above the byte limit is refused from its header alone.
@@ -512,8 +480,8 @@ TEST(ServerTest, OversizeJobsAreRejectedBeforeAllocation) {
     fs::copy_file(e.path(), fs::path(dir / "big") /
                                 ("copy-" + e.path().filename().string()));
   }
-  CommandResult big =
-      Cli(Cat({"submit", dir / "big", "--threshold", "300"}, server.Server()));
+  CommandResult big = Cli(
+      Cat({"submit", dir / "big", "--threshold", "300"}, server.ServerFlag()));
   EXPECT_EQ(big.exit_code, 1);
   EXPECT_THAT(big.err, HasSubstr("exceeds the server's limit"));
   EXPECT_EQ(CountJobs(dir / "spool"), 0);
@@ -521,7 +489,8 @@ TEST(ServerTest, OversizeJobsAreRejectedBeforeAllocation) {
 
 TEST(ServerTest, ClientDisconnectingMidUploadLeavesNothingBehind) {
   TempDir dir;
-  ServerProcess server(dir / "spool", dir / "server.log");
+  ServerProcess server({.spool = dir / "spool", .log = dir / "server.log"});
+  ASSERT_TRUE(server.Start());
   auto stub = Stub(server);
   grpc::ClientContext context;
   v1::SubmitResponse response;
@@ -540,59 +509,58 @@ TEST(ServerTest, ClientDisconnectingMidUploadLeavesNothingBehind) {
   chunk->set_data(std::string(65536, 'a'));
   ASSERT_TRUE(writer->Write(request));
   // Wait until the upload is visibly on disk, then vanish.
-  for (int i = 0; i < 200 && CountJobs(dir / "spool") == 0; ++i) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(10));
-  }
+  WaitForJobFolders(dir / "spool", 1);
   EXPECT_EQ(CountJobs(dir / "spool"), 1);
   context.TryCancel();
   writer->Finish();
-  for (int i = 0; i < 200 && CountJobs(dir / "spool") > 0; ++i) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(20));
-  }
+  WaitForJobFolders(dir / "spool", 0);
   EXPECT_EQ(CountJobs(dir / "spool"), 0);
-  CommandResult list = Cli(Cat({"list", "--all"}, server.Server()));
+  CommandResult list = Cli(Cat({"list", "--all"}, server.ServerFlag()));
   EXPECT_EQ(list.out, "");
 }
 
 TEST(ServerTest, KillNineAndRestartKeepsAcceptedJobs) {
   TempDir dir;
   const std::string local = RunLocally(dir, kSmallJob, "local");
-  auto server =
-      std::make_unique<ServerProcess>(dir / "spool", dir / "server.log");
+  auto server = std::make_unique<ServerProcess>(
+      ServerOptions{.spool = dir / "spool", .log = dir / "server.log"});
+  ASSERT_TRUE(server->Start());
   const std::vector<std::string> outputs = {"--volume", "nii,nrrd", "--mesh",
                                             "stl,ply,obj"};
   CommandResult done =
-      Cli(Cat(Cat(Cat({"submit"}, kSmallJob), outputs), server->Server()));
+      Cli(Cat(Cat(Cat({"submit"}, kSmallJob), outputs), server->ServerFlag()));
   ASSERT_EQ(done.exit_code, 0) << done.err;
-  ASSERT_EQ(WaitFor(*server, Trim(done.out), Ended).state(),
+  ASSERT_EQ(WatchUntil(*server, Trim(done.out), Ended).state(),
             v1::JOB_STATE_SUCCEEDED);
-  CommandResult running = Cli(Cat(Cat({"submit"}, kLongJob), server->Server()));
+  CommandResult running =
+      Cli(Cat(Cat({"submit"}, kLongJob), server->ServerFlag()));
   ASSERT_EQ(running.exit_code, 0);
-  WaitFor(*server, Trim(running.out), Solving);
+  WatchUntil(*server, Trim(running.out), Solving);
   CommandResult queued =
-      Cli(Cat(Cat(Cat({"submit"}, kSmallJob), outputs), server->Server()));
+      Cli(Cat(Cat(Cat({"submit"}, kSmallJob), outputs), server->ServerFlag()));
   ASSERT_EQ(queued.exit_code, 0);
 
-  server->Kill9();
-  server->Start();
+  server->Kill();
+  ASSERT_TRUE(server->Start());
 
-  CommandResult fetch =
-      Cli(Cat({"fetch", Trim(done.out), "--out", dir / "a"}, server->Server()));
+  CommandResult fetch = Cli(
+      Cat({"fetch", Trim(done.out), "--out", dir / "a"}, server->ServerFlag()));
   ASSERT_EQ(fetch.exit_code, 0) << fetch.err << server->Log();
   ExpectSameFiles(local, dir / "a");
   // The job that was running when the server died runs again first (the
   // detached API promises jobs survive restarts); it never ends by itself,
   // so cancel it once it is solving again; then the queued one runs.
-  ASSERT_TRUE(Solving(WaitFor(*server, Trim(running.out), Solving)))
+  ASSERT_TRUE(Solving(WatchUntil(*server, Trim(running.out), Solving)))
       << server->Log();
-  EXPECT_EQ(Cli(Cat({"cancel", Trim(running.out)}, server->Server())).exit_code,
-            0);
-  EXPECT_EQ(WaitFor(*server, Trim(running.out), Ended).state(),
+  EXPECT_EQ(
+      Cli(Cat({"cancel", Trim(running.out)}, server->ServerFlag())).exit_code,
+      0);
+  EXPECT_EQ(WatchUntil(*server, Trim(running.out), Ended).state(),
             v1::JOB_STATE_CANCELLED);
-  EXPECT_EQ(WaitFor(*server, Trim(queued.out), Ended).state(),
+  EXPECT_EQ(WatchUntil(*server, Trim(queued.out), Ended).state(),
             v1::JOB_STATE_SUCCEEDED);
-  CommandResult fetch2 = Cli(
-      Cat({"fetch", Trim(queued.out), "--out", dir / "b"}, server->Server()));
+  CommandResult fetch2 = Cli(Cat(
+      {"fetch", Trim(queued.out), "--out", dir / "b"}, server->ServerFlag()));
   ASSERT_EQ(fetch2.exit_code, 0) << fetch2.err;
   ExpectSameFiles(local, dir / "b");
 }
@@ -602,18 +570,21 @@ TEST(ServerTest, KillNineAndRestartKeepsAcceptedJobs) {
 TEST(ServerTest, InterruptedJobStopsAfterMaxAttempts) {
   TempDir dir;
   auto server = std::make_unique<ServerProcess>(
-      dir / "spool", dir / "server.log",
-      std::vector<std::string>{"--max-attempts", "2"});
-  CommandResult running = Cli(Cat(Cat({"submit"}, kLongJob), server->Server()));
+      ServerOptions{.spool = dir / "spool",
+                    .log = dir / "server.log",
+                    .extra = {"--max-attempts", "2"}});
+  ASSERT_TRUE(server->Start());
+  CommandResult running =
+      Cli(Cat(Cat({"submit"}, kLongJob), server->ServerFlag()));
   ASSERT_EQ(running.exit_code, 0) << running.err;
   const std::string id = Trim(running.out);
   for (int start = 1; start <= 2; ++start) {
     SCOPED_TRACE(start);
-    ASSERT_TRUE(Solving(WaitFor(*server, id, Solving))) << server->Log();
-    server->Kill9();
-    server->Start();
+    ASSERT_TRUE(Solving(WatchUntil(*server, id, Solving))) << server->Log();
+    server->Kill();
+    ASSERT_TRUE(server->Start());
   }
-  const v1::JobStatus end = WaitFor(*server, id, Ended);
+  const v1::JobStatus end = WatchUntil(*server, id, Ended);
   EXPECT_EQ(end.state(), v1::JOB_STATE_FAILED);
   EXPECT_THAT(end.error_message(), HasSubstr("2 time(s)"));
   EXPECT_THAT(end.error_message(), HasSubstr("not run again"));
@@ -627,40 +598,43 @@ TEST(ServerTest, CrashInsideOneJobFailsThatJobOnly) {
   TempDir dir;
   // Jobs with threshold 777 abort in the contour stage.
   setenv("INTERSLICE_WORKER_FAULT", "abort:contour:777", 1);
-  ServerProcess server(dir / "spool", dir / "server.log",
-                       {"--workers", "2", "--threads-per-job", "1"});
+  ServerProcess server({.spool = dir / "spool",
+                        .log = dir / "server.log",
+                        .extra = {"--workers", "2", "--threads-per-job", "1"}});
+  ASSERT_TRUE(server.Start());
   unsetenv("INTERSLICE_WORKER_FAULT");
-  CommandResult running = Cli(Cat(Cat({"submit"}, kLongJob), server.Server()));
+  CommandResult running =
+      Cli(Cat(Cat({"submit"}, kLongJob), server.ServerFlag()));
   ASSERT_EQ(running.exit_code, 0) << running.err;
   const std::string long_id = Trim(running.out);
-  ASSERT_TRUE(Solving(WaitFor(server, long_id, Solving))) << server.Log();
+  ASSERT_TRUE(Solving(WatchUntil(server, long_id, Solving))) << server.Log();
 
   CommandResult crash = Cli(
       Cat(Cat({"interpolate", "--out", dir / "crash"},
               {kSeries, "--threshold", "777", "--roi", "176,176,0,336,336,4"}),
-          server.Server()));
+          server.ServerFlag()));
   EXPECT_EQ(crash.exit_code, 1);
   EXPECT_THAT(crash.err, HasSubstr("worker process crashed (SIGABRT)"));
   EXPECT_THAT(crash.err, HasSubstr("stage 'contour'"));
 
   // The server and the other job are fine.
-  EXPECT_EQ(Cli(Cat({"health"}, server.Server())).exit_code, 0);
-  const v1::JobStatus still = WaitFor(server, long_id, Solving);
+  EXPECT_EQ(Cli(Cat({"health"}, server.ServerFlag())).exit_code, 0);
+  const v1::JobStatus still = WatchUntil(server, long_id, Solving);
   EXPECT_EQ(still.state(), v1::JOB_STATE_RUNNING);
   const std::string local = RunLocally(dir, kSmallJob, "local");
   CommandResult ok =
       Cli(Cat(Cat(Cat({"interpolate", "--out", dir / "ok"}, kSmallJob),
                   {"--volume", "nii,nrrd", "--mesh", "stl,ply,obj"}),
-              server.Server()));
+              server.ServerFlag()));
   EXPECT_EQ(ok.exit_code, 0) << ok.err << server.Log();
   ExpectSameFiles(local, dir / "ok");
-  EXPECT_EQ(Cli(Cat({"cancel", long_id}, server.Server())).exit_code, 0);
+  EXPECT_EQ(Cli(Cat({"cancel", long_id}, server.ServerFlag())).exit_code, 0);
   EXPECT_THAT(server.Log(), HasSubstr("worker process crashed"));
 }
 
 void MakeCertificates(const TempDir& dir) {
   const std::string script = absl::StrCat(
-      "set -e; cd ", dir.path(), "; exec >openssl.log 2>&1\n",
+      "set -e; cd ", dir.str(), "; exec >openssl.log 2>&1\n",
       "openssl req -x509 -newkey rsa:2048 -nodes -days 2 -subj /CN=test-ca "
       "-keyout ca.key -out ca.pem\n",
       "openssl req -newkey rsa:2048 -nodes -subj /CN=localhost "
@@ -687,38 +661,47 @@ TEST(ServerTest, TlsAndMutualTls) {
   TempDir dir;
   MakeCertificates(dir);
   {
-    ServerProcess tls(
-        dir / "spool1", dir / "tls.log",
-        {"--tls-cert", dir / "server.pem", "--tls-key", dir / "server.key"});
-    EXPECT_EQ(
-        Cli(Cat({"info", "--tls-ca", dir / "ca.pem"}, tls.Server())).exit_code,
-        0);
-    CommandResult plain = Cli(Cat({"info"}, tls.Server()));
+    ServerProcess tls({.spool = dir / "spool1",
+                       .log = dir / "tls.log",
+                       .extra = {"--tls-cert", dir / "server.pem", "--tls-key",
+                                 dir / "server.key"},
+                       .tls_ca_file = dir / "ca.pem"});
+    ASSERT_TRUE(tls.Start());
+    EXPECT_EQ(Cli(Cat({"info", "--tls-ca", dir / "ca.pem"}, tls.ServerFlag()))
+                  .exit_code,
+              0);
+    CommandResult plain = Cli(Cat({"info"}, tls.ServerFlag()));
     EXPECT_EQ(plain.exit_code, 1);
     EXPECT_THAT(plain.err, HasSubstr("cannot reach the server"));
   }
-  ServerProcess mtls(dir / "spool2", dir / "mtls.log",
-                     {"--tls-cert", dir / "server.pem", "--tls-key",
-                      dir / "server.key", "--tls-client-ca", dir / "ca.pem"});
-  EXPECT_EQ(
-      Cli(Cat({"info", "--tls-ca", dir / "ca.pem"}, mtls.Server())).exit_code,
-      1);
+  ServerProcess mtls(
+      {.spool = dir / "spool2",
+       .log = dir / "mtls.log",
+       .extra = {"--tls-cert", dir / "server.pem", "--tls-key",
+                 dir / "server.key", "--tls-client-ca", dir / "ca.pem"},
+       .tls_ca_file = dir / "ca.pem",
+       .tls_client_cert_file = dir / "client.pem",
+       .tls_client_key_file = dir / "client.key"});
+  ASSERT_TRUE(mtls.Start());
+  EXPECT_EQ(Cli(Cat({"info", "--tls-ca", dir / "ca.pem"}, mtls.ServerFlag()))
+                .exit_code,
+            1);
   EXPECT_EQ(Cli(Cat({"info", "--tls-ca", dir / "ca.pem", "--tls-cert",
                      dir / "rogue.pem", "--tls-key", dir / "rogue.key"},
-                    mtls.Server()))
+                    mtls.ServerFlag()))
                 .exit_code,
             1);
   CommandResult ok = Cli(Cat(
       {"interpolate", "--tls-ca", dir / "ca.pem", "--tls-cert",
        dir / "client.pem", "--tls-key", dir / "client.key", "--out", dir / "o"},
-      Cat(kSmallJob, mtls.Server())));
+      Cat(kSmallJob, mtls.ServerFlag())));
   EXPECT_EQ(ok.exit_code, 0) << ok.err;
   // Without tokens, a job belongs to the certificate's subject.
   auto as = [&](const std::string& who, std::vector<std::string> args) {
     return Cli(Cat(Cat(std::move(args), {"--tls-ca", dir / "ca.pem",
                                          "--tls-cert", dir / (who + ".pem"),
                                          "--tls-key", dir / (who + ".key")}),
-                   mtls.Server()));
+                   mtls.ServerFlag()));
   };
   CommandResult submit = as("client", Cat({"submit"}, kSmallJob));
   ASSERT_EQ(submit.exit_code, 0) << submit.err;
@@ -733,24 +716,26 @@ TEST(ServerTest, BearerTokenAuth) {
   TempDir dir;
   std::ofstream(dir / "token") << "s3cret-token\n";
   std::ofstream(dir / "wrong") << "guess\n";
-  ServerProcess server(dir / "spool", dir / "server.log",
-                       {"--auth-token-file", dir / "token"});
-  CommandResult none = Cli(Cat({"list"}, server.Server()));
+  ServerProcess server({.spool = dir / "spool",
+                        .log = dir / "server.log",
+                        .extra = {"--auth-token-file", dir / "token"}});
+  ASSERT_TRUE(server.Start());
+  CommandResult none = Cli(Cat({"list"}, server.ServerFlag()));
   EXPECT_EQ(none.exit_code, 1);
   EXPECT_THAT(none.err, HasSubstr("refused the credentials"));
   CommandResult wrong =
       Cli(Cat(Cat({"submit", "--token-file", dir / "wrong"}, kSmallJob),
-              server.Server()));
+              server.ServerFlag()));
   EXPECT_EQ(wrong.exit_code, 1);
   EXPECT_THAT(wrong.err, HasSubstr("refused the credentials"));
   EXPECT_EQ(CountJobs(dir / "spool"), 0);
   CommandResult right = Cli(Cat(
       Cat({"interpolate", "--token-file", dir / "token", "--out", dir / "o"},
           kSmallJob),
-      server.Server()));
+      server.ServerFlag()));
   EXPECT_EQ(right.exit_code, 0) << right.err;
   // Health checks (Kubernetes probes) need no token.
-  EXPECT_EQ(Cli(Cat({"health"}, server.Server())).exit_code, 0);
+  EXPECT_EQ(Cli(Cat({"health"}, server.ServerFlag())).exit_code, 0);
 }
 
 TEST(ServerTest, PatientDataNeverReachesLogsOrErrors) {
@@ -776,23 +761,27 @@ TEST(ServerTest, PatientDataNeverReachesLogsOrErrors) {
   ASSERT_EQ(RunCommand(modify).exit_code, 0);
   // File names can carry PHI too.
   fs::rename(dir / "series/I10.dcm", dir / ("series/" + canary + ".dcm"));
-  ServerProcess server(dir / "spool", dir / "server.log",
-                       {"--log-level", "trace", "--log-format", "json"});
+  ServerProcess server(
+      {.spool = dir / "spool",
+       .log = dir / "server.log",
+       .extra = {"--log-level", "trace", "--log-format", "json"}});
+  ASSERT_TRUE(server.Start());
   const std::vector<std::string> job = {dir / "series", "--threshold", "300",
                                         "--roi", "176,176,0,336,336,4"};
-  CommandResult ok =
-      Cli(Cat(Cat({"interpolate", "--out", dir / "o"}, job), server.Server()));
+  CommandResult ok = Cli(
+      Cat(Cat({"interpolate", "--out", dir / "o"}, job), server.ServerFlag()));
   EXPECT_EQ(ok.exit_code, 0) << ok.err;
   // Failures: a region outside the series, an unknown series UID.
   CommandResult bad_roi =
       Cli(Cat({"interpolate", dir / "series", "--threshold", "300", "--roi",
                "0,0,0,9999,10,4", "--out", dir / "o2"},
-              server.Server()));
+              server.ServerFlag()));
   EXPECT_EQ(bad_roi.exit_code, 1);
-  CommandResult bad_uid = Cli(Cat(
-      Cat({"submit", "--series-uid", "1.2.3.4.5.6.7"}, job), server.Server()));
+  CommandResult bad_uid =
+      Cli(Cat(Cat({"submit", "--series-uid", "1.2.3.4.5.6.7"}, job),
+              server.ServerFlag()));
   ASSERT_EQ(bad_uid.exit_code, 0);
-  const v1::JobStatus failed = WaitFor(server, Trim(bad_uid.out), Ended);
+  const v1::JobStatus failed = WatchUntil(server, Trim(bad_uid.out), Ended);
   EXPECT_EQ(failed.state(), v1::JOB_STATE_FAILED);
   const std::string log = server.Log();
   EXPECT_THAT(log, HasSubstr("job="));
@@ -804,58 +793,74 @@ TEST(ServerTest, PatientDataNeverReachesLogsOrErrors) {
 
 TEST(ServerTest, SigtermDrainsWithHealthNotServing) {
   TempDir dir;
-  ServerProcess server(dir / "spool", dir / "server.log",
-                       {"--drain-grace", "3"});
-  EXPECT_EQ(Cli(Cat({"health"}, server.Server())).exit_code, 0);
-  CommandResult submit = Cli(Cat(Cat({"submit"}, kLongJob), server.Server()));
+  ServerProcess server({.spool = dir / "spool",
+                        .log = dir / "server.log",
+                        .extra = {"--drain-grace", "3"}});
+  ASSERT_TRUE(server.Start());
+  EXPECT_EQ(Cli(Cat({"health"}, server.ServerFlag())).exit_code, 0);
+  CommandResult submit =
+      Cli(Cat(Cat({"submit"}, kLongJob), server.ServerFlag()));
   ASSERT_EQ(submit.exit_code, 0);
-  WaitFor(server, Trim(submit.out), Solving);
+  WatchUntil(server, Trim(submit.out), Solving);
   const auto start = std::chrono::steady_clock::now();
-  std::thread terminator([&] { EXPECT_EQ(server.Terminate(30), 0); });
-  std::this_thread::sleep_for(std::chrono::milliseconds(500));
-  CommandResult health = Cli(Cat({"health"}, server.Server()));
+  std::thread terminator([&] { EXPECT_EQ(server.Stop(30), 0); });
+  // The drain lasts the grace (3 s): health turns NOT_SERVING at its start.
+  CommandResult health;
+  EXPECT_TRUE(WaitFor(
+      [&] {
+        health = Cli(Cat({"health"}, server.ServerFlag()));
+        return health.exit_code != 0;
+      },
+      std::chrono::seconds(30)));
   EXPECT_EQ(health.exit_code, 1);
   EXPECT_THAT(health.out, HasSubstr("NOT_SERVING"));
-  CommandResult refused = Cli(Cat(Cat({"submit"}, kSmallJob), server.Server()));
+  CommandResult refused =
+      Cli(Cat(Cat({"submit"}, kSmallJob), server.ServerFlag()));
   EXPECT_EQ(refused.exit_code, 1);
   EXPECT_THAT(refused.err, HasSubstr("shutting down"));
   terminator.join();
   EXPECT_GE(std::chrono::steady_clock::now() - start, std::chrono::seconds(3));
   EXPECT_THAT(server.Log(), HasSubstr("cancelled by shutdown"));
   // The interrupted job was not lost: it runs again after a restart.
-  server.Start();
-  const v1::JobStatus again = WaitFor(server, Trim(submit.out), Solving);
+  ASSERT_TRUE(server.Start());
+  const v1::JobStatus again = WatchUntil(server, Trim(submit.out), Solving);
   EXPECT_TRUE(Solving(again));
-  Cli(Cat({"cancel", Trim(submit.out)}, server.Server()));
+  Cli(Cat({"cancel", Trim(submit.out)}, server.ServerFlag()));
 }
 
 // Uploads in progress take no queue slots: 16 streams that send their
 // header and then nothing do not keep a real job out.
 TEST(ServerTest, StalledUploadsDoNotBlockRealJobs) {
   TempDir dir;
-  ServerProcess server(dir / "spool", dir / "server.log",
-                       {"--max-queued", "16", "--max-uploads-per-peer", "64",
-                        "--max-concurrent-uploads", "64"});
+  ServerProcess server(
+      {.spool = dir / "spool",
+       .log = dir / "server.log",
+       .extra = {"--max-queued", "16", "--max-uploads-per-peer", "64",
+                 "--max-concurrent-uploads", "64"}});
+  ASSERT_TRUE(server.Start());
   std::vector<std::unique_ptr<RawUpload>> stalled;
   for (int i = 0; i < 16; ++i) {
     stalled.push_back(std::make_unique<RawUpload>(server, 2, 1 << 20));
   }
   WaitForJobFolders(dir / "spool", 16);
   ASSERT_EQ(CountJobs(dir / "spool"), 16) << server.Log();
-  EXPECT_EQ(Cli(Cat({"health"}, server.Server())).exit_code, 0);
+  EXPECT_EQ(Cli(Cat({"health"}, server.ServerFlag())).exit_code, 0);
   CommandResult r = Cli(Cat(Cat({"interpolate"}, kSmallJob),
-                            Cat(server.Server(), {"--out", dir / "o"})));
+                            Cat(server.ServerFlag(), {"--out", dir / "o"})));
   EXPECT_EQ(r.exit_code, 0) << r.err;
-  CommandResult submit = Cli(Cat(Cat({"submit"}, kSmallJob), server.Server()));
+  CommandResult submit =
+      Cli(Cat(Cat({"submit"}, kSmallJob), server.ServerFlag()));
   ASSERT_EQ(submit.exit_code, 0) << submit.err;
-  EXPECT_EQ(WaitFor(server, Trim(submit.out), Ended).state(),
+  EXPECT_EQ(WatchUntil(server, Trim(submit.out), Ended).state(),
             v1::JOB_STATE_SUCCEEDED);
 }
 
 TEST(ServerTest, StalledUploadIsCancelledAndLeavesNothingBehind) {
   TempDir dir;
-  ServerProcess server(dir / "spool", dir / "server.log",
-                       {"--upload-idle-timeout", "1"});
+  ServerProcess server({.spool = dir / "spool",
+                        .log = dir / "server.log",
+                        .extra = {"--upload-idle-timeout", "1"}});
+  ASSERT_TRUE(server.Start());
   for (const bool interpolate : {false, true}) {
     SCOPED_TRACE(interpolate ? "Interpolate" : "Submit");
     RawUpload upload(server, 1, 1 << 20, "", interpolate);
@@ -874,14 +879,16 @@ TEST(ServerTest, StalledUploadIsCancelledAndLeavesNothingBehind) {
   }
   // The server goes on serving.
   CommandResult r = Cli(Cat(Cat({"interpolate"}, kSmallJob),
-                            Cat(server.Server(), {"--out", dir / "o"})));
+                            Cat(server.ServerFlag(), {"--out", dir / "o"})));
   EXPECT_EQ(r.exit_code, 0) << r.err;
 }
 
 TEST(ServerTest, UploadsAreLimitedPerClient) {
   TempDir dir;
-  ServerProcess server(dir / "spool", dir / "server.log",
-                       {"--max-uploads-per-peer", "2"});
+  ServerProcess server({.spool = dir / "spool",
+                        .log = dir / "server.log",
+                        .extra = {"--max-uploads-per-peer", "2"}});
+  ASSERT_TRUE(server.Start());
   auto first = std::make_unique<RawUpload>(server, 2, 1 << 20);
   RawUpload second(server, 2, 1 << 20);
   WaitForJobFolders(dir / "spool", 2);
@@ -891,12 +898,12 @@ TEST(ServerTest, UploadsAreLimitedPerClient) {
   EXPECT_EQ(refused.error_code(), grpc::RESOURCE_EXHAUSTED);
   EXPECT_THAT(refused.error_message(),
               HasSubstr("too many uploads in progress from this client"));
-  CommandResult cli = Cli(Cat(Cat({"submit"}, kSmallJob), server.Server()));
+  CommandResult cli = Cli(Cat(Cat({"submit"}, kSmallJob), server.ServerFlag()));
   EXPECT_EQ(cli.exit_code, 1);
   EXPECT_THAT(cli.err, HasSubstr("--max-uploads-per-peer"));
   first.reset();  // one upload ends: its slot is free again
   WaitForJobFolders(dir / "spool", 1);
-  CommandResult ok = Cli(Cat(Cat({"submit"}, kSmallJob), server.Server()));
+  CommandResult ok = Cli(Cat(Cat({"submit"}, kSmallJob), server.ServerFlag()));
   EXPECT_EQ(ok.exit_code, 0) << ok.err;
 }
 
@@ -906,9 +913,11 @@ TEST(ServerTest, UploadsAreLimitedPerIdentityAndInAll) {
   TempDir dir;
   std::ofstream(dir / "tokens") << "alice:tok-alice\nbob:tok-bob\n";
   ServerProcess server(
-      dir / "spool", dir / "server.log",
-      {"--auth-token-file", dir / "tokens", "--max-uploads-per-peer", "2",
-       "--max-concurrent-uploads", "3"});
+      {.spool = dir / "spool",
+       .log = dir / "server.log",
+       .extra = {"--auth-token-file", dir / "tokens", "--max-uploads-per-peer",
+                 "2", "--max-concurrent-uploads", "3"}});
+  ASSERT_TRUE(server.Start());
   RawUpload a1(server, 2, 1 << 20, "tok-alice");
   RawUpload a2(server, 2, 1 << 20, "tok-alice");
   WaitForJobFolders(dir / "spool", 2);
@@ -927,21 +936,23 @@ TEST(ServerTest, UploadsAreLimitedPerIdentityAndInAll) {
 // starts a log line of its own.
 TEST(ServerTest, ClientTextCannotForgeLogLines) {
   TempDir dir;
-  ServerProcess server(dir / "spool", dir / "server.log",
-                       {"--log-level", "trace"});
+  ServerProcess server({.spool = dir / "spool",
+                        .log = dir / "server.log",
+                        .extra = {"--log-level", "trace"}});
+  ASSERT_TRUE(server.Start());
   CommandResult submit =
       Cli(Cat(Cat({"submit", "--label", "x\nFORGED label",
                    "--multiframe-volume", "v\nFORGED volume\r\nFORGED cr"},
                   kSmallJob),
-              server.Server()));
+              server.ServerFlag()));
   ASSERT_EQ(submit.exit_code, 0) << submit.err;
-  const v1::JobStatus failed = WaitFor(server, Trim(submit.out), Ended);
+  const v1::JobStatus failed = WatchUntil(server, Trim(submit.out), Ended);
   EXPECT_EQ(failed.state(), v1::JOB_STATE_FAILED);
   EXPECT_THAT(failed.error_message(), HasSubstr("\\nFORGED volume"));
   CommandResult uid = Cli(Cat(Cat({"interpolate", "--series-uid",
                                    "1.2\nFORGED uid", "--out", dir / "o"},
                                   kSmallJob),
-                              server.Server()));
+                              server.ServerFlag()));
   EXPECT_EQ(uid.exit_code, 1);
   // A file name with a newline is refused without being quoted.
   RawUpload named(server, 1, 3);
@@ -973,15 +984,19 @@ TEST(ServerTest, ClientTextCannotForgeLogLines) {
 // drain, rather than with "Cancelling all calls" when the server closes.
 TEST(ServerTest, SigtermEndsQueuedInterpolateCallsWithRetryElsewhere) {
   TempDir dir;
-  ServerProcess server(dir / "spool", dir / "server.log",
-                       {"--drain-grace", "3"});
-  CommandResult submit = Cli(Cat(Cat({"submit"}, kLongJob), server.Server()));
+  ServerProcess server({.spool = dir / "spool",
+                        .log = dir / "server.log",
+                        .extra = {"--drain-grace", "3"}});
+  ASSERT_TRUE(server.Start());
+  CommandResult submit =
+      Cli(Cat(Cat({"submit"}, kLongJob), server.ServerFlag()));
   ASSERT_EQ(submit.exit_code, 0);
-  WaitFor(server, Trim(submit.out), Solving);
+  WatchUntil(server, Trim(submit.out), Solving);
   CommandResult queued;
   std::thread call([&] {
-    queued = Cli(Cat(Cat({"interpolate"}, kSmallJob),
-                     Cat(server.Server(), {"--out", dir / "o", "--quiet"})));
+    queued =
+        Cli(Cat(Cat({"interpolate"}, kSmallJob),
+                Cat(server.ServerFlag(), {"--out", dir / "o", "--quiet"})));
   });
   // Wait until the second job is queued behind the running one.
   auto queued_lines = [&] {
@@ -993,11 +1008,9 @@ TEST(ServerTest, SigtermEndsQueuedInterpolateCallsWithRetryElsewhere) {
     }
     return n;
   };
-  for (int i = 0; i < 500 && queued_lines() < 2; ++i) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(20));
-  }
+  WaitFor([&] { return queued_lines() >= 2; }, std::chrono::seconds(60));
   ASSERT_EQ(queued_lines(), 2) << server.Log();
-  EXPECT_EQ(server.Terminate(30), 0);
+  EXPECT_EQ(server.Stop(30), 0);
   call.join();
   EXPECT_EQ(queued.exit_code, 1);
   EXPECT_THAT(queued.err, HasSubstr("is unavailable: the server is shutting "
@@ -1012,15 +1025,16 @@ TEST(ServerTest, SigtermEndsQueuedInterpolateCallsWithRetryElsewhere) {
 // rest again.
 TEST(ServerTest, FetchSkipsCompleteArtifacts) {
   TempDir dir;
-  ServerProcess server(dir / "spool", dir / "server.log");
+  ServerProcess server({.spool = dir / "spool", .log = dir / "server.log"});
+  ASSERT_TRUE(server.Start());
   CommandResult submit =
       Cli(Cat(Cat({"submit"}, kSmallJob),
-              Cat(server.Server(), {"--volume", "nii,nrrd"})));
+              Cat(server.ServerFlag(), {"--volume", "nii,nrrd"})));
   ASSERT_EQ(submit.exit_code, 0) << submit.err;
   const std::string id = Trim(submit.out);
-  ASSERT_EQ(WaitFor(server, id, Ended).state(), v1::JOB_STATE_SUCCEEDED);
+  ASSERT_EQ(WatchUntil(server, id, Ended).state(), v1::JOB_STATE_SUCCEEDED);
   const std::vector<std::string> fetch =
-      Cat({"fetch", id, "--out", dir / "out"}, server.Server());
+      Cat({"fetch", id, "--out", dir / "out"}, server.ServerFlag());
   CommandResult first = Cli(fetch);
   ASSERT_EQ(first.exit_code, 0) << first.err;
   auto inode = [](const std::string& path) {
@@ -1053,13 +1067,15 @@ TEST(ServerTest, FetchSkipsCompleteArtifacts) {
 // completed into a wrong file.
 TEST(ServerTest, FetchResumesPartialFilesAndChecksTheKeptPrefix) {
   TempDir dir;
-  ServerProcess server(dir / "spool", dir / "server.log");
-  CommandResult submit = Cli(Cat(Cat({"submit"}, kSmallJob), server.Server()));
+  ServerProcess server({.spool = dir / "spool", .log = dir / "server.log"});
+  ASSERT_TRUE(server.Start());
+  CommandResult submit =
+      Cli(Cat(Cat({"submit"}, kSmallJob), server.ServerFlag()));
   ASSERT_EQ(submit.exit_code, 0) << submit.err;
   const std::string id = Trim(submit.out);
-  ASSERT_EQ(WaitFor(server, id, Ended).state(), v1::JOB_STATE_SUCCEEDED);
+  ASSERT_EQ(WatchUntil(server, id, Ended).state(), v1::JOB_STATE_SUCCEEDED);
   CommandResult reference =
-      Cli(Cat({"fetch", id, "--out", dir / "ref"}, server.Server()));
+      Cli(Cat({"fetch", id, "--out", dir / "ref"}, server.ServerFlag()));
   ASSERT_EQ(reference.exit_code, 0) << reference.err;
   const std::string original = ReadFileOrEmpty(dir / "ref/distance.nii.gz");
   ASSERT_GT(original.size(), 1000u);
@@ -1069,7 +1085,7 @@ TEST(ServerTest, FetchResumesPartialFilesAndChecksTheKeptPrefix) {
   std::ofstream(dir / "good/distance.nii.gz.part", std::ios::binary)
       << original.substr(0, original.size() / 3);
   CommandResult good =
-      Cli(Cat({"fetch", id, "--out", dir / "good"}, server.Server()));
+      Cli(Cat({"fetch", id, "--out", dir / "good"}, server.ServerFlag()));
   ASSERT_EQ(good.exit_code, 0) << good.err;
   EXPECT_TRUE(ReadFileOrEmpty(dir / "good/distance.nii.gz") == original);
   EXPECT_FALSE(fs::exists(dir / "good/distance.nii.gz.part"));
@@ -1080,22 +1096,24 @@ TEST(ServerTest, FetchResumesPartialFilesAndChecksTheKeptPrefix) {
   corrupt[corrupt.size() / 2] ^= 1;
   std::ofstream(dir / "bad/distance.nii.gz.part", std::ios::binary) << corrupt;
   CommandResult bad =
-      Cli(Cat({"fetch", id, "--out", dir / "bad"}, server.Server()));
+      Cli(Cat({"fetch", id, "--out", dir / "bad"}, server.ServerFlag()));
   EXPECT_EQ(bad.exit_code, 1);
   EXPECT_THAT(bad.err, HasSubstr("does not match"));
   EXPECT_FALSE(fs::exists(dir / "bad/distance.nii.gz"));
   // Run again, it starts over and succeeds.
   CommandResult again =
-      Cli(Cat({"fetch", id, "--out", dir / "bad"}, server.Server()));
+      Cli(Cat({"fetch", id, "--out", dir / "bad"}, server.ServerFlag()));
   ASSERT_EQ(again.exit_code, 0) << again.err;
   EXPECT_TRUE(ReadFileOrEmpty(dir / "bad/distance.nii.gz") == original);
 }
 
 TEST(ServerTest, UploadLargerThanTheSpoolQuotaIsToldItCanNeverFit) {
   TempDir dir;
-  ServerProcess server(dir / "spool", dir / "server.log",
-                       {"--spool-quota-bytes", "100000"});
-  CommandResult r = Cli(Cat(Cat({"submit"}, kSmallJob), server.Server()));
+  ServerProcess server({.spool = dir / "spool",
+                        .log = dir / "server.log",
+                        .extra = {"--spool-quota-bytes", "100000"}});
+  ASSERT_TRUE(server.Start());
+  CommandResult r = Cli(Cat(Cat({"submit"}, kSmallJob), server.ServerFlag()));
   EXPECT_EQ(r.exit_code, 1);
   EXPECT_THAT(r.err, HasSubstr("exceeds the server's spool quota of 100000 "
                                "bytes"));
@@ -1113,17 +1131,19 @@ TEST(ServerTest, JobsBelongToTheirSubmitter) {
   for (const char* name : {"alice", "bob", "ops"}) {
     std::ofstream(dir / name) << "tok-" << name << "\n";
   }
-  ServerProcess server(
-      dir / "spool", dir / "server.log",
-      {"--auth-token-file", dir / "tokens", "--admin-identity", "ops"});
+  ServerProcess server({.spool = dir / "spool",
+                        .log = dir / "server.log",
+                        .extra = {"--auth-token-file", dir / "tokens",
+                                  "--admin-identity", "ops"}});
+  ASSERT_TRUE(server.Start());
   auto as = [&](const std::string& who, std::vector<std::string> args) {
     return Cli(Cat(Cat(std::move(args), {"--token-file", dir / who}),
-                   server.Server()));
+                   server.ServerFlag()));
   };
   CommandResult submit = as("alice", Cat({"submit"}, kSmallJob));
   ASSERT_EQ(submit.exit_code, 0) << submit.err;
   const std::string id = Trim(submit.out);
-  ASSERT_EQ(WaitFor(server, id, Ended, "tok-alice").state(),
+  ASSERT_EQ(WatchUntil(server, id, Ended, "tok-alice").state(),
             v1::JOB_STATE_SUCCEEDED);
   CommandResult bobs = as("bob", Cat({"submit"}, kLongJob));
   ASSERT_EQ(bobs.exit_code, 0) << bobs.err;
@@ -1172,8 +1192,8 @@ TEST(ServerTest, JobsBelongToTheirSubmitter) {
   EXPECT_EQ(admin_cancel.exit_code, 0) << admin_cancel.err;
 
   // Ownership is in the spool: it survives a restart.
-  server.Kill9();
-  server.Start();
+  server.Kill();
+  ASSERT_TRUE(server.Start());
   EXPECT_THAT(as("bob", {"list", "--all"}).out, Not(HasSubstr(id)));
   EXPECT_THAT(as("bob", {"watch", id, "--quiet"}).err,
               HasSubstr("no such job"));

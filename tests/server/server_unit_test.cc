@@ -1,4 +1,5 @@
 // Unit tests of the server library's pure parts.
+#include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
 #include <atomic>
@@ -14,6 +15,7 @@
 #include "server/log_safe.h"
 #include "server/status_map.h"
 #include "server/upload_guard.h"
+#include "tests/testing/wait_for.h"
 
 namespace interslice::server {
 namespace {
@@ -55,6 +57,34 @@ TEST(StatusMapTest, CodesMapOneToOne) {
   EXPECT_EQ(ToGrpcStatus(absl::DeadlineExceededError("x")).error_code(),
             grpc::DEADLINE_EXCEEDED);
   EXPECT_TRUE(ToGrpcStatus(absl::OkStatus()).ok());
+}
+
+// Issue 22: a job whose output hit a full spool failed INTERNAL with the
+// server's spool path in the client's message.
+TEST(StatusMapTest, FullDiskIsResourceExhaustedWithoutPaths) {
+  const absl::Status write = absl::InternalError(
+      "cannot write /var/tmp/spool/jobs/j1/out/volume.nii.gz: No space left "
+      "on device");
+  const absl::Status mapped = DiskFullAsResourceExhausted(write, false);
+  EXPECT_EQ(mapped.code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_THAT(std::string(mapped.message()),
+              ::testing::StartsWith("disk full"));
+  EXPECT_THAT(std::string(mapped.message()),
+              ::testing::Not(::testing::HasSubstr("/var/tmp")));
+  // A write error the writer did not explain, on a spool with no room.
+  EXPECT_EQ(DiskFullAsResourceExhausted(
+                absl::InternalError("Could not write file"), true)
+                .code(),
+            absl::StatusCode::kResourceExhausted);
+  // Otherwise nothing changes.
+  EXPECT_EQ(DiskFullAsResourceExhausted(
+                absl::InternalError("Could not write file"), false),
+            absl::InternalError("Could not write file"));
+  EXPECT_EQ(
+      DiskFullAsResourceExhausted(absl::InvalidArgumentError("bad"), true),
+      absl::InvalidArgumentError("bad"));
+  EXPECT_EQ(DiskFullAsResourceExhausted(absl::CancelledError("stop"), true),
+            absl::CancelledError("stop"));
 }
 
 TEST(TokenFileTest, OneTokenAloneIsTheDefaultIdentity) {
@@ -144,7 +174,9 @@ TEST(UploadGuardTest, LimitsUploadsInAllAndPerPeer) {
 
 TEST(UploadGuardTest, ReportsStallsUntilClosed) {
   UploadGuardOptions options;
-  options.idle_timeout_seconds = 0.3;
+  // Five times the pause between progress calls below, so that a loaded
+  // machine stretching one pause does not look like a stall.
+  options.idle_timeout_seconds = 0.5;
   UploadGuard guard(options);
   std::atomic<int> stalls{0};
   absl::Status last;
@@ -162,19 +194,19 @@ TEST(UploadGuardTest, ReportsStallsUntilClosed) {
     (*ticket)->Progress();
   }
   EXPECT_EQ(stalls, 0);
-  for (int i = 0; i < 50 && stalls == 0; ++i) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));
-  }
-  EXPECT_GE(stalls, 1);
+  EXPECT_TRUE(::interslice::testing::WaitFor([&] { return stalls >= 1; },
+                                             std::chrono::seconds(30)));
   {
     std::lock_guard<std::mutex> lock(mu);
     EXPECT_EQ(last.code(), absl::StatusCode::kDeadlineExceeded);
     EXPECT_EQ(last.message(),
-              "upload stalled: no data for 0.3 s; the server cancelled it");
+              "upload stalled: no data for 0.5 s; the server cancelled it");
   }
   (*ticket)->Close();
   const int seen = stalls;
-  std::this_thread::sleep_for(std::chrono::milliseconds(800));
+  // A check that nothing happens: no report after Close, for longer than
+  // the idle timeout (a sleep, not a wait).
+  std::this_thread::sleep_for(std::chrono::milliseconds(1200));
   EXPECT_EQ(stalls, seen);
 }
 
@@ -190,9 +222,18 @@ TEST(UploadGuardTest, ReportsTheTotalLimitOnce) {
     ++calls;
   });
   ASSERT_TRUE(ticket.ok());
+  // Data keeps arriving, yet the total limit applies...
+  EXPECT_TRUE(::interslice::testing::WaitFor(
+      [&] {
+        (*ticket)->Progress();
+        return calls >= 1;
+      },
+      std::chrono::seconds(30), std::chrono::milliseconds(100)));
+  // ...once: no second report while data keeps coming (a check that
+  // nothing happens, for 0.8 s).
   for (int i = 0; i < 8; ++i) {
     std::this_thread::sleep_for(std::chrono::milliseconds(100));
-    (*ticket)->Progress();  // data arrives, yet the total limit applies
+    (*ticket)->Progress();
   }
   EXPECT_EQ(calls, 1);
   (*ticket)->Close();

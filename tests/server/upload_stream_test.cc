@@ -63,20 +63,25 @@ TEST(UploadStreamTest, AcceptsAWellFormedUploadAndSaysWhatToWrite) {
   EXPECT_EQ(stream.header().file_count(), 3);
 
   const std::string a = "0123456789";  // two chunks
-  ASSERT_TRUE(stream.Next(First(0, a, "01234567", "dir/a.dcm"), &step).ok());
+  // step.data views the request passed to Next: each request outlives the
+  // checks of its step.
+  const v1::UploadRequest first = First(0, a, "01234567", "dir/a.dcm");
+  ASSERT_TRUE(stream.Next(first, &step).ok());
   EXPECT_FALSE(step.header);
   EXPECT_TRUE(step.open_file);
   EXPECT_EQ(step.file_index, 0);
   EXPECT_EQ(step.offset, 0);
   EXPECT_EQ(step.data, "01234567");
   EXPECT_FALSE(step.close_file);
-  ASSERT_TRUE(stream.Next(Next(0, 8, "89"), &step).ok());
+  const v1::UploadRequest rest = Next(0, 8, "89");
+  ASSERT_TRUE(stream.Next(rest, &step).ok());
   EXPECT_FALSE(step.open_file);
   EXPECT_EQ(step.offset, 8);
   EXPECT_EQ(step.data, "89");
   EXPECT_TRUE(step.close_file);
 
-  ASSERT_TRUE(stream.Next(First(1, "", ""), &step).ok());  // an empty file
+  const v1::UploadRequest empty = First(1, "", "");  // an empty file
+  ASSERT_TRUE(stream.Next(empty, &step).ok());
   EXPECT_TRUE(step.open_file);
   EXPECT_TRUE(step.close_file);
   EXPECT_TRUE(step.data.empty());
@@ -217,7 +222,8 @@ TEST(UploadStreamTest, LaterChunksMayRepeatTheMetadata) {
   ASSERT_TRUE(stream.Next(again, &step).ok());
   EXPECT_TRUE(step.close_file);
   // An empty chunk after the end of a file is harmless and writes nothing.
-  ASSERT_TRUE(stream.Next(Next(0, 10, ""), &step).ok());
+  const v1::UploadRequest after_end = Next(0, 10, "");
+  ASSERT_TRUE(stream.Next(after_end, &step).ok());
   EXPECT_TRUE(step.data.empty());
   EXPECT_FALSE(step.open_file || step.close_file);
   EXPECT_TRUE(stream.Finish().ok());

@@ -11,7 +11,7 @@ bin_dir="${1:?usage: run_seg_overlay_test.sh BIN_DIR}"
 interslice="$bin_dir/interslice"
 node="${NODE:-node}"
 [ -x "$interslice" ] || { echo "FAIL: no interslice executable in $bin_dir"; exit 1; }
-command -v "$node" >/dev/null || { echo "FAIL: node not found"; exit 1; }
+command -v "$node" >/dev/null || { echo "FAIL: $node not found"; exit 1; }
 
 # npm records what it installed in node_modules/.package-lock.json; reinstall when that is missing
 # or older than the committed lockfile.

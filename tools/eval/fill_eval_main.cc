@@ -1,4 +1,4 @@
-// interslice_fill_eval: drop-k on multi-label segmentations (issue 13).
+// interslice_fill_eval: drop-k on multi-label segmentations.
 //
 // A fully drawn label map (given, or made from the series by HU bands and
 // connected components) keeps every k-th slice as key slices; the slices in

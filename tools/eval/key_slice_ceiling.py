@@ -1,5 +1,5 @@
 #!/usr/bin/python3
-"""How well the thick series' own slices match the thin truth (issue 14).
+"""How well the thick series' own slices match the thin truth.
 
 Usage: /usr/bin/python3 tools/eval/key_slice_ceiling.py THIN_DIR THICK_DIR [HU ...]
 

@@ -91,6 +91,13 @@ def full_table(rows, extra_mesh=False):
     return "\n".join(out)
 
 
+def repo_path(path):
+    """`path` relative to the repository root (e.g. ../shared/data/...), so
+    the report names no folder of one machine."""
+    repo = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", ".."))
+    return os.path.relpath(os.path.abspath(path), repo) if os.path.isabs(path) else path
+
+
 def machine():
     cpu = "?"
     try:
@@ -134,13 +141,13 @@ def main():
              f"threads: {meta.get('threads') or 'all'}")
     if "thin" in meta:
         t = meta["thin"]
-        L.append(f"- thin series: `{t['dir']}`, grid {t['grid']['size']} voxels of "
+        L.append(f"- thin series: `{repo_path(t['dir'])}`, grid {t['grid']['size']} voxels of "
                  f"{[round(s, 4) for s in t['grid']['spacing']]} mm; evaluated ROI "
                  f"(mode `{t['roi_mode']}`): voxels {t['roi_begin']} .. {t['roi_end']} "
                  "(in-plane bounding box of the thresholded series + margin, all slices)")
     if "thick" in meta:
         t = meta["thick"]
-        L.append(f"- thick series: `{t['dir']}`, {t['grid']['size'][2]} slices of "
+        L.append(f"- thick series: `{repo_path(t['dir'])}`, {t['grid']['size'][2]} slices of "
                  f"{t['grid']['spacing'][2]:.3g} mm, factor {t['factor']}, compared at "
                  f"{t['thin_slices_compared']} thin positions from thin slice {t['thin_slice_offset']}")
     L.append(f"- CG: `cg15` = {meta.get('cg_iterations')} iterations; `cgtol` = until "
@@ -291,7 +298,7 @@ def main():
 
     beyond = [r for r in metrics if r["method"] in ("morph", "morph-raw")]
     if beyond:
-        L.append("## Beyond the paper (issue 14): registration-based stacking, `--method morph`")
+        L.append("## Beyond the paper: registration-based stacking, `--method morph`")
         L.append("")
         L.append("`morph-raw`: for every pair of neighbouring key slices, ITK's multi-resolution "
                  "symmetric-forces demons (4 levels, 25 iterations each, field sigma 2 px, maps clipped "

@@ -483,6 +483,40 @@ TEST_F(DicomWriterTest, IntensityUidsPositionsAndInstanceNumbers) {
   }
 }
 
+// A morph series says so, and each slice between two source slices also
+// names their outer neighbours (the morph's value tangents come from them).
+TEST_F(DicomWriterTest, MorphIntensitySeriesNamesItsMethodAndFourSources) {
+  TempDir dir;
+  DicomWriteOptions options = Options();
+  options.intensity_interpolation =
+      DicomWriteOptions::IntensityInterpolation::kMorph;
+  const DerivedObjects objects = Plan(options);
+  auto paths = WriteIntensitySeries(*source_, Intensity(), objects.intensity,
+                                    options, (dir.path() / "morph").string());
+  ASSERT_TRUE(paths.ok()) << paths.status();
+  ASSERT_EQ(paths->size(), 16u);  // 4 source slices, 5 output slices apart
+  for (size_t k = 0; k < paths->size(); ++k) {
+    auto file = Load((*paths)[k]);
+    DcmDataset& ds = *file->getDataset();
+    EXPECT_THAT(GetString(ds, DCM_DerivationDescription),
+                HasSubstr("carried along the motion"));
+    DcmSequenceOfItems* sources = nullptr;
+    ASSERT_TRUE(ds.findAndGetSequence(DCM_SourceImageSequence, sources).good());
+    // On a source slice: that one; between s and s+1: s, s+1 and those of
+    // s-1 and s+2 that exist (4 slices: gaps 0 and 2 have 3, gap 1 has 4).
+    const size_t gap = k / 5;
+    const size_t expected = k % 5 == 0 ? 1 : (gap == 1 ? 4 : 3);
+    EXPECT_EQ(sources->card(), expected) << "slice " << k;
+  }
+  // The linear series says it is linear.
+  auto linear = WriteIntensitySeries(*source_, Intensity(), objects.intensity,
+                                     Options(), (dir.path() / "lin").string());
+  ASSERT_TRUE(linear.ok()) << linear.status();
+  auto file = Load(linear->at(2));
+  EXPECT_THAT(GetString(*file->getDataset(), DCM_DerivationDescription),
+              HasSubstr("linearly interpolated"));
+}
+
 // ResampleSourceSlices places values by the true slice positions: a field
 // that is linear along the normal is reproduced exactly however uneven the
 // gaps (the old resampling used the median gap and squeezed the anatomy).

@@ -3,6 +3,7 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <map>
 
 #include "core/dicom/series_reader.h"
 #include "core/sdf/signed_distance.h"
@@ -11,6 +12,11 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "nlohmann/json.hpp"
+// osconfig.h must precede every other DCMTK header.
+#include "absl/strings/str_format.h"
+#include "dcmtk/config/osconfig.h"
+#include "dcmtk/dcmdata/dcdeftag.h"
+#include "dcmtk/dcmdata/dcfilefo.h"
 
 namespace interslice {
 namespace {
@@ -358,6 +364,241 @@ TEST_F(PipelineTest, RoiOfANonUniformSeriesStartsAtItsFirstSlice) {
   ASSERT_TRUE(report.ok()) << report.status();
   EXPECT_NEAR(report->output_grid.origin[2], 706.21, 1e-9);
   fs::remove_all(inputs);
+}
+
+TEST_F(PipelineTest, MorphIntensitySeriesKeepsSourceSlicesAndReports) {
+  JobSpec spec = SmallJob();
+  spec.output_series = {"intensity"};
+  spec.mesh_formats = {};
+  spec.volume_formats = {};
+  spec.intensity_method = "morph";
+  const auto morph = RunJob(spec, {});
+  ASSERT_TRUE(morph.ok()) << morph.status();
+  EXPECT_EQ(morph->intensity_method, "morph");
+  EXPECT_EQ(morph->intensity_gaps, 3);
+  EXPECT_GE(morph->intensity_fallback_fraction, 0.0);
+  EXPECT_LE(morph->intensity_fallback_fraction, 1.0);
+  EXPECT_GT(morph->intensity_mean_displacement_mm, 0.0);
+  const auto morph_series =
+      ReadDicomSeries({(dir_ / "series-intensity").string()}, {}, {});
+  ASSERT_TRUE(morph_series.ok()) << morph_series.status();
+  ASSERT_EQ(morph_series->image.grid.size, (Index3{80, 80, 13}));
+
+  // The source slices are in it unchanged (to the storage step, 1 HU here).
+  const auto source = ReadDicomSeries({kSeries}, {}, {});
+  ASSERT_TRUE(source.ok());
+  const Volume<float> roi = CropVolume(source->image, *spec.roi);
+  const int64_t plane = 80 * 80;
+  for (int64_t s = 0; s < 4; ++s)
+    for (int64_t v = 0; v < plane; ++v)
+      ASSERT_NEAR(morph_series->image.data[4 * s * plane + v],
+                  roi.data[s * plane + v], 0.5)
+          << "source slice " << s << " pixel " << v;
+
+  // The same job with linear values: the same source slices, other inserted
+  // slices, other UIDs (the method is part of what the series is).
+  spec.intensity_method = "linear";
+  fs::remove_all(dir_);
+  const auto linear = RunJob(spec, {});
+  ASSERT_TRUE(linear.ok()) << linear.status();
+  EXPECT_EQ(linear->intensity_method, "linear");
+  EXPECT_EQ(linear->intensity_gaps, 0);
+  const auto linear_series =
+      ReadDicomSeries({(dir_ / "series-intensity").string()}, {}, {});
+  ASSERT_TRUE(linear_series.ok()) << linear_series.status();
+  double difference = 0;
+  for (int64_t k = 1; k < 4; ++k)
+    for (int64_t v = 0; v < plane; ++v)
+      difference += std::abs(linear_series->image.data[k * plane + v] -
+                             morph_series->image.data[k * plane + v]);
+  EXPECT_GT(difference / (3 * plane), 1.0);  // HU per voxel
+  EXPECT_NE(linear_series->series_instance_uid,
+            morph_series->series_instance_uid);
+
+  // The report says what happened, and reads back.
+  const std::string json = JobReportToJson(*morph);
+  const nlohmann::json j = nlohmann::json::parse(json);
+  EXPECT_EQ(j["intensity"]["method"], "morph");
+  EXPECT_EQ(j["intensity"]["gaps"], 3);
+  EXPECT_TRUE(j["intensity"].contains("fallback_fraction"));
+  EXPECT_TRUE(j["intensity"].contains("gaps_not_registered"));
+  const auto back = JobReportFromJson(json);
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_EQ(back->intensity_method, "morph");
+  EXPECT_EQ(back->intensity_gaps, 3);
+  EXPECT_EQ(back->intensity_fallback_fraction,
+            morph->intensity_fallback_fraction);
+  EXPECT_EQ(back->intensity_mean_displacement_mm,
+            morph->intensity_mean_displacement_mm);
+  // No intensity series, no intensity section.
+  JobSpec no_series = SmallJob();
+  fs::remove_all(dir_);
+  const auto plain = RunJob(no_series, {});
+  ASSERT_TRUE(plain.ok());
+  EXPECT_FALSE(
+      nlohmann::json::parse(JobReportToJson(*plain)).contains("intensity"));
+}
+
+TEST_F(PipelineTest, MorphIntensityHandlesAMissingSlice) {
+  // I10, I20 and I40: gaps of 5 and 10 mm; the 10 mm gap is 2 median
+  // gaps, registered as any other.
+  const fs::path inputs = dir_.string() + "_in";
+  fs::create_directories(inputs);
+  for (const char* name : {"I10.dcm", "I20.dcm", "I40.dcm"}) {
+    fs::copy_file(fs::path(kSeries) / name, inputs / name,
+                  fs::copy_options::overwrite_existing);
+  }
+  JobSpec spec = SmallJob();
+  spec.inputs = {inputs.string()};
+  spec.roi = VoxelBox{{200, 40, 0}, {280, 120, 3}};
+  spec.z_resolution = {.spacing_mm = 2.5};
+  spec.output_series = {"intensity"};
+  spec.intensity_method = "morph";
+  const auto report = RunJob(spec, {});
+  ASSERT_TRUE(report.ok()) << report.status();
+  EXPECT_EQ(report->intensity_gaps, 2);
+  const auto written =
+      ReadDicomSeries({(dir_ / "series-intensity").string()}, {}, {});
+  ASSERT_TRUE(written.ok()) << written.status();
+  const auto source = ReadDicomSeries({inputs.string()}, {}, {});
+  ASSERT_TRUE(source.ok());
+  const Volume<float> roi = CropVolume(source->image, *spec.roi);
+  const int64_t plane = 80 * 80;
+  // Nodes 0, 2 and 6 hold the source slices.
+  const int64_t nodes[3] = {0, 2, 6};
+  for (int64_t s = 0; s < 3; ++s)
+    for (int64_t v = 0; v < plane; ++v)
+      ASSERT_NEAR(written->image.data[nodes[s] * plane + v],
+                  roi.data[s * plane + v], 0.5)
+          << "source slice " << s;
+  fs::remove_all(inputs);
+}
+
+TEST_F(PipelineTest, UnknownIntensityMethodIsRejected) {
+  JobSpec spec = SmallJob();
+  spec.intensity_method = "cubic";
+  const auto report = RunJob(spec, {});
+  EXPECT_EQ(report.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(std::string(report.status().message()),
+              ::testing::AllOf(::testing::HasSubstr("intensity method"),
+                               ::testing::HasSubstr("cubic")));
+}
+
+}  // namespace
+}  // namespace interslice
+
+namespace interslice {
+namespace {
+
+// The colour of the original-slice ticks (core/preview).
+bool IsTickColour(const uint8_t* p) {
+  return p[0] > 200 && p[1] > 150 && p[2] < 60;
+}
+
+class PipelinePreviewTest : public PipelineTest {};
+
+TEST_F(PipelinePreviewTest, PngAndDicomPreviewsAreAStageAndArtifacts) {
+  JobSpec spec = SmallJob();
+  spec.preview_formats = {"png", "dicom"};
+  spec.output_series = {"intensity"};
+  const auto report = RunJob(spec, {});
+  ASSERT_TRUE(report.ok()) << report.status();
+  std::vector<std::string> timed;
+  for (const StageTiming& s : report->stages) timed.push_back(s.stage);
+  EXPECT_THAT(timed, ::testing::ElementsAre("read", "contour", "stack", "solve",
+                                            "mesh", "preview", "write"));
+  EXPECT_TRUE(report->preview_notes.empty())
+      << ::testing::PrintToString(report->preview_notes);
+  std::map<std::string, std::string> kinds;
+  for (const Artifact& a : report->artifacts) kinds[a.kind] = a.path;
+  ASSERT_TRUE(kinds.count("previews"));
+  ASSERT_TRUE(kinds.count("previews-dicom"));
+  EXPECT_EQ(kinds["previews"], (dir_ / "previews").string());
+  for (const char* name :
+       {"axial.png", "coronal.png", "sagittal.png", "3d-front.png"}) {
+    std::ifstream in(dir_ / "previews" / name, std::ios::binary);
+    std::string head(8, '\0');
+    in.read(head.data(), 8);
+    EXPECT_EQ(head.substr(1, 3), "PNG") << name;
+  }
+  for (int n = 1; n <= 4; ++n) {
+    EXPECT_TRUE(
+        fs::exists(dir_ / "previews-dicom" / absl::StrFormat("IM%05d.dcm", n)));
+  }
+  EXPECT_FALSE(fs::exists(dir_ / "previews-dicom" / "IM00005.dcm"));
+  // The report carries the previews' notes (none) and reads back.
+  const std::string json = JobReportToJson(*report);
+  EXPECT_TRUE(nlohmann::json::parse(json).contains("previews"));
+  JobReport with_note = *report;
+  with_note.preview_notes = {"the object is empty: no outline"};
+  const auto back = JobReportFromJson(JobReportToJson(with_note));
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_EQ(back->preview_notes, with_note.preview_notes);
+}
+
+// The original slices reach the previews at their positions on the output
+// grid: the ROI's 4 slices at factor 4 are output slices 0, 4, 8, 12, each a
+// tick row beside the coronal view (16 tick pixels: 8 on each side).
+TEST_F(PipelinePreviewTest, OriginalSlicesAreTickedInTheWrittenPreview) {
+  JobSpec spec = SmallJob();
+  spec.preview_formats = {"dicom"};
+  const auto report = RunJob(spec, {});
+  ASSERT_TRUE(report.ok()) << report.status();
+  DcmFileFormat file;
+  ASSERT_TRUE(
+      file.loadFile((dir_ / "previews-dicom" / "IM00002.dcm").c_str()).good());
+  DcmDataset& ds = *file.getDataset();
+  OFString comments;
+  ds.findAndGetOFString(DCM_ImageComments, comments);
+  EXPECT_THAT(comments.c_str(), ::testing::HasSubstr("coronal"));
+  Uint16 rows = 0, columns = 0;
+  ds.findAndGetUint16(DCM_Rows, rows);
+  ds.findAndGetUint16(DCM_Columns, columns);
+  const Uint8* pixels = nullptr;
+  ASSERT_TRUE(ds.findAndGetUint8Array(DCM_PixelData, pixels).good());
+  int tick_rows = 0;
+  for (int y = 0; y < rows; ++y) {
+    int ticks = 0;
+    for (int x = 0; x < columns; ++x) {
+      ticks +=
+          IsTickColour(pixels + (static_cast<size_t>(y) * columns + x) * 3);
+    }
+    tick_rows += ticks == 16 ? 1 : 0;
+  }
+  // 13 output slices of 0.45 mm stretched to the display: the 4 ticks are
+  // far apart.
+  EXPECT_EQ(tick_rows, 4);
+}
+
+TEST_F(PipelinePreviewTest, EmptyMaskAndTinyRoiStillGivePreviews) {
+  JobSpec spec = SmallJob();
+  spec.preview_formats = {"png"};
+  spec.lower_threshold = 30000;  // nothing is that dense
+  auto report = RunJob(spec, {});
+  ASSERT_TRUE(report.ok()) << report.status();
+  EXPECT_THAT(report->preview_notes,
+              ::testing::Contains(::testing::HasSubstr("the object is empty")));
+  EXPECT_TRUE(fs::exists(dir_ / "previews" / "3d-front.png"));
+
+  spec = SmallJob();
+  spec.preview_formats = {"png"};
+  spec.roi = VoxelBox{{250, 60, 1}, {253, 63, 3}};
+  spec.z_resolution.factor = 2;
+  report = RunJob(spec, {});
+  ASSERT_TRUE(report.ok()) << report.status();
+  EXPECT_TRUE(fs::exists(dir_ / "previews" / "axial.png"));
+}
+
+TEST_F(PipelinePreviewTest, UnknownFormatIsRefused) {
+  JobSpec spec = SmallJob();
+  spec.preview_formats = {"gif"};
+  const auto report = RunJob(spec, {});
+  EXPECT_EQ(report.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(report.status().message(), ::testing::HasSubstr("'gif'"));
+  spec.preview_formats = {"png"};
+  spec.series_number_base = 2147483647 - 5;
+  EXPECT_EQ(RunJob(spec, {}).status().code(),
+            absl::StatusCode::kInvalidArgument);
 }
 
 }  // namespace

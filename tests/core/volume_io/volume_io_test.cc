@@ -15,6 +15,8 @@
 #include "absl/strings/str_cat.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "tests/testing/process.h"
+#include "tests/testing/tools.h"
 
 namespace interslice {
 namespace {
@@ -254,19 +256,6 @@ std::string GunzipFile(const std::string& path) {
   return bytes;
 }
 
-// Runs a shell command; its exit status and standard output.
-std::pair<int, std::string> Shell(const std::string& command) {
-  std::FILE* pipe = popen(command.c_str(), "r");
-  if (pipe == nullptr) return {-1, ""};
-  std::string out;
-  char buffer[4096];
-  size_t n;
-  while ((n = std::fread(buffer, 1, sizeof(buffer), pipe)) > 0) {
-    out.append(buffer, n);
-  }
-  return {pclose(pipe), out};
-}
-
 // Larger than one 4 MiB compression block, so the file holds blocks
 // deflated in parallel, with float noise like a distance field.
 Volume<float> LargeVolume() {
@@ -344,22 +333,22 @@ TEST_F(VolumeIoTest, ParallelNrrdGzipReadsBackThroughItk) {
 // Readers other than ITK: gzip(1) checks every member's CRC and length;
 // Python's gzip module (what nibabel uses) reads all members.
 TEST_F(VolumeIoTest, MultiMemberGzipPassesGzipAndPython) {
+  const std::string gzip = testing::RequireTool("gzip");
+  const std::string python3 = testing::RequireTool("python3");
+  ASSERT_FALSE(gzip.empty() || python3.empty());
   const Volume<float> volume = LargeVolume();
   ASSERT_TRUE(WriteVolume(volume, Path("v.nii.gz"), {.threads = 2}).ok());
   ASSERT_TRUE(WriteVolume(volume, Path("v.nii")).ok());
-  if (Shell("command -v gzip >/dev/null").first != 0) {
-    GTEST_SKIP() << "gzip is not installed";
-  }
-  EXPECT_EQ(Shell("gzip -t '" + Path("v.nii.gz") + "'").first, 0);
-  if (Shell("command -v python3 >/dev/null").first != 0) {
-    GTEST_SKIP() << "python3 is not installed";
-  }
-  const auto [status, out] = Shell(
-      "python3 -c \"import gzip,sys; a=gzip.open(sys.argv[1]).read(); "
-      "b=open(sys.argv[2],'rb').read(); print(len(a), a==b)\" '" +
-      Path("v.nii.gz") + "' '" + Path("v.nii") + "'");
-  EXPECT_EQ(status, 0);
-  EXPECT_EQ(out, absl::StrCat(352 + volume.data.size() * 4, " True\n"));
+  const testing::CommandResult test =
+      testing::RunCommand({gzip, "-t", Path("v.nii.gz")});
+  EXPECT_EQ(test.exit_code, 0) << test.err;
+  const testing::CommandResult python = testing::RunCommand(
+      {python3, "-c",
+       "import gzip,sys; a=gzip.open(sys.argv[1]).read(); "
+       "b=open(sys.argv[2],'rb').read(); print(len(a), a==b)",
+       Path("v.nii.gz"), Path("v.nii")});
+  EXPECT_EQ(python.exit_code, 0) << python.err;
+  EXPECT_EQ(python.out, absl::StrCat(352 + volume.data.size() * 4, " True\n"));
 }
 
 TEST_F(VolumeIoTest, CancelledWriteLeavesNothing) {

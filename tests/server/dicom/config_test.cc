@@ -141,6 +141,42 @@ TEST_F(ConfigTest, PeersFileErrorsNameThePeerAndField) {
       HasSubstr("cannot read"));
 }
 
+// Issue 22: a peer may be bound to addresses (allowed_sources).
+TEST_F(ConfigTest, PeerAllowedSources) {
+  absl::StatusOr<PeersConfig> config = LoadPeersConfig(
+      Write("p.yaml",
+            "peers:\n"
+            "  - {name: ct, ae_title: CT1, host: 10.1.2.3,\n"
+            "     allowed_sources: [10.1.0.0/16, 192.168.7.9, 'fd00::/8']}\n"
+            "  - {name: any, ae_title: ANY, host: h}\n"));
+  ASSERT_TRUE(config.ok()) << config.status();
+  const std::vector<SourceNetwork>& nets = config->peers[0].allowed_sources;
+  ASSERT_EQ(nets.size(), 3u);
+  EXPECT_TRUE(config->peers[1].allowed_sources.empty());
+  EXPECT_TRUE(InNetwork("10.1.200.7", nets[0]));
+  EXPECT_FALSE(InNetwork("10.2.0.1", nets[0]));
+  EXPECT_TRUE(InNetwork("192.168.7.9", nets[1]));
+  EXPECT_FALSE(InNetwork("192.168.7.10", nets[1]));
+  EXPECT_TRUE(InNetwork("fd12:3456::1", nets[2]));
+  EXPECT_FALSE(InNetwork("fe80::1", nets[2]));
+  EXPECT_FALSE(InNetwork("10.1.2.3", nets[2]));  // another family
+  // Prefixes that end inside a byte.
+  absl::StatusOr<SourceNetwork> odd = ParseSourceNetwork("172.16.0.0/12");
+  ASSERT_TRUE(odd.ok());
+  EXPECT_TRUE(InNetwork("172.31.255.255", *odd));
+  EXPECT_FALSE(InNetwork("172.32.0.0", *odd));
+  EXPECT_THAT(PeersError("peers:\n  - {name: a, ae_title: A, host: h, "
+                         "allowed_sources: [pacs.example]}\n"),
+              HasSubstr("peer 'a' (#1): allowed_sources[0]: 'pacs.example' "
+                        "is not an IPv4 or IPv6 address"));
+  EXPECT_THAT(PeersError("peers:\n  - {name: a, ae_title: A, host: h, "
+                         "allowed_sources: [10.0.0.0/33]}\n"),
+              HasSubstr("an IPv4 prefix is at most 32 bits"));
+  EXPECT_THAT(PeersError("peers:\n  - {name: a, ae_title: A, host: h, "
+                         "allowed_sources: []}\n"),
+              HasSubstr("allowed_sources: expected a non-empty list"));
+}
+
 TEST_F(ConfigTest, FullRulesFile) {
   absl::StatusOr<RuleSet> set = LoadRulesFile(
       Write("rules.yaml",
@@ -311,6 +347,29 @@ TEST_F(ConfigTest, UnknownPeer) {
               HasSubstr("rule 'a' (#1): send_to: unknown peer 'pacs2'"));
 }
 
+// Every option of the job layer is a rule key: the intensity series'
+// method among them.
+TEST_F(ConfigTest, IntensityMethodIsARuleKey) {
+  absl::StatusOr<RuleSet> set = LoadRulesFile(
+      Write("rules.yaml",
+            "rules:\n"
+            "  - {name: a, job: {threshold: 300, output_series: [intensity], "
+            "intensity_method: linear}}\n"
+            "  - {name: b, job: {threshold: 300, output_series: [intensity]}}\n"
+            "  - {name: c, fill: {factor: 2, intensity_method: linear}}\n"),
+      Peers());
+  ASSERT_TRUE(set.ok()) << set.status();
+  EXPECT_EQ(set->rules[0].job.derived_series().intensity_method(),
+            v1::INTENSITY_INTERPOLATION_LINEAR);
+  EXPECT_EQ(set->rules[1].job.derived_series().intensity_method(),
+            v1::INTENSITY_INTERPOLATION_MORPH);
+  EXPECT_EQ(set->rules[2].job.fill().intensity_method(),
+            v1::INTENSITY_INTERPOLATION_LINEAR);
+  EXPECT_THAT(RuleError("  - {name: a, job: {threshold: 1, intensity_method: "
+                        "cubic}}\n"),
+              HasSubstr("job.intensity_method: unknown value 'cubic'"));
+}
+
 TEST_F(ConfigTest, JobValuesCheckedAsTheCommandLineChecksThem) {
   EXPECT_THAT(RuleError("  - {name: a, job: {upper: 5}}\n"),
               HasSubstr("rule 'a' (#1): job.threshold: missing"));
@@ -349,7 +408,7 @@ TEST_F(ConfigTest, OtherRuleErrors) {
               HasSubstr("rules: missing"));
 }
 
-// Fill rules (issue 13): the `interslice fill` options, checked as the
+// Fill rules: the `interslice fill` options, checked as the
 // server checks an uploaded fill spec; they match segmentations only, and
 // job rules never match a segmentation.
 TEST_F(ConfigTest, FillRules) {
@@ -447,17 +506,20 @@ TEST_F(ConfigTest, DocumentationListsEveryRuleKey) {
   const size_t fill_row = doc.find("| `rules[].fill` |");
   ASSERT_NE(job_row, std::string::npos);
   ASSERT_NE(fill_row, std::string::npos);
-  const std::string job_text = doc.substr(job_row, doc.find('\n', job_row) - job_row);
+  const std::string job_text =
+      doc.substr(job_row, doc.find('\n', job_row) - job_row);
   const std::string fill_text =
       doc.substr(fill_row, doc.find('\n', fill_row) - fill_row);
   for (const auto& def : job::InterpolationOptionTable()) {
     if ((def.doors & job::kRulesFile) == 0) continue;
-    EXPECT_THAT(job_text, HasSubstr(absl::StrCat("`", std::string(def.key), "`")))
+    EXPECT_THAT(job_text,
+                HasSubstr(absl::StrCat("`", std::string(def.key), "`")))
         << "rules[].job does not document " << def.key;
   }
   for (const auto& def : job::FillOptionTable()) {
     if ((def.doors & job::kRulesFile) == 0) continue;
-    EXPECT_THAT(fill_text, HasSubstr(absl::StrCat("`", std::string(def.key), "`")))
+    EXPECT_THAT(fill_text,
+                HasSubstr(absl::StrCat("`", std::string(def.key), "`")))
         << "rules[].fill does not document " << def.key;
   }
 }

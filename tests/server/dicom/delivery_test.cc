@@ -4,7 +4,6 @@
 
 #include <arpa/inet.h>
 #include <netinet/in.h>
-#include <signal.h>
 #include <sys/socket.h>
 #include <unistd.h>
 
@@ -19,9 +18,10 @@
 #include "absl/status/status.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
-#include "tests/server/dicom/orthanc_fixture.h"
-#include "tests/server/process.h"
+#include "tests/testing/orthanc.h"
+#include "tests/testing/process.h"
 #include "tests/testing/temp_dir.h"
+#include "tests/testing/wait_for.h"
 
 namespace interslice::server::dicom {
 namespace {
@@ -178,9 +178,9 @@ TEST(StoreFilesTest, TlsPeerWithCaCheckedCertificates) {
       {"/usr/bin/storescp", "+tls", d + "/pacs.key", d + "/pacs.pem", "+cf",
        d + "/ca.pem", "-rc", "-od", d + "/received", std::to_string(port)},
       d + "/storescp.log");
-  for (int i = 0; i < 200 && !Listening(port); ++i) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));
-  }
+  ASSERT_TRUE(testing::WaitFor([&] { return Listening(port); },
+                               std::chrono::seconds(60)))
+      << testing::ReadFileOrEmpty(d + "/storescp.log");
   DicomPeer peer;
   peer.name = "secure";
   peer.ae_title = "STORESCP";
@@ -205,8 +205,7 @@ TEST(StoreFilesTest, TlsPeerWithCaCheckedCertificates) {
   absl::StatusOr<StoreResult> refused = StoreFiles(peer, files, options);
   EXPECT_FALSE(refused.ok());
   EXPECT_EQ(refused.status().code(), absl::StatusCode::kUnavailable);
-  ::kill(scp, SIGTERM);
-  testing::WaitProcess(scp, 10);
+  testing::StopProcess(scp, 30);
 }
 
 TEST(DeliveryQueueTest, PeerDownThenBackIsDeliveredWithBackoff) {
@@ -227,12 +226,24 @@ TEST(DeliveryQueueTest, PeerDownThenBackIsDeliveredWithBackoff) {
                 t0.time_since_epoch())
                 .count());
   // Two failed tries while the peer is down, each with the error and a
-  // next attempt in the future.
-  for (int i = 0; i < 100 && updates.all().size() < 2; ++i) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));
-  }
-  const std::vector<v1::Delivery> failures = updates.all();
+  // next attempt in the future (each try is also reported as it begins,
+  // without an error yet the first time).
+  auto failed_tries = [&] {
+    std::vector<v1::Delivery> failures;
+    for (const v1::Delivery& u : updates.all()) {
+      if (!u.last_error().empty() && u.next_attempt_unix_ms() > 0 &&
+          (failures.empty() || u.attempts() > failures.back().attempts())) {
+        failures.push_back(u);
+      }
+    }
+    return failures;
+  };
+  testing::WaitFor([&] { return failed_tries().size() >= 2; },
+                   std::chrono::seconds(60));
+  const std::vector<v1::Delivery> failures = failed_tries();
   ASSERT_GE(failures.size(), 2u);
+  EXPECT_EQ(updates.all().front().attempts(), 1);
+  EXPECT_EQ(updates.all().front().last_error(), "");
   for (const v1::Delivery& f : failures) {
     EXPECT_EQ(f.state(), v1::Delivery::PENDING);
     EXPECT_THAT(f.last_error(), HasSubstr("orthanc"));
@@ -245,7 +256,7 @@ TEST(DeliveryQueueTest, PeerDownThenBackIsDeliveredWithBackoff) {
 
   ASSERT_TRUE((*orthanc)->Restart().ok());
   std::optional<v1::Delivery> done =
-      updates.WaitFor(v1::Delivery::DELIVERED, std::chrono::seconds(30));
+      updates.WaitFor(v1::Delivery::DELIVERED, std::chrono::seconds(120));
   ASSERT_TRUE(done.has_value());
   EXPECT_EQ(done->instances_sent(), 4);
   EXPECT_EQ(done->last_error(), "");
@@ -269,11 +280,51 @@ TEST(DeliveryQueueTest, GivesUpAfterTheConfiguredTime) {
   d.set_peer("down");
   queue.Add("job2", d, ListDicomFiles(kThick.string()), 0);
   std::optional<v1::Delivery> failed =
-      updates.WaitFor(v1::Delivery::FAILED, std::chrono::seconds(30));
+      updates.WaitFor(v1::Delivery::FAILED, std::chrono::seconds(120));
   ASSERT_TRUE(failed.has_value());
   EXPECT_EQ(failed->attempts(), 1);
   EXPECT_THAT(failed->last_error(), HasSubstr("down"));
   EXPECT_EQ(queue.pending(), 0);
+}
+
+// Issue 22: a delivery cut by a kill -9 reported "1 attempt(s)" after any
+// number of tries, because the count was stored only after a try ended.
+// The attempt is recorded before it is made: here the peer accepts the TCP
+// connection and never answers, and the record says attempt 1 while the
+// try still hangs.
+TEST(DeliveryQueueTest, AttemptIsRecordedBeforeItIsMade) {
+  const int listener = ::socket(AF_INET, SOCK_STREAM, 0);
+  ASSERT_GE(listener, 0);
+  sockaddr_in addr{};
+  addr.sin_family = AF_INET;
+  addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  ASSERT_EQ(::bind(listener, reinterpret_cast<sockaddr*>(&addr), sizeof(addr)),
+            0);
+  ASSERT_EQ(::listen(listener, 4), 0);  // the kernel accepts; nobody reads
+  socklen_t len = sizeof(addr);
+  ::getsockname(listener, reinterpret_cast<sockaddr*>(&addr), &len);
+  DicomPeer peer;
+  peer.name = "silent";
+  peer.ae_title = "SILENT";
+  peer.host = "127.0.0.1";
+  peer.port = ntohs(addr.sin_port);
+  DeliveryOptions options = FastOptions();
+  options.timeout_seconds = 20;
+  Updates updates;
+  DeliveryQueue queue({peer}, options, updates.callback());
+  queue.Start();
+  v1::Delivery d;
+  d.set_peer("silent");
+  d.set_state(v1::Delivery::PENDING);
+  queue.Add("job3", d, ListDicomFiles(kThick.string()), 0);
+  std::optional<v1::Delivery> started =
+      updates.WaitFor(v1::Delivery::PENDING, std::chrono::seconds(15));
+  ASSERT_TRUE(started.has_value());
+  EXPECT_EQ(started->attempts(), 1);
+  // Recorded as the try began, not after it failed.
+  EXPECT_EQ(started->last_error(), "");
+  ::close(listener);  // the try now fails at once
+  queue.Stop();
 }
 
 TEST(DeliveryQueueTest, UnknownPeerNamesAreInvalidArgument) {

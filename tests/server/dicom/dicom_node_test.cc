@@ -11,16 +11,29 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <atomic>
 #include <chrono>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <functional>
 #include <sstream>
 #include <thread>
 
+#include "absl/strings/ascii.h"
+#include "absl/strings/match.h"
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
-#include "tests/server/process.h"
+#include "tests/testing/files.h"
+#include "tests/testing/process.h"
+#include "tests/testing/server_process.h"
+#include "tests/testing/temp_dir.h"
+#include "tests/testing/wait_for.h"
+#include "dcmtk/config/osconfig.h"
+#include "dcmtk/dcmdata/dcuid.h"
+#include "interslice/spool/v1/record.pb.h"
+#include "tests/server/dicom/raw_pdu.h"
 
 namespace interslice::testing {
 namespace {
@@ -32,22 +45,15 @@ const std::string kCli = INTERSLICE_CLI_PATH;
 // DCMTK's tools (Debian package dcmtk, in install-deps.sh).
 const std::string kEchoScu = "/usr/bin/echoscu";
 const std::string kStoreScu = "/usr/bin/storescu";
-const std::string kServer = INTERSLICE_SERVER_PATH;
 const std::string kPhantom =
     std::string(INTERSLICE_SOURCE_DIR) + "/data/ct-head-phantom-thick";
 // A small job on the phantom: a 96 x 96 region of all 28 slices.
 const char kJobYaml[] =
     "{threshold: 300, roi: [208, 208, 0, 304, 304, 28], mesh: [stl], "
-    "volume: [nii]}";
+    "volume: [nii], previews: [png, dicom]}";
 const std::vector<std::string> kJobArgs = {
-    "--threshold", "300", "--roi",    "208,208,0,304,304,28",
-    "--mesh",      "stl", "--volume", "nii"};
-
-std::vector<std::string> Cat(std::vector<std::string> a,
-                             const std::vector<std::string>& b) {
-  a.insert(a.end(), b.begin(), b.end());
-  return a;
-}
+    "--threshold", "300",      "--roi", "208,208,0,304,304,28", "--mesh",
+    "stl",         "--volume", "nii",   "--previews",           "png,dicom"};
 
 std::vector<std::string> PhantomFiles() {
   std::vector<std::string> files;
@@ -57,25 +63,6 @@ std::vector<std::string> PhantomFiles() {
   std::sort(files.begin(), files.end());
   return files;
 }
-
-class TempDir {
- public:
-  TempDir() {
-    char name[] = "/tmp/interslice-dicom-test-XXXXXX";
-    path_ = mkdtemp(name);
-  }
-  ~TempDir() {
-    std::error_code ec;
-    fs::remove_all(path_, ec);
-  }
-  std::string operator/(const std::string& name) const {
-    return (fs::path(path_) / name).string();
-  }
-  const std::string& path() const { return path_; }
-
- private:
-  std::string path_;
-};
 
 void WriteFile(const std::string& path, const std::string& text) {
   std::ofstream(path) << text;
@@ -109,92 +96,98 @@ std::string WriteRules(const TempDir& dir, double stable_seconds,
   return path;
 }
 
+// How a test server is started besides its flags.
+struct ServerSetup {
+  std::string listen = "0.0.0.0:0";  // --dicom-listen
+  // Non-empty: the spool is a tmpfs of this size ("6m") in a mount
+  // namespace of the server's own (unshare -m), so that its disk can fill.
+  std::string tmpfs_size;
+};
+
+// A server with the DICOM listener (and an admin token, so that the test
+// lists every job), in `dir`/`name`. The lifecycle is the shared fixture's
+// (tests/testing/server_process.h); this adds what the DICOM tests look at.
 class DicomServer {
  public:
   DicomServer(const TempDir& dir, const std::string& name,
-              std::vector<std::string> extra)
-      : spool_(dir / name), log_(dir / (name + ".log")) {
-    const std::string port_file = spool_ + ".port";
-    std::error_code ec;
-    fs::remove(port_file, ec);  // a restart must not read the old ports
+              std::vector<std::string> extra, ServerSetup setup = {})
+      : token_file_(dir / "admin.token"),
+        setup_(setup),
+        server_(Options(dir, name, std::move(extra), setup)) {
     std::ofstream(dir / "admin.tokens") << "admin:admin-token\n";
-    std::ofstream(dir / "admin.token") << "admin-token\n";
-    token_file_ = dir / "admin.token";
-    std::vector<std::string> argv = {kServer,
-                                     "--listen",
-                                     "127.0.0.1:0",
-                                     "--spool",
-                                     spool_,
-                                     "--port-file",
-                                     port_file,
-                                     "--workers",
-                                     "1",
-                                     "--threads-per-job",
-                                     "1",
-                                     "--drain-grace",
-                                     "0",
-                                     "--auth-token-file",
-                                     dir / "admin.tokens",
-                                     "--admin-identity",
-                                     "admin",
-                                     "--dicom-listen",
-                                     "0.0.0.0:0",
-                                     "--dicom-acse-timeout",
-                                     "3"};
-    pid_ = StartProcess(Cat(argv, extra), log_);
-    for (int i = 0; i < 1000; ++i) {
-      const int rc = WaitProcess(pid_, 0);
-      if (rc != -1) {  // ended at start-up (reaped here)
-        exit_code_ = rc;
-        pid_ = -1;
-        break;
-      }
-      std::ifstream in(port_file);
-      int grpc = 0, metrics = 0, dicom = 0;
-      if (in >> grpc >> metrics >> dicom) {
-        grpc_port_ = grpc;
-        dicom_port_ = dicom;
-        break;
-      }
-      std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    std::ofstream(token_file_) << "admin-token\n";
+    started_ = server_.Start();
+  }
+  // Whether it started (on failure: why, and the log's end).
+  ::testing::AssertionResult up() const {
+    if (!started_) return started_;
+    if (server_.dicom_port() <= 0) {
+      return ::testing::AssertionFailure() << "no DICOM port in the port file";
     }
+    return ::testing::AssertionSuccess();
   }
-  ~DicomServer() {
-    if (pid_ > 0) {
-      kill(pid_, SIGTERM);
-      const int rc = WaitProcess(pid_, 60);
-      EXPECT_EQ(rc, 0) << "interslice-server did not exit cleanly\n" << Log();
-      if (rc == -1) {
-        kill(pid_, SIGKILL);
-        waitpid(pid_, nullptr, 0);
-      }
-    }
-  }
-  // The exit code if the server ended (e.g. a bad configuration), else -1.
-  int ExitCode(double wait_seconds) {
-    if (pid_ < 0) return exit_code_;
-    const int rc = WaitProcess(pid_, wait_seconds);
-    if (rc != -1) pid_ = -1;
-    return rc;
-  }
-  bool up() const { return dicom_port_ > 0; }
-  std::string port() const { return std::to_string(dicom_port_); }
+  // The exit code once the server ended by itself (e.g. a bad
+  // configuration), waiting up to `wait_seconds`; -1 while it runs.
+  int ExitCode(double wait_seconds) { return server_.WaitExit(wait_seconds); }
+  // kill -9, as a crash or a power cut would end it.
+  void Kill() { server_.Kill(); }
+  // SIGTERM: the drain; the exit code (-1: killed after `wait_seconds`).
+  int Terminate(double wait_seconds) { return server_.Stop(wait_seconds); }
+  bool running() const { return server_.running(); }
+  std::string port() const { return std::to_string(server_.dicom_port()); }
   std::vector<std::string> Client() const {
-    return {"--server", absl::StrCat("127.0.0.1:", grpc_port_), "--token-file",
-            token_file_};
+    return Cat(server_.ServerFlag(), {"--token-file", token_file_});
   }
-  std::string Log() const { return ReadFileOrEmpty(log_); }
-  const std::string& spool() const { return spool_; }
+  std::string Log() const { return server_.Log(); }
+  const std::string& spool() const { return server_.spool(); }
+  // The spool as the server sees it (its own tmpfs, when it has one).
+  std::string SpoolView() const {
+    if (setup_.tmpfs_size.empty() || !server_.running()) return spool();
+    return absl::StrCat("/proc/", server_.pid(), "/root", spool());
+  }
 
   // Instances waiting in series folders.
   int PendingInstances() const {
     int n = 0;
     std::error_code ec;
     for (const auto& e : fs::recursive_directory_iterator(
-             fs::path(spool_) / "dicom-in" / "series", ec)) {
+             fs::path(SpoolView()) / "dicom-in" / "series", ec)) {
       if (e.path().extension() == ".dcm") ++n;
     }
     return n;
+  }
+
+  // A counter of /metrics (the whole sample name with its labels, e.g.
+  // interslice_dicom_events_total{event="associations"}); -1 if absent.
+  double Metric(const std::string& sample) const {
+    const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+    sockaddr_in addr{};
+    addr.sin_family = AF_INET;
+    addr.sin_port = htons(static_cast<uint16_t>(server_.metrics_port()));
+    addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+    if (::connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof(addr)) != 0) {
+      ::close(fd);
+      return -1;
+    }
+    const std::string request = "GET /metrics HTTP/1.0\r\n\r\n";
+    (void)!::write(fd, request.data(), request.size());
+    std::string body;
+    char buffer[65536];
+    ssize_t n;
+    while ((n = ::read(fd, buffer, sizeof(buffer))) > 0) body.append(buffer, n);
+    ::close(fd);
+    for (absl::string_view line : absl::StrSplit(body, '\n')) {
+      if (absl::StartsWith(line, sample + " ")) {
+        double v = 0;
+        if (absl::SimpleAtod(line.substr(sample.size() + 1), &v)) return v;
+      }
+    }
+    return -1;
+  }
+  double Refused(const std::string& reason) const {
+    const double v = Metric(absl::StrCat(
+        "interslice_dicom_connections_refused_total{reason=\"", reason, "\"}"));
+    return v < 0 ? 0 : v;
   }
 
   // Job ids the server lists (admin view).
@@ -210,20 +203,40 @@ class DicomServer {
   }
 
  private:
-  std::string spool_, log_, token_file_;
-  pid_t pid_ = -1;
-  int exit_code_ = -1;
-  int grpc_port_ = 0, dicom_port_ = 0;
+  static ServerOptions Options(const TempDir& dir, const std::string& name,
+                               std::vector<std::string> extra,
+                               const ServerSetup& setup) {
+    ServerOptions options{
+        .spool = dir / name,
+        .log = dir / (name + ".log"),
+        .extra = Cat({"--metrics-listen", "127.0.0.1:0", "--auth-token-file",
+                      dir / "admin.tokens", "--admin-identity", "admin",
+                      "--dicom-listen", setup.listen, "--dicom-acse-timeout",
+                      "3"},
+                     extra),
+        .threads_per_job = 1};
+    if (!setup.tmpfs_size.empty()) {
+      std::error_code ec;
+      fs::create_directories(options.spool, ec);
+      options.command_prefix = {"/usr/bin/unshare", "-m", "--propagation",
+                                "private", "/bin/sh", "-c",
+                                "mount -t tmpfs -o size=" + setup.tmpfs_size +
+                                    " tmpfs \"$0\" && exec \"$@\"",
+                                options.spool};
+    }
+    return options;
+  }
+
+  std::string token_file_;
+  ServerSetup setup_;
+  ServerProcess server_;
+  ::testing::AssertionResult started_ = ::testing::AssertionFailure();
 };
 
+// Polls `done` (up to `seconds`).
 bool WaitUntil(const std::function<bool()>& done, double seconds) {
-  const auto end = std::chrono::steady_clock::now() +
-                   std::chrono::milliseconds(static_cast<int>(seconds * 1000));
-  while (std::chrono::steady_clock::now() < end) {
-    if (done()) return true;
-    std::this_thread::sleep_for(std::chrono::milliseconds(100));
-  }
-  return done();
+  return WaitFor(done, std::chrono::duration<double>(seconds),
+                 std::chrono::milliseconds(100));
 }
 
 CommandResult StoreScu(const DicomServer& server,
@@ -259,7 +272,8 @@ TEST(DicomNodeTest, EchoAndAssociationPolicy) {
       {kEchoScu, "-aec", "SOMEONE_ELSE", "127.0.0.1", server.port()});
   EXPECT_NE(unknown_called.exit_code, 0);
   EXPECT_THAT(unknown_called.err, HasSubstr("Called AE Title Not Recognized"));
-  EXPECT_THAT(server.Log(), HasSubstr("STRANGER rejected"));
+  EXPECT_THAT(server.Log(),
+              HasSubstr("calling AE title STRANGER is not in the peers file"));
 }
 
 TEST(DicomNodeTest, UnknownCallersAcceptedWhenThePeersFileSaysSo) {
@@ -318,7 +332,7 @@ TEST(DicomNodeTest, PhantomSentWithStorescuMakesTheRulesJob) {
         jobs = server.Jobs();
         return !jobs.empty();
       },
-      60))
+      120))
       << server.Log();
   ASSERT_EQ(jobs.size(), 1u);
   CommandResult watch = RunCommand(
@@ -328,16 +342,11 @@ TEST(DicomNodeTest, PhantomSentWithStorescuMakesTheRulesJob) {
       Cat({kCli, "fetch", jobs[0], "--out", dir / "remote"}, server.Client()),
       120);
   ASSERT_EQ(fetch.exit_code, 0) << fetch.err;
-  int compared = 0;
-  for (const auto& e : fs::directory_iterator(dir / "local")) {
-    const std::string name = e.path().filename().string();
-    ASSERT_TRUE(fs::exists(fs::path(dir / "remote") / name)) << name;
-    EXPECT_TRUE(ReadFileOrEmpty(e.path().string()) ==
-                ReadFileOrEmpty(dir / ("remote/" + name)))
-        << name << " differs";
-    ++compared;
-  }
-  EXPECT_GE(compared, 2);
+  // Every file, the previews' included (4 PNG, 4 DICOM): the same bytes
+  // (DICOM files: the same size; their creation times differ).
+  ExpectSameFiles(dir / "local", dir / "remote", 12, {},
+                  DicomComparison::kSameSize);
+  EXPECT_TRUE(fs::exists(dir / "remote/previews-dicom/IM00004.dcm"));
   const std::string log = server.Log();
   EXPECT_THAT(log, HasSubstr("made by rule ct-head"));
   EXPECT_THAT(log, HasSubstr("STORESCU -> INTERSLICE released: 28 instance(s) "
@@ -367,8 +376,10 @@ TEST(DicomNodeTest, ReleaseCompletesAtOnceAbortKeepsTheInstances) {
         return server.Log().find("aborted: 28 instance(s) kept") !=
                std::string::npos;
       },
-      30))
+      120))
       << server.Log();
+  // A check that nothing happens: 1 s later the aborted association's
+  // instances still wait and made no job (a sleep, not a wait).
   std::this_thread::sleep_for(std::chrono::seconds(1));
   EXPECT_EQ(server.PendingInstances(), 28);
   EXPECT_TRUE(server.Jobs().empty());
@@ -376,7 +387,7 @@ TEST(DicomNodeTest, ReleaseCompletesAtOnceAbortKeepsTheInstances) {
   // the re-sent instances replace themselves.
   CommandResult released = StoreScu(server, {}, files);
   EXPECT_EQ(released.exit_code, 0) << released.err;
-  ASSERT_TRUE(WaitUntil([&] { return !server.Jobs().empty(); }, 30))
+  ASSERT_TRUE(WaitUntil([&] { return !server.Jobs().empty(); }, 120))
       << server.Log();
   EXPECT_THAT(server.Log(), HasSubstr("(28 instance(s))"));
   EXPECT_EQ(server.PendingInstances(), 0);
@@ -397,7 +408,7 @@ TEST(DicomNodeTest, InstancesSurviveARestartAndCompleteAfterIt) {
   DicomServer again(dir, "spool", flags);
   ASSERT_TRUE(again.up()) << again.Log();
   EXPECT_THAT(again.Log(), HasSubstr("1 series received before the restart"));
-  ASSERT_TRUE(WaitUntil([&] { return !again.Jobs().empty(); }, 60))
+  ASSERT_TRUE(WaitUntil([&] { return !again.Jobs().empty(); }, 120))
       << again.Log();
 }
 
@@ -471,7 +482,7 @@ TEST(DicomNodeTest, SeriesNearTheQuotaStillBecomesItsJob) {
   ASSERT_TRUE(server.up()) << server.Log();
   CommandResult store = StoreScu(server, {}, PhantomFiles());
   ASSERT_EQ(store.exit_code, 0) << store.err;
-  ASSERT_TRUE(WaitUntil([&] { return !server.Jobs().empty(); }, 30))
+  ASSERT_TRUE(WaitUntil([&] { return !server.Jobs().empty(); }, 120))
       << server.Log();
   EXPECT_EQ(server.PendingInstances(), 0);
 }
@@ -488,13 +499,17 @@ TEST(DicomNodeTest, OversizeInstanceIsCutOffWhileStreaming) {
   CommandResult r = StoreScu(server, {}, {PhantomFiles().front()});
   EXPECT_NE(r.exit_code, 0);
   EXPECT_THAT(r.err, HasSubstr("Peer aborted Association"));
+  // The cut-off is logged while the instance streams in; the partial file
+  // is removed after that, before the association ends: wait for its end.
   EXPECT_TRUE(WaitUntil(
       [&] {
-        return server.Log().find("aborted: an instance passed 100000 bytes") !=
+        return server.Log().find("aborted: 0 instance(s) kept, 0 refused") !=
                std::string::npos;
       },
-      10))
+      120))
       << server.Log();
+  EXPECT_THAT(server.Log(),
+              HasSubstr("aborted: an instance passed 100000 bytes"));
   EXPECT_EQ(server.PendingInstances(), 0);
   int staged = 0;
   for (const auto& e : fs::directory_iterator(fs::path(server.spool()) /
@@ -564,7 +579,7 @@ TEST(DicomNodeTest, GarbageAndSilentPeersCostOnlyTheirOwnAssociation) {
 
 void MakeCertificates(const TempDir& dir) {
   const std::string script = absl::StrCat(
-      "set -e; cd ", dir.path(), "; exec >openssl.log 2>&1\n",
+      "set -e; cd ", dir.str(), "; exec >openssl.log 2>&1\n",
       "openssl req -x509 -newkey rsa:2048 -nodes -days 2 -subj /CN=test-ca "
       "-keyout ca.key -out ca.pem\n",
       "for who in server client; do\n"
@@ -632,7 +647,537 @@ TEST(DicomNodeTest, DocumentedExamplesStartAServer) {
   ASSERT_TRUE(server.up()) << server.Log();
 }
 
-// Segmentations in the PACS loop (issue 13): a series no rule takes is held
+// ---- Issue 22: the DICOM edge -------------------------------------------
+
+namespace raw = interslice::testing;
+
+// A raw association calling as `calling` that proposes CT storage (context
+// 1, explicit VR little endian) and Verification (context 3). The socket
+// after the A-ASSOCIATE-AC, or -1.
+int RawAssociate(int port, const std::string& calling = "STORESCU",
+                 const std::string& source = "127.0.0.1") {
+  const int fd = raw::Connect(port, source);
+  if (fd < 0) return -1;
+  const std::string rq = raw::AssociateRq(
+      "INTERSLICE", calling,
+      {{1, UID_CTImageStorage, {UID_LittleEndianExplicitTransferSyntax}},
+       {3,
+        UID_VerificationSOPClass,
+        {UID_LittleEndianImplicitTransferSyntax}}});
+  std::optional<raw::Pdu> ac;
+  if (raw::SendAll(fd, rq)) ac = raw::ReadPdu(fd, 30);
+  if (!ac.has_value() || ac->type != 0x02) {
+    ::close(fd);
+    return -1;
+  }
+  return fd;
+}
+
+// C-STORE of `dataset` (explicit VR little endian) on context 1, in PDUs of
+// at most 16000 bytes. The response's status, or -1 when the connection was
+// cut instead.
+int RawStore(int fd, const std::string& sop_instance,
+             const std::string& dataset, uint16_t message_id = 1) {
+  std::string bytes =
+      raw::PData(1, true, true,
+                 raw::CStoreRq(message_id, UID_CTImageStorage, sop_instance));
+  for (size_t at = 0; at < dataset.size(); at += 16000) {
+    bytes += raw::PData(1, false, at + 16000 >= dataset.size(),
+                        dataset.substr(at, 16000));
+  }
+  raw::SendAll(fd, bytes);  // may fail half-way: the answer says
+  std::optional<raw::Pdu> response = raw::ReadPdu(fd, 60);
+  if (!response.has_value()) return -1;
+  return raw::ResponseStatus(*response);
+}
+
+CommandResult Echo(const DicomServer& server,
+                   const std::vector<std::string>& options = {}) {
+  return RunCommand(Cat(Cat({kEchoScu, "-to", "10", "-ta", "10"}, options),
+                        {"-aec", "INTERSLICE", "127.0.0.1", server.port()}),
+                    60);
+}
+
+// Finding 1: one C-STORE with 10,000 nested sequences (360 KB) overflowed
+// the stack of DCMTK's parser on the association thread and took the whole
+// server down. It is refused (0xC000) on its own association, which goes
+// on; the server serves others.
+TEST(DicomEdgeTest, HostileNestedInstanceIsRefusedAndTheServerLives) {
+  TempDir dir;
+  DicomServer server(dir, "spool",
+                     {"--dicom-peers", WritePeers(dir), "--rules",
+                      WriteRules(dir, 600, false)});
+  ASSERT_TRUE(server.up()) << server.Log();
+  const int fd = RawAssociate(std::stoi(server.port()));
+  ASSERT_GE(fd, 0) << server.Log();
+  const std::string hostile =
+      raw::NestedDataset("1.2.826.0.1.3680043.2.1125.7", 10000);
+  ASSERT_GT(hostile.size(), 350000u);
+  EXPECT_EQ(RawStore(fd, "1.2.826.0.1.3680043.2.1125.7", hostile), 0xC000)
+      << server.Log();
+  // The same association still stores a real instance.
+  EXPECT_EQ(RawStore(fd, "1.2.826.0.1.3680043.2.1125.8",
+                     raw::DatasetOf(PhantomFiles().front()), 2),
+            0x0000);
+  raw::SendAll(fd, raw::ReleaseRq());
+  raw::ReadPdu(fd, 10);
+  ::close(fd);
+  EXPECT_TRUE(server.running());
+  EXPECT_EQ(Echo(server).exit_code, 0);
+  EXPECT_THAT(server.Log(), HasSubstr("nesting deeper than 32 sequences"));
+  EXPECT_EQ(server.Metric(
+                "interslice_dicom_events_total{event=\"instances_refused\"}"),
+            1);
+  EXPECT_EQ(server.PendingInstances(), 1);
+}
+
+// The command set is parsed on the association thread too: a command with
+// nested sequences is cut at its first element outside group 0000, before
+// DCMTK has it; only its connection ends.
+TEST(DicomEdgeTest, NestedCommandSetCutsOnlyItsConnection) {
+  TempDir dir;
+  DicomServer server(dir, "spool", {"--dicom-peers", WritePeers(dir)});
+  ASSERT_TRUE(server.up()) << server.Log();
+  const int fd = RawAssociate(std::stoi(server.port()));
+  ASSERT_GE(fd, 0) << server.Log();
+  const std::string command = raw::CStoreRq(1, UID_CTImageStorage, "1.2.3") +
+                              raw::NestedDataset("1.2.3", 10000);
+  std::string bytes;
+  for (size_t at = 0; at < command.size(); at += 16000) {
+    bytes += raw::PData(1, true, at + 16000 >= command.size(),
+                        command.substr(at, 16000));
+  }
+  raw::SendAll(fd, bytes);
+  // No response: the connection is closed (perhaps after an A-ABORT).
+  std::optional<raw::Pdu> answer = raw::ReadPdu(fd, 30);
+  EXPECT_TRUE(!answer.has_value() || answer->type == 0x07);
+  ::close(fd);
+  EXPECT_TRUE(server.running());
+  EXPECT_EQ(Echo(server).exit_code, 0) << server.Log();
+  EXPECT_TRUE(
+      WaitUntil([&] { return server.Refused("protocol_violation") >= 1; }, 10))
+      << server.Log();
+  EXPECT_THAT(server.Log(), HasSubstr("outside group 0000"));
+}
+
+// Finding 2: a sender killed after some instances made a job (and results)
+// of what had arrived, complete_on_release or not. Now the series waits
+// incomplete; the sender's retry makes exactly one job, of all 28.
+TEST(DicomEdgeTest, SenderKilledMidSeriesMakesNoJobUntilItIsComplete) {
+  TempDir dir;
+  DicomServer server(
+      dir, "spool",
+      {"--dicom-peers", WritePeers(dir), "--rules", WriteRules(dir, 1, true)});
+  ASSERT_TRUE(server.up()) << server.Log();
+  const std::vector<std::string> files = PhantomFiles();
+  const pid_t sender = StartProcess(
+      Cat({kStoreScu, "-aec", "INTERSLICE", "127.0.0.1", server.port()}, files),
+      dir / "storescu.log");
+  ASSERT_TRUE(WaitUntil([&] { return server.PendingInstances() >= 8; }, 60))
+      << server.Log();
+  kill(sender, SIGKILL);
+  waitpid(sender, nullptr, 0);
+  const int kept = server.PendingInstances();
+  ASSERT_LT(kept, 28) << "the sender finished before it was killed";
+  ASSERT_TRUE(WaitUntil(
+      [&] { return server.Log().find("is incomplete") != std::string::npos; },
+      30))
+      << server.Log();
+  // Well past the stable wait: still no job.
+  std::this_thread::sleep_for(std::chrono::seconds(3));
+  EXPECT_TRUE(server.Jobs().empty()) << server.Log();
+  EXPECT_EQ(server.Metric(
+                "interslice_dicom_events_total{event=\"series_incomplete\"}"),
+            1);
+  // The retry: one job, of the whole series.
+  CommandResult store = StoreScu(server, {}, files);
+  ASSERT_EQ(store.exit_code, 0) << store.err;
+  ASSERT_TRUE(WaitUntil([&] { return !server.Jobs().empty(); }, 60))
+      << server.Log();
+  std::this_thread::sleep_for(std::chrono::seconds(2));
+  EXPECT_EQ(server.Jobs().size(), 1u);
+  EXPECT_THAT(server.Log(), HasSubstr("(28 instance(s))"));
+  EXPECT_THAT(server.Log(), HasSubstr("is complete again"));
+}
+
+// Finding 2, the server's side: killed while an association stores into a
+// series, it finds the series incomplete after the restart.
+TEST(DicomEdgeTest, ServerKilledMidAssociationLeavesTheSeriesIncomplete) {
+  TempDir dir;
+  const std::vector<std::string> flags = {"--dicom-peers", WritePeers(dir),
+                                          "--rules", WriteRules(dir, 1, true)};
+  const std::vector<std::string> files = PhantomFiles();
+  {
+    DicomServer server(dir, "spool", flags);
+    ASSERT_TRUE(server.up()) << server.Log();
+    const pid_t sender = StartProcess(
+        Cat({kStoreScu, "-aec", "INTERSLICE", "127.0.0.1", server.port()},
+            files),
+        dir / "storescu.log");
+    ASSERT_TRUE(WaitUntil([&] { return server.PendingInstances() >= 8; }, 60));
+    server.Kill();
+    waitpid(sender, nullptr, 0);
+  }
+  DicomServer again(dir, "spool", flags);
+  ASSERT_TRUE(again.up()) << again.Log();
+  EXPECT_THAT(again.Log(), HasSubstr("1 of them interrupted mid-association"));
+  std::this_thread::sleep_for(std::chrono::seconds(3));
+  EXPECT_TRUE(again.Jobs().empty()) << again.Log();
+  CommandResult store = StoreScu(again, {}, files);
+  ASSERT_EQ(store.exit_code, 0) << store.err;
+  ASSERT_TRUE(WaitUntil([&] { return !again.Jobs().empty(); }, 60))
+      << again.Log();
+  EXPECT_THAT(again.Log(), HasSubstr("(28 instance(s))"));
+}
+
+// Finding 3: one connection sending its association request a byte at a
+// time held every new association back; here, while one dribbles, others
+// are served at once, and it is cut at the ACSE timeout (3 s), counted.
+TEST(DicomEdgeTest, SlowRequestDoesNotHoldOthersBackAndIsCut) {
+  TempDir dir;
+  DicomServer server(dir, "spool", {"--dicom-peers", WritePeers(dir)});
+  ASSERT_TRUE(server.up()) << server.Log();
+  const int port = std::stoi(server.port());
+  const std::string rq =
+      raw::AssociateRq("INTERSLICE", "ECHOSCU",
+                       {{1,
+                         UID_VerificationSOPClass,
+                         {UID_LittleEndianImplicitTransferSyntax}}});
+  const int slow = raw::Connect(port);
+  ASSERT_GE(slow, 0);
+  std::atomic<bool> cut{false};
+  std::thread dribble([&] {
+    for (size_t i = 0; i < rq.size() && !cut; ++i) {
+      if (!raw::SendAll(slow, rq.substr(i, 1))) cut = true;
+      std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    }
+  });
+  std::this_thread::sleep_for(std::chrono::milliseconds(500));
+  // Served while the slow one dribbles (echoscu gives up after 10 s).
+  for (int i = 0; i < 3; ++i) {
+    CommandResult echo = Echo(server);
+    EXPECT_EQ(echo.exit_code, 0) << echo.err << server.Log();
+  }
+  EXPECT_TRUE(
+      WaitUntil([&] { return server.Refused("request_deadline") >= 1; }, 30))
+      << server.Log();
+  cut = true;
+  dribble.join();
+  ::close(slow);
+  EXPECT_THAT(server.Log(),
+              HasSubstr("the association request was not complete within 3 s"));
+}
+
+// Finding 3: 50 connections that say nothing filled the association limit
+// ("Local Limit Exceeded") for 20 s. They cost no association now: a real
+// sender is served, and every one of them is counted when it is closed.
+TEST(DicomEdgeTest, HalfOpenFloodDoesNotTakeTheAssociations) {
+  TempDir dir;
+  DicomServer server(dir, "spool",
+                     {"--dicom-peers", WritePeers(dir), "--rules",
+                      WriteRules(dir, 600, false)});
+  ASSERT_TRUE(server.up()) << server.Log();
+  const int port = std::stoi(server.port());
+  std::vector<int> flood;
+  for (int i = 0; i < 50; ++i) {
+    const int fd = raw::Connect(port);
+    ASSERT_GE(fd, 0);
+    flood.push_back(fd);
+  }
+  CommandResult echo = Echo(server);
+  EXPECT_EQ(echo.exit_code, 0) << echo.err << server.Log();
+  CommandResult store = StoreScu(server, {}, {PhantomFiles().front()});
+  EXPECT_EQ(store.exit_code, 0) << store.err << server.Log();
+  EXPECT_EQ(server.PendingInstances(), 1);
+  // Each of the 50 made way for a newer connection or reached the deadline.
+  auto counted = [&] {
+    return server.Refused("pending_per_source") +
+           server.Refused("pending_total") + server.Refused("request_deadline");
+  };
+  EXPECT_TRUE(WaitUntil([&] { return counted() >= 50; }, 30))
+      << counted() << "\n"
+      << server.Log();
+  EXPECT_EQ(counted(), 50);
+  for (int fd : flood) ::close(fd);
+}
+
+// Finding 4: --dicom-listen 127.0.0.1:PORT listened on every interface.
+TEST(DicomEdgeTest, ListensOnExactlyTheAddressGiven) {
+  TempDir dir;
+  ServerSetup setup;
+  setup.listen = "127.0.0.2:0";  // loopback, but not 127.0.0.1
+  DicomServer server(dir, "spool", {"--dicom-peers", WritePeers(dir)}, setup);
+  ASSERT_TRUE(server.up()) << server.Log();
+  CommandResult there = RunCommand({kEchoScu, "-to", "10", "-aec", "INTERSLICE",
+                                    "127.0.0.2", server.port()});
+  EXPECT_EQ(there.exit_code, 0) << there.err;
+  CommandResult elsewhere =
+      RunCommand({kEchoScu, "-to", "10", "-aec", "INTERSLICE", "127.0.0.1",
+                  server.port()});
+  EXPECT_NE(elsewhere.exit_code, 0);
+  EXPECT_THAT(server.Log(), HasSubstr("listening on 127.0.0.2 port"));
+}
+
+// Finding 4: a peer was trusted by its AE title alone. allowed_sources in
+// the peers file binds it to addresses.
+TEST(DicomEdgeTest, AllowedSourcesOfAPeerAreEnforced) {
+  TempDir dir;
+  WriteFile(dir / "peers.yaml",
+            "peers:\n"
+            "  - {name: far, ae_title: STORESCU, host: 10.1.1.1,\n"
+            "     allowed_sources: [10.1.0.0/16]}\n"
+            "  - {name: near, ae_title: NEAR, host: 127.0.0.2,\n"
+            "     allowed_sources: [127.0.0.2]}\n"
+            "  - {name: echo, ae_title: ECHOSCU, host: 127.0.0.1}\n");
+  DicomServer server(dir, "spool", {"--dicom-peers", dir / "peers.yaml"});
+  ASSERT_TRUE(server.up()) << server.Log();
+  const int port = std::stoi(server.port());
+  CommandResult wrong_host = Echo(server, {"-aet", "STORESCU"});
+  EXPECT_NE(wrong_host.exit_code, 0);
+  EXPECT_THAT(wrong_host.err, HasSubstr("Calling AE Title Not Recognized"));
+  EXPECT_EQ(Echo(server).exit_code, 0);  // ECHOSCU: from anywhere
+  const int near = RawAssociate(port, "NEAR", "127.0.0.2");
+  EXPECT_GE(near, 0);
+  if (near >= 0) ::close(near);
+  EXPECT_LT(RawAssociate(port, "NEAR", "127.0.0.1"), 0);
+  EXPECT_EQ(server.Refused("calling_address"), 2);
+  EXPECT_THAT(server.Log(), HasSubstr("is not allowed from this address"));
+}
+
+// Finding 4: a taken DICOM port crashed the server at start (exit 139, no
+// message); a crashed predecessor's TIME_WAIT connections did too, so a
+// supervisor crash-looped.
+TEST(DicomEdgeTest, TakenPortIsOneLineAndTimeWaitIsNot) {
+  TempDir dir;
+  const int taken = ::socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in addr{};
+  addr.sin_family = AF_INET;
+  addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  ASSERT_EQ(::bind(taken, reinterpret_cast<sockaddr*>(&addr), sizeof(addr)), 0);
+  ASSERT_EQ(::listen(taken, 4), 0);
+  socklen_t len = sizeof(addr);
+  ::getsockname(taken, reinterpret_cast<sockaddr*>(&addr), &len);
+  const std::string port = std::to_string(ntohs(addr.sin_port));
+  ServerSetup setup;
+  setup.listen = "127.0.0.1:" + port;
+  {
+    DicomServer server(dir, "spool", {"--dicom-peers", WritePeers(dir)}, setup);
+    EXPECT_EQ(server.ExitCode(30), 1) << server.Log();
+    EXPECT_THAT(server.Log(),
+                HasSubstr("cannot listen for DICOM on 127.0.0.1:" + port +
+                          ": the address is in use"));
+  }
+  ::close(taken);
+  // The port is free now. A server on it that closes connections itself
+  // (rejected associations) leaves them in TIME_WAIT on its side; killed
+  // and started again at once, it must come up.
+  {
+    DicomServer first(dir, "spool2", {"--dicom-peers", WritePeers(dir)}, setup);
+    ASSERT_TRUE(first.up()) << first.Log();
+    for (int i = 0; i < 3; ++i) {
+      EXPECT_NE(Echo(first, {"-aet", "STRANGER"}).exit_code, 0);
+    }
+    first.Kill();
+  }
+  DicomServer second(dir, "spool3", {"--dicom-peers", WritePeers(dir)}, setup);
+  ASSERT_TRUE(second.up()) << second.Log();
+  EXPECT_EQ(Echo(second).exit_code, 0);
+}
+
+// Finding 5: ENOSPC while receiving aborted the association instead of
+// answering 0xA700. With the spool on a small tmpfs (and no quota of its
+// own to stop it first), every instance gets its answer: success while
+// there is room, then "out of resources"; nothing half-written is kept.
+TEST(DicomEdgeTest, FullDiskAnswersOutOfResourcesAndKeepsTheAssociation) {
+  if (RunCommand({"/usr/bin/unshare", "-m", "/bin/true"}).exit_code != 0) {
+    GTEST_SKIP() << "no mount namespace here (unshare -m): cannot make a "
+                    "small file system for the spool";
+  }
+  TempDir dir;
+  ServerSetup setup;
+  setup.tmpfs_size = "6m";  // about ten 532 KiB phantom slices
+  DicomServer server(dir, "spool",
+                     {"--dicom-peers", WritePeers(dir), "--rules",
+                      WriteRules(dir, 600, false)},
+                     setup);
+  ASSERT_TRUE(server.up()) << server.Log();
+  CommandResult r = StoreScu(server, {"-v", "-nh"}, PhantomFiles());
+  const std::string out = r.out + r.err;
+  EXPECT_EQ(r.exit_code, 0) << out;
+  EXPECT_THAT(out, ::testing::Not(HasSubstr("Peer aborted Association")));
+  auto count = [&out](const std::string& what) {
+    int n = 0;
+    for (size_t at = out.find(what); at != std::string::npos;
+         at = out.find(what, at + 1)) {
+      ++n;
+    }
+    return n;
+  };
+  const int ok = count("Received Store Response (Success)");
+  const int full = count("Received Store Response (Refused: OutOfResources)");
+  EXPECT_EQ(ok + full, 28) << out;
+  EXPECT_GT(ok, 0);
+  EXPECT_GT(full, 0);
+  EXPECT_EQ(server.PendingInstances(), ok);
+  EXPECT_THAT(server.Log(), HasSubstr("the disk is full"));
+  // The series lost instances: it is incomplete, never a job.
+  EXPECT_THAT(server.Log(), HasSubstr("is incomplete"));
+}
+
+// Finding 5: a job whose output hit a full spool failed INTERNAL with the
+// server's spool path in the client's message.
+TEST(DicomEdgeTest, JobOnAFullSpoolFailsDiskFullWithoutPaths) {
+  if (RunCommand({"/usr/bin/unshare", "-m", "/bin/true"}).exit_code != 0) {
+    GTEST_SKIP() << "no mount namespace here (unshare -m)";
+  }
+  TempDir dir;
+  ServerSetup setup;
+  // The phantom's 28 slices (14.9 MB) fit; the job's uncompressed volume
+  // at factor 8 and its mesh do not.
+  setup.tmpfs_size = "17m";
+  DicomServer server(dir, "spool", {"--isolation", "thread"}, setup);
+  ASSERT_TRUE(server.up()) << server.Log();
+  CommandResult submit = RunCommand(
+      Cat(Cat({kCli, "submit", kPhantom, "--threshold", "300", "--factor", "8",
+               "--method", "linear", "--volume", "nrrd", "--mesh", "stl"},
+              server.Client()),
+          {}),
+      300);
+  ASSERT_EQ(submit.exit_code, 0) << submit.err << server.Log();
+  const std::string id(absl::StripAsciiWhitespace(submit.out));
+  CommandResult watch =
+      RunCommand(Cat({kCli, "watch", id, "--quiet"}, server.Client()), 300);
+  EXPECT_NE(watch.exit_code, 0);
+  const std::string said = watch.out + watch.err;
+  EXPECT_THAT(said, HasSubstr("disk full")) << said << server.Log();
+  EXPECT_THAT(said, ::testing::Not(HasSubstr(server.spool())));
+  // The code the job failed with (the client prints the message only).
+  spool::v1::JobRecord record;
+  std::ifstream in(server.SpoolView() + "/jobs/" + id + "/job.pb",
+                   std::ios::binary);
+  ASSERT_TRUE(record.ParseFromIstream(&in));
+  EXPECT_EQ(record.status().error_code(),
+            8);  // RESOURCE_EXHAUSTED
+}
+
+// Finding 6: a drain ("no new jobs") still made and ran DICOM jobs. A
+// series whose association ends during the drain is kept for after the
+// restart instead.
+TEST(DicomEdgeTest, DrainMakesNoDicomJobs) {
+  TempDir dir;
+  const std::vector<std::string> flags = {"--dicom-peers", WritePeers(dir),
+                                          "--rules", WriteRules(dir, 1, true)};
+  {
+    DicomServer server(dir, "spool", flags);
+    ASSERT_TRUE(server.up()) << server.Log();
+    const pid_t sender = StartProcess(
+        Cat({kStoreScu, "-aec", "INTERSLICE", "127.0.0.1", server.port()},
+            PhantomFiles()),
+        dir / "storescu.log");
+    ASSERT_TRUE(WaitUntil([&] { return server.PendingInstances() >= 3; }, 60));
+    // Drain while the association is open; it may end normally.
+    EXPECT_EQ(server.Terminate(120), 0) << server.Log();
+    EXPECT_EQ(WaitProcess(sender, 60), 0)
+        << ReadFileOrEmpty(dir / "storescu.log");
+    EXPECT_THAT(server.Log(), ::testing::Not(HasSubstr("made by rule")));
+  }
+  DicomServer again(dir, "spool", flags);
+  ASSERT_TRUE(again.up()) << again.Log();
+  ASSERT_TRUE(WaitUntil([&] { return !again.Jobs().empty(); }, 60))
+      << again.Log();
+  EXPECT_THAT(again.Log(), HasSubstr("(28 instance(s))"));
+}
+
+// Finding 6: "grew after its job was made" was logged for a series that
+// never had a job (no rule matched it).
+TEST(DicomEdgeTest, GrowthIsCalledAfterAJobOnlyWhenThereWasOne) {
+  TempDir dir;
+  // Two slices: ct-head wants 20 or more, so no rule takes them.
+  DicomServer server(dir, "spool",
+                     {"--dicom-peers", WritePeers(dir), "--rules",
+                      WriteRules(dir, 0.5, false)});
+  ASSERT_TRUE(server.up()) << server.Log();
+  const std::vector<std::string> files = PhantomFiles();
+  ASSERT_EQ(StoreScu(server, {}, {files[0], files[1]}).exit_code, 0);
+  ASSERT_TRUE(WaitUntil(
+      [&] {
+        return server.Log().find("no rule of rule set") != std::string::npos;
+      },
+      30))
+      << server.Log();
+  ASSERT_EQ(StoreScu(server, {}, {files[2]}).exit_code, 0);
+  ASSERT_TRUE(WaitUntil(
+      [&] {
+        const std::string log = server.Log();
+        return log.find("grew") != std::string::npos ||
+               log.find("received more instances") != std::string::npos;
+      },
+      30))
+      << server.Log();
+  EXPECT_THAT(server.Log(),
+              ::testing::Not(HasSubstr("after its job was made")));
+  EXPECT_THAT(server.Log(), HasSubstr("held without a job"));
+  EXPECT_TRUE(server.Jobs().empty());
+}
+
+// Finding 6: refused C-FIND/C-MOVE/C-GET associations were not counted in
+// associations_rejected.
+TEST(DicomEdgeTest, QueryRetrieveAssociationsAreCountedAsRejected) {
+  TempDir dir;
+  DicomServer server(dir, "spool", {"--dicom-peers", WritePeers(dir)});
+  ASSERT_TRUE(server.up()) << server.Log();
+  const std::vector<std::string> query = {
+      "-S",         "-k",        "QueryRetrieveLevel=STUDY",
+      "-aet",       "STORESCU",  "-aec",
+      "INTERSLICE", "127.0.0.1", server.port()};
+  EXPECT_NE(RunCommand(Cat({"/usr/bin/findscu"}, query)).exit_code, 0);
+  EXPECT_NE(RunCommand(Cat({"/usr/bin/movescu", "-aem", "STORESCU"}, query))
+                .exit_code,
+            0);
+  // getscu proposes storage contexts for its sub-operations besides C-GET:
+  // the association is accepted without the C-GET context, and getscu
+  // gives up by itself; the refused context is counted.
+  EXPECT_NE(RunCommand(Cat({"/usr/bin/getscu"}, query)).exit_code, 0);
+  EXPECT_EQ(server.Metric("interslice_dicom_events_total{event="
+                          "\"associations_rejected\"}"),
+            2);
+  EXPECT_EQ(server.Refused("no_presentation_context"), 2);
+  EXPECT_GE(server.Metric("interslice_dicom_events_total{event="
+                          "\"presentation_contexts_refused\"}"),
+            1);
+  EXPECT_THAT(server.Log(),
+              HasSubstr("C-FIND, C-MOVE and C-GET are not served"));
+}
+
+// Issue 22: with TLS the handshake is DCMTK's, in an association worker;
+// one that starts and stalls is cut at the ACSE timeout like a slow
+// request (the deadline runs from the connection), while others are served.
+TEST(DicomEdgeTest, StalledTlsHandshakeIsCutAtTheDeadline) {
+  TempDir dir;
+  MakeCertificates(dir);
+  DicomServer server(dir, "spool",
+                     {"--dicom-peers", WritePeers(dir), "--dicom-tls-cert",
+                      dir / "server.pem", "--dicom-tls-key", dir / "server.key",
+                      "--dicom-tls-ca", dir / "ca.pem"});
+  ASSERT_TRUE(server.up()) << server.Log();
+  // The first bytes of a TLS record header, then nothing.
+  const int stalled = raw::Connect(std::stoi(server.port()));
+  ASSERT_GE(stalled, 0);
+  ASSERT_TRUE(raw::SendAll(stalled, std::string("\x16\x03\x01", 3)));
+  const std::vector<std::string> tls = {
+      "+tls", dir / "client.key", dir / "client.pem", "+cf", dir / "ca.pem"};
+  CommandResult echo = Echo(server, tls);
+  EXPECT_EQ(echo.exit_code, 0) << echo.err << server.Log();
+  EXPECT_TRUE(
+      WaitUntil([&] { return server.Refused("request_deadline") >= 1; }, 30))
+      << server.Log();
+  // The worker is free again: the socket was shut down under DCMTK.
+  EXPECT_FALSE(raw::ReadPdu(stalled, 5).has_value());
+  ::close(stalled);
+  EXPECT_EQ(Echo(server, tls).exit_code, 0);
+}
+
+// Segmentations in the PACS loop: a series no rule takes is held
 // in the spool; a DICOM SEG drawn on it, sent afterwards (or before it),
 // makes a fill job by the `fill` rule whose artifacts equal
 // `interslice fill` on the same files with the same options.
@@ -689,7 +1234,7 @@ class DicomFillTest : public ::testing::Test {
           jobs = server.Jobs();
           return !jobs.empty();
         },
-        60))
+        120))
         << server.Log();
     ASSERT_EQ(jobs.size(), 1u);
     CommandResult watch = RunCommand(
@@ -700,16 +1245,7 @@ class DicomFillTest : public ::testing::Test {
                        server.Client()),
                    120);
     ASSERT_EQ(fetch.exit_code, 0) << fetch.err;
-    int compared = 0;
-    for (const auto& e : fs::directory_iterator(dir_ / "local")) {
-      const std::string name = e.path().filename().string();
-      ASSERT_TRUE(fs::exists(fs::path(dir_ / "remote") / name)) << name;
-      EXPECT_TRUE(ReadFileOrEmpty(e.path().string()) ==
-                  ReadFileOrEmpty(dir_ / ("remote/" + name)))
-          << name << " differs";
-      ++compared;
-    }
-    EXPECT_GE(compared, 2);  // labels.nrrd, label-1.stl
+    ExpectSameFiles(dir_ / "local", dir_ / "remote", 2);  // labels, label-1.stl
     EXPECT_THAT(server.Log(), HasSubstr("(fill) made by rule fill-seg"));
     EXPECT_THAT(
         ReadFileOrEmpty(server.spool() + "/jobs/" + jobs[0] + "/job.pb"),
@@ -731,12 +1267,12 @@ TEST_F(DicomFillTest, SegAfterItsSeriesMakesTheFillJob) {
   CommandResult store = StoreScu(server, {}, series_);
   ASSERT_EQ(store.exit_code, 0) << store.err;
   // No rule takes the CT series: it is held (unmatched) for the retention.
-  ASSERT_TRUE(WaitUntil([&] { return server.PendingInstances() == 0; }, 30));
+  ASSERT_TRUE(WaitUntil([&] { return server.PendingInstances() == 0; }, 120));
   ASSERT_TRUE(WaitUntil(
       [&] {
         return server.Log().find("no rule of rule set") != std::string::npos;
       },
-      30))
+      120))
       << server.Log();
   EXPECT_TRUE(server.Jobs().empty());
   // -R: propose only the SEG's own SOP class (storescu's default list
@@ -758,7 +1294,7 @@ TEST_F(DicomFillTest, SegBeforeItsSeriesWaitsForIt) {
         return server.Log().find("waits for the series it references") !=
                std::string::npos;
       },
-      30))
+      120))
       << server.Log();
   EXPECT_TRUE(server.Jobs().empty());
   store = StoreScu(server, {}, series_);
@@ -785,7 +1321,7 @@ TEST_F(DicomFillTest, SeriesTakenByAJobRuleIsStillHeldForItsSeg) {
   ASSERT_TRUE(server.up()) << server.Log();
   CommandResult store = StoreScu(server, {}, series_);
   ASSERT_EQ(store.exit_code, 0) << store.err;
-  ASSERT_TRUE(WaitUntil([&] { return server.Jobs().size() == 1; }, 60))
+  ASSERT_TRUE(WaitUntil([&] { return server.Jobs().size() == 1; }, 120))
       << server.Log();
   store = StoreScu(server, {"-R"}, {seg_});
   ASSERT_EQ(store.exit_code, 0) << store.err << server.Log();
@@ -795,7 +1331,7 @@ TEST_F(DicomFillTest, SeriesTakenByAJobRuleIsStillHeldForItsSeg) {
         jobs = server.Jobs();
         return jobs.size() == 2;
       },
-      60))
+      120))
       << server.Log();
   for (const std::string& id : jobs) {
     CommandResult watch =

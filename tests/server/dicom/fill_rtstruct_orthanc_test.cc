@@ -10,19 +10,14 @@
 // The RTSTRUCT is made by the CLI itself (`interslice fill --rtstruct
 // --label-names`) from a label map drawn on the series, so no outside file
 // is needed.
-#include <signal.h>
-#include <sys/wait.h>
-
 #include <algorithm>
 #include <chrono>
 #include <filesystem>
-#include <functional>
 #include <fstream>
 #include <map>
 #include <memory>
 #include <set>
 #include <string>
-#include <thread>
 #include <vector>
 
 #include "absl/strings/str_cat.h"
@@ -31,9 +26,11 @@
 #include "core/volume_io/volume_io.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
-#include "tests/server/dicom/orthanc_fixture.h"
-#include "tests/server/process.h"
+#include "tests/testing/orthanc.h"
+#include "tests/testing/process.h"
+#include "tests/testing/server_process.h"
 #include "tests/testing/temp_dir.h"
+#include "tests/testing/wait_for.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
@@ -48,7 +45,6 @@ using ::testing::ElementsAre;
 using ::testing::HasSubstr;
 
 const std::string kCli = INTERSLICE_CLI_PATH;
-const std::string kServer = INTERSLICE_SERVER_PATH;
 const std::string kStoreScu = "/usr/bin/storescu";  // Debian's dcmtk
 const std::string kSeries = std::string(INTERSLICE_TEST_DATA_DIR) + "/ct-thick";
 // The node's fill: the RTSTRUCT's first and last slice are its key slices;
@@ -56,12 +52,6 @@ const std::string kSeries = std::string(INTERSLICE_TEST_DATA_DIR) + "/ct-thick";
 const std::vector<std::string> kFill = {"--key-slices", "0,3", "--method",
                                         "direct",       "--mesh", "none",
                                         "--volume",     "nrrd"};
-
-std::vector<std::string> Cat(std::vector<std::string> a,
-                             const std::vector<std::string>& b) {
-  a.insert(a.end(), b.begin(), b.end());
-  return a;
-}
 
 std::string Tag(DcmItem& item, const DcmTagKey& tag) {
   OFString value;
@@ -119,39 +109,6 @@ void WriteLabelMap(const std::string& path) {
     }
   }
   ASSERT_TRUE(WriteVolume(labels, path).ok());
-}
-
-// Stops the server however the test ends (SIGTERM; SIGKILL if it hangs).
-class ServerGuard {
- public:
-  explicit ServerGuard(pid_t pid) : pid_(pid) {}
-  ~ServerGuard() { Stop(); }
-  // The exit code (0 for a clean drain), -1 if it had to be killed.
-  int Stop() {
-    if (pid_ <= 0) return exit_code_;
-    kill(pid_, SIGTERM);
-    exit_code_ = WaitProcess(pid_, 60);
-    if (exit_code_ == -1) {
-      kill(pid_, SIGKILL);
-      waitpid(pid_, nullptr, 0);
-    }
-    pid_ = -1;
-    return exit_code_;
-  }
-
- private:
-  pid_t pid_;
-  int exit_code_ = -1;
-};
-
-bool WaitUntil(const std::function<bool()>& done, double seconds) {
-  const auto end = std::chrono::steady_clock::now() +
-                   std::chrono::milliseconds(static_cast<int>(seconds * 1000));
-  while (std::chrono::steady_clock::now() < end) {
-    if (done()) return true;
-    std::this_thread::sleep_for(std::chrono::milliseconds(200));
-  }
-  return done();
 }
 
 TEST(FillRtStructOrthancTest, RtStructAfterItsSeriesIsFilledAndStoredInOrthanc) {
@@ -218,29 +175,15 @@ TEST(FillRtStructOrthancTest, RtStructAfterItsSeriesIsFilledAndStoredInOrthanc) 
                           "    fill: {key_slices: [0, 3], method: direct, "
                           "mesh: none, volume: [nrrd]}\n"
                           "    send_to: [orthanc]\n";
-  const std::string spool = (root / "spool").string();
-  const std::string log = (root / "server.log").string();
-  const std::string port_file = spool + ".port";
-  const pid_t server = StartProcess(
-      {kServer, "--listen", "127.0.0.1:0", "--spool", spool, "--port-file",
-       port_file, "--workers", "1", "--threads-per-job", "1", "--drain-grace",
-       "0", "--dicom-listen", absl::StrCat("127.0.0.1:", node_port),
-       "--dicom-ae", "INTERSLICE", "--dicom-peers", peers, "--rules", rules,
-       "--delivery-retry", "0.2", "--delivery-retry-max", "1"},
-      log);
-  ServerGuard guard(server);
-  int grpc_port = 0;
-  ASSERT_TRUE(WaitUntil(
-      [&] {
-        std::ifstream in(port_file);
-        return static_cast<bool>(in >> grpc_port) ||
-               WaitProcess(server, 0) != -1;
-      },
-      30))
-      << ReadFileOrEmpty(log);
-  ASSERT_GT(grpc_port, 0) << ReadFileOrEmpty(log);
-  const std::vector<std::string> client = {
-      "--server", absl::StrCat("127.0.0.1:", grpc_port)};
+  ServerProcess server(ServerOptions{
+      .spool = (root / "spool").string(),
+      .log = (root / "server.log").string(),
+      .extra = {"--dicom-listen", absl::StrCat("127.0.0.1:", node_port),
+                "--dicom-ae", "INTERSLICE", "--dicom-peers", peers, "--rules",
+                rules, "--delivery-retry", "0.2", "--delivery-retry-max", "1"},
+      .threads_per_job = 1});
+  ASSERT_TRUE(server.Start());
+  const std::vector<std::string> client = server.ServerFlag();
   const auto store = [&](const std::vector<std::string>& options,
                          const std::vector<std::string>& files) {
     return RunCommand(Cat(Cat(Cat({kStoreScu}, options),
@@ -257,34 +200,34 @@ TEST(FillRtStructOrthancTest, RtStructAfterItsSeriesIsFilledAndStoredInOrthanc) 
     series_files.push_back(e.path().string());
   }
   CommandResult stored = store({}, series_files);
-  ASSERT_EQ(stored.exit_code, 0) << stored.err << ReadFileOrEmpty(log);
-  ASSERT_TRUE(WaitUntil(
+  ASSERT_EQ(stored.exit_code, 0) << stored.err << server.Log();
+  ASSERT_TRUE(WaitFor(
       [&] {
-        return ReadFileOrEmpty(log).find("no rule of rule set") !=
+        return server.Log().find("no rule of rule set") !=
                std::string::npos;
       },
-      60))
-      << ReadFileOrEmpty(log);
+      std::chrono::seconds(60)))
+      << server.Log();
   // Then the RTSTRUCT (-R: only its own SOP class is proposed).
   stored = store({"-R"}, {rtstruct});
-  ASSERT_EQ(stored.exit_code, 0) << stored.err << ReadFileOrEmpty(log);
+  ASSERT_EQ(stored.exit_code, 0) << stored.err << server.Log();
 
   // The fill job, its results delivered to Orthanc.
   std::string job;
-  ASSERT_TRUE(WaitUntil(
+  ASSERT_TRUE(WaitFor(
       [&] {
         const CommandResult list =
             RunCommand(Cat({kCli, "list", "--all"}, client), 60);
-        job = list.out.substr(0, list.out.find(' '));
+        job = list.out.substr(0, list.out.find_first_of(" \n"));
         return list.exit_code == 0 && !job.empty();
       },
-      120))
-      << ReadFileOrEmpty(log);
+      std::chrono::seconds(120)))
+      << server.Log();
   const CommandResult watch = RunCommand(
       Cat({kCli, "watch", job, "--quiet", "--wait-deliveries"}, client), 300);
-  ASSERT_EQ(watch.exit_code, 0) << watch.err << ReadFileOrEmpty(log);
+  ASSERT_EQ(watch.exit_code, 0) << watch.err << server.Log();
   EXPECT_THAT(watch.out, HasSubstr("to orthanc: delivered, 2 of 2"));
-  EXPECT_THAT(ReadFileOrEmpty(log), HasSubstr("(fill) made by rule fill-rt"));
+  EXPECT_THAT(server.Log(), HasSubstr("(fill) made by rule fill-rt"));
 
   // In Orthanc: one study, the source's, now with the CT, the SEG and the
   // filled RTSTRUCT (the input RTSTRUCT went to the node, not the PACS).
@@ -362,7 +305,7 @@ TEST(FillRtStructOrthancTest, RtStructAfterItsSeriesIsFilledAndStoredInOrthanc) 
   EXPECT_EQ(node_seg->segments[0].label, "Bone");
   EXPECT_EQ(node_seg->segments[1].label, "Soft tissue");
 
-  EXPECT_EQ(guard.Stop(), 0) << ReadFileOrEmpty(log);
+  EXPECT_EQ(server.Stop(), 0) << server.Log();
 }
 
 }  // namespace

@@ -13,8 +13,10 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <iterator>
 #include <map>
 #include <memory>
 #include <set>
@@ -26,9 +28,11 @@
 #include "absl/strings/str_cat.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
-#include "tests/server/dicom/orthanc_fixture.h"
-#include "tests/server/process.h"
+#include "tests/testing/orthanc.h"
+#include "tests/testing/process.h"
+#include "tests/testing/server_process.h"
 #include "tests/testing/temp_dir.h"
+#include "tests/testing/wait_for.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
@@ -42,7 +46,6 @@ namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 
 const std::string kCli = INTERSLICE_CLI_PATH;
-const std::string kServer = INTERSLICE_SERVER_PATH;
 const fs::path kPhantom =
     fs::path(INTERSLICE_SOURCE_DIR) / "data" / "ct-head-phantom-thick";
 // The job: bone of the phantom, one slice inserted per gap (factor 2 keeps
@@ -59,13 +62,9 @@ const std::vector<std::string> kJob = {"--threshold",
                                        "--mesh",
                                        "stl",
                                        "--volume",
-                                       "none"};
-
-std::vector<std::string> Cat(std::vector<std::string> a,
-                             const std::vector<std::string>& b) {
-  a.insert(a.end(), b.begin(), b.end());
-  return a;
-}
+                                       "none",
+                                       "--previews",
+                                       "png,dicom"};
 
 CommandResult Cli(const std::vector<std::string>& args, double timeout = 300) {
   return RunCommand(Cat({kCli}, args), timeout);
@@ -124,51 +123,6 @@ std::map<std::string, std::string> LocalPayloads(const std::string& dir) {
   return out;
 }
 
-class Server {
- public:
-  Server(std::string spool, std::string log, std::vector<std::string> extra)
-      : spool_(std::move(spool)),
-        log_(std::move(log)),
-        extra_(std::move(extra)) {
-    Start();
-  }
-  ~Server() { Stop(); }
-  void Start() {
-    const std::string port_file = spool_ + ".port";
-    std::error_code ec;
-    fs::remove(port_file, ec);
-    pid_ = StartProcess(
-        Cat({kServer, "--listen", "127.0.0.1:0", "--spool", spool_,
-             "--port-file", port_file, "--workers", "1", "--threads-per-job",
-             "2", "--drain-grace", "0", "--isolation", "thread"},
-            extra_),
-        log_);
-    for (int i = 0;
-         i < 1500 && !fs::exists(port_file) && WaitProcess(pid_, 0) == -1;
-         ++i) {
-      std::this_thread::sleep_for(std::chrono::milliseconds(20));
-    }
-    std::ifstream in(port_file);
-    int port = 0;
-    in >> port;
-    address_ = absl::StrCat("127.0.0.1:", port);
-  }
-  void Stop() {
-    if (pid_ <= 0) return;
-    kill(pid_, SIGTERM);
-    EXPECT_EQ(WaitProcess(pid_, 60), 0) << Log();
-    pid_ = -1;
-  }
-  std::vector<std::string> Flag() const { return {"--server", address_}; }
-  std::string Log() const { return ReadFileOrEmpty(log_); }
-
- private:
-  std::string spool_, log_;
-  std::vector<std::string> extra_;
-  pid_t pid_ = -1;
-  std::string address_;
-};
-
 class OrthancEndToEndTest : public ::testing::Test {
  protected:
   void SetUp() override {
@@ -187,12 +141,19 @@ class OrthancEndToEndTest : public ::testing::Test {
     series_ = Tag(*source->getDataset(), DCM_SeriesInstanceUID);
     frame_ = Tag(*source->getDataset(), DCM_FrameOfReferenceUID);
   }
-  std::unique_ptr<Server> StartServer(std::vector<std::string> extra = {}) {
-    return std::make_unique<Server>(
-        (dir_.path() / "spool").string(), (dir_.path() / "server.log").string(),
-        Cat({"--dicom-peers", peers_, "--delivery-retry", "0.2",
-             "--delivery-retry-max", "1"},
-            extra));
+  // The server, with Orthanc as its peer; jobs run on threads of the
+  // server process (--isolation thread). Started: the caller ASSERTs
+  // running().
+  std::unique_ptr<ServerProcess> StartServer(
+      std::vector<std::string> extra = {}) {
+    auto server = std::make_unique<ServerProcess>(ServerOptions{
+        .spool = dir_ / "spool",
+        .log = dir_ / "server.log",
+        .extra = Cat({"--dicom-peers", peers_, "--delivery-retry", "0.2",
+                      "--delivery-retry-max", "1", "--isolation", "thread"},
+                     extra)});
+    EXPECT_TRUE(server->Start());
+    return server;
   }
   // Orthanc's instances of the study: SOP Instance UID -> Orthanc id.
   std::map<std::string, std::string> OrthancInstances() {
@@ -206,9 +167,10 @@ class OrthancEndToEndTest : public ::testing::Test {
     }
     return out;
   }
-  std::string Submit(Server& server, const std::vector<std::string>& extra) {
+  std::string Submit(ServerProcess& server,
+                     const std::vector<std::string>& extra) {
     const CommandResult r =
-        Cli(Cat(Cat({"submit"}, kJob), Cat(extra, server.Flag())));
+        Cli(Cat(Cat({"submit"}, kJob), Cat(extra, server.ServerFlag())));
     EXPECT_EQ(r.exit_code, 0) << r.err << server.Log();
     std::string id = r.out;
     while (!id.empty() && (id.back() == '\n' || id.back() == '\r')) {
@@ -232,11 +194,12 @@ class OrthancEndToEndTest : public ::testing::Test {
 
 TEST_F(OrthancEndToEndTest, ResultsLandInTheStudyAndEqualALocalRun) {
   auto server = StartServer();
+  ASSERT_TRUE(server->running());
   const auto t0 = std::chrono::steady_clock::now();
   const std::string job =
       Submit(*server, {kPhantom.string(), "--send-to", "orthanc"});
   const CommandResult watch =
-      Cli(Cat({"watch", job, "--wait-deliveries"}, server->Flag()));
+      Cli(Cat({"watch", job, "--wait-deliveries"}, server->ServerFlag()));
   const double seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0)
           .count();
@@ -253,7 +216,8 @@ TEST_F(OrthancEndToEndTest, ResultsLandInTheStudyAndEqualALocalRun) {
     }
   }
 
-  // One study (the source's), three series: intensity, SEG, STL.
+  // One study (the source's), four series: intensity, SEG, STL and the
+  // previews (Secondary Capture, modality OT, one image per view).
   auto studies = orthanc_->GetJson("/studies?expand");
   ASSERT_TRUE(studies.ok()) << studies.status();
   ASSERT_EQ(studies->size(), 1u);
@@ -266,9 +230,10 @@ TEST_F(OrthancEndToEndTest, ResultsLandInTheStudyAndEqualALocalRun) {
     by_modality[s["MainDicomTags"]["Modality"].get<std::string>()] =
         s["Instances"].size();
   }
-  EXPECT_EQ(by_modality.size(), 3u);
+  EXPECT_EQ(by_modality.size(), 4u);
   EXPECT_EQ(by_modality["SEG"], 1u);
   EXPECT_EQ(by_modality["M3D"], 1u);
+  EXPECT_EQ(by_modality["OT"], 4u);
   EXPECT_GT(by_modality["CT"], 28u);  // more slices than the source
 
   // Every instance equals the local run's instance of the same UID.
@@ -282,7 +247,15 @@ TEST_F(OrthancEndToEndTest, ResultsLandInTheStudyAndEqualALocalRun) {
     auto file = LoadBytes(*bytes);
     DcmDataset& ds = *file->getDataset();
     EXPECT_EQ(Tag(ds, DCM_StudyInstanceUID), study_);
-    EXPECT_EQ(Tag(ds, DCM_FrameOfReferenceUID), frame_);
+    // A preview is a picture, not in patient coordinates: no frame of
+    // reference; it is RGB with its legend burned in.
+    if (Tag(ds, DCM_Modality) == "OT") {
+      EXPECT_EQ(Tag(ds, DCM_FrameOfReferenceUID), "");
+      EXPECT_EQ(Tag(ds, DCM_PhotometricInterpretation), "RGB");
+      EXPECT_EQ(Tag(ds, DCM_BurnedInAnnotation), "YES");
+    } else {
+      EXPECT_EQ(Tag(ds, DCM_FrameOfReferenceUID), frame_);
+    }
     const std::string payload = Payload(ds);
     EXPECT_FALSE(payload.empty()) << uid;
     EXPECT_TRUE(payload == local.at(uid)) << "payload differs: " << uid;
@@ -295,17 +268,18 @@ TEST_F(OrthancEndToEndTest, ResultsLandInTheStudyAndEqualALocalRun) {
   const std::string again =
       Submit(*server, {kPhantom.string(), "--send-to", "orthanc"});
   const CommandResult watch2 =
-      Cli(Cat({"watch", again, "--wait-deliveries"}, server->Flag()));
+      Cli(Cat({"watch", again, "--wait-deliveries"}, server->ServerFlag()));
   ASSERT_EQ(watch2.exit_code, 0) << watch2.err;
   EXPECT_EQ(OrthancInstances().size(), remote.size());
 }
 
 TEST_F(OrthancEndToEndTest, UnknownPeerIsRefusedAtAdmission) {
   auto server = StartServer();
+  ASSERT_TRUE(server->running());
   const CommandResult r =
       Cli(Cat(Cat({"submit"}, kJob),
               Cat({kPhantom.string(), "--send-to", "orthanc,nowhere"},
-                  server->Flag())));
+                  server->ServerFlag())));
   EXPECT_NE(r.exit_code, 0);
   EXPECT_THAT(r.err, HasSubstr("nowhere"));
 }
@@ -314,21 +288,24 @@ TEST_F(OrthancEndToEndTest, DownPeerGetsResultsAfterItComesBackAndARestart) {
   orthanc_->Stop();
   // Results are kept for 1 s only, except while a delivery is pending.
   auto server = StartServer({"--retention", "1"});
+  ASSERT_TRUE(server->running());
   const std::string job =
       Submit(*server, {kPhantom.string(), "--send-to", "orthanc"});
   // The job succeeds; its delivery waits.
-  const CommandResult watch = Cli(Cat({"watch", job}, server->Flag()));
+  const CommandResult watch = Cli(Cat({"watch", job}, server->ServerFlag()));
   ASSERT_EQ(watch.exit_code, 0) << watch.err << server->Log();
   EXPECT_THAT(watch.out, HasSubstr("to orthanc: pending"));
   // Let it fail a few times, past the retention time and the ticker's
   // expiry sweep (every 10 s), then stop the server with it still pending.
+  // A sleep on purpose: what is checked is that the job does NOT expire
+  // while its delivery is pending, for longer than one sweep.
   std::this_thread::sleep_for(std::chrono::seconds(11));
-  server->Stop();
+  EXPECT_EQ(server->Stop(), 0) << server->Log();
   EXPECT_THAT(server->Log(), HasSubstr("delivery to peer orthanc failed"));
   ASSERT_TRUE(orthanc_->Restart().ok());
-  server->Start();
+  ASSERT_TRUE(server->Start());
   const CommandResult done =
-      Cli(Cat({"watch", job, "--wait-deliveries"}, server->Flag()));
+      Cli(Cat({"watch", job, "--wait-deliveries"}, server->ServerFlag()));
   ASSERT_EQ(done.exit_code, 0) << done.err << server->Log();
   EXPECT_THAT(done.out, HasSubstr("to orthanc: delivered"));
   EXPECT_GT(OrthancInstances().size(), 30u);
@@ -339,15 +316,17 @@ TEST_F(OrthancEndToEndTest, PullFromOrthancEqualsUploadedFiles) {
   ASSERT_TRUE(uploaded.ok()) << uploaded.status();
   ASSERT_EQ(*uploaded, 28);
   auto server = StartServer();
+  ASSERT_TRUE(server->running());
   const std::string pulled = Submit(
       *server, {"--pacs", "orthanc", "--study", study_, "--series", series_});
   const std::string sent = Submit(*server, {kPhantom.string()});
   for (const std::string& job : {pulled, sent}) {
-    const CommandResult w = Cli(Cat({"watch", job, "--quiet"}, server->Flag()));
+    const CommandResult w =
+        Cli(Cat({"watch", job, "--quiet"}, server->ServerFlag()));
     ASSERT_EQ(w.exit_code, 0) << w.err << server->Log();
     const CommandResult f = Cli(
         Cat({"fetch", job, "--out", (dir_.path() / job).string(), "--quiet"},
-            server->Flag()));
+            server->ServerFlag()));
     ASSERT_EQ(f.exit_code, 0) << f.err;
   }
   // Same source instances and job: same mesh bytes, same derived UIDs and
@@ -366,7 +345,7 @@ TEST_F(OrthancEndToEndTest, PullFromOrthancEqualsUploadedFiles) {
       Cli(Cat(Cat({"interpolate"}, kJob),
               Cat({"--pacs", "orthanc", "--study", study_, "--series", series_,
                    "--out", one_call, "--quiet"},
-                  server->Flag())));
+                  server->ServerFlag())));
   ASSERT_EQ(i.exit_code, 0) << i.err << server->Log();
   EXPECT_TRUE(ReadFileOrEmpty(one_call + "/surface.stl") ==
               ReadFileOrEmpty((dir_.path() / sent / "surface.stl").string()));
@@ -374,7 +353,7 @@ TEST_F(OrthancEndToEndTest, PullFromOrthancEqualsUploadedFiles) {
   // A series the peer does not have fails the job, naming the peer.
   const std::string missing = Submit(
       *server, {"--pacs", "orthanc", "--study", study_, "--series", "1.2.3"});
-  const CommandResult w = Cli(Cat({"watch", missing}, server->Flag()));
+  const CommandResult w = Cli(Cat({"watch", missing}, server->ServerFlag()));
   EXPECT_NE(w.exit_code, 0);
   EXPECT_THAT(w.err, HasSubstr("orthanc"));
 }
@@ -391,11 +370,13 @@ TEST_F(OrthancEndToEndTest, SeriesFromOrthancComesBackProcessed) {
          "  - name: ct-bone\n"
          "    match: {modality: CT, called_ae: INTERSLICE}\n"
          "    job: {threshold: 300, method: direct, factor: 2, output_series: "
-         "[intensity], seg: true, mesh: [stl], volume: none}\n"
+         "[intensity], seg: true, mesh: [stl], volume: none, previews: "
+         "[dicom]}\n"
          "    send_to: [orthanc]\n";
   auto server =
       StartServer({"--dicom-listen", absl::StrCat("127.0.0.1:", dicom_port_),
                    "--dicom-ae", "INTERSLICE", "--rules", rules});
+  ASSERT_TRUE(server->running());
   auto studies = orthanc_->GetJson("/studies");
   ASSERT_TRUE(studies.ok() && studies->size() == 1u);
   const std::string study_id = (*studies)[0];
@@ -405,21 +386,30 @@ TEST_F(OrthancEndToEndTest, SeriesFromOrthancComesBackProcessed) {
   const double store_seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0)
           .count();
-  // Source + intensity + SEG + STL.
-  size_t series_count = 0;
-  for (int i = 0; i < 600 && series_count < 4; ++i) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(200));
-    auto s = orthanc_->GetJson("/studies/" + study_id + "/series");
-    if (s.ok()) series_count = s->size();
-  }
+  // The rule's job is listed once the series is complete (stable for 1 s);
+  // its deliveries end when Orthanc has accepted every result, so the counts
+  // below are final, not a snapshot.
+  std::string job;
+  ASSERT_TRUE(WaitFor(
+      [&] {
+        const CommandResult list =
+            Cli(Cat({"list", "--all"}, server->ServerFlag()));
+        job = list.out.substr(0, list.out.find_first_of(" \n"));
+        return !job.empty();
+      },
+      std::chrono::seconds(120)))
+      << server->Log();
+  const CommandResult watch =
+      Cli(Cat({"watch", job, "--wait-deliveries"}, server->ServerFlag()), 600);
+  ASSERT_EQ(watch.exit_code, 0) << watch.err << server->Log();
+  EXPECT_THAT(watch.out, HasSubstr("to orthanc: delivered"));
   const double total =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0)
           .count();
-  ASSERT_EQ(series_count, 4u) << server->Log();
-  // Let the last series' instances arrive, then count them.
-  std::this_thread::sleep_for(std::chrono::seconds(2));
   auto series = orthanc_->GetJson("/studies/" + study_id + "/series?expand");
   ASSERT_TRUE(series.ok());
+  // Source + intensity + SEG + STL + previews.
+  EXPECT_EQ(series->size(), 5u) << series->dump();
   std::map<std::string, size_t> by_description;
   for (const auto& one : *series) {
     by_description[one["MainDicomTags"].value("SeriesDescription", "")] =
@@ -428,10 +418,88 @@ TEST_F(OrthancEndToEndTest, SeriesFromOrthancComesBackProcessed) {
   EXPECT_EQ(by_description["interslice segmentation"], 1u);
   EXPECT_EQ(by_description["interslice surface mesh (STL)"], 1u);
   EXPECT_EQ(by_description["interslice resampled intensity"], 55u);
+  EXPECT_EQ(by_description["interslice previews"], 4u);
   std::printf(
       "Orthanc -> interslice (C-STORE of 28 instances): %.2f s; to the "
       "results in Orthanc: %.2f s (stable_seconds 1)\n",
       store_seconds, total);
+}
+
+// Issue 22, finding 2, with a real sender: Orthanc killed (SIGKILL) while it
+// sends a series to the node must not make a job, nor results in its own
+// study; after its restart, the series sent again whole makes one job, and
+// the study holds one derived series.
+TEST_F(OrthancEndToEndTest,
+       OrthancKilledMidSendMakesNoResultUntilTheSeriesIsWhole) {
+  absl::StatusOr<int> uploaded = orthanc_->UploadFolder(kPhantom.string());
+  ASSERT_TRUE(uploaded.ok()) << uploaded.status();
+  const std::string rules = (dir_.path() / "rules.yaml").string();
+  std::ofstream(rules)
+      << "stable_seconds: 1\n"
+         "rules:\n"
+         "  - name: ct\n"
+         "    match: {modality: CT}\n"
+         "    complete_on_release: true\n"
+         "    job: {threshold: 300, roi: [208, 208, 0, 304, 304, 28], "
+         "output_series: [intensity], mesh: none, volume: none}\n"
+         "    send_to: [orthanc]\n";
+  auto server =
+      StartServer({"--dicom-listen", absl::StrCat("127.0.0.1:", dicom_port_),
+                   "--dicom-ae", "INTERSLICE", "--rules", rules});
+  auto studies = orthanc_->GetJson("/studies");
+  ASSERT_TRUE(studies.ok() && studies->size() == 1u);
+  const std::string study_id = (*studies)[0];
+  const pid_t orthanc_pid = orthanc_->pid();
+  ASSERT_GT(orthanc_pid, 0);
+  auto received = [&] {
+    int n = 0;
+    std::error_code ec;
+    for (const auto& f : fs::recursive_directory_iterator(
+             dir_.path() / "spool" / "dicom-in" / "series", ec)) {
+      if (f.path().extension() == ".dcm") ++n;
+    }
+    return n;
+  };
+  auto job = orthanc_->PostJson("/modalities/interslice/store",
+                                absl::StrCat(R"({"Resources": [")", study_id,
+                                             R"("], "Asynchronous": true})"));
+  ASSERT_TRUE(job.ok()) << job.status() << orthanc_->log();
+  int at_kill = 0;
+  for (int i = 0; i < 3000 && (at_kill = received()) < 6; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  }
+  ::kill(orthanc_pid, SIGKILL);
+  ASSERT_GE(at_kill, 6) << server->Log();
+  ASSERT_LT(at_kill, 28) << "Orthanc finished before it was killed";
+  WaitFor([&] { return server->Log().find("is incomplete") != std::string::npos; },
+          std::chrono::seconds(30));
+  EXPECT_THAT(server->Log(), ::testing::HasSubstr("is incomplete"));
+  std::this_thread::sleep_for(std::chrono::seconds(3));
+  EXPECT_THAT(server->Log(),
+              ::testing::Not(::testing::HasSubstr("made by rule")));
+
+  ASSERT_TRUE(orthanc_->Restart().ok()) << orthanc_->log();
+  auto again = orthanc_->PostJson("/modalities/interslice/store", study_id);
+  ASSERT_TRUE(again.ok()) << again.status() << orthanc_->log();
+  size_t series_count = 0;
+  for (int i = 0; i < 600 && series_count < 2; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(200));
+    auto s = orthanc_->GetJson("/studies/" + study_id + "/series");
+    if (s.ok()) series_count = s->size();
+  }
+  // Let anything else arrive, then count: the source and one derived series.
+  std::this_thread::sleep_for(std::chrono::seconds(3));
+  auto series = orthanc_->GetJson("/studies/" + study_id + "/series");
+  ASSERT_TRUE(series.ok());
+  EXPECT_EQ(series->size(), 2u) << server->Log();
+  const std::string log = server->Log();
+  size_t jobs = 0;
+  for (size_t at = log.find("made by rule"); at != std::string::npos;
+       at = log.find("made by rule", at + 1)) {
+    ++jobs;
+  }
+  EXPECT_EQ(jobs, 1u) << log;
+  EXPECT_THAT(log, ::testing::HasSubstr("(28 instance(s))"));
 }
 
 }  // namespace

@@ -7,8 +7,12 @@
 #include <filesystem>
 #include <fstream>
 
+#include "dcmtk/config/osconfig.h"
+#include "dcmtk/dcmdata/dcdeftag.h"
+#include "dcmtk/dcmdata/dcfilefo.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "tests/server/dicom/raw_pdu.h"
 
 namespace interslice::server::dicom {
 namespace {
@@ -39,6 +43,10 @@ class AssemblerTest : public ::testing::Test {
   }
   void TearDown() override { fs::remove_all(root_); }
 
+  // The sleeps of 100 ms in these tests let a series' stable time (0.05 s
+  // with Rules(..., 0.05)) pass on the clock before the test itself calls
+  // CompleteStableSeries: nothing runs concurrently, so they are not
+  // synchronisation, and sleep_for never returns early.
   RuleSet Rules(const std::string& modality, double stable_seconds,
                 bool complete_on_release = false) {
     RuleSet set;
@@ -76,14 +84,51 @@ class AssemblerTest : public ::testing::Test {
     return a.ok() ? *std::move(a) : nullptr;
   }
 
-  // Stages a copy of phantom file `i` and adds it.
-  absl::StatusOr<std::string> Add(SeriesAssembler& a, size_t i) {
+  // Stages a copy of `file` and adds it within `association`.
+  absl::StatusOr<std::string> AddFile(SeriesAssembler& a, uint64_t association,
+                                      const std::string& file) {
     const std::string staged = a.StagingPath();
-    fs::copy_file(files_[i], staged);
-    absl::StatusOr<std::string> key =
-        a.AddInstance("PACS", "INTERSLICE", staged);
+    fs::copy_file(file, staged);
+    absl::StatusOr<std::string> key = a.AddInstance(association, staged);
     EXPECT_FALSE(fs::exists(staged));  // taken or deleted, never left behind
     return key;
+  }
+  absl::StatusOr<std::string> Add(SeriesAssembler& a, uint64_t association,
+                                  size_t i) {
+    return AddFile(a, association, files_[i].string());
+  }
+  // Phantom files [first, last) in one association released normally.
+  std::string Send(SeriesAssembler& a, size_t first, size_t last) {
+    const uint64_t id = a.BeginAssociation("PACS", "INTERSLICE");
+    std::string key;
+    for (size_t i = first; i < last; ++i) {
+      absl::StatusOr<std::string> k = Add(a, id, i);
+      EXPECT_TRUE(k.ok()) << k.status();
+      if (k.ok()) key = *k;
+    }
+    a.EndAssociation(id, /*released=*/true);
+    return key;
+  }
+  // A copy of phantom file `i` as another instance of its series (a new SOP
+  // Instance UID), as a modality adding an image later would send it.
+  std::string ExtraInstance(size_t i, const std::string& uid) {
+    DcmFileFormat ff;
+    EXPECT_TRUE(ff.loadFile(files_[i].c_str()).good());
+    ff.getDataset()->putAndInsertString(DCM_SOPInstanceUID, uid.c_str());
+    // saveFile brings the meta group's copy of the UID up to date.
+    const std::string path =
+        (fs::temp_directory_path() /
+         ("interslice-extra-" + std::to_string(::getpid()) + ".dcm"))
+            .string();
+    EXPECT_TRUE(ff.saveFile(path.c_str()).good());
+    return path;
+  }
+  int IncompleteSeries() const {
+    int n = 0;
+    for (const auto& e : fs::directory_iterator(root_ / "series")) {
+      if (fs::exists(e.path() / "incomplete.json")) ++n;
+    }
+    return n;
   }
 
   fs::path root_;
@@ -95,9 +140,10 @@ class AssemblerTest : public ::testing::Test {
 TEST_F(AssemblerTest, StableSeriesBecomesTheRulesJob) {
   auto a = Open(Rules("CT", 0.05));
   ASSERT_NE(a, nullptr);
+  const uint64_t id = a->BeginAssociation("PACS", "INTERSLICE");
   std::string key;
   for (size_t i = 0; i < files_.size(); ++i) {
-    absl::StatusOr<std::string> k = Add(*a, i);
+    absl::StatusOr<std::string> k = Add(*a, id, i);
     ASSERT_TRUE(k.ok()) << k.status();
     if (i > 0) EXPECT_EQ(*k, key);  // one series
     key = *k;
@@ -105,6 +151,9 @@ TEST_F(AssemblerTest, StableSeriesBecomesTheRulesJob) {
   // Keys are hashes: no UID in paths.
   EXPECT_EQ(key.size(), 32u);
   std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  // Not while its association is open, however long it has been quiet.
+  EXPECT_EQ(a->CompleteStableSeries(), 0);
+  a->EndAssociation(id, /*released=*/true);
   EXPECT_EQ(a->CompleteStableSeries(), 1);
   ASSERT_EQ(submitted_.size(), 1u);
   EXPECT_EQ(submitted_[0].files, 28);
@@ -113,41 +162,171 @@ TEST_F(AssemblerTest, StableSeriesBecomesTheRulesJob) {
   EXPECT_EQ(a->pending_series(), 0);
   EXPECT_TRUE(fs::is_empty(root_ / "series"));
   EXPECT_TRUE(fs::is_empty(root_ / "completing"));
-  // The series grows after its job was made: a new series, a new job.
-  ASSERT_TRUE(Add(*a, 0).ok());
+}
+
+// Issue 22: instances that arrive after the job was made never make a job
+// of their own; the next job is made on the whole series.
+TEST_F(AssemblerTest, SeriesThatGrowsAfterItsJobMakesAJobOnAllOfIt) {
+  auto a = Open(Rules("CT", 0.05));
+  Send(*a, 0, files_.size());
   std::this_thread::sleep_for(std::chrono::milliseconds(100));
-  EXPECT_EQ(a->CompleteStableSeries(), 1);
+  ASSERT_EQ(a->CompleteStableSeries(), 1);
+  ASSERT_EQ(submitted_.size(), 1u);
+  // One more image of the series, sent later on its own.
+  const std::string extra = ExtraInstance(0, "1.2.826.0.1.3680043.2.1125.99.1");
+  const uint64_t id = a->BeginAssociation("PACS", "INTERSLICE");
+  ASSERT_TRUE(AddFile(*a, id, extra).ok());
+  a->EndAssociation(id, true);
+  fs::remove(extra);
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  ASSERT_EQ(a->CompleteStableSeries(), 1);
   ASSERT_EQ(submitted_.size(), 2u);
-  EXPECT_EQ(submitted_[1].files, 1);
+  EXPECT_EQ(submitted_[1].files, 29);
+  // One held copy of the series: the newest.
+  int held = 0;
+  for (const auto& e : fs::directory_iterator(root_ / "unmatched")) {
+    (void)e;
+    ++held;
+  }
+  EXPECT_EQ(held, 1);
 }
 
 TEST_F(AssemblerTest, NotCompleteBeforeTheStableWait) {
   auto a = Open(Rules("CT", 3600));
-  ASSERT_TRUE(Add(*a, 0).ok());
+  Send(*a, 0, 1);
   EXPECT_EQ(a->CompleteStableSeries(), 0);
   EXPECT_EQ(a->pending_series(), 1);
   // A normal release completes it only when the rule says so.
-  a->AssociationReleased({*Add(*a, 1)});
+  Send(*a, 1, 2);
   EXPECT_EQ(a->CompleteStableSeries(), 0);
   EXPECT_TRUE(submitted_.empty());
 }
 
 TEST_F(AssemblerTest, ReleaseCompletesWhenTheRuleSaysSo) {
   auto a = Open(Rules("CT", 3600, /*complete_on_release=*/true));
-  std::set<std::string> keys;
-  for (size_t i = 0; i < 3; ++i) keys.insert(*Add(*a, i));
+  const uint64_t id = a->BeginAssociation("PACS", "INTERSLICE");
+  for (size_t i = 0; i < 3; ++i) ASSERT_TRUE(Add(*a, id, i).ok());
   EXPECT_EQ(a->CompleteStableSeries(), 0);
-  a->AssociationReleased(keys);
+  a->EndAssociation(id, true);
   EXPECT_EQ(a->CompleteStableSeries(), 1);
   ASSERT_EQ(submitted_.size(), 1u);
   EXPECT_EQ(submitted_[0].files, 3);
 }
 
+// Issue 22 finding 2: an aborted association leaves its series incomplete;
+// no wait and no release makes a job of it.
+TEST_F(AssemblerTest, AbortedTransferNeverBecomesAJob) {
+  auto a = Open(Rules("CT", 0.05, /*complete_on_release=*/true));
+  const uint64_t id = a->BeginAssociation("PACS", "INTERSLICE");
+  for (size_t i = 0; i < 13; ++i) ASSERT_TRUE(Add(*a, id, i).ok());
+  a->EndAssociation(id, /*released=*/false);
+  EXPECT_EQ(IncompleteSeries(), 1);
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  EXPECT_EQ(a->CompleteStableSeries(), 0);
+  EXPECT_TRUE(submitted_.empty());
+  // An unrelated association that stores nothing into it changes nothing.
+  a->EndAssociation(a->BeginAssociation("PACS", "INTERSLICE"), true);
+  EXPECT_EQ(a->CompleteStableSeries(), 0);
+  // The sender's retry of the whole series completes it: one job, all 28.
+  Send(*a, 0, files_.size());
+  EXPECT_EQ(IncompleteSeries(), 0);
+  EXPECT_EQ(a->CompleteStableSeries(), 1);
+  ASSERT_EQ(submitted_.size(), 1u);
+  EXPECT_EQ(submitted_[0].files, 28);
+}
+
+TEST_F(AssemblerTest, OnlyATransferThatBeganLaterCompletesAnIncompleteOne) {
+  auto a = Open(Rules("CT", 0.05));
+  const uint64_t first = a->BeginAssociation("PACS", "INTERSLICE");
+  const uint64_t second = a->BeginAssociation("PACS", "INTERSLICE");
+  for (size_t i = 0; i < 10; ++i) ASSERT_TRUE(Add(*a, first, i).ok());
+  for (size_t i = 10; i < 20; ++i) ASSERT_TRUE(Add(*a, second, i).ok());
+  a->EndAssociation(first, /*released=*/false);
+  // The second began before the first broke: it cannot have resent what the
+  // first lost.
+  a->EndAssociation(second, /*released=*/true);
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  EXPECT_EQ(a->CompleteStableSeries(), 0);
+  EXPECT_EQ(IncompleteSeries(), 1);
+}
+
+TEST_F(AssemblerTest, RefusedInstancesMakeTheSeriesIncomplete) {
+  {
+    // Refused by a limit: its series is known.
+    AssemblerOptions options;
+    options.max_instances_per_series = 5;
+    auto a = Open(Rules("CT", 0.05), options);
+    const uint64_t id = a->BeginAssociation("PACS", "INTERSLICE");
+    for (size_t i = 0; i < 5; ++i) ASSERT_TRUE(Add(*a, id, i).ok());
+    EXPECT_EQ(Add(*a, id, 5).status().code(),
+              absl::StatusCode::kResourceExhausted);
+    a->EndAssociation(id, true);
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    EXPECT_EQ(a->CompleteStableSeries(), 0);
+    EXPECT_EQ(IncompleteSeries(), 1);
+  }
+  fs::remove_all(root_);
+  {
+    // Refused before its series was known (not readable): every series of
+    // the association is incomplete.
+    auto a = Open(Rules("CT", 0.05));
+    const uint64_t id = a->BeginAssociation("PACS", "INTERSLICE");
+    ASSERT_TRUE(Add(*a, id, 0).ok());
+    const std::string staged = a->StagingPath();
+    std::ofstream(staged) << "not a DICOM file";
+    EXPECT_EQ(a->AddInstance(id, staged).status().code(),
+              absl::StatusCode::kInvalidArgument);
+    ASSERT_TRUE(Add(*a, id, 1).ok());
+    a->EndAssociation(id, true);
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    EXPECT_EQ(a->CompleteStableSeries(), 0);
+    EXPECT_EQ(IncompleteSeries(), 1);
+  }
+}
+
+// A server that dies mid-association: after the restart the series is
+// incomplete (its open-<n> file says a transfer was in progress).
+TEST_F(AssemblerTest, TransferInterruptedByARestartIsIncomplete) {
+  {
+    auto a = Open(Rules("CT", 3600));
+    const uint64_t id = a->BeginAssociation("PACS", "INTERSLICE");
+    for (size_t i = 0; i < 5; ++i) ASSERT_TRUE(Add(*a, id, i).ok());
+    // No EndAssociation: the process is gone.
+  }
+  auto b = Open(Rules("CT", 0.05));
+  EXPECT_EQ(b->pending_series(), 1);
+  EXPECT_EQ(IncompleteSeries(), 1);
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  EXPECT_EQ(b->CompleteStableSeries(), 0);
+  EXPECT_TRUE(submitted_.empty());
+  // The whole series again after the restart completes it.
+  Send(*b, 0, files_.size());
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  EXPECT_EQ(b->CompleteStableSeries(), 1);
+  ASSERT_EQ(submitted_.size(), 1u);
+  EXPECT_EQ(submitted_[0].files, 28);
+}
+
+TEST_F(AssemblerTest, IncompleteSeriesIsDroppedAfterTheRetention) {
+  AssemblerOptions options;
+  options.unmatched_retention_seconds = 0.2;
+  auto a = Open(Rules("CT", 0.05), options);
+  const uint64_t id = a->BeginAssociation("PACS", "INTERSLICE");
+  for (size_t i = 0; i < 3; ++i) ASSERT_TRUE(Add(*a, id, i).ok());
+  a->EndAssociation(id, false);
+  a->DropStaleIncomplete();
+  EXPECT_EQ(a->pending_series(), 1);  // not yet
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));
+  a->DropStaleIncomplete();
+  EXPECT_EQ(a->pending_series(), 0);
+  EXPECT_TRUE(fs::is_empty(root_ / "series"));
+  EXPECT_TRUE(submitted_.empty());
+}
+
 TEST_F(AssemblerTest, ResentInstanceReplacesItself) {
   auto a = Open(Rules("CT", 0.05));
-  ASSERT_TRUE(Add(*a, 0).ok());
-  ASSERT_TRUE(Add(*a, 0).ok());
-  ASSERT_TRUE(Add(*a, 1).ok());
+  Send(*a, 0, 1);
+  Send(*a, 0, 2);
   std::this_thread::sleep_for(std::chrono::milliseconds(100));
   a->CompleteStableSeries();
   ASSERT_EQ(submitted_.size(), 1u);
@@ -156,7 +335,7 @@ TEST_F(AssemblerTest, ResentInstanceReplacesItself) {
 
 TEST_F(AssemblerTest, FailedSubmissionIsRetriedWithAllInstances) {
   auto a = Open(Rules("CT", 0.05));
-  for (size_t i = 0; i < 4; ++i) ASSERT_TRUE(Add(*a, i).ok());
+  Send(*a, 0, 4);
   fail_next_ = true;
   std::this_thread::sleep_for(std::chrono::milliseconds(100));
   EXPECT_EQ(a->CompleteStableSeries(), 1);
@@ -173,7 +352,7 @@ TEST_F(AssemblerTest, UnmatchedSeriesIsKeptThenRemoved) {
   options.unmatched_retention_seconds = 3600;
   {
     auto a = Open(Rules("MR", 0.05), options);
-    ASSERT_TRUE(Add(*a, 0).ok());
+    Send(*a, 0, 1);
     std::this_thread::sleep_for(std::chrono::milliseconds(100));
     EXPECT_EQ(a->CompleteStableSeries(), 1);
     EXPECT_TRUE(submitted_.empty());
@@ -191,34 +370,70 @@ TEST_F(AssemblerTest, LimitsRefuseWithResourceExhausted) {
   AssemblerOptions options;
   options.max_instances_per_series = 2;
   auto a = Open(Rules("CT", 3600), options);
-  ASSERT_TRUE(Add(*a, 0).ok());
-  ASSERT_TRUE(Add(*a, 1).ok());
-  absl::StatusOr<std::string> third = Add(*a, 2);
+  const uint64_t id = a->BeginAssociation("PACS", "INTERSLICE");
+  ASSERT_TRUE(Add(*a, id, 0).ok());
+  ASSERT_TRUE(Add(*a, id, 1).ok());
+  absl::StatusOr<std::string> third = Add(*a, id, 2);
   EXPECT_EQ(third.status().code(), absl::StatusCode::kResourceExhausted);
   options.max_instances_per_series = 100;
   options.max_bytes_per_series = 100000;  // less than one slice
   fs::remove_all(root_);
   auto b = Open(Rules("CT", 3600), options);
-  EXPECT_EQ(Add(*b, 0).status().code(), absl::StatusCode::kResourceExhausted);
+  const uint64_t other = b->BeginAssociation("PACS", "INTERSLICE");
+  EXPECT_EQ(Add(*b, other, 0).status().code(),
+            absl::StatusCode::kResourceExhausted);
   EXPECT_EQ(b->pending_series(), 0);
 }
 
 TEST_F(AssemblerTest, NotDicomIsInvalidArgument) {
   auto a = Open(Rules("CT", 3600));
+  const uint64_t id = a->BeginAssociation("PACS", "INTERSLICE");
   const std::string staged = a->StagingPath();
   std::ofstream(staged) << "not a DICOM file";
-  EXPECT_EQ(a->AddInstance("PACS", "INTERSLICE", staged).status().code(),
+  EXPECT_EQ(a->AddInstance(id, staged).status().code(),
             absl::StatusCode::kInvalidArgument);
   EXPECT_FALSE(fs::exists(staged));
+}
+
+// A data set nested deeper than the scan allows is refused before DCMTK
+// parses it (issue 22 finding 1: 10,000 levels overflowed the stack).
+TEST_F(AssemblerTest, HostileNestingIsRefusedUnparsed) {
+  auto a = Open(Rules("CT", 3600));
+  const uint64_t id = a->BeginAssociation("PACS", "INTERSLICE");
+  // A Part 10 file around issue 22's data set: preamble, DICM, a meta group
+  // naming explicit VR little endian.
+  std::string meta_elements;
+  auto element = [&](uint16_t e, const char* vr, std::string value) {
+    if (value.size() % 2) value.push_back('\0');
+    std::string out;
+    out.push_back(0x02);
+    out.push_back(0x00);
+    out.push_back(static_cast<char>(e & 0xFF));
+    out.push_back(static_cast<char>(e >> 8));
+    out.append(vr, 2);
+    out.push_back(static_cast<char>(value.size() & 0xFF));
+    out.push_back(static_cast<char>(value.size() >> 8));
+    meta_elements += out + value;
+  };
+  element(0x0010, "UI", "1.2.840.10008.1.2.1");
+  const std::string file = std::string(128, '\0') + "DICM" + meta_elements +
+                           interslice::testing::NestedDataset("1.2.3", 10000);
+  const std::string staged = a->StagingPath();
+  std::ofstream(staged, std::ios::binary) << file;
+  absl::StatusOr<std::string> key = a->AddInstance(id, staged);
+  ASSERT_FALSE(key.ok());
+  EXPECT_EQ(key.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(key.status().message(), HasSubstr("nesting deeper than 32"));
 }
 
 TEST_F(AssemblerTest, PendingSeriesSurviveAReopen) {
   {
     auto a = Open(Rules("CT", 3600));
-    for (size_t i = 0; i < 5; ++i) ASSERT_TRUE(Add(*a, i).ok());
+    Send(*a, 0, 5);
   }
   auto b = Open(Rules("CT", 0.05));
   EXPECT_EQ(b->pending_series(), 1);
+  EXPECT_EQ(IncompleteSeries(), 0);  // its association was released
   std::this_thread::sleep_for(std::chrono::milliseconds(100));
   EXPECT_EQ(b->CompleteStableSeries(), 1);
   ASSERT_EQ(submitted_.size(), 1u);
@@ -228,8 +443,7 @@ TEST_F(AssemblerTest, PendingSeriesSurviveAReopen) {
 
 TEST_F(AssemblerTest, FactsForRules) {
   auto a = Open(Rules("CT", 3600));
-  std::string key;
-  for (size_t i = 0; i < files_.size(); ++i) key = *Add(*a, i);
+  const std::string key = Send(*a, 0, files_.size());
   const SeriesFacts facts = ReadSeriesFacts((root_ / "series" / key).string());
   EXPECT_EQ(facts.modality, "CT");
   EXPECT_EQ(facts.slice_count, 28);

@@ -3,8 +3,17 @@
 // test writes (free HTTP and DICOM ports, its own storage folder, the
 // interslice server as a known modality), and a small REST client over
 // libcurl.
-#ifndef INTERSLICE_TESTS_SERVER_DICOM_ORTHANC_FIXTURE_H_
-#define INTERSLICE_TESTS_SERVER_DICOM_ORTHANC_FIXTURE_H_
+//
+//   auto orthanc = Orthanc::Start(dir / "orthanc",
+//                                 {{"interslice", "INTERSLICE", "127.0.0.1",
+//                                   server.dicom_port()}});
+//   ASSERT_TRUE(orthanc.ok()) << orthanc.status();
+//   (*orthanc)->UploadFolder(series);  (*orthanc)->GetJson("/studies");
+//
+// Orthanc missing (not on PATH nor in /usr/sbin) is an error naming it, so
+// a test that needs the PACS fails instead of passing without one.
+#ifndef INTERSLICE_TESTS_TESTING_ORTHANC_H_
+#define INTERSLICE_TESTS_TESTING_ORTHANC_H_
 
 #include <sys/types.h>
 
@@ -18,11 +27,6 @@
 
 namespace interslice::testing {
 
-inline constexpr char kOrthancBinary[] = "/usr/sbin/Orthanc";
-
-// A port nobody listens on right now (bound to 0 and released).
-int FreeTcpPort();
-
 struct OrthancModality {
   std::string name;  // Orthanc's name for it (REST /modalities/{name})
   std::string ae_title;
@@ -33,18 +37,22 @@ struct OrthancModality {
 class Orthanc {
  public:
   // Writes <dir>/orthanc.json and starts Orthanc with storage in
-  // <dir>/storage; waits (up to 30 s) until its REST API answers.
+  // <dir>/storage on two free ports; waits (polling, up to 60 s) until its
+  // REST API answers. Errors: FailedPrecondition when Orthanc is not
+  // installed or ends at start-up, DeadlineExceeded (with its log).
   // Modalities may C-STORE, C-GET, C-FIND and C-MOVE with it.
   static absl::StatusOr<std::unique_ptr<Orthanc>> Start(
       const std::string& dir, std::vector<OrthancModality> modalities,
       const std::string& ae_title = "ORTHANC");
   ~Orthanc();  // Stop()
 
-  // SIGTERM, wait (SIGKILL after 10 s). Storage stays: Restart() brings the
+  // SIGTERM, wait (SIGKILL after 30 s). Storage stays: Restart() brings the
   // same PACS back on the same ports.
   void Stop();
   absl::Status Restart();
   bool running() const { return pid_ > 0; }
+  // The Orthanc process (a child of the test), e.g. to kill it mid-send.
+  pid_t pid() const { return pid_; }
 
   const std::string& ae_title() const { return ae_title_; }
   int dicom_port() const { return dicom_port_; }
@@ -71,6 +79,7 @@ class Orthanc {
                                       const std::string& path,
                                       const std::string& body) const;
 
+  std::string binary_;
   std::string dir_;
   std::string config_path_;
   std::string ae_title_;
@@ -81,4 +90,4 @@ class Orthanc {
 
 }  // namespace interslice::testing
 
-#endif  // INTERSLICE_TESTS_SERVER_DICOM_ORTHANC_FIXTURE_H_
+#endif  // INTERSLICE_TESTS_TESTING_ORTHANC_H_

@@ -1,22 +1,19 @@
-#include "tests/server/dicom/orthanc_fixture.h"
+#include "tests/testing/orthanc.h"
 
-#include <arpa/inet.h>
 #include <curl/curl.h>
-#include <netinet/in.h>
-#include <signal.h>
-#include <sys/socket.h>
-#include <unistd.h>
+#include <sys/wait.h>
 
 #include <chrono>
 #include <filesystem>
 #include <fstream>
 #include <mutex>
 #include <string>
-#include <thread>
 #include <vector>
 
 #include "absl/strings/str_cat.h"
-#include "tests/server/process.h"
+#include "tests/testing/process.h"
+#include "tests/testing/tools.h"
+#include "tests/testing/wait_for.h"
 
 namespace interslice::testing {
 namespace fs = std::filesystem;
@@ -35,32 +32,19 @@ bool IsPart10(const fs::path& path) {
 
 }  // namespace
 
-int FreeTcpPort() {
-  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
-  sockaddr_in addr{};
-  addr.sin_family = AF_INET;
-  addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  addr.sin_port = 0;
-  socklen_t len = sizeof(addr);
-  int port = 0;
-  if (::bind(fd, reinterpret_cast<sockaddr*>(&addr), sizeof(addr)) == 0 &&
-      ::getsockname(fd, reinterpret_cast<sockaddr*>(&addr), &len) == 0) {
-    port = ntohs(addr.sin_port);
-  }
-  ::close(fd);
-  return port;
-}
-
 absl::StatusOr<std::unique_ptr<Orthanc>> Orthanc::Start(
     const std::string& dir, std::vector<OrthancModality> modalities,
     const std::string& ae_title) {
   static std::once_flag curl_once;
   std::call_once(curl_once, [] { curl_global_init(CURL_GLOBAL_DEFAULT); });
-  if (!fs::exists(kOrthancBinary)) {
+  const std::string binary = FindTool("Orthanc", {"/usr/sbin"});
+  if (binary.empty()) {
     return absl::FailedPreconditionError(
-        "Orthanc is not installed (scripts/install-deps.sh installs it)");
+        "Orthanc is not installed (not on PATH nor in /usr/sbin; "
+        "scripts/install-deps.sh installs Debian's orthanc)");
   }
   std::unique_ptr<Orthanc> o(new Orthanc());
+  o->binary_ = binary;
   o->dir_ = dir;
   o->ae_title_ = ae_title;
   o->http_port_ = FreeTcpPort();
@@ -105,32 +89,37 @@ absl::StatusOr<std::unique_ptr<Orthanc>> Orthanc::Start(
 }
 
 absl::Status Orthanc::Launch() {
-  pid_ = StartProcess({kOrthancBinary, config_path_},
+  pid_ = StartProcess({binary_, config_path_},
                       (fs::path(dir_) / "orthanc.log").string());
-  const auto end = std::chrono::steady_clock::now() + std::chrono::seconds(30);
-  while (std::chrono::steady_clock::now() < end) {
-    if (Get("/system").ok()) return absl::OkStatus();
-    if (WaitProcess(pid_, 0) != -1) {
-      pid_ = -1;
-      return absl::InternalError(
-          absl::StrCat("Orthanc exited at start-up; its log:\n", log()));
-    }
-    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  bool ended = false;
+  const bool up = WaitFor(
+      [&] {
+        if (WaitProcess(pid_, 0) != -1 ||
+            ::waitpid(pid_, nullptr, WNOHANG) < 0) {
+          ended = true;
+          return true;
+        }
+        return Get("/system").ok();
+      },
+      std::chrono::seconds(60), std::chrono::milliseconds(50));
+  if (ended) {
+    pid_ = -1;
+    return absl::FailedPreconditionError(
+        absl::StrCat("Orthanc exited at start-up; its log:\n", log()));
   }
-  Stop();
-  return absl::DeadlineExceededError(absl::StrCat(
-      "Orthanc's REST API did not answer in 30 s; its log:\n", log()));
+  if (!up) {
+    Stop();
+    return absl::DeadlineExceededError(absl::StrCat(
+        "Orthanc's REST API did not answer in 60 s; its log:\n", log()));
+  }
+  return absl::OkStatus();
 }
 
 Orthanc::~Orthanc() { Stop(); }
 
 void Orthanc::Stop() {
   if (pid_ <= 0) return;
-  ::kill(pid_, SIGTERM);
-  if (WaitProcess(pid_, 10) == -1) {
-    ::kill(pid_, SIGKILL);
-    WaitProcess(pid_, 10);
-  }
+  StopProcess(pid_, 30);
   pid_ = -1;
 }
 
