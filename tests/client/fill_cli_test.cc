@@ -429,7 +429,7 @@ TEST_F(FillCliTest, LabelNamesReachSegAndRtStruct) {
       " --key-slices 0-27:3 --method linear --mesh none --volume nrrd --seg "
       "--rtstruct --label-names " +
       names + " --threads 2 --quiet --out " + out.string());
-  ASSERT_EQ(r.exit_code, 0) << r.output;
+  ASSERT_EQ(r.exit_code, 0) << r.out;
   const ReferenceSeries reference = ReferenceOf(kPhantom);
   absl::StatusOr<SegmentationInput> seg =
       ReadDicomSegmentation((out / "seg.dcm").string(), reference);
@@ -455,8 +455,8 @@ TEST_F(FillCliTest, LabelNamesReachSegAndRtStruct) {
       RunCli("fill " + (out / "seg.dcm").string() + " --reference " +
              kPhantom + " --label-names " + names + " --out " +
              (dir_ / "again").string());
-  EXPECT_EQ(refused.exit_code, 1) << refused.output;
-  EXPECT_THAT(refused.output,
+  EXPECT_EQ(refused.exit_code, 1) << refused.out;
+  EXPECT_THAT(refused.out,
               HasSubstr("label names are for a label map; a SEG or RTSTRUCT "
                         "names its segments itself"));
   EXPECT_FALSE(fs::exists(dir_ / "again" / "seg.dcm"));
@@ -645,7 +645,7 @@ TEST_F(FillCliTest, PreviewsOutlineEachLabelInItsColour) {
              " --key-slices 0-27:4 --method linear --seg --previews png,dicom "
              "--mesh none --volume none --threads 2 --out " +
              out.string() + " --report " + report.string());
-  ASSERT_EQ(r.exit_code, 0) << r.output;
+  ASSERT_EQ(r.exit_code, 0) << r.out;
   for (const char* name :
        {"axial.png", "coronal.png", "sagittal.png", "3d-front.png"}) {
     EXPECT_TRUE(fs::exists(out / "previews" / name)) << name;
@@ -696,9 +696,9 @@ TEST_F(FillCliTest, PreviewsOutlineEachLabelInItsColour) {
              " --key-slices 0-27:4 --method linear --mesh none --volume none "
              "--threads 2 --out " +
              (dir_ / "one").string());
-  ASSERT_EQ(single.exit_code, 0) << single.output;
+  ASSERT_EQ(single.exit_code, 0) << single.out;
   EXPECT_TRUE(fs::exists(dir_ / "one" / "previews" / "3d-front.png"));
-  EXPECT_THAT(single.output, ::testing::Not(HasSubstr("warning")));
+  EXPECT_THAT(single.out, ::testing::Not(HasSubstr("warning")));
 }
 
 }  // namespace

@@ -451,6 +451,7 @@ TEST(FillServerTest, LabelNamesReachTheServersSegAndRtStruct) {
   CommandResult local = Cli(Cat(job, {"--out", dir / "local"}));
   ASSERT_EQ(local.exit_code, 0) << local.err;
   ServerProcess server({.spool = dir / "spool", .log = dir / "server.log"});
+  ASSERT_TRUE(server.Start());
   CommandResult r =
       Cli(Cat(Cat(job, {"--out", dir / "remote"}), server.ServerFlag()));
   ASSERT_EQ(r.exit_code, 0) << r.err << server.Log();
@@ -492,6 +493,7 @@ TEST(FillServerTest, SubmittedFillIsWatchedListedAndFetched) {
   const std::string labels = WriteLabelMap(dir / "drawn.nii.gz");
   RunLocally(labels, kSeries, dir / "local");
   ServerProcess server({.spool = dir / "spool", .log = dir / "server.log"});
+  ASSERT_TRUE(server.Start());
   CommandResult r = Cli(Cat(
       {"fill", labels, "--reference", kSeries, "--method", "direct",
        "--volume", "nii,nrrd", "--mesh", "stl", "--submit", "--label",
@@ -507,7 +509,7 @@ TEST(FillServerTest, SubmittedFillIsWatchedListedAndFetched) {
   ASSERT_EQ(list.exit_code, 0) << list.err;
   EXPECT_THAT(list.out, HasSubstr(id));
   EXPECT_THAT(list.out, HasSubstr("fill of the week"));
-  CommandResult watch = Cli(Cat({"watch", id, "--quiet"}, server.ServerFlag()));
+  CommandResult watch = Cli(Cat({"watch", id}, server.ServerFlag()));
   ASSERT_EQ(watch.exit_code, 0) << watch.err << server.Log();
   EXPECT_THAT(watch.out, HasSubstr("job " + id + " succeeded"));
   r = Cli(Cat({"fetch", id, "--out", dir / "fetched", "--report",

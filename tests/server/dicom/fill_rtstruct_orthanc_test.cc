@@ -154,7 +154,7 @@ TEST(FillRtStructOrthancTest, RtStructAfterItsSeriesIsFilledAndStoredInOrthanc) 
   absl::StatusOr<int> uploaded = (*orthanc)->UploadFolder(kSeries);
   ASSERT_TRUE(uploaded.ok()) << uploaded.status();
   ASSERT_EQ(*uploaded, 4);
-  auto source = Load(fs::directory_iterator(kSeries)->path().string());
+  auto source = Load(kSeries + "/I10.dcm");
   const std::string study = Tag(*source->getDataset(), DCM_StudyInstanceUID);
   const std::string series = Tag(*source->getDataset(), DCM_SeriesInstanceUID);
   const std::string frame =
@@ -197,8 +197,11 @@ TEST(FillRtStructOrthancTest, RtStructAfterItsSeriesIsFilledAndStoredInOrthanc) 
   // segmentations that may follow.
   std::vector<std::string> series_files;
   for (const auto& e : fs::directory_iterator(kSeries)) {
-    series_files.push_back(e.path().string());
+    if (e.path().extension() == ".dcm") {
+      series_files.push_back(e.path().string());
+    }
   }
+  ASSERT_EQ(series_files.size(), 4u);
   CommandResult stored = store({}, series_files);
   ASSERT_EQ(stored.exit_code, 0) << stored.err << server.Log();
   ASSERT_TRUE(WaitFor(
@@ -224,7 +227,7 @@ TEST(FillRtStructOrthancTest, RtStructAfterItsSeriesIsFilledAndStoredInOrthanc) 
       std::chrono::seconds(120)))
       << server.Log();
   const CommandResult watch = RunCommand(
-      Cat({kCli, "watch", job, "--quiet", "--wait-deliveries"}, client), 300);
+      Cat({kCli, "watch", job, "--wait-deliveries"}, client), 300);
   ASSERT_EQ(watch.exit_code, 0) << watch.err << server.Log();
   EXPECT_THAT(watch.out, HasSubstr("to orthanc: delivered, 2 of 2"));
   EXPECT_THAT(server.Log(), HasSubstr("(fill) made by rule fill-rt"));
