@@ -6,7 +6,8 @@
 //   Orthanc (`send_to`), where they must sit in the source's study, on its
 //   frame of reference, with the input's ROIs (numbers, names, colours), and
 //   be the objects `interslice fill` makes in-process from the same files
-//   with the same options.
+//   with the same options. Then `interslice fill --server --submit
+//   --send-to` stores a SEG in the same study through the gRPC door.
 // The RTSTRUCT is made by the CLI itself (`interslice fill --rtstruct
 // --label-names`) from a label map drawn on the series, so no outside file
 // is needed.
@@ -49,7 +50,7 @@ const std::string kStoreScu = "/usr/bin/storescu";  // Debian's dcmtk
 const std::string kSeries = std::string(INTERSLICE_TEST_DATA_DIR) + "/ct-thick";
 // The node's fill: the RTSTRUCT's first and last slice are its key slices;
 // the slices between are filled by the exact refinement.
-const std::vector<std::string> kFill = {"--key-slices", "0,3", "--method",
+const std::vector<std::string> kFill = {"--key-slices", "0,3",    "--method",
                                         "direct",       "--mesh", "none",
                                         "--volume",     "nrrd"};
 
@@ -111,7 +112,8 @@ void WriteLabelMap(const std::string& path) {
   ASSERT_TRUE(WriteVolume(labels, path).ok());
 }
 
-TEST(FillRtStructOrthancTest, RtStructAfterItsSeriesIsFilledAndStoredInOrthanc) {
+TEST(FillRtStructOrthancTest,
+     RtStructAfterItsSeriesIsFilledAndStoredInOrthanc) {
   TempDir dir("interslice_fill_rtstruct_");
   const fs::path root = dir.path();
 
@@ -123,8 +125,8 @@ TEST(FillRtStructOrthancTest, RtStructAfterItsSeriesIsFilledAndStoredInOrthanc) 
                           "2,Soft tissue,200,90,80\n";
   CommandResult made = RunCommand(
       {kCli, "fill", labels, "--reference", kSeries, "--label-names", names,
-       "--rtstruct", "--method", "linear", "--mesh", "none", "--volume",
-       "none", "--quiet", "--out", (root / "made").string()},
+       "--rtstruct", "--method", "linear", "--mesh", "none", "--volume", "none",
+       "--quiet", "--out", (root / "made").string()},
       300);
   ASSERT_EQ(made.exit_code, 0) << made.err;
   const std::string rtstruct = (root / "made" / "rtstruct.dcm").string();
@@ -147,9 +149,9 @@ TEST(FillRtStructOrthancTest, RtStructAfterItsSeriesIsFilledAndStoredInOrthanc) 
 
   // The PACS holds the source study; the node stores its results there.
   const int node_port = FreeTcpPort();
-  auto orthanc = Orthanc::Start((root / "orthanc").string(),
-                                {{"interslice", "INTERSLICE", "127.0.0.1",
-                                  node_port}});
+  auto orthanc =
+      Orthanc::Start((root / "orthanc").string(),
+                     {{"interslice", "INTERSLICE", "127.0.0.1", node_port}});
   ASSERT_TRUE(orthanc.ok()) << orthanc.status();
   absl::StatusOr<int> uploaded = (*orthanc)->UploadFolder(kSeries);
   ASSERT_TRUE(uploaded.ok()) << uploaded.status();
@@ -157,13 +159,11 @@ TEST(FillRtStructOrthancTest, RtStructAfterItsSeriesIsFilledAndStoredInOrthanc) 
   auto source = Load(kSeries + "/I10.dcm");
   const std::string study = Tag(*source->getDataset(), DCM_StudyInstanceUID);
   const std::string series = Tag(*source->getDataset(), DCM_SeriesInstanceUID);
-  const std::string frame =
-      Tag(*source->getDataset(), DCM_FrameOfReferenceUID);
+  const std::string frame = Tag(*source->getDataset(), DCM_FrameOfReferenceUID);
 
   const std::string peers = (root / "peers.yaml").string();
   std::ofstream(peers) << "peers:\n  - {name: orthanc, ae_title: "
-                       << (*orthanc)->ae_title()
-                       << ", host: 127.0.0.1, port: "
+                       << (*orthanc)->ae_title() << ", host: 127.0.0.1, port: "
                        << (*orthanc)->dicom_port()
                        << "}\n  - {name: tools, ae_title: STORESCU, host: "
                           "127.0.0.1, port: 1}\n";
@@ -186,11 +186,11 @@ TEST(FillRtStructOrthancTest, RtStructAfterItsSeriesIsFilledAndStoredInOrthanc) 
   const std::vector<std::string> client = server.ServerFlag();
   const auto store = [&](const std::vector<std::string>& options,
                          const std::vector<std::string>& files) {
-    return RunCommand(Cat(Cat(Cat({kStoreScu}, options),
-                              {"-aec", "INTERSLICE", "127.0.0.1",
-                               std::to_string(node_port)}),
-                          files),
-                      120);
+    return RunCommand(
+        Cat(Cat(Cat({kStoreScu}, options),
+                {"-aec", "INTERSLICE", "127.0.0.1", std::to_string(node_port)}),
+            files),
+        120);
   };
 
   // The series first: no rule takes a CT series, so it is held for the
@@ -206,8 +206,7 @@ TEST(FillRtStructOrthancTest, RtStructAfterItsSeriesIsFilledAndStoredInOrthanc) 
   ASSERT_EQ(stored.exit_code, 0) << stored.err << server.Log();
   ASSERT_TRUE(WaitFor(
       [&] {
-        return server.Log().find("no rule of rule set") !=
-               std::string::npos;
+        return server.Log().find("no rule of rule set") != std::string::npos;
       },
       std::chrono::seconds(60)))
       << server.Log();
@@ -226,8 +225,8 @@ TEST(FillRtStructOrthancTest, RtStructAfterItsSeriesIsFilledAndStoredInOrthanc) 
       },
       std::chrono::seconds(120)))
       << server.Log();
-  const CommandResult watch = RunCommand(
-      Cat({kCli, "watch", job, "--wait-deliveries"}, client), 300);
+  const CommandResult watch =
+      RunCommand(Cat({kCli, "watch", job, "--wait-deliveries"}, client), 300);
   ASSERT_EQ(watch.exit_code, 0) << watch.err << server.Log();
   EXPECT_THAT(watch.out, HasSubstr("to orthanc: delivered, 2 of 2"));
   EXPECT_THAT(server.Log(), HasSubstr("(fill) made by rule fill-rt"));
@@ -307,6 +306,42 @@ TEST(FillRtStructOrthancTest, RtStructAfterItsSeriesIsFilledAndStoredInOrthanc) 
   ASSERT_EQ(node_seg->segments.size(), 2u);
   EXPECT_EQ(node_seg->segments[0].label, "Bone");
   EXPECT_EQ(node_seg->segments[1].label, "Soft tissue");
+
+  // The command line's door to the same peer: `fill --server --submit
+  // --send-to` stores its SEG in the source's study too, with the names of
+  // its --label-names sidecar.
+  const CommandResult sent = RunCommand(
+      Cat({kCli, "fill", labels, "--reference", kSeries, "--label-names", names,
+           "--seg", "--method", "linear", "--mesh", "none", "--volume", "none",
+           "--submit", "--send-to", "orthanc"},
+          client),
+      300);
+  ASSERT_EQ(sent.exit_code, 0) << sent.err << server.Log();
+  std::string sent_job = sent.out;
+  while (!sent_job.empty() && sent_job.back() == '\n') sent_job.pop_back();
+  const CommandResult sent_watch = RunCommand(
+      Cat({kCli, "watch", sent_job, "--wait-deliveries"}, client), 300);
+  ASSERT_EQ(sent_watch.exit_code, 0) << sent_watch.err << server.Log();
+  EXPECT_THAT(sent_watch.out, HasSubstr("to orthanc: delivered, 1 of 1"));
+  auto after = (*orthanc)->GetJson("/instances?expand");
+  ASSERT_TRUE(after.ok()) << after.status();
+  int segs = 0;
+  for (const auto& i : *after) {
+    auto file = (*orthanc)->InstanceFile(i["ID"].get<std::string>());
+    ASSERT_TRUE(file.ok()) << file.status();
+    const std::string path = (root / "after.dcm").string();
+    std::ofstream(path, std::ios::binary) << *file;
+    auto loaded = Load(path);
+    DcmDataset& ds = *loaded->getDataset();
+    if (Tag(ds, DCM_Modality) != "SEG") continue;
+    ++segs;
+    EXPECT_EQ(Tag(ds, DCM_StudyInstanceUID), study);
+    absl::StatusOr<SegmentationInput> one = ReadDicomSegmentation(path, ref);
+    ASSERT_TRUE(one.ok()) << one.status();
+    ASSERT_EQ(one->segments.size(), 2u);
+    EXPECT_EQ(one->segments[0].label, "Bone");
+  }
+  EXPECT_EQ(segs, 2);  // the rule's and the command line's
 
   EXPECT_EQ(server.Stop(), 0) << server.Log();
 }
