@@ -472,8 +472,8 @@ int RunFillRemote(const Connection& connection, const FillArguments& args,
   absl::StatusOr<v1::UploadHeader> header =
       PrepareFillUpload(args, 0, "", &files);
   if (!header.ok()) return Fail(std::string(header.status().message()));
-  return InterpolateCall(connection, *header, files, args.out, args.local.report,
-                         args.local.quiet, deadline_seconds);
+  return InterpolateCall(connection, *header, files, args.out,
+                         args.local.report, args.local.quiet, deadline_seconds);
 }
 
 // A detached job: uploads `files` after `header` by Submit and prints the
@@ -938,8 +938,8 @@ int RemoteCommands::ExecuteFill() {
   if (!remote) {
     for (const char* option : {"--submit", "--label", "--send-to"}) {
       if (fill_->get_option(option)->count() > 0) {
-        return Fail(absl::StrCat(option,
-                                 " needs --server ADDR (a job on a server)"));
+        return Fail(
+            absl::StrCat(option, " needs --server ADDR (a job on a server)"));
       }
     }
     return -1;  // in-process

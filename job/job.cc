@@ -181,9 +181,9 @@ class FillJob final : public JobKind {
     for (const NamedUpload& upload : uploads_) {
       const fs::path path = fs::path(upload_dir) / upload.path;
       if (!fs::is_regular_file(path, ec)) {
-        return absl::FailedPreconditionError(absl::StrCat(
-            "the file that ", upload.field,
-            " names is missing from the fill job's upload"));
+        return absl::FailedPreconditionError(
+            absl::StrCat("the file that ", upload.field,
+                         " names is missing from the fill job's upload"));
       }
       paths.push_back(path.string());
     }
@@ -238,8 +238,7 @@ std::unique_ptr<JobKind> MakeInterpolationJob(JobSpec spec) {
 }
 
 std::unique_ptr<JobKind> MakeFillJob(FillJobSpec spec) {
-  return std::make_unique<FillJob>(std::move(spec),
-                                   std::vector<NamedUpload>());
+  return std::make_unique<FillJob>(std::move(spec), std::vector<NamedUpload>());
 }
 
 absl::StatusOr<std::unique_ptr<JobKind>> MakeJobFromWire(
@@ -252,8 +251,7 @@ absl::StatusOr<std::unique_ptr<JobKind>> MakeJobFromWire(
         {"spec.fill.segmentation_file", wire.segmentation_file(),
          SegmentationUploadPath(wire.segmentation_file())}};
     if (!wire.label_names_file().empty()) {
-      uploads.push_back({"spec.fill.label_names_file",
-                         wire.label_names_file(),
+      uploads.push_back({"spec.fill.label_names_file", wire.label_names_file(),
                          LabelNamesUploadPath(wire.label_names_file())});
     }
     return std::unique_ptr<JobKind>(

@@ -480,9 +480,9 @@ absl::StatusOr<std::string> JobManager::SubmitLocalFiles(
   for (const job::NamedUpload& upload : named) {
     const auto it = named_files.find(upload.client_name);
     if (it == named_files.end()) {
-      return absl::InvalidArgumentError(absl::StrCat(
-          "a job on received files needs the file that ", upload.field,
-          " names"));
+      return absl::InvalidArgumentError(
+          absl::StrCat("a job on received files needs the file that ",
+                       upload.field, " names"));
     }
     placed.emplace_back(it->second, upload.path);
   }

@@ -132,8 +132,7 @@ class UploadSink {
       if (received_[n]) continue;
       // The client's file names may carry patient data: not echoed.
       return absl::InvalidArgumentError(absl::StrCat(
-          named_[n].field, " names none of the ",
-          stream_.header().file_count(),
+          named_[n].field, " names none of the ", stream_.header().file_count(),
           " uploaded files (compared exactly with FileChunk.file_name)"));
     }
     FsyncDir(spool_->UploadDir(job_->id()));
@@ -174,10 +173,9 @@ class UploadSink {
         (fs::path(spool_->UploadDir(job_->id())) / name).string();
     // A file the job takes by name (a fill's segmentation, its label names)
     // goes where its kind says, out of the series' folder level.
-    const auto named =
-        std::find_if(named_.begin(), named_.end(), [&](const auto& n) {
-          return n.client_name == client_name;
-        });
+    const auto named = std::find_if(
+        named_.begin(), named_.end(),
+        [&](const auto& n) { return n.client_name == client_name; });
     if (named != named_.end()) {
       const size_t n = static_cast<size_t>(named - named_.begin());
       if (received_[n]) {

@@ -452,9 +452,8 @@ TEST_F(FillCliTest, LabelNamesReachSegAndRtStruct) {
   // A SEG names its segments itself: label names are refused, nothing
   // written.
   const CommandResult refused =
-      RunCli("fill " + (out / "seg.dcm").string() + " --reference " +
-             kPhantom + " --label-names " + names + " --out " +
-             (dir_ / "again").string());
+      RunCli("fill " + (out / "seg.dcm").string() + " --reference " + kPhantom +
+             " --label-names " + names + " --out " + (dir_ / "again").string());
   EXPECT_EQ(refused.exit_code, 1) << refused.out;
   EXPECT_THAT(refused.out,
               HasSubstr("label names are for a label map; a SEG or RTSTRUCT "

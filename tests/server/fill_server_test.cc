@@ -367,7 +367,8 @@ TEST(FillServerTest, BadFillSpecsAreRefusedWithTheReason) {
                      "two uploaded files carry the name given as "
                      "spec.fill.label_names_file"});
     // Only the segmentation and its names: no series.
-    cases.push_back({"no series", s,
+    cases.push_back({"no series",
+                     s,
                      {files.back(), {names, "names.csv"}},
                      "file_count must be >= 3"});
   }
@@ -401,8 +402,8 @@ TEST(FillServerTest, BadFillSpecsAreRefusedWithTheReason) {
   // hold: the job fails naming it, nothing to fetch.
   const std::string unknown = dir / "unknown.csv";
   std::ofstream(unknown) << "1,Bone\n9,Nothing\n";
-  r = Cli(Cat({"fill", labels, "--reference", kSeries, "--label-names",
-               unknown, "--seg", "--mesh", "none", "--out", dir / "unknown"},
+  r = Cli(Cat({"fill", labels, "--reference", kSeries, "--label-names", unknown,
+               "--seg", "--mesh", "none", "--out", dir / "unknown"},
               server.ServerFlag()));
   EXPECT_EQ(r.exit_code, 1);
   EXPECT_THAT(r.err, HasSubstr("interslice: error: the label names name label "
@@ -411,8 +412,8 @@ TEST(FillServerTest, BadFillSpecsAreRefusedWithTheReason) {
   // A bad row names the line, not the server's or the client's path.
   const std::string bad_row = dir / "bad-row.csv";
   std::ofstream(bad_row) << "1,Bone,0,0\n";
-  r = Cli(Cat({"fill", labels, "--reference", kSeries, "--label-names",
-               bad_row, "--seg", "--mesh", "none", "--out", dir / "bad-row"},
+  r = Cli(Cat({"fill", labels, "--reference", kSeries, "--label-names", bad_row,
+               "--seg", "--mesh", "none", "--out", dir / "bad-row"},
               server.ServerFlag()));
   EXPECT_EQ(r.exit_code, 1);
   EXPECT_THAT(r.err, HasSubstr("label-names.csv line 1: expected "
@@ -445,9 +446,9 @@ TEST(FillServerTest, LabelNamesReachTheServersSegAndRtStruct) {
               "type": {"scheme": "SCT", "value": "85756007",
                        "meaning": "Tissue"}}])";
   const std::vector<std::string> job = {
-      "fill",    labels, "--reference", dir / "series", "--label-names",
-      names,     "--seg", "--rtstruct", "--method",      "linear",
-      "--mesh",  "none", "--volume",    "nrrd",          "--quiet"};
+      "fill",   labels,  "--reference", dir / "series", "--label-names",
+      names,    "--seg", "--rtstruct",  "--method",     "linear",
+      "--mesh", "none",  "--volume",    "nrrd",         "--quiet"};
   CommandResult local = Cli(Cat(job, {"--out", dir / "local"}));
   ASSERT_EQ(local.exit_code, 0) << local.err;
   ServerProcess server({.spool = dir / "spool", .log = dir / "server.log"});
@@ -494,11 +495,11 @@ TEST(FillServerTest, SubmittedFillIsWatchedListedAndFetched) {
   RunLocally(labels, kSeries, dir / "local");
   ServerProcess server({.spool = dir / "spool", .log = dir / "server.log"});
   ASSERT_TRUE(server.Start());
-  CommandResult r = Cli(Cat(
-      {"fill", labels, "--reference", kSeries, "--method", "direct",
-       "--volume", "nii,nrrd", "--mesh", "stl", "--submit", "--label",
-       "fill of the week", "--deadline", "600"},
-      server.ServerFlag()));
+  CommandResult r =
+      Cli(Cat({"fill", labels, "--reference", kSeries, "--method", "direct",
+               "--volume", "nii,nrrd", "--mesh", "stl", "--submit", "--label",
+               "fill of the week", "--deadline", "600"},
+              server.ServerFlag()));
   ASSERT_EQ(r.exit_code, 0) << r.err << server.Log();
   std::string id = r.out;
   while (!id.empty() && (id.back() == '\n' || id.back() == '\r')) id.pop_back();
@@ -512,9 +513,9 @@ TEST(FillServerTest, SubmittedFillIsWatchedListedAndFetched) {
   CommandResult watch = Cli(Cat({"watch", id}, server.ServerFlag()));
   ASSERT_EQ(watch.exit_code, 0) << watch.err << server.Log();
   EXPECT_THAT(watch.out, HasSubstr("job " + id + " succeeded"));
-  r = Cli(Cat({"fetch", id, "--out", dir / "fetched", "--report",
-               dir / "fetched.json"},
-              server.ServerFlag()));
+  r = Cli(Cat(
+      {"fetch", id, "--out", dir / "fetched", "--report", dir / "fetched.json"},
+      server.ServerFlag()));
   ASSERT_EQ(r.exit_code, 0) << r.err;
   ExpectSameResults(dir / "local", dir / "fetched");
   std::ifstream in(dir / "fetched.json");
