@@ -918,7 +918,7 @@ void RemoteCommands::RegisterFill(CLI::App& fill, FillArguments& args) {
                   "job, seconds from acceptance");
   fill.add_flag("--submit", fill_submit_,
                 "With --server: upload as a detached job and print its id "
-                "(then: watch, fetch, list, cancel); no --out needed");
+                "(then: watch, fetch, list, cancel); not with --out");
   fill.add_option("--label", label_,
                   "With --submit: free text shown by `list` (no PHI)");
   fill.add_option("--send-to", args.send_to,
@@ -949,6 +949,11 @@ int RemoteCommands::ExecuteFill() {
     return Fail(
         "--report: a detached job's report is written by `interslice fetch "
         "JOB --report FILE`");
+  }
+  if (fill_submit_ && !fill_args_->out.empty()) {
+    return Fail(
+        "--out: a detached job's files are written by `interslice fetch JOB "
+        "--out DIR`");
   }
   if (!fill_submit_ && fill_->get_option("--label")->count() > 0) {
     return Fail("--label needs --submit (it names a detached job)");

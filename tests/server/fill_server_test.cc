@@ -553,6 +553,9 @@ TEST(FillServerTest, SubmittedFillIsWatchedListedAndFetched) {
            {{"--submit", "--report", dir / "r.json"},
             "--report: a detached job's report is written by `interslice "
             "fetch JOB --report FILE`"},
+           {{"--submit", "--out", dir / "nowhere"},
+            "--out: a detached job's files are written by `interslice fetch "
+            "JOB --out DIR`"},
            {{"--label", "x"}, "--label needs --submit"},
            {{}, "--out is required (or --submit for a detached job)"},
        }) {
