@@ -28,6 +28,8 @@ packages=(
   # the instrumented build (scripts/build-instrumented.sh: the sanitized suite
   # and the libFuzzer targets): clang with its sanitizer and libFuzzer runtimes
   clang libclang-rt-14-dev
+  # a user's tools reading our label maps back (tests/core/labels: nibabel)
+  python3-nibabel
 )
 # Node.js for the viewer test (tests/viewer: a DICOM SEG loaded as OHIF v3
 # loads it): Debian's nodejs + npm unless node and npm are already there (a
@@ -53,7 +55,7 @@ viewer_npm() {
 if [ "${1:-}" = "--image" ]; then
   not_for_image=" libgtest-dev libgmock-dev libbenchmark-dev dicom3tools "
   not_for_image+=" git orthanc orthanc-dicomweb yamllint clang "
-  not_for_image+=" libclang-rt-14-dev nodejs npm "
+  not_for_image+=" libclang-rt-14-dev nodejs npm python3-nibabel "
   kept=()
   for p in "${packages[@]}"; do
     [[ $not_for_image == *" $p "* ]] || kept+=("$p")
@@ -61,10 +63,9 @@ if [ "${1:-}" = "--image" ]; then
   packages=("${kept[@]}")
   viewer_npm() { :; }
 fi
-# Extra packages for the evaluation report (scripts/eval.sh): plots; nibabel
-# reads label maps back as a user's tools would (tests/core/volume_io).
+# Extra packages for the evaluation report (scripts/eval.sh): plots.
 if [ "${1:-}" = "--eval" ]; then
-  packages+=(python3-matplotlib python3-numpy python3-nibabel)
+  packages+=(python3-matplotlib python3-numpy)
 fi
 
 missing=()
