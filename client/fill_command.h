@@ -4,6 +4,9 @@
 #ifndef INTERSLICE_CLIENT_FILL_COMMAND_H_
 #define INTERSLICE_CLIENT_FILL_COMMAND_H_
 
+#include <string>
+#include <vector>
+
 #include "client/job_command.h"
 #include "job/options.h"
 
@@ -17,6 +20,9 @@ namespace interslice::client {
 // line has.
 struct FillArguments : job::FillJobOptions {
   LocalRunArguments local;
+  // With --server only: DICOM peers of the server to store the DICOM
+  // results on (JobSpec.send_to).
+  std::vector<std::string> send_to;
 };
 
 void AddFillOptions(CLI::App& app, FillArguments& args);

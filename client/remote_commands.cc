@@ -399,42 +399,97 @@ int RunInterpolate(const Connection& connection, const RunArguments& args,
 }
 
 // `interslice fill --server`: the segmentation (uploaded under its own file
-// name, which spec.fill.segmentation_file names) and the reference series'
-// files (under "series/<relative path>", so no name can equal the
-// segmentation's), in one Interpolate call.
-int RunFillRemote(const Connection& connection, const FillArguments& args,
-                  double deadline_seconds) {
-  absl::StatusOr<FillJobSpec> spec = job::BuildFillJobSpec(args);
+// name, which spec.fill.segmentation_file names), its label names if given
+// (under "label-names/<file name>", spec.fill.label_names_file) and the
+// reference series' files (under "series/<file name>"), so that no name of
+// one can equal another's. The header and the files in upload order.
+absl::StatusOr<v1::UploadHeader> PrepareFillUpload(
+    const FillArguments& args, double deadline_seconds,
+    const std::string& label, std::vector<LocalFile>* files) {
+  FillArguments checked = args;
+  // The output folder belongs to the client (or to `fetch`, for a detached
+  // job); BuildFillJobSpec wants one.
+  if (checked.out.empty()) checked.out = ".";
+  absl::StatusOr<FillJobSpec> spec = job::BuildFillJobSpec(checked);
   if (!spec.ok()) {
-    return Fail(std::string(
-        job::ForDoor(spec.status(), job::ErrorDoor::kCommandLine).message()));
+    return job::ForDoor(spec.status(), job::ErrorDoor::kCommandLine);
   }
   std::error_code ec;
   if (!fs::is_regular_file(spec->segmentation, ec)) {
-    return Fail("no such segmentation file: " + spec->segmentation);
+    return absl::NotFoundError("no such segmentation file: " +
+                               spec->segmentation);
+  }
+  if (!spec->label_names.empty() &&
+      !fs::is_regular_file(spec->label_names, ec)) {
+    return absl::NotFoundError("--label-names: no such file: " +
+                               spec->label_names);
   }
   absl::StatusOr<std::vector<LocalFile>> reference =
       CollectFiles(spec->reference);
-  if (!reference.ok()) return Fail(std::string(reference.status().message()));
-  const fs::path segmentation = fs::weakly_canonical(spec->segmentation, ec);
-  std::vector<LocalFile> files;
-  files.push_back(
+  if (!reference.ok()) return reference.status();
+  // A segmentation or label names kept in the series' folder are not part
+  // of the series.
+  std::vector<fs::path> named = {fs::weakly_canonical(spec->segmentation, ec)};
+  files->clear();
+  files->push_back(
       {spec->segmentation, fs::path(spec->segmentation).filename().string(),
        static_cast<int64_t>(fs::file_size(spec->segmentation, ec))});
+  std::string label_names_file;
+  if (!spec->label_names.empty()) {
+    named.push_back(fs::weakly_canonical(spec->label_names, ec));
+    label_names_file =
+        "label-names/" + fs::path(spec->label_names).filename().string();
+    files->push_back(
+        {spec->label_names, label_names_file,
+         static_cast<int64_t>(fs::file_size(spec->label_names, ec))});
+  }
   for (LocalFile& f : *reference) {
-    // A segmentation kept in the series' folder is not part of the series.
-    if (fs::weakly_canonical(f.path, ec) == segmentation) continue;
+    const fs::path canonical = fs::weakly_canonical(f.path, ec);
+    if (std::find(named.begin(), named.end(), canonical) != named.end()) {
+      continue;
+    }
     f.name = "series/" + f.name;
-    files.push_back(std::move(f));
+    files->push_back(std::move(f));
   }
   v1::UploadHeader header;
-  *header.mutable_spec() = job::ToWire(*spec, files.front().name);
-  header.set_file_count(static_cast<int>(files.size()));
+  *header.mutable_spec() =
+      job::ToWire(*spec, files->front().name, label_names_file);
+  for (const std::string& peer : args.send_to) {
+    header.mutable_spec()->add_send_to(peer);
+  }
+  header.mutable_options()->set_deadline_seconds(deadline_seconds);
+  header.mutable_options()->set_label(label);
+  header.set_file_count(static_cast<int>(files->size()));
   int64_t total = 0;
-  for (const LocalFile& f : files) total += f.size;
+  for (const LocalFile& f : *files) total += f.size;
   header.set_total_bytes(total);
-  return InterpolateCall(connection, header, files, args.out, args.local.report,
-                         args.local.quiet, deadline_seconds);
+  return header;
+}
+
+int RunFillRemote(const Connection& connection, const FillArguments& args,
+                  double deadline_seconds) {
+  std::vector<LocalFile> files;
+  absl::StatusOr<v1::UploadHeader> header =
+      PrepareFillUpload(args, 0, "", &files);
+  if (!header.ok()) return Fail(std::string(header.status().message()));
+  return InterpolateCall(connection, *header, files, args.out,
+                         args.local.report, args.local.quiet, deadline_seconds);
+}
+
+// A detached job: uploads `files` after `header` by Submit and prints the
+// job's id (the one line on stdout, for scripts).
+int SubmitCall(const Connection& connection, const v1::UploadHeader& header,
+               const std::vector<LocalFile>& files) {
+  auto stub = v1::InterSlice::NewStub(connection.channel());
+  grpc::ClientContext context;
+  connection.Authorize(context);
+  v1::SubmitResponse response;
+  auto writer = stub->Submit(&context, &response);
+  if (Upload(*writer, header, files)) writer->WritesDone();
+  const grpc::Status status = writer->Finish();
+  if (!status.ok()) return Fail(DescribeRpcError(status, connection.address()));
+  std::printf("%s\n", response.job_id().c_str());
+  return 0;
 }
 
 int RunSubmit(const Connection& connection, const RunArguments& args,
@@ -446,16 +501,18 @@ int RunSubmit(const Connection& connection, const RunArguments& args,
   absl::StatusOr<v1::UploadHeader> header =
       PrepareUpload(with_out, deadline_seconds, label, &files);
   if (!header.ok()) return Fail(std::string(header.status().message()));
-  auto stub = v1::InterSlice::NewStub(connection.channel());
-  grpc::ClientContext context;
-  connection.Authorize(context);
-  v1::SubmitResponse response;
-  auto writer = stub->Submit(&context, &response);
-  if (Upload(*writer, *header, files)) writer->WritesDone();
-  const grpc::Status status = writer->Finish();
-  if (!status.ok()) return Fail(DescribeRpcError(status, connection.address()));
-  std::printf("%s\n", response.job_id().c_str());
-  return 0;
+  return SubmitCall(connection, *header, files);
+}
+
+// `interslice fill --server ADDR --submit`: the same upload as a detached
+// job (then watch, fetch, list, cancel as for any job).
+int RunFillSubmit(const Connection& connection, const FillArguments& args,
+                  double deadline_seconds, const std::string& label) {
+  std::vector<LocalFile> files;
+  absl::StatusOr<v1::UploadHeader> header =
+      PrepareFillUpload(args, deadline_seconds, label, &files);
+  if (!header.ok()) return Fail(std::string(header.status().message()));
+  return SubmitCall(connection, *header, files);
 }
 
 // Watches until the job ends, reconnecting after transient failures. Fills
@@ -857,17 +914,58 @@ void RemoteCommands::RegisterFill(CLI::App& fill, FillArguments& args) {
   AddConnectionOptions(fill, connection_);
   fill.add_option("--deadline", deadline_seconds_,
                   "With --server: give up (and cancel the job) after this "
-                  "many seconds");
+                  "many seconds; with --submit: the server's limit on the "
+                  "job, seconds from acceptance");
+  fill.add_flag("--submit", fill_submit_,
+                "With --server: upload as a detached job and print its id "
+                "(then: watch, fetch, list, cancel); not with --out");
+  fill.add_option("--label", label_,
+                  "With --submit: free text shown by `list` (no PHI)");
+  fill.add_option("--send-to", args.send_to,
+                  "With --server: store the DICOM results (seg.dcm, "
+                  "rtstruct.dcm) on these DICOM peers of the server (names "
+                  "from its --dicom-peers file)")
+      ->delimiter(',');
+  // --out is where the in-process fill and the one-call form write; a
+  // detached job's files are written by `fetch` (checked in ExecuteFill and
+  // by the in-process fill's own check).
+  fill.get_option("--out")->required(false);
 }
 
 int RemoteCommands::ExecuteFill() {
-  if (fill_ == nullptr || !fill_->parsed() ||
-      fill_->get_option("--server")->count() == 0) {
-    return -1;
+  if (fill_ == nullptr || !fill_->parsed()) return -1;
+  const bool remote = fill_->get_option("--server")->count() > 0;
+  if (!remote) {
+    for (const char* option : {"--submit", "--label", "--send-to"}) {
+      if (fill_->get_option(option)->count() > 0) {
+        return Fail(
+            absl::StrCat(option, " needs --server ADDR (a job on a server)"));
+      }
+    }
+    return -1;  // in-process
   }
   if (deadline_seconds_ < 0) return Fail("--deadline must be >= 0");
+  if (fill_submit_ && !fill_args_->local.report.empty()) {
+    return Fail(
+        "--report: a detached job's report is written by `interslice fetch "
+        "JOB --report FILE`");
+  }
+  if (fill_submit_ && !fill_args_->out.empty()) {
+    return Fail(
+        "--out: a detached job's files are written by `interslice fetch JOB "
+        "--out DIR`");
+  }
+  if (!fill_submit_ && fill_->get_option("--label")->count() > 0) {
+    return Fail("--label needs --submit (it names a detached job)");
+  }
+  if (!fill_submit_ && fill_args_->out.empty()) {
+    return Fail("--out is required (or --submit for a detached job)");
+  }
   absl::StatusOr<Connection> connection = Connection::Open(connection_);
   if (!connection.ok()) return Fail(std::string(connection.status().message()));
+  if (fill_submit_) {
+    return RunFillSubmit(*connection, *fill_args_, deadline_seconds_, label_);
+  }
   return RunFillRemote(*connection, *fill_args_, deadline_seconds_);
 }
 

@@ -22,13 +22,16 @@ class RemoteCommands {
   void Register(CLI::App& app);
   // The exit code of the command that was parsed, or -1 if none of these.
   int Execute();
-  // Adds --server (and the other connection options) and --deadline to
-  // `fill`: with --server the fill runs on that server (one Interpolate
-  // call) and writes the same files as in-process. `fill` and `args` must
-  // outlive this object's use.
+  // Adds --server (and the other connection options), --deadline,
+  // --submit, --label and --send-to to `fill`: with --server the fill runs
+  // on that server (one Interpolate call) and writes the same files as
+  // in-process; with --server --submit it is uploaded as a detached job
+  // whose id is printed (watch, fetch, list and cancel then work as for
+  // any job). `fill` and `args` must outlive this object's use.
   void RegisterFill(CLI::App& fill, FillArguments& args);
-  // The exit code of a `fill` given --server, or -1 (not parsed, or no
-  // --server: the caller runs it in-process).
+  // The exit code of a `fill` given --server, or of one whose remote-only
+  // options lack it; -1 otherwise (not parsed, or in-process: the caller
+  // runs it).
   int ExecuteFill();
 
  private:
@@ -42,6 +45,7 @@ class RemoteCommands {
   std::string report_;
   bool all_ = false;
   bool quiet_ = false;
+  bool fill_submit_ = false;
   CLI::App* interpolate_ = nullptr;
   CLI::App* submit_ = nullptr;
   CLI::App* watch_ = nullptr;

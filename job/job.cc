@@ -144,19 +144,22 @@ class InterpolationJob final : public JobKind {
 
 class FillJob final : public JobKind {
  public:
-  FillJob(FillJobSpec spec, std::string segmentation_upload_name)
-      : spec_(std::move(spec)),
-        segmentation_upload_name_(std::move(segmentation_upload_name)) {}
+  // `uploads`: the segmentation, then the label names if the wire spec
+  // names them (empty for a job made from a core spec: its files are
+  // where the spec says).
+  FillJob(FillJobSpec spec, std::vector<NamedUpload> uploads)
+      : spec_(std::move(spec)), uploads_(std::move(uploads)) {}
 
   absl::string_view name() const override { return "fill"; }
-  // The segmentation and at least one file of its reference series.
-  int min_upload_files() const override { return 2; }
+  // The segmentation, its label names if any, and at least one file of its
+  // reference series.
+  int min_upload_files() const override {
+    return std::max<int>(2, static_cast<int>(uploads_.size()) + 1);
+  }
   // A fill job's DICOM results (SEG, RTSTRUCT) are delivered when it writes
   // any; one that writes none makes a delivery of no instances.
   bool writes_dicom() const override { return true; }
-  std::string segmentation_upload_name() const override {
-    return segmentation_upload_name_;
-  }
+  std::vector<NamedUpload> named_uploads() const override { return uploads_; }
 
   absl::Status UseSpool(const std::string& upload_dir,
                         const std::string& output_dir,
@@ -169,15 +172,23 @@ class FillJob final : public JobKind {
       }
     }
     std::sort(spec_.reference.begin(), spec_.reference.end());
-    spec_.segmentation.clear();
-    for (const auto& entry : fs::directory_iterator(
-             fs::path(upload_dir) / kSegmentationFolder, ec)) {
-      if (entry.is_regular_file(ec)) spec_.segmentation = entry.path().string();
-    }
-    if (spec_.segmentation.empty()) {
+    if (uploads_.empty()) {
       return absl::FailedPreconditionError(
-          "the fill job's segmentation file is missing from its upload");
+          "the fill job does not name its segmentation upload");
     }
+    // Each named upload where every door stores it.
+    std::vector<std::string> paths;
+    for (const NamedUpload& upload : uploads_) {
+      const fs::path path = fs::path(upload_dir) / upload.path;
+      if (!fs::is_regular_file(path, ec)) {
+        return absl::FailedPreconditionError(
+            absl::StrCat("the file that ", upload.field,
+                         " names is missing from the fill job's upload"));
+      }
+      paths.push_back(path.string());
+    }
+    spec_.segmentation = paths[0];
+    spec_.label_names = paths.size() > 1 ? paths[1] : "";
     if (spec_.reference.empty()) {
       return absl::FailedPreconditionError(
           "the fill job's upload holds no reference series files");
@@ -216,7 +227,7 @@ class FillJob final : public JobKind {
 
  private:
   FillJobSpec spec_;
-  const std::string segmentation_upload_name_;
+  const std::vector<NamedUpload> uploads_;
   bool relative_paths_ = false;
 };
 
@@ -227,7 +238,7 @@ std::unique_ptr<JobKind> MakeInterpolationJob(JobSpec spec) {
 }
 
 std::unique_ptr<JobKind> MakeFillJob(FillJobSpec spec) {
-  return std::make_unique<FillJob>(std::move(spec), "");
+  return std::make_unique<FillJob>(std::move(spec), std::vector<NamedUpload>());
 }
 
 absl::StatusOr<std::unique_ptr<JobKind>> MakeJobFromWire(
@@ -235,8 +246,16 @@ absl::StatusOr<std::unique_ptr<JobKind>> MakeJobFromWire(
   if (IsFillSpec(spec)) {
     absl::StatusOr<FillJobSpec> fill = FillJobSpecFromWire(spec);
     if (!fill.ok()) return fill.status();
-    return std::unique_ptr<JobKind>(std::make_unique<FillJob>(
-        *std::move(fill), spec.fill().segmentation_file()));
+    const v1::LabelFill& wire = spec.fill();
+    std::vector<NamedUpload> uploads = {
+        {"spec.fill.segmentation_file", wire.segmentation_file(),
+         SegmentationUploadPath(wire.segmentation_file())}};
+    if (!wire.label_names_file().empty()) {
+      uploads.push_back({"spec.fill.label_names_file", wire.label_names_file(),
+                         LabelNamesUploadPath(wire.label_names_file())});
+    }
+    return std::unique_ptr<JobKind>(
+        std::make_unique<FillJob>(*std::move(fill), std::move(uploads)));
   }
   absl::StatusOr<JobSpec> interpolation = JobSpecFromWire(spec);
   if (!interpolation.ok()) return interpolation.status();
@@ -255,6 +274,17 @@ std::string SegmentationUploadPath(const std::string& client_name) {
     }
   }
   return absl::StrCat(kSegmentationFolder, "/segmentation", extension);
+}
+
+std::string LabelNamesUploadPath(const std::string& client_name) {
+  std::string lower = client_name;
+  std::transform(lower.begin(), lower.end(), lower.begin(),
+                 [](unsigned char c) { return std::tolower(c); });
+  std::string extension = ".csv";
+  for (const char* e : {".json", ".txt"}) {
+    if (absl::EndsWith(lower, e)) extension = e;
+  }
+  return absl::StrCat(kSegmentationFolder, "/label-names", extension);
 }
 
 std::string MediaTypeForArtifact(const std::string& name) {

@@ -44,6 +44,21 @@ struct JobResult {
   int64_t peak_rss_bytes = 0;
 };
 
+// A file of a job's upload that is not part of its series: the name it
+// arrives under and where the server keeps it.
+struct NamedUpload {
+  // The wire field that names the file, for errors
+  // ("spec.fill.segmentation_file").
+  std::string field;
+  // FileChunk.file_name as the client sent it (compared exactly), or the
+  // name the DICOM node's rule gives a received file. May carry patient data:
+  // never logged or echoed.
+  std::string client_name;
+  // Where the file is stored, relative to the upload folder: always below a
+  // subfolder, never at the top level where the series' files are read.
+  std::string path;
+};
+
 class JobKind {
  public:
   virtual ~JobKind() = default;
@@ -56,17 +71,19 @@ class JobKind {
   virtual int min_upload_files() const = 0;
   // Whether the job writes DICOM results (needed to deliver to a peer).
   virtual bool writes_dicom() const = 0;
-  // The uploaded file (by FileChunk.file_name) that is the job's
-  // segmentation, stored at SegmentationUploadPath() in the upload folder;
-  // empty for kinds without one.
-  virtual std::string segmentation_upload_name() const { return ""; }
+  // The uploaded files the job takes by name rather than as part of its
+  // series (a fill's segmentation and label names), each exactly once; empty
+  // for kinds without any. Every door that fills a job's upload folder (the
+  // gRPC upload, the DICOM node's received files) stores them where these
+  // say, and UseSpool reads them from there.
+  virtual std::vector<NamedUpload> named_uploads() const { return {}; }
 
   // Points the job at a server's spool: it reads its files from
-  // `upload_dir` (series files at its top level, a segmentation where
-  // SegmentationUploadPath puts it) and writes into `output_dir`;
-  // max_output_voxels > 0 replaces the core's default limit. The report's
-  // artifact paths become relative to `output_dir`. FAILED_PRECONDITION
-  // when the files the job needs are not there.
+  // `upload_dir` (series files at its top level, each named upload at its
+  // path) and writes into `output_dir`; max_output_voxels > 0 replaces the
+  // core's default limit. The report's artifact paths become relative to
+  // `output_dir`. FAILED_PRECONDITION when the files the job needs are not
+  // there.
   virtual absl::Status UseSpool(const std::string& upload_dir,
                                 const std::string& output_dir,
                                 int64_t max_output_voxels) = 0;
@@ -93,6 +110,13 @@ absl::StatusOr<std::unique_ptr<JobKind>> MakeJobFromWire(
 // DICOM reader). Kept out of the folder's top level so that a SEG or
 // RTSTRUCT is never read as part of the reference series.
 std::string SegmentationUploadPath(const std::string& client_name);
+
+// Where a job's uploaded label names (a colour table or JSON sidecar,
+// core/labels/segment_names.h) are stored, beside the segmentation:
+// "segmentation/label-names" + the extension of `client_name` (".csv",
+// ".txt" or ".json", which selects the reader; the wire check refuses
+// any other).
+std::string LabelNamesUploadPath(const std::string& client_name);
 
 // "distance"/"mask"/... file name -> its media type (application/dicom,
 // model/stl, ...).

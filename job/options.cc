@@ -5,6 +5,7 @@
 #include <set>
 
 #include "absl/strings/ascii.h"
+#include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
@@ -167,6 +168,14 @@ constexpr OptionDef<FO> kFillOptions[] = {
      &FO::intensity_method,
      "Grey values of the intensity series a finer grid (--factor, --spacing) "
      "writes for the DICOM outputs to lie on: morph or linear (as run)"},
+    {"label_names", "spec.fill.label_names_file", ValueKind::kText,
+     &FO::label_names,
+     "Names, colours and codes of a label map's labels for seg.dcm and "
+     "rtstruct.dcm: a colour table (.csv or .txt, one label a line: "
+     "label,name,R,G,B[,scheme^value^meaning]) or a JSON sidecar (.json); "
+     "default: a .seg.nrrd's own segments, else \"Label N\". Label maps "
+     "only (a SEG or RTSTRUCT names its segments itself)",
+     kCommandLine | kWire},
     {"uid_root", "spec.uid_root", ValueKind::kText, &FO::uid_root,
      "UID root of the DICOM outputs (default 2.25 UUIDs)"},
     {"random_uids", "spec.random_uids", ValueKind::kFlag, &FO::random_uids,
@@ -609,6 +618,18 @@ absl::StatusOr<FillJobSpec> BuildFillJobSpec(const FillJobOptions& o) {
   spec.intensity_method = o.intensity_method;
   spec.uid_root = o.uid_root;
   spec.random_uids = o.random_uids;
+  if (!o.label_names.empty()) {
+    // The extension selects the reader (core/labels/segment_names.h); the
+    // name itself is not echoed (on the wire it is the client's).
+    const std::string lower = absl::AsciiStrToLower(o.label_names);
+    if (!absl::EndsWith(lower, ".csv") && !absl::EndsWith(lower, ".txt") &&
+        !absl::EndsWith(lower, ".json")) {
+      return OptionError("label_names",
+                         "must name a colour table (.csv, .txt) or a JSON "
+                         "sidecar (.json)");
+    }
+    spec.label_names = o.label_names;
+  }
   if (absl::Status s = ValidateFillJobSpec(spec); !s.ok()) return s;
   return spec;
 }

@@ -121,6 +121,10 @@ struct FillJobOptions {
   std::string uid_root;
   bool random_uids = false;
   std::string previews = "png";  // as InterpolationOptions::previews
+  // A label map's names, colours and codes (a .csv/.txt colour table or
+  // .json sidecar): a path on the command line, the uploaded file's name on
+  // the wire. Not a rules-file key: DICOM input names its own segments.
+  std::string label_names;
 };
 
 // One row of an option table: the option's key, where the wire carries it,

@@ -220,12 +220,14 @@ v1::JobSpec ToWire(const JobSpec& spec) {
 }
 
 v1::JobSpec ToWire(const FillJobSpec& spec,
-                   const std::string& segmentation_file) {
+                   const std::string& segmentation_file,
+                   const std::string& label_names_file) {
   v1::JobSpec p;
   CommonToWire(spec, spec.fill.solver, spec.fill.z_resolution,
                spec.fill.band_radius_mm, p);
   v1::LabelFill* fill = p.mutable_fill();
   fill->set_segmentation_file(segmentation_file);
+  fill->set_label_names_file(label_names_file);
   for (int label : spec.fill.labels) fill->add_labels(label);
   if (spec.fill.key_slices.has_value()) {
     for (int64_t k : *spec.fill.key_slices) fill->add_key_slices(k);
@@ -321,8 +323,15 @@ absl::StatusOr<FillJobOptions> FillOptionsFromWire(const v1::JobSpec& p) {
         "spec.fill.segmentation_file is required (the FileChunk.file_name of "
         "the uploaded segmentation)");
   }
+  if (!f.label_names_file().empty() &&
+      f.label_names_file() == f.segmentation_file()) {
+    return absl::InvalidArgumentError(
+        "spec.fill.label_names_file names the segmentation's file; the label "
+        "names are a file of their own");
+  }
   FillJobOptions o;
   if (absl::Status s = CommonFromWire(p, o); !s.ok()) return s;
+  o.label_names = f.label_names_file();
   o.labels = absl::StrJoin(f.labels(), ",");
   o.key_slices = absl::StrJoin(f.key_slices(), ",");
   if (f.key_slices_size() > 0) {
@@ -379,6 +388,7 @@ absl::StatusOr<FillJobSpec> FillJobSpecFromWire(const v1::JobSpec& p) {
   absl::StatusOr<FillJobSpec> spec = BuildFillJobSpec(*options);
   if (!spec.ok()) return ForDoor(spec.status(), ErrorDoor::kWire, true);
   spec->segmentation.clear();
+  spec->label_names.clear();  // the upload's name; UseSpool sets the path
   spec->reference.clear();
   spec->output_dir.clear();
   return spec;

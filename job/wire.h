@@ -33,9 +33,11 @@ inline bool IsTerminalState(v1::JobState state) {
 // caller adds them).
 v1::JobSpec ToWire(const JobSpec& spec);
 // A fill job, with `segmentation_file` as the FileChunk.file_name under which
-// the segmentation is uploaded.
+// the segmentation is uploaded and `label_names_file` (empty: none) that of
+// its label names (spec.label_names, a local path, is not sent).
 v1::JobSpec ToWire(const FillJobSpec& spec,
-                   const std::string& segmentation_file);
+                   const std::string& segmentation_file,
+                   const std::string& label_names_file = "");
 
 // The option values a wire spec gives (errors name the wire field: unknown
 // enum values, fields that do not belong to this kind of job).

@@ -470,22 +470,32 @@ absl::Status JobManager::Enqueue(const std::shared_ptr<Job>& job) {
 absl::StatusOr<std::string> JobManager::SubmitLocalFiles(
     const v1::JobSpec& spec, const std::string& files_dir,
     const std::string& owner, const std::string& origin,
-    const std::string& segmentation_file) {
+    const std::map<std::string, std::string>& named_files) {
   absl::StatusOr<std::unique_ptr<job::JobKind>> kind =
       job::MakeJobFromWire(spec);
   if (!kind.ok()) return kind.status();
-  if ((*kind)->segmentation_upload_name().empty() !=
-      segmentation_file.empty()) {
+  // Exactly the files the kind takes by name, each where it keeps them.
+  const std::vector<job::NamedUpload> named = (*kind)->named_uploads();
+  std::vector<std::pair<std::string, fs::path>> placed;  // local -> target
+  for (const job::NamedUpload& upload : named) {
+    const auto it = named_files.find(upload.client_name);
+    if (it == named_files.end()) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("a job on received files needs the file that ",
+                       upload.field, " names"));
+    }
+    placed.emplace_back(it->second, upload.path);
+  }
+  if (placed.size() != named_files.size()) {
     return absl::InvalidArgumentError(
-        "a job on received files needs a segmentation file exactly when its "
-        "kind takes one (a fill)");
+        "a job on received files was given a file its kind does not take");
   }
   std::vector<fs::path> files;
   int64_t bytes = 0;
   std::error_code ec;
-  if (!segmentation_file.empty()) {
-    bytes += static_cast<int64_t>(fs::file_size(segmentation_file, ec));
-    if (ec) return absl::InternalError("cannot read a received segmentation");
+  for (const auto& [local, target] : placed) {
+    bytes += static_cast<int64_t>(fs::file_size(local, ec));
+    if (ec) return absl::InternalError("cannot read a received file");
   }
   for (const auto& entry : fs::directory_iterator(files_dir, ec)) {
     if (entry.path().extension() != ".dcm" || !entry.is_regular_file(ec)) {
@@ -499,8 +509,7 @@ absl::StatusOr<std::string> JobManager::SubmitLocalFiles(
   }
   v1::UploadHeader header;
   *header.mutable_spec() = spec;
-  header.set_file_count(static_cast<int32_t>(files.size()) +
-                        (segmentation_file.empty() ? 0 : 1));
+  header.set_file_count(static_cast<int32_t>(files.size() + placed.size()));
   header.set_total_bytes(bytes);
   absl::StatusOr<std::shared_ptr<Job>> job =
       Admit(header, /*ephemeral=*/false, std::nullopt, owner);
@@ -518,16 +527,15 @@ absl::StatusOr<std::string> JobManager::SubmitLocalFiles(
           "cannot place a received series into a job's upload folder");
     }
   }
-  if (!segmentation_file.empty()) {
-    const fs::path target =
-        fs::path(upload) / job::SegmentationUploadPath(segmentation_file);
+  for (const auto& [local, relative] : placed) {
+    const fs::path target = fs::path(upload) / relative;
     fs::create_directories(target.parent_path(), ec);
-    if (!ec) fs::create_hard_link(segmentation_file, target, ec);
-    if (ec) fs::copy_file(segmentation_file, target, ec);
+    if (!ec) fs::create_hard_link(local, target, ec);
+    if (ec) fs::copy_file(local, target, ec);
     if (ec) {
       Abandon(*job);
       return absl::ResourceExhaustedError(
-          "cannot place a received segmentation into a job's upload folder");
+          "cannot place a received file into a job's upload folder");
     }
   }
   (*job)->Update(

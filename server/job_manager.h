@@ -166,13 +166,17 @@ class JobManager {
   // hard-linked into the job's upload folder (`files_dir` is left as it
   // is; the caller deletes it). `origin` is recorded in the job's status.
   // Returns the job id.
-  // A fill job (spec.fill set) needs `segmentation_file`, the received SEG
-  // or RTSTRUCT (hard-linked to where server/fill_spec.h expects it; left as
-  // it is); the series in `files_dir` is its reference. Other jobs: empty.
+  // `named_files`: exactly the files the job's kind takes by name
+  // (job::JobKind::named_uploads), each under the name the spec gives it ->
+  // its path here (hard-linked where the kind keeps it; left as it is). A
+  // fill job (spec.fill set) takes the received SEG or RTSTRUCT under
+  // spec.fill.segmentation_file; the series in `files_dir` is its
+  // reference. Interpolation jobs: none. INVALID_ARGUMENT for a missing or
+  // extra file.
   absl::StatusOr<std::string> SubmitLocalFiles(
       const v1::JobSpec& spec, const std::string& files_dir,
       const std::string& owner, const std::string& origin,
-      const std::string& segmentation_file = "");
+      const std::map<std::string, std::string>& named_files = {});
   // Blocking. The upload failed: delete everything.
   void Abandon(const std::shared_ptr<Job>& job);
   // Blocking. An Interpolate call ended: cancel the job if it still runs and

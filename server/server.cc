@@ -206,8 +206,13 @@ absl::StatusOr<std::unique_ptr<dicom::SeriesAssembler>> StartDicomAssembler(
       [manager](const v1::JobSpec& spec, const std::string& dir,
                 const std::string& origin,
                 const std::string& segmentation_file) {
-        return manager->SubmitLocalFiles(spec, dir, "dicom", origin,
-                                         segmentation_file);
+        // A fill rule's spec names the segmentation it takes (job/wire.h);
+        // the node hands over the SEG or RTSTRUCT it received.
+        std::map<std::string, std::string> named;
+        if (!segmentation_file.empty()) {
+          named[spec.fill().segmentation_file()] = segmentation_file;
+        }
+        return manager->SubmitLocalFiles(spec, dir, "dicom", origin, named);
       });
 }
 

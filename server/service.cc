@@ -3,6 +3,7 @@
 #include <fcntl.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <atomic>
 #include <cerrno>
 #include <cstdio>
@@ -105,11 +106,12 @@ class UploadSink {
           manager_->Admit(stream_.header(), ephemeral_, deadline_, owner_);
       if (!job.ok()) return job.status();
       job_ = *job;
-      // Admit checked the spec: the kind says which upload, if any, is its
-      // segmentation.
+      // Admit checked the spec: the kind says which uploads, if any, it
+      // takes by name (a fill's segmentation and label names).
       absl::StatusOr<std::unique_ptr<job::JobKind>> kind =
           job::MakeJobFromWire(stream_.header().spec());
-      if (kind.ok()) segmentation_name_ = (*kind)->segmentation_upload_name();
+      if (kind.ok()) named_ = (*kind)->named_uploads();
+      received_.assign(named_.size(), false);
       return absl::OkStatus();
     }
     if (step.open_file) {
@@ -126,11 +128,11 @@ class UploadSink {
   // The client half-closed: the upload must be complete.
   absl::Status Finish() {
     INTERSLICE_SINK_RETURN_IF_ERROR(stream_.Finish());
-    if (!segmentation_name_.empty() && !has_segmentation_) {
+    for (size_t n = 0; n < named_.size(); ++n) {
+      if (received_[n]) continue;
       // The client's file names may carry patient data: not echoed.
       return absl::InvalidArgumentError(absl::StrCat(
-          "spec.fill.segmentation_file names none of the ",
-          stream_.header().file_count(),
+          named_[n].field, " names none of the ", stream_.header().file_count(),
           " uploaded files (compared exactly with FileChunk.file_name)"));
     }
     FsyncDir(spool_->UploadDir(job_->id()));
@@ -169,17 +171,20 @@ class UploadSink {
     std::snprintf(name, sizeof(name), "%06d.dcm", index);
     std::string path =
         (fs::path(spool_->UploadDir(job_->id())) / name).string();
-    // A fill job's segmentation goes where job::SegmentationUploadPath puts
-    // it, out of the reference series' folder level.
-    if (!segmentation_name_.empty() && client_name == segmentation_name_) {
-      if (has_segmentation_) {
-        return absl::InvalidArgumentError(
-            "two uploaded files carry the name given as "
-            "spec.fill.segmentation_file");
+    // A file the job takes by name (a fill's segmentation, its label names)
+    // goes where its kind says, out of the series' folder level.
+    const auto named = std::find_if(
+        named_.begin(), named_.end(),
+        [&](const auto& n) { return n.client_name == client_name; });
+    if (named != named_.end()) {
+      const size_t n = static_cast<size_t>(named - named_.begin());
+      if (received_[n]) {
+        return absl::InvalidArgumentError(absl::StrCat(
+            "two uploaded files carry the name given as ", named->field));
       }
-      has_segmentation_ = true;
-      const fs::path target = fs::path(spool_->UploadDir(job_->id())) /
-                              job::SegmentationUploadPath(client_name);
+      received_[n] = true;
+      const fs::path target =
+          fs::path(spool_->UploadDir(job_->id())) / named->path;
       std::error_code ec;
       fs::create_directories(target.parent_path(), ec);
       if (ec) return absl::InternalError("cannot create an upload folder");
@@ -224,10 +229,9 @@ class UploadSink {
   Spool* const spool_;
   Metrics* const metrics_;
   UploadStream stream_;
-  // The uploaded file that is the job's segmentation (its kind's
-  // segmentation_upload_name; empty for none), and whether it arrived.
-  std::string segmentation_name_;
-  bool has_segmentation_ = false;
+  // The uploads the job's kind takes by name, and which of them arrived.
+  std::vector<job::NamedUpload> named_;
+  std::vector<bool> received_;
   const bool ephemeral_;
   const std::optional<std::chrono::steady_clock::time_point> deadline_;
   const std::string owner_;

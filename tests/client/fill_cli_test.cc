@@ -181,6 +181,10 @@ TEST_F(FillCliTest, BadInputGivesOneLineAndExitCodeOne) {
   const std::string fractional_path = (dir_ / "fractional.nrrd").string();
   ASSERT_TRUE(WriteVolume(fractional, fractional_path).ok());
   const std::string out = " --out " + (dir_ / "out").string();
+  const std::string unknown_label = (dir_ / "unknown-label.csv").string();
+  std::ofstream(unknown_label) << "1,Bone\n9,Nothing\n";
+  const std::string bad_colour = (dir_ / "bad-colour.csv").string();
+  std::ofstream(bad_colour) << "label,name,R,G,B\n1,Bone,300,0,0\n";
   struct Case {
     std::string args;
     std::string message;
@@ -205,6 +209,26 @@ TEST_F(FillCliTest, BadInputGivesOneLineAndExitCodeOne) {
       {"fill " + good + " --reference " + kPhantom + " --seg --uid-root 1.02" +
            out,
        "--uid-root"},
+      // Label names: the wrong kind of file, a label the map does not hold,
+      // a bad row, a missing file.
+      {"fill " + good + " --reference " + kPhantom +
+           " --label-names names.xlsx" + out,
+       "--label-names: must name a colour table (.csv, .txt) or a JSON "
+       "sidecar (.json)"},
+      {"fill " + good + " --reference " + kPhantom + " --label-names " +
+           unknown_label + out,
+       "name label 9, which the label map does not hold (labels: 1, 2)"},
+      {"fill " + good + " --reference " + kPhantom + " --label-names " +
+           bad_colour + out,
+       "bad-colour.csv line 2: colour component '300' is not an integer "
+       "0..255"},
+      {"fill " + good + " --reference " + kPhantom + " --label-names " +
+           (dir_ / "none.csv").string() + out,
+       "cannot read the label names none.csv"},
+      // The detached form needs a server.
+      {"fill " + good + " --reference " + kPhantom + " --submit",
+       "--submit needs --server ADDR"},
+      {"fill " + good + " --reference " + kPhantom, "--out"},
   };
   for (const Case& c : cases) {
     const CommandResult r = RunCli(c.args);
@@ -388,6 +412,53 @@ TEST_F(FillCliTest, WritesSegAndRtStructOfALabelMap) {
   }
   EXPECT_EQ(dicom_artifacts, 2);
   EXPECT_EQ(j["polygon_key_slices"], 0);
+}
+
+// --label-names: a colour table names the labels of a label map; the names,
+// colours and codes reach the SEG's segments and the RTSTRUCT's ROIs.
+TEST_F(FillCliTest, LabelNamesReachSegAndRtStruct) {
+  const std::string labels = (dir_ / "labels.nii.gz").string();
+  ASSERT_TRUE(WriteVolume(*truth_, labels).ok());
+  const std::string names = (dir_ / "names.csv").string();
+  std::ofstream(names) << "label,name,R,G,B,code\n"
+                          "1,Skull,255,250,220,SCT^89546000^Bone of cranium\n"
+                          "2,Scalp,200,120,100\n";
+  const fs::path out = dir_ / "out";
+  const CommandResult r = RunCli(
+      "fill " + labels + " --reference " + kPhantom +
+      " --key-slices 0-27:3 --method linear --mesh none --volume nrrd --seg "
+      "--rtstruct --label-names " +
+      names + " --threads 2 --quiet --out " + out.string());
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  const ReferenceSeries reference = ReferenceOf(kPhantom);
+  absl::StatusOr<SegmentationInput> seg =
+      ReadDicomSegmentation((out / "seg.dcm").string(), reference);
+  ASSERT_TRUE(seg.ok()) << seg.status();
+  ASSERT_EQ(seg->segments.size(), 2u);
+  EXPECT_EQ(seg->segments[0].label, "Skull");
+  EXPECT_EQ(seg->segments[0].type.value, "89546000");
+  EXPECT_EQ(seg->segments[0].type.meaning, "Bone of cranium");
+  EXPECT_EQ(seg->segments[1].label, "Scalp");
+  absl::StatusOr<SegmentationInput> rt =
+      ReadRtStruct((out / "rtstruct.dcm").string(), reference);
+  ASSERT_TRUE(rt.ok()) << rt.status();
+  ASSERT_EQ(rt->segments.size(), 2u);
+  EXPECT_EQ(rt->segments[0].number, 1);
+  EXPECT_EQ(rt->segments[0].label, "Skull");
+  EXPECT_EQ(*rt->segments[0].rgb, (std::array<uint8_t, 3>{255, 250, 220}));
+  EXPECT_EQ(rt->segments[1].label, "Scalp");
+  EXPECT_EQ(*rt->segments[1].rgb, (std::array<uint8_t, 3>{200, 120, 100}));
+
+  // A SEG names its segments itself: label names are refused, nothing
+  // written.
+  const CommandResult refused =
+      RunCli("fill " + (out / "seg.dcm").string() + " --reference " + kPhantom +
+             " --label-names " + names + " --out " + (dir_ / "again").string());
+  EXPECT_EQ(refused.exit_code, 1) << refused.out;
+  EXPECT_THAT(refused.out,
+              HasSubstr("label names are for a label map; a SEG or RTSTRUCT "
+                        "names its segments itself"));
+  EXPECT_FALSE(fs::exists(dir_ / "again" / "seg.dcm"));
 }
 
 // An RTSTRUCT drawn on the phantom: two ROIs (a ring, i.e. a polygon with a

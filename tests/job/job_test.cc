@@ -35,7 +35,7 @@ TEST(JobKindTest, TheWireSpecChoosesTheKind) {
   EXPECT_EQ((*a)->name(), "interpolate");
   EXPECT_EQ((*a)->min_upload_files(), 1);
   EXPECT_FALSE((*a)->writes_dicom());
-  EXPECT_EQ((*a)->segmentation_upload_name(), "");
+  EXPECT_TRUE((*a)->named_uploads().empty());
   interpolation.mutable_segmentation()->set_enabled(true);
   EXPECT_TRUE((*MakeJobFromWire(interpolation))->writes_dicom());
 
@@ -45,7 +45,20 @@ TEST(JobKindTest, TheWireSpecChoosesTheKind) {
   ASSERT_TRUE(b.ok()) << b.status();
   EXPECT_EQ((*b)->name(), "fill");
   EXPECT_EQ((*b)->min_upload_files(), 2);
-  EXPECT_EQ((*b)->segmentation_upload_name(), "labels.nii.gz");
+  ASSERT_EQ((*b)->named_uploads().size(), 1u);
+  EXPECT_EQ((*b)->named_uploads()[0].client_name, "labels.nii.gz");
+  EXPECT_EQ((*b)->named_uploads()[0].path, "segmentation/segmentation.nii.gz");
+  EXPECT_EQ((*b)->named_uploads()[0].field, "spec.fill.segmentation_file");
+  // With label names: a second named upload beside the segmentation, and
+  // one more file at least.
+  fill.mutable_fill()->set_label_names_file("names/Colours.JSON");
+  absl::StatusOr<std::unique_ptr<JobKind>> c = MakeJobFromWire(fill);
+  ASSERT_TRUE(c.ok()) << c.status();
+  EXPECT_EQ((*c)->min_upload_files(), 3);
+  ASSERT_EQ((*c)->named_uploads().size(), 2u);
+  EXPECT_EQ((*c)->named_uploads()[1].client_name, "names/Colours.JSON");
+  EXPECT_EQ((*c)->named_uploads()[1].path, "segmentation/label-names.json");
+  EXPECT_EQ((*c)->named_uploads()[1].field, "spec.fill.label_names_file");
 
   v1::JobSpec bad;  // no threshold
   EXPECT_THAT(std::string(MakeJobFromWire(bad).status().message()),
@@ -59,6 +72,9 @@ TEST(JobKindTest, SegmentationUploadPathKeepsTheReaderChoosingExtension) {
   EXPECT_EQ(SegmentationUploadPath("x/y.nrrd"),
             "segmentation/segmentation.nrrd");
   EXPECT_EQ(SegmentationUploadPath("seg"), "segmentation/segmentation.dcm");
+  EXPECT_EQ(LabelNamesUploadPath("a.CSV"), "segmentation/label-names.csv");
+  EXPECT_EQ(LabelNamesUploadPath("b.txt"), "segmentation/label-names.txt");
+  EXPECT_EQ(LabelNamesUploadPath("c.json"), "segmentation/label-names.json");
   EXPECT_EQ(MediaTypeForArtifact("seg.dcm"), "application/dicom");
   EXPECT_EQ(MediaTypeForArtifact("surface.stl"), "model/stl");
 }
@@ -77,6 +93,16 @@ TEST(JobKindTest, FillInSpoolNeedsItsSegmentationAndSeries) {
   EXPECT_THAT(std::string(s.message()), HasSubstr("no reference series"));
   std::ofstream(upload / "000000.dcm") << "x";
   EXPECT_TRUE(fill->UseSpool(upload.string(), "out", 0).ok());
+
+  // Label names the spec names must be in the upload too.
+  wire.mutable_fill()->set_label_names_file("names.csv");
+  std::unique_ptr<JobKind> named = *MakeJobFromWire(wire);
+  s = named->UseSpool(upload.string(), "out", 0);
+  EXPECT_EQ(s.code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_THAT(std::string(s.message()),
+              HasSubstr("spec.fill.label_names_file names is missing"));
+  std::ofstream(upload / LabelNamesUploadPath("names.csv")) << "1,Bone\n";
+  EXPECT_TRUE(named->UseSpool(upload.string(), "out", 0).ok());
 }
 
 // One run through the interface, in place and in a spool: the same files,

@@ -241,6 +241,13 @@ TEST(BuildFillJobSpecTest, LabelsSlicesAndMethods) {
   EXPECT_EQ(spec->fill.solver.method, SolverMethod::kDirect);
   o.method = "auto";
   EXPECT_EQ(BuildFillJobSpec(o)->fill.method, FillMethod::kAuto);
+  // The label names' reader is chosen by the extension, in any case.
+  for (const char* names : {"n.csv", "N.TXT", "dir/n.Json"}) {
+    o.label_names = names;
+    absl::StatusOr<FillJobSpec> named = BuildFillJobSpec(o);
+    ASSERT_TRUE(named.ok()) << names << ": " << named.status();
+    EXPECT_EQ(named->label_names, names);
+  }
   for (auto [key, value, message] :
        std::vector<std::tuple<std::string, std::string, std::string>>{
            {"labels", "1,1", "label 1 is repeated"},
@@ -249,6 +256,7 @@ TEST(BuildFillJobSpecTest, LabelsSlicesAndMethods) {
            {"key_slices", "5-2", "is not a slice index"},
            {"method", "fast", "unknown method 'fast'"},
            {"volume", "nii-uncompressed", "unknown value"},
+           {"label_names", "names.xlsx", "must name a colour table (.csv"},
        }) {
     FillJobOptions bad = MinimalFill();
     ASSERT_TRUE(SetOption(bad, key, value).ok()) << key;

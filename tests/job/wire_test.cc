@@ -232,6 +232,35 @@ TEST(WireTest, FillSpecsRoundTripAndRefuseInterpolationFields) {
               HasSubstr("spec.fill.key_slices: -3 is not a slice index"));
 }
 
+// The label names travel as the name of a file uploaded with the job; the
+// local path never goes over the wire.
+TEST(WireTest, LabelNamesAreAnUploadedFileOfTheirOwn) {
+  FillJobOptions o;
+  o.segmentation = "labels.nrrd";
+  o.reference = {"series"};
+  o.out = "out";
+  o.label_names = "/home/someone/names.csv";
+  absl::StatusOr<FillJobSpec> spec = BuildFillJobSpec(o);
+  ASSERT_TRUE(spec.ok()) << spec.status();
+  const v1::JobSpec wire = ToWire(*spec, "labels.nrrd", "names/names.csv");
+  EXPECT_EQ(wire.fill().label_names_file(), "names/names.csv");
+  EXPECT_EQ(wire.SerializeAsString().find("/home/someone"), std::string::npos);
+  absl::StatusOr<FillJobSpec> back = FillJobSpecFromWire(wire);
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_TRUE(back->label_names.empty());  // the server's path comes later
+  EXPECT_EQ(ToWire(*spec, "labels.nrrd").fill().label_names_file(), "");
+
+  v1::JobSpec bad = wire;
+  bad.mutable_fill()->set_label_names_file("names.xlsx");
+  EXPECT_THAT(std::string(FillJobSpecFromWire(bad).status().message()),
+              HasSubstr("spec.fill.label_names_file: must name a colour "
+                        "table (.csv, .txt) or a JSON sidecar (.json)"));
+  bad.mutable_fill()->set_label_names_file("labels.nrrd");
+  EXPECT_THAT(std::string(FillJobSpecFromWire(bad).status().message()),
+              HasSubstr("spec.fill.label_names_file names the segmentation's "
+                        "file"));
+}
+
 TEST(WireTest, UnknownEnumValuesNameTheirField) {
   v1::JobSpec p;
   p.set_threshold(300);

@@ -14,6 +14,7 @@
 #include "absl/strings/str_cat.h"
 #include "core/dicom/series_reader.h"
 #include "core/labels/fill_job.h"
+#include "core/labels/segmentation_reader.h"
 #include "core/volume_io/volume_io.h"
 #include "grpcpp/grpcpp.h"
 #include "interslice/v1/interslice.grpc.pb.h"
@@ -349,6 +350,38 @@ TEST(FillServerTest, BadFillSpecsAreRefusedWithTheReason) {
     cases.push_back({"two segmentations", good, twice,
                      "two uploaded files carry the name"});
   }
+  // Label names: named but not uploaded, uploaded twice, not a colour
+  // table or JSON, the segmentation's own file.
+  const std::string names = dir / "names.csv";
+  std::ofstream(names) << "1,Bone\n2,Soft tissue\n";
+  {
+    v1::JobSpec s = good;
+    s.mutable_fill()->set_label_names_file("names.csv");
+    cases.push_back({"label names not uploaded", s, files,
+                     "spec.fill.label_names_file names none of the 5 "
+                     "uploaded files"});
+    std::vector<UploadFile> twice = files;
+    twice.push_back({names, "names.csv"});
+    twice.push_back({names, "names.csv"});
+    cases.push_back({"label names twice", s, twice,
+                     "two uploaded files carry the name given as "
+                     "spec.fill.label_names_file"});
+    // Only the segmentation and its names: no series.
+    cases.push_back({"no series",
+                     s,
+                     {files.back(), {names, "names.csv"}},
+                     "file_count must be >= 3"});
+  }
+  {
+    v1::JobSpec s = good;
+    s.mutable_fill()->set_label_names_file("names.xlsx");
+    cases.push_back({"label names as a spreadsheet", s, files,
+                     "spec.fill.label_names_file: must name a colour table"});
+    s.mutable_fill()->set_label_names_file("drawn.nii.gz");
+    cases.push_back({"label names = segmentation", s, files,
+                     "spec.fill.label_names_file names the segmentation's "
+                     "file"});
+  }
   for (const Case& c : cases) {
     SCOPED_TRACE(c.what);
     std::string id;
@@ -365,12 +398,172 @@ TEST(FillServerTest, BadFillSpecsAreRefusedWithTheReason) {
   EXPECT_EQ(r.exit_code, 1);
   EXPECT_THAT(r.err, HasSubstr("9"));
   EXPECT_THAT(r.err, HasSubstr("interslice: error:"));
+  // Accepted, but the label names name label 9, which the map does not
+  // hold: the job fails naming it, nothing to fetch.
+  const std::string unknown = dir / "unknown.csv";
+  std::ofstream(unknown) << "1,Bone\n9,Nothing\n";
+  r = Cli(Cat({"fill", labels, "--reference", kSeries, "--label-names", unknown,
+               "--seg", "--mesh", "none", "--out", dir / "unknown"},
+              server.ServerFlag()));
+  EXPECT_EQ(r.exit_code, 1);
+  EXPECT_THAT(r.err, HasSubstr("interslice: error: the label names name label "
+                               "9, which the label map does not hold"));
+  EXPECT_FALSE(fs::exists(dir / "unknown/seg.dcm"));
+  // A bad row names the line, not the server's or the client's path.
+  const std::string bad_row = dir / "bad-row.csv";
+  std::ofstream(bad_row) << "1,Bone,0,0\n";
+  r = Cli(Cat({"fill", labels, "--reference", kSeries, "--label-names", bad_row,
+               "--seg", "--mesh", "none", "--out", dir / "bad-row"},
+              server.ServerFlag()));
+  EXPECT_EQ(r.exit_code, 1);
+  EXPECT_THAT(r.err, HasSubstr("label-names.csv line 1: expected "
+                               "label,name[,R,G,B[,code]] (4 fields)"));
+  EXPECT_THAT(r.err, ::testing::Not(HasSubstr(dir / "")));
+  EXPECT_THAT(server.Log(), ::testing::Not(HasSubstr("bad-row.csv")));
   // The server carries on.
   r = Cli(Cat({"fill", labels, "--reference", kSeries, "--mesh", "none",
                "--out", dir / "ok"},
               server.ServerFlag()));
   EXPECT_EQ(r.exit_code, 0) << r.err;
   EXPECT_TRUE(fs::exists(dir / "ok/labels.nii.gz"));
+}
+
+// --label-names over the wire: the sidecar is uploaded with the job (and
+// not read as a slice of the series even when it sits in the series'
+// folder); its names and colours reach seg.dcm's SegmentLabel and
+// rtstruct.dcm's ROIName and ROIDisplayColor as in the in-process fill.
+TEST(FillServerTest, LabelNamesReachTheServersSegAndRtStruct) {
+  TempDir dir;
+  const std::string labels = WriteLabelMap(dir / "drawn.nii.gz");
+  fs::create_directories(dir / "series");
+  for (const auto& e : fs::directory_iterator(kSeries)) {
+    fs::copy_file(e.path(), fs::path(dir / "series") / e.path().filename());
+  }
+  const std::string names = dir / "series/names.json";
+  std::ofstream(names)
+      << R"([{"label": 1, "name": "Bone", "rgb": [250, 250, 210]},
+             {"label": 2, "name": "Soft tissue", "rgb": [200, 90, 80],
+              "type": {"scheme": "SCT", "value": "85756007",
+                       "meaning": "Tissue"}}])";
+  const std::vector<std::string> job = {
+      "fill",   labels,  "--reference", dir / "series", "--label-names",
+      names,    "--seg", "--rtstruct",  "--method",     "linear",
+      "--mesh", "none",  "--volume",    "nrrd",         "--quiet"};
+  CommandResult local = Cli(Cat(job, {"--out", dir / "local"}));
+  ASSERT_EQ(local.exit_code, 0) << local.err;
+  ServerProcess server({.spool = dir / "spool", .log = dir / "server.log"});
+  ASSERT_TRUE(server.Start());
+  CommandResult r =
+      Cli(Cat(Cat(job, {"--out", dir / "remote"}), server.ServerFlag()));
+  ASSERT_EQ(r.exit_code, 0) << r.err << server.Log();
+
+  absl::StatusOr<DicomSeries> series =
+      ReadDicomSeries({kSeries}, {}, ComputeContext{.threads = 1});
+  ASSERT_TRUE(series.ok()) << series.status();
+  const ReferenceSeries reference{series->image.grid,
+                                  series->series_instance_uid,
+                                  series->frame_of_reference_uid};
+  for (const std::string out : {dir / "local", dir / "remote"}) {
+    SCOPED_TRACE(out);
+    absl::StatusOr<SegmentationInput> seg =
+        ReadDicomSegmentation(out + "/seg.dcm", reference);
+    ASSERT_TRUE(seg.ok()) << seg.status();
+    ASSERT_EQ(seg->segments.size(), 2u);
+    EXPECT_EQ(seg->segments[0].label, "Bone");
+    EXPECT_EQ(seg->segments[1].label, "Soft tissue");
+    EXPECT_EQ(seg->segments[1].type.meaning, "Tissue");
+    absl::StatusOr<SegmentationInput> rt =
+        ReadRtStruct(out + "/rtstruct.dcm", reference);
+    ASSERT_TRUE(rt.ok()) << rt.status();
+    ASSERT_EQ(rt->segments.size(), 2u);
+    EXPECT_EQ(rt->segments[0].label, "Bone");
+    EXPECT_EQ(*rt->segments[0].rgb, (std::array<uint8_t, 3>{250, 250, 210}));
+    EXPECT_EQ(rt->segments[1].label, "Soft tissue");
+    // The same filled labels as in-process: the sidecar was not taken for
+    // a slice, and the label map is the same.
+    EXPECT_TRUE(ReadFileOrEmpty(out + "/labels.nrrd") ==
+                ReadFileOrEmpty(dir / "local/labels.nrrd"));
+  }
+}
+
+// The detached form: `fill --server --submit` prints the job's id; list,
+// watch, fetch and cancel then work as for an interpolation job, and fetch
+// gives the in-process fill's files.
+TEST(FillServerTest, SubmittedFillIsWatchedListedAndFetched) {
+  TempDir dir;
+  const std::string labels = WriteLabelMap(dir / "drawn.nii.gz");
+  RunLocally(labels, kSeries, dir / "local");
+  ServerProcess server({.spool = dir / "spool", .log = dir / "server.log"});
+  ASSERT_TRUE(server.Start());
+  CommandResult r =
+      Cli(Cat({"fill", labels, "--reference", kSeries, "--method", "direct",
+               "--volume", "nii,nrrd", "--mesh", "stl", "--submit", "--label",
+               "fill of the week", "--deadline", "600"},
+              server.ServerFlag()));
+  ASSERT_EQ(r.exit_code, 0) << r.err << server.Log();
+  std::string id = r.out;
+  while (!id.empty() && (id.back() == '\n' || id.back() == '\r')) id.pop_back();
+  ASSERT_FALSE(id.empty());
+  EXPECT_EQ(id.find('\n'), std::string::npos) << "one line: the id";
+
+  CommandResult list = Cli(Cat({"list", "--all"}, server.ServerFlag()));
+  ASSERT_EQ(list.exit_code, 0) << list.err;
+  EXPECT_THAT(list.out, HasSubstr(id));
+  EXPECT_THAT(list.out, HasSubstr("fill of the week"));
+  CommandResult watch = Cli(Cat({"watch", id}, server.ServerFlag()));
+  ASSERT_EQ(watch.exit_code, 0) << watch.err << server.Log();
+  EXPECT_THAT(watch.out, HasSubstr("job " + id + " succeeded"));
+  r = Cli(Cat(
+      {"fetch", id, "--out", dir / "fetched", "--report", dir / "fetched.json"},
+      server.ServerFlag()));
+  ASSERT_EQ(r.exit_code, 0) << r.err;
+  ExpectSameResults(dir / "local", dir / "fetched");
+  std::ifstream in(dir / "fetched.json");
+  const nlohmann::json report = nlohmann::json::parse(in);
+  EXPECT_EQ(report["input"], "label-map");
+  EXPECT_EQ(report["method"], "direct");
+  // A finished job cannot be cancelled any more: it says so.
+  CommandResult cancel = Cli(Cat({"cancel", id}, server.ServerFlag()));
+  EXPECT_EQ(cancel.exit_code, 0) << cancel.err;
+  EXPECT_THAT(cancel.out, HasSubstr("job " + id + ": succeeded"));
+
+  // A queued or running one can: a second job, cancelled at once, ends
+  // cancelled (or, on a fast machine, succeeded before the cancel arrived).
+  r = Cli(Cat({"fill", labels, "--reference", kSeries, "--method", "auto",
+               "--factor", "4", "--submit"},
+              server.ServerFlag()));
+  ASSERT_EQ(r.exit_code, 0) << r.err;
+  std::string second = r.out;
+  while (!second.empty() && second.back() == '\n') second.pop_back();
+  cancel = Cli(Cat({"cancel", second}, server.ServerFlag()));
+  EXPECT_EQ(cancel.exit_code, 0) << cancel.err;
+  const v1::JobStatus ended = WaitForEnd(server, second);
+  EXPECT_TRUE(ended.state() == v1::JOB_STATE_CANCELLED ||
+              ended.state() == v1::JOB_STATE_SUCCEEDED)
+      << ended.state();
+  watch = Cli(Cat({"watch", second, "--quiet"}, server.ServerFlag()));
+  if (ended.state() == v1::JOB_STATE_CANCELLED) {
+    EXPECT_EQ(watch.exit_code, 1);
+    EXPECT_THAT(watch.err, HasSubstr("cancelled"));
+  }
+
+  // The detached form's own mistakes: one line each, before any upload.
+  for (const auto& [args, message] :
+       std::vector<std::pair<std::vector<std::string>, std::string>>{
+           {{"--submit", "--report", dir / "r.json"},
+            "--report: a detached job's report is written by `interslice "
+            "fetch JOB --report FILE`"},
+           {{"--submit", "--out", dir / "nowhere"},
+            "--out: a detached job's files are written by `interslice fetch "
+            "JOB --out DIR`"},
+           {{"--label", "x"}, "--label needs --submit"},
+           {{}, "--out is required (or --submit for a detached job)"},
+       }) {
+    r = Cli(Cat(Cat({"fill", labels, "--reference", kSeries}, args),
+                server.ServerFlag()));
+    EXPECT_EQ(r.exit_code, 1) << message;
+    EXPECT_THAT(r.err, HasSubstr(message));
+  }
 }
 
 }  // namespace

@@ -489,6 +489,10 @@ TEST_F(ConfigTest, FillRules) {
               HasSubstr("fill.method: unknown method 'fast'"));
   EXPECT_THAT(RuleError("  - {name: a, fill: {threshold: 3}}\n"),
               HasSubstr("fill.threshold: unknown key"));
+  // A received SEG or RTSTRUCT names its segments itself: the command
+  // line's and the wire's label names are no rules-file key.
+  EXPECT_THAT(RuleError("  - {name: a, fill: {label_names: names.csv}}\n"),
+              HasSubstr("fill.label_names: unknown key"));
   EXPECT_THAT(RuleError("  - {name: a, fill: {mesh: [vrml]}}\n"),
               HasSubstr("fill.mesh: unknown value 'vrml'"));
   EXPECT_THAT(RuleError("  - {name: a, fill: {labels: 3}}\n"),
