@@ -1109,22 +1109,27 @@ TEST(DicomEdgeTest, DrainMakesNoDicomJobs) {
   TempDir dir;
   const std::vector<std::string> flags = {"--dicom-peers", WritePeers(dir),
                                           "--rules", WriteRules(dir, 1, true)};
+  const std::vector<std::string> files = PhantomFiles();
   {
     DicomServer server(dir, "spool", flags);
     ASSERT_TRUE(server.up()) << server.Log();
-    const pid_t sender = StartProcess(
-        Cat({kStoreScu, "-aec", "INTERSLICE", "127.0.0.1", server.port()},
-            PhantomFiles()),
-        dir / "storescu.log");
-    ASSERT_TRUE(WaitUntil([&] { return server.PendingInstances() >= 3; }, 60));
-    // Drain while the association is open; it may end normally.
+    // An association open, mid-instance, when the drain begins (a timed
+    // storescu could finish first).
+    int stored = 0;
+    const int fd = StorePartOfSeries(server, files, 3, &stored);
+    ASSERT_GE(fd, 0) << server.Log();
+    ASSERT_EQ(stored, 3) << server.Log();
     EXPECT_EQ(server.Terminate(120), 0) << server.Log();
-    EXPECT_EQ(WaitProcess(sender, 60), 0)
-        << ReadFileOrEmpty(dir / "storescu.log");
+    ::close(fd);
     EXPECT_THAT(server.Log(), ::testing::Not(HasSubstr("made by rule")));
   }
   DicomServer again(dir, "spool", flags);
   ASSERT_TRUE(again.up()) << again.Log();
+  std::this_thread::sleep_for(std::chrono::seconds(3));  // past stable_seconds
+  EXPECT_TRUE(again.Jobs().empty()) << again.Log();
+  // The sender's retry after the restart: one job, of the whole series.
+  CommandResult store = StoreScu(again, {}, files);
+  ASSERT_EQ(store.exit_code, 0) << store.err;
   ASSERT_TRUE(WaitUntil([&] { return !again.Jobs().empty(); }, 60))
       << again.Log();
   EXPECT_THAT(again.Log(), HasSubstr("(28 instance(s))"));
