@@ -378,7 +378,12 @@ int RunJobWorker(int in_fd, int out_fd) {
   ComputeContext context;
   context.threads = request.threads();
   context.cancel = &token;
+  // Reports are frames on the protocol: one at a time, even if a stage
+  // broke ComputeContext's "never concurrently" (two at once interleave
+  // their bytes, and the server kills a worker whose frames do not parse).
+  std::mutex protocol_mutex;
   context.progress = [&](const ProgressEvent& e) {
+    std::lock_guard<std::mutex> lock(protocol_mutex);
     spool::v1::WorkerEvent event;
     spool::v1::WorkerProgress* p = event.mutable_progress();
     p->set_stage(e.stage);

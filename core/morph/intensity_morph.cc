@@ -334,6 +334,14 @@ absl::StatusOr<MorphedIntensity> MorphIntensity(
   std::atomic<bool> cancelled{false};
   absl::Status failure;
   std::mutex failure_mutex;
+  // The gaps run in parallel, but ComputeContext::Report must never be
+  // called concurrently (core/common/compute.h: a worker process writes each
+  // report as a frame of its protocol, and two at once corrupt it): one lock.
+  std::mutex report_mutex;
+  auto report = [&](double fraction) {
+    std::lock_guard<std::mutex> lock(report_mutex);
+    context.Report({.stage = "intensity", .fraction = fraction});
+  };
   auto fail = [&](absl::Status status) {
     std::lock_guard<std::mutex> lock(failure_mutex);
     if (failure.ok()) failure = std::move(status);
@@ -484,7 +492,7 @@ absl::StatusOr<MorphedIntensity> MorphIntensity(
     arena.execute([&] {
       tbb::parallel_for(int64_t{0}, gaps, [&](int64_t s) {
         register_gap(s);
-        context.Report({.stage = "intensity", .fraction = 0.0});
+        report(0.0);
       });
     });
   }
@@ -708,7 +716,7 @@ absl::StatusOr<MorphedIntensity> MorphIntensity(
     arena.execute([&] {
       tbb::parallel_for(int64_t{0}, gaps, [&](int64_t s) {
         write_gap(s);
-        context.Report({.stage = "intensity", .fraction = 0.5});
+        report(0.5);
       });
     });
   }

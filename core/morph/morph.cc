@@ -201,6 +201,14 @@ absl::StatusOr<MorphedField> StackMorph(const Volume<float>& slice_maps,
   std::atomic<bool> cancelled{false};
   absl::Status failure;
   std::mutex failure_mutex;
+  // The gaps run in parallel, but ComputeContext::Report must never be
+  // called concurrently (core/common/compute.h: a worker process writes each
+  // report as a frame of its protocol, and two at once corrupt it): one lock.
+  std::mutex report_mutex;
+  auto report = [&](double fraction) {
+    std::lock_guard<std::mutex> lock(report_mutex);
+    context.Report({.stage = "stack", .fraction = fraction});
+  };
   const double sx = g.spacing[0], sy = g.spacing[1];
   float* dst = out.stacked.field.data.data();
   const float* maps = slice_maps.data.data();
@@ -348,7 +356,7 @@ absl::StatusOr<MorphedField> StackMorph(const Volume<float>& slice_maps,
   arena.execute([&] {
     tbb::parallel_for(int64_t{0}, gaps, [&](int64_t s) {
       register_gap(s);
-      context.Report({.stage = "stack", .fraction = 0.0});
+      report(0.0);
     });
   });
   if (cancelled.load()) return context.CheckCancelled();

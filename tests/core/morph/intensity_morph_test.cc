@@ -1,12 +1,16 @@
 #include "core/morph/intensity_morph.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdint>
+#include <chrono>
 #include <cstring>
 #include <random>
+#include <thread>
 #include <vector>
 
+#include "core/common/compute.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 
@@ -385,6 +389,34 @@ TEST(MorphIntensityTest, ResultDoesNotDependOnThreads) {
                           TestOptions(), two);
   ASSERT_TRUE(a.ok() && b.ok());
   EXPECT_EQ(a->values.data, b->values.data);
+}
+
+// ComputeContext::Report is never called concurrently (compute.h). The
+// gaps are registered in parallel; their reports once came from every
+// thread at once, and a worker process, which writes each report as a frame
+// of its protocol to the server, interleaved them: the server found the
+// frames corrupt and killed the job (seen as a rule's job "cancelled" in the
+// deployment test). The callback holds each report for a moment so that an
+// overlap shows.
+TEST(MorphIntensityTest, ProgressIsNeverReportedConcurrently) {
+  const Volume<float> keys = DiscSlices({16, 22, 30, 34, 38, 42}, 30);
+  const std::vector<double> positions = {0.0, 4.0, 8.0, 12.0, 16.0, 20.0};
+  const Grid target = Target(keys, 21, 1.0);
+  std::atomic<int> inside{0}, most{0}, calls{0};
+  ComputeContext context;
+  context.threads = 2;
+  context.progress = [&](const ProgressEvent&) {
+    const int now = ++inside;
+    most = std::max(most.load(), now);
+    ++calls;
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    --inside;
+  };
+  auto morphed = MorphIntensity(keys, positions, target, std::nullopt, nullptr,
+                                TestOptions(), context);
+  ASSERT_TRUE(morphed.ok()) << morphed.status();
+  EXPECT_GE(calls.load(), 10);  // two reports a gap
+  EXPECT_EQ(most.load(), 1);
 }
 
 TEST(MorphIntensityTest, BadInputIsAnErrorNamingIt) {

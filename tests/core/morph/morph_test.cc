@@ -1,8 +1,11 @@
 #include "core/morph/morph.h"
 
 #include <algorithm>
+#include <atomic>
+#include <chrono>
 #include <cmath>
 #include <cstdint>
+#include <thread>
 #include <vector>
 
 #include "core/stack/stacking.h"
@@ -153,6 +156,34 @@ TEST(StackMorphTest, ResultDoesNotDependOnThreadCount) {
   auto b = StackMorph(maps, plan, SmallOptions(), int64_t{1} << 30, two);
   ASSERT_TRUE(a.ok() && b.ok());
   EXPECT_EQ(a->stacked.field.data, b->stacked.field.data);
+}
+
+// The gaps are registered in parallel, but ComputeContext::Report is never
+// called concurrently (compute.h): a worker process writes each report as a
+// frame of its protocol, and two at once corrupt it.
+TEST(StackMorphTest, ProgressIsNeverReportedConcurrently) {
+  // Four slices (three gaps, registered concurrently with 2 threads).
+  Volume<float> maps = TwoDiscs(20, 30, 32, 8);
+  const Volume<float> more = TwoDiscs(38, 44, 32, 8);
+  maps.grid.size[2] = 4;
+  maps.data.insert(maps.data.end(), more.data.begin(),
+                   more.data.begin() + 2 * kN * kN);
+  const StackPlan plan = UniformStackPlan(4, 4.0, 4);
+  std::atomic<int> inside{0}, most{0}, calls{0};
+  ComputeContext context;
+  context.threads = 2;
+  context.progress = [&](const ProgressEvent&) {
+    const int now = ++inside;
+    most = std::max(most.load(), now);
+    ++calls;
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    --inside;
+  };
+  auto stacked = StackMorph(maps, plan, SmallOptions(), int64_t{1} << 30,
+                            context);
+  ASSERT_TRUE(stacked.ok()) << stacked.status();
+  EXPECT_GE(calls.load(), 3);  // one report a gap at least
+  EXPECT_EQ(most.load(), 1);
 }
 
 TEST(StackMorphTest, RejectsBadOptionsAndHonoursCancellation) {
