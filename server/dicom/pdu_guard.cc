@@ -263,6 +263,11 @@ absl::Status PduGuard::FeedCommand(const unsigned char* data, size_t n) {
   while (n > 0) {
     if (element_left_ > 0) {
       const uint64_t take = std::min<uint64_t>(element_left_, n);
+      if (element_ == 0x0800) {  // CommandDataSetType (US): keep its value
+        for (uint64_t i = 0; i < take && data_set_type_fill_ < 2; ++i) {
+          data_set_type_[data_set_type_fill_++] = data[i];
+        }
+      }
       element_left_ -= take;
       data += take;
       n -= static_cast<size_t>(take);
@@ -297,6 +302,20 @@ absl::Status PduGuard::FeedCommand(const unsigned char* data, size_t n) {
     if (length == 0xFFFFFFFFu) {
       return Fail("a command element of undefined length");
     }
+    // DCMTK allocates an element's whole declared length before it reads
+    // the value: a command element longer than a command set may be would
+    // cost that much memory whether or not its bytes ever come (fuzzer
+    // finding: 4 GiB).
+    if (length > limits_.max_command_bytes) {
+      return Fail(absl::StrCat("a command element of ", length,
+                               " bytes (a command set has at most ",
+                               limits_.max_command_bytes, ")"));
+    }
+    element_ = element;
+    if (element == 0x0800) {
+      if (length != 2) return Fail("a CommandDataSetType that is not a US");
+      data_set_type_fill_ = 0;
+    }
     element_left_ = length;
   }
   return absl::OkStatus();
@@ -308,6 +327,13 @@ absl::Status PduGuard::EndCommand() {
   }
   command_bytes_ = 0;
   command_elements_ = 0;
+  element_ = 0;
+  // No CommandDataSetType (DCMTK refuses such a command): no data set.
+  const uint16_t type = data_set_type_fill_ == 2 ? Le16(data_set_type_) : 0x0101;
+  data_set_expected_ = type != 0x0101;
+  data_set_context_ = command_context_;
+  data_set_type_[0] = data_set_type_[1] = 0x01;
+  data_set_type_fill_ = 2;
   return absl::OkStatus();
 }
 
@@ -335,7 +361,17 @@ absl::Status PduGuard::FeedPData(const unsigned char* data, size_t n) {
       }
       pdv_command_ = (control & 1) != 0;
       pdv_last_ = (control & 2) != 0;
+      if (pdv_command_) {
+        command_context_ = context;
+      } else if (!data_set_expected_ || context != data_set_context_) {
+        return Fail(
+            "a data-set PDV that no command announced on its presentation "
+            "context");
+      }
       pdv_left_ = item_length - 2;
+      if (pdv_left_ == 0 && !pdv_command_ && pdv_last_) {
+        data_set_expected_ = false;
+      }
       if (pdv_left_ == 0 && pdv_command_ && pdv_last_) {
         if (absl::Status s = EndCommand(); !s.ok()) return s;
       }
@@ -350,6 +386,9 @@ absl::Status PduGuard::FeedPData(const unsigned char* data, size_t n) {
     n -= take;
     if (pdv_left_ == 0 && pdv_command_ && pdv_last_) {
       if (absl::Status s = EndCommand(); !s.ok()) return s;
+    }
+    if (pdv_left_ == 0 && !pdv_command_ && pdv_last_) {
+      data_set_expected_ = false;
     }
   }
   return absl::OkStatus();

@@ -20,8 +20,14 @@
 //  - command sets (PS3.7 6.3.1: implicit VR little endian, group 0000 only)
 //    made of elements DCMTK's dictionary knows as command elements, with
 //    defined lengths, at most max_command_bytes and 64 elements: no
-//    sequence can appear in one. Data-set fragments pass unread (the
-//    listener writes them to a file and scans it, dataset_scan.h).
+//    sequence can appear in one, and no element longer than a command set
+//    may be (DCMTK allocates the declared length first);
+//  - a data-set PDV only after a command whose CommandDataSetType
+//    (0000,0800) announces one (PS3.7 9.3: not 0x0101), on that command's
+//    presentation context, until its last fragment. Data-set fragments
+//    pass otherwise unread (the listener writes them to a file and scans
+//    it, dataset_scan.h). (Fuzzer finding: after a C-ECHO, data-set PDVs
+//    holding a command set with a 4 GiB element made DCMTK allocate it.)
 // Pure (no I/O, no clock): the connection wrapper feeds it and keeps time.
 #ifndef INTERSLICE_SERVER_DICOM_PDU_GUARD_H_
 #define INTERSLICE_SERVER_DICOM_PDU_GUARD_H_
@@ -97,6 +103,16 @@ class PduGuard {
   uint64_t element_left_ = 0;
   uint64_t command_bytes_ = 0;
   int command_elements_ = 0;
+  // CommandDataSetType (0000,0800) of the command being read, as it
+  // streams in (0x0101: no data set follows), and its context.
+  uint16_t element_ = 0;
+  unsigned char data_set_type_[2] = {0x01, 0x01};
+  int data_set_type_fill_ = 0;
+  uint8_t command_context_ = 0;
+  // Whether the last command announced a data set that has not ended yet,
+  // and on which presentation context it must come.
+  bool data_set_expected_ = false;
+  uint8_t data_set_context_ = 0;
 };
 
 }  // namespace interslice::server::dicom

@@ -276,5 +276,64 @@ TEST(PduGuardTest, PDataFramingAndTypes) {
   }
 }
 
+// Fuzzer finding: after a C-ECHO (no data set), data-set PDVs holding a
+// command set with a 4 GiB element went to DCMTK, which allocated it. A
+// data set comes only after a command that announces one, on its context.
+TEST(PduGuardTest, DataSetsOnlyAfterACommandThatAnnouncesOne) {
+  const std::string dataset = raw::NestedDataset("1.2.3.4", 3);
+  {
+    PduGuard guard;
+    ASSERT_TRUE(FeedAll(guard, Request()).ok());
+    ASSERT_TRUE(FeedAll(guard, raw::PData(1, true, true, raw::CEchoRq(1))).ok());
+    absl::Status s = FeedAll(guard, raw::PData(1, false, true, dataset));
+    ASSERT_FALSE(s.ok());
+    EXPECT_THAT(std::string(s.message()), HasSubstr("no command announced"));
+  }
+  {
+    // Announced on context 1, sent on context 3.
+    PduGuard guard;
+    ASSERT_TRUE(FeedAll(guard, Request(2)).ok());
+    ASSERT_TRUE(FeedAll(guard, raw::PData(1, true, true,
+                                          raw::CStoreRq(1, UID_CTImageStorage,
+                                                        "1.2.3.4")))
+                    .ok());
+    EXPECT_FALSE(FeedAll(guard, raw::PData(3, false, true, dataset)).ok());
+  }
+  {
+    // A stored instance's data set passes; a second one after its last
+    // fragment, with no command of its own, does not.
+    PduGuard guard;
+    ASSERT_TRUE(FeedAll(guard, Request()).ok());
+    ASSERT_TRUE(FeedAll(guard, raw::PData(1, true, true,
+                                          raw::CStoreRq(1, UID_CTImageStorage,
+                                                        "1.2.3.4")))
+                    .ok());
+    EXPECT_TRUE(FeedAll(guard, raw::PData(1, false, true, dataset)).ok());
+    EXPECT_FALSE(FeedAll(guard, raw::PData(1, false, true, dataset)).ok());
+  }
+  {
+    // A command element longer than a command set may be.
+    PduGuard guard;
+    ASSERT_TRUE(FeedAll(guard, Request()).ok());
+    std::string command = raw::CEchoRq(1);
+    command += std::string("\x00\x00\x10\x01\x02\x00\x00\xff", 8);
+    absl::Status s = FeedAll(guard, raw::PData(1, true, true, command));
+    ASSERT_FALSE(s.ok());
+    EXPECT_THAT(std::string(s.message()), HasSubstr("command element of"));
+  }
+  // The fuzzer's input (after its mode byte).
+  std::ifstream in(
+      std::string(INTERSLICE_SOURCE_DIR) +
+          "/tests/server/dicom/fuzz_cases/data-set-after-echo-4gib.bin",
+      std::ios::binary);
+  const std::string input((std::istreambuf_iterator<char>(in)),
+                          std::istreambuf_iterator<char>());
+  ASSERT_GT(input.size(), 1u);
+  PduGuard fuzzed;
+  absl::Status s = FeedAll(fuzzed, input.substr(1));
+  ASSERT_FALSE(s.ok());
+  EXPECT_THAT(std::string(s.message()), HasSubstr("no command announced"));
+}
+
 }  // namespace
 }  // namespace interslice::server::dicom
