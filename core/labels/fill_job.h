@@ -77,8 +77,8 @@ struct FillJobSpec {
   // The grey values of series-intensity/ (written on a finer grid): "morph"
   // (default) or "linear", as JobSpec::intensity_method (pipeline.h).
   std::string intensity_method = "morph";
-  std::string uid_root;                // DicomWriteOptions::uid_root
-  bool random_uids = false;            // DicomWriteOptions::random_uids
+  std::string uid_root;      // DicomWriteOptions::uid_root
+  bool random_uids = false;  // DicomWriteOptions::random_uids
   // "png", "dicom" (above); empty = none.
   std::vector<std::string> preview_formats;
   std::string output_dir;

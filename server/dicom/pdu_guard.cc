@@ -329,7 +329,8 @@ absl::Status PduGuard::EndCommand() {
   command_elements_ = 0;
   element_ = 0;
   // No CommandDataSetType (DCMTK refuses such a command): no data set.
-  const uint16_t type = data_set_type_fill_ == 2 ? Le16(data_set_type_) : 0x0101;
+  const uint16_t type =
+      data_set_type_fill_ == 2 ? Le16(data_set_type_) : 0x0101;
   data_set_expected_ = type != 0x0101;
   data_set_context_ = command_context_;
   data_set_type_[0] = data_set_type_[1] = 0x01;

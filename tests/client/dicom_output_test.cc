@@ -402,8 +402,7 @@ TEST_F(DicomOutputTest, IntensityMethodKeepsSourceSlicesAndSaysWhichItUsed) {
                                    "--out " +
                                    (dir_ / "bad").string());
   EXPECT_EQ(bad.exit_code, 1);
-  EXPECT_THAT(bad.out,
-              HasSubstr("--intensity-method: unknown value 'cubic'"));
+  EXPECT_THAT(bad.out, HasSubstr("--intensity-method: unknown value 'cubic'"));
 }
 
 // --dicom-compression rle: the intensity series is RLE Lossless and reads

@@ -16,16 +16,16 @@
 #include <cstdint>
 #include <string>
 
+#include "core/common/sha256.h"
 #include "google/protobuf/stubs/logging.h"
 #include "interslice/v1/interslice.pb.h"
-#include "core/common/sha256.h"
 #include "server/log_safe.h"
 #include "server/upload_stream.h"
 
 namespace {
 
-using interslice::server::IsLogSafe;
 using interslice::Sha256;
+using interslice::server::IsLogSafe;
 using interslice::server::UploadStep;
 using interslice::server::UploadStream;
 using interslice::server::UploadStreamLimits;

@@ -179,8 +179,8 @@ TEST(StackMorphTest, ProgressIsNeverReportedConcurrently) {
     std::this_thread::sleep_for(std::chrono::milliseconds(20));
     --inside;
   };
-  auto stacked = StackMorph(maps, plan, SmallOptions(), int64_t{1} << 30,
-                            context);
+  auto stacked =
+      StackMorph(maps, plan, SmallOptions(), int64_t{1} << 30, context);
   ASSERT_TRUE(stacked.ok()) << stacked.status();
   EXPECT_GE(calls.load(), 3);  // one report a gap at least
   EXPECT_EQ(most.load(), 1);

@@ -25,18 +25,18 @@
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
+#include "dcmtk/config/osconfig.h"
+#include "dcmtk/dcmdata/dcdeftag.h"
+#include "dcmtk/dcmdata/dcfilefo.h"
+#include "dcmtk/dcmdata/dcuid.h"
+#include "interslice/spool/v1/record.pb.h"
+#include "tests/server/dicom/raw_pdu.h"
 #include "tests/testing/files.h"
 #include "tests/testing/process.h"
 #include "tests/testing/server_process.h"
 #include "tests/testing/temp_dir.h"
 #include "tests/testing/tools.h"
 #include "tests/testing/wait_for.h"
-#include "dcmtk/config/osconfig.h"
-#include "dcmtk/dcmdata/dcuid.h"
-#include "dcmtk/dcmdata/dcdeftag.h"
-#include "dcmtk/dcmdata/dcfilefo.h"
-#include "interslice/spool/v1/record.pb.h"
-#include "tests/server/dicom/raw_pdu.h"
 
 namespace interslice::testing {
 namespace {
@@ -212,17 +212,21 @@ class DicomServer {
     ServerOptions options{
         .spool = dir / name,
         .log = dir / (name + ".log"),
-        .extra = Cat({"--metrics-listen", "127.0.0.1:0", "--auth-token-file",
-                      dir / "admin.tokens", "--admin-identity", "admin",
-                      "--dicom-listen", setup.listen, "--dicom-acse-timeout",
-                      "3"},
-                     extra),
+        .extra =
+            Cat({"--metrics-listen", "127.0.0.1:0", "--auth-token-file",
+                 dir / "admin.tokens", "--admin-identity", "admin",
+                 "--dicom-listen", setup.listen, "--dicom-acse-timeout", "3"},
+                extra),
         .threads_per_job = 1};
     if (!setup.tmpfs_size.empty()) {
       std::error_code ec;
       fs::create_directories(options.spool, ec);
-      options.command_prefix = {"/usr/bin/unshare", "-m", "--propagation",
-                                "private", "/bin/sh", "-c",
+      options.command_prefix = {"/usr/bin/unshare",
+                                "-m",
+                                "--propagation",
+                                "private",
+                                "/bin/sh",
+                                "-c",
                                 "mount -t tmpfs -o size=" + setup.tmpfs_size +
                                     " tmpfs \"$0\" && exec \"$@\"",
                                 options.spool};
@@ -715,14 +719,14 @@ int StorePartOfSeries(const DicomServer& server,
   const int fd = RawAssociate(std::stoi(server.port()));
   if (fd < 0) return -1;
   for (int i = 0; i < count; ++i) {
-    const int status = RawStore(fd, SopInstanceOf(files[i]),
-                                raw::DatasetOf(files[i]), i + 1);
+    const int status =
+        RawStore(fd, SopInstanceOf(files[i]), raw::DatasetOf(files[i]), i + 1);
     if (status == 0x0000) ++*stored;
   }
   const std::string next = raw::DatasetOf(files[count]);
-  std::string bytes = raw::PData(
-      1, true, true,
-      raw::CStoreRq(count + 1, UID_CTImageStorage, SopInstanceOf(files[count])));
+  std::string bytes = raw::PData(1, true, true,
+                                 raw::CStoreRq(count + 1, UID_CTImageStorage,
+                                               SopInstanceOf(files[count])));
   for (size_t at = 0; at < next.size() / 2; at += 16000) {
     bytes += raw::PData(1, false, false, next.substr(at, 16000));
   }

@@ -471,8 +471,9 @@ TEST_F(OrthancEndToEndTest,
   ::kill(orthanc_pid, SIGKILL);
   ASSERT_GE(at_kill, 6) << server->Log();
   ASSERT_LT(at_kill, 28) << "Orthanc finished before it was killed";
-  WaitFor([&] { return server->Log().find("is incomplete") != std::string::npos; },
-          std::chrono::seconds(30));
+  WaitFor(
+      [&] { return server->Log().find("is incomplete") != std::string::npos; },
+      std::chrono::seconds(30));
   EXPECT_THAT(server->Log(), ::testing::HasSubstr("is incomplete"));
   std::this_thread::sleep_for(std::chrono::seconds(3));
   EXPECT_THAT(server->Log(),

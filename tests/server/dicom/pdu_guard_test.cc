@@ -284,7 +284,8 @@ TEST(PduGuardTest, DataSetsOnlyAfterACommandThatAnnouncesOne) {
   {
     PduGuard guard;
     ASSERT_TRUE(FeedAll(guard, Request()).ok());
-    ASSERT_TRUE(FeedAll(guard, raw::PData(1, true, true, raw::CEchoRq(1))).ok());
+    ASSERT_TRUE(
+        FeedAll(guard, raw::PData(1, true, true, raw::CEchoRq(1))).ok());
     absl::Status s = FeedAll(guard, raw::PData(1, false, true, dataset));
     ASSERT_FALSE(s.ok());
     EXPECT_THAT(std::string(s.message()), HasSubstr("no command announced"));
