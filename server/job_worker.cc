@@ -273,6 +273,16 @@ absl::StatusOr<job::JobResult> RunInWorkerProcess(
         out.last_stage.empty() ? "start" : out.last_stage,
         out.signal == SIGKILL ? ", or the worker ran out of memory" : ""));
   }
+  if (protocol_error && context.CheckCancelled().ok()) {
+    // Stopped by us because its output did not parse, not cancelled: say
+    // so (this once read "the job was cancelled", which sent people
+    // looking for a client that never cancelled anything).
+    return absl::InternalError(absl::StrFormat(
+        "the job's worker process wrote output the server cannot read "
+        "(protocol error) during stage '%s'; the worker was stopped and only "
+        "this job failed",
+        out.last_stage.empty() ? "start" : out.last_stage));
+  }
   if (sent_term || sent_kill) {
     absl::Status cancelled = context.CheckCancelled();
     return cancelled.ok() ? absl::CancelledError("the job was cancelled")

@@ -12,13 +12,43 @@
 #include <vector>
 
 #include "server/auth.h"
+#include "server/job_worker.h"
 #include "server/log_safe.h"
 #include "server/status_map.h"
 #include "server/upload_guard.h"
+#include "tests/testing/temp_dir.h"
 #include "tests/testing/wait_for.h"
 
 namespace interslice::server {
 namespace {
+
+using ::testing::HasSubstr;
+using ::testing::Not;
+
+// Regression: a worker whose output does not parse was stopped and reported
+// as "the job was cancelled" although nobody cancelled it.
+TEST(JobWorkerTest, UnreadableWorkerOutputIsAProtocolErrorNotACancellation) {
+  testing::TempDir dir;
+  const std::filesystem::path worker = dir.path() / "garbling-worker.sh";
+  {
+    // A frame header announcing 4 GiB, more than any frame may hold; then
+    // the worker stays alive until it is killed.
+    std::ofstream out(worker);
+    out << "#!/bin/sh\nprintf '\\377\\377\\377\\377'\nexec sleep 60\n";
+  }
+  std::filesystem::permissions(worker, std::filesystem::perms::owner_all);
+  WorkerOptions options;
+  options.executable = worker.string();
+  WorkerOutcome outcome;
+  const absl::StatusOr<job::JobResult> result = RunInWorkerProcess(
+      spool::v1::WorkerRequest(), ComputeContext(), options, &outcome);
+  ASSERT_FALSE(result.ok());
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kInternal)
+      << result.status();
+  EXPECT_THAT(result.status().message(), HasSubstr("protocol error"));
+  EXPECT_THAT(result.status().message(), Not(HasSubstr("cancelled")));
+  EXPECT_FALSE(outcome.crashed);
+}
 
 TEST(RedactPhiTest, ReplacesUidsButKeepsNumbers) {
   EXPECT_EQ(RedactPhi("several series: 1.2.840.113619.2.55.3 (CT, 4 images)."),
