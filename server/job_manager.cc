@@ -11,6 +11,7 @@
 #include "core/common/sha256.h"
 #include "job/job.h"
 #include "job/wire.h"
+#include "server/audit.h"
 #include "server/dicom/delivery.h"
 #include "server/dicom/retrieve.h"
 #include "server/log_safe.h"
@@ -35,6 +36,22 @@ std::string NewJobId() {
 }
 
 using job::IsTerminalState;
+
+// One audit record about `job` (its owner, and its origin when the DICOM
+// node made it); nothing without an audit trail.
+void AuditJob(AuditLog* audit, const std::shared_ptr<Job>& job,
+              const char* event, AuditOutcome outcome,
+              const std::string& detail) {
+  if (audit == nullptr) return;
+  AuditEvent e;
+  e.event = event;
+  e.outcome = outcome;
+  e.identity = job->owner();
+  e.source = job->Snapshot(false).origin();
+  e.job = job->id();
+  e.detail = detail;
+  audit->Record(std::move(e));
+}
 
 // A delivery of the job's results to a DICOM peer is still to be made: the
 // results must stay.
@@ -464,6 +481,7 @@ absl::Status JobManager::Enqueue(const std::shared_ptr<Job>& job) {
   }
   cv_.notify_all();  // the ticker waits on cv_ too
   spdlog::info("job={} queued", job->id());
+  AuditJob(options_.audit, job, "job.submitted", AuditOutcome::kSuccess, "");
   return absl::OkStatus();
 }
 
@@ -592,11 +610,32 @@ void JobManager::UpdateDelivery(const std::string& job_id,
                                 const v1::Delivery& delivery) {
   std::shared_ptr<Job> job = Find(job_id);
   if (job == nullptr) return;  // deleted meanwhile
+  bool ended = false;          // this update ends the delivery (audited once)
   job->Update([&](JobRecord& r) {
     for (v1::Delivery& d : *r.mutable_status()->mutable_deliveries()) {
-      if (d.peer() == delivery.peer()) d = delivery;
+      if (d.peer() != delivery.peer()) continue;
+      ended = d.state() != delivery.state() &&
+              (delivery.state() == v1::Delivery::DELIVERED ||
+               delivery.state() == v1::Delivery::FAILED);
+      d = delivery;
     }
   });
+  if (ended && options_.audit != nullptr) {
+    const bool delivered = delivery.state() == v1::Delivery::DELIVERED;
+    AuditEvent e;
+    e.event = delivered ? "delivery.delivered" : "delivery.failed";
+    e.outcome =
+        delivered ? AuditOutcome::kSuccess : AuditOutcome::kSeriousFailure;
+    e.identity = job->owner();
+    e.job = job_id;
+    e.peer = delivery.peer();
+    e.count = delivery.instances_sent();
+    e.detail = delivered ? absl::StrCat(delivery.instances_sent(), " of ",
+                                        delivery.instances_total(),
+                                        " instance(s) accepted")
+                         : delivery.last_error();
+    options_.audit->Record(std::move(e));
+  }
   Persist(job);
   bool remove = false;
   {
@@ -654,6 +693,8 @@ absl::StatusOr<v1::JobStatus> JobManager::Cancel(const std::string& id) {
     Persist(job);
     metrics_->JobFinished("cancelled");
     spdlog::info("job={} cancelled while queued", id);
+    AuditJob(options_.audit, job, "job.cancelled", AuditOutcome::kMinorFailure,
+             "cancelled while queued");
   } else if (!IsTerminalState(job->Snapshot(false).state())) {
     job->Update(
         [](JobRecord& r) { r.mutable_status()->set_cancel_requested(true); });
@@ -1008,6 +1049,9 @@ absl::Status JobManager::Publish(const std::shared_ptr<Job>& job,
   metrics_->JobFinished("succeeded");
   spdlog::info("job={} succeeded: {} artifact(s), {} bytes", id,
                artifacts->size(), result_bytes);
+  AuditJob(options_.audit, job, "job.succeeded", AuditOutcome::kSuccess,
+           absl::StrCat(artifacts->size(), " artifact(s), ", result_bytes,
+                        " bytes"));
   return absl::OkStatus();
 }
 
@@ -1036,6 +1080,10 @@ void JobManager::FailJob(const std::shared_ptr<Job>& job,
   metrics_->JobFinished(OutcomeName(job->Snapshot(false).state()));
   spdlog::info("job={} {}: {} ({})", id, cancelled ? "cancelled" : "failed",
                absl::StatusCodeToString(error.code()), message);
+  AuditJob(
+      options_.audit, job, cancelled ? "job.cancelled" : "job.failed",
+      cancelled ? AuditOutcome::kMinorFailure : AuditOutcome::kSeriousFailure,
+      absl::StrCat(absl::StatusCodeToString(error.code()), ": ", message));
 }
 
 absl::Status JobManager::RetrieveFromPeer(const std::shared_ptr<Job>& job,

@@ -37,6 +37,8 @@
 #include "server/spool.h"
 
 namespace interslice::server {
+
+class AuditLog;
 namespace dicom {
 class DeliveryQueue;
 }
@@ -58,6 +60,9 @@ struct ManagerOptions {
   int64_t max_upload_bytes = int64_t{2} << 30;
   int64_t max_output_voxels = int64_t{1} << 30;
   int64_t retention_seconds = 24 * 3600;
+  // Where job submissions, outcomes and deliveries are recorded (may be
+  // null: no audit trail). Outlives the manager.
+  AuditLog* audit = nullptr;
 };
 
 // A callback that can be switched off: a reactor closes it before it is

@@ -87,6 +87,15 @@ int main(int argc, char** argv) {
                  "repeatable");
   app.add_option("--metrics-listen", o.metrics_listen,
                  "HOST:PORT for Prometheus /metrics (off when empty)");
+  app.add_option("--audit-log", o.audit_log,
+                 "Append an audit trail here: JSON lines of job, delivery, "
+                 "DICOM association and authentication events, no patient "
+                 "data (docs/audit.md); off when empty");
+  app.add_option("--audit-max-bytes", o.audit_max_bytes,
+                 "Rotate the audit log at this size (PATH.1, PATH.2, ...)")
+      ->capture_default_str();
+  app.add_option("--audit-keep", o.audit_keep, "Rotated audit logs kept")
+      ->capture_default_str();
   app.add_flag("--reflection", o.reflection, "Enable gRPC server reflection");
   app.add_option("--log-format", o.log_format, "text or json (JSON lines)")
       ->capture_default_str();

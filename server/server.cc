@@ -18,6 +18,7 @@
 #include "core/dicom/series_reader.h"
 #include "grpcpp/grpcpp.h"
 #include "grpcpp/health_check_service_interface.h"
+#include "server/audit.h"
 #include "server/auth.h"
 #include "server/dicom/config.h"
 #include "server/dicom/delivery.h"
@@ -218,8 +219,9 @@ absl::StatusOr<std::unique_ptr<dicom::SeriesAssembler>> StartDicomAssembler(
 
 absl::StatusOr<std::unique_ptr<dicom::StorageScp>> StartDicomListener(
     const ServerOptions& options, dicom::SeriesAssembler* assembler,
-    Metrics* metrics) {
+    Metrics* metrics, AuditLog* audit) {
   dicom::StorageScpOptions o;
+  o.audit = audit;
   const size_t colon = options.dicom_listen.rfind(':');
   int port = -1;
   if (colon == std::string::npos ||
@@ -387,6 +389,17 @@ int RunServer(ServerOptions options) {
   absl::StatusOr<std::unique_ptr<Spool>> spool =
       Spool::Open(options.spool, options.spool_quota_bytes);
   if (!spool.ok()) return fail(spool.status());
+  // The audit trail is opened before anything it records starts, and
+  // destroyed (its queue written) after everything has stopped.
+  std::unique_ptr<AuditLog> audit;
+  if (!options.audit_log.empty()) {
+    absl::StatusOr<std::unique_ptr<AuditLog>> opened =
+        AuditLog::Open({.path = options.audit_log,
+                        .max_bytes = options.audit_max_bytes,
+                        .keep = options.audit_keep});
+    if (!opened.ok()) return fail(opened.status());
+    audit = *std::move(opened);
+  }
 
   ManagerOptions manager_options;
   manager_options.workers = options.workers;
@@ -397,6 +410,7 @@ int RunServer(ServerOptions options) {
   manager_options.retention_seconds = options.retention_seconds;
   manager_options.isolate_jobs = options.isolation == "process";
   manager_options.max_attempts = options.max_attempts;
+  manager_options.audit = audit.get();
   JobManager manager(manager_options, spool->get(), &metrics);
   // The outbox (declared after the manager, so stopped before it).
   std::unique_ptr<dicom::DeliveryQueue> outbox;
@@ -456,7 +470,7 @@ int RunServer(ServerOptions options) {
     }
     assembler = *std::move(a);
     absl::StatusOr<std::unique_ptr<dicom::StorageScp>> scp =
-        StartDicomListener(options, assembler.get(), &metrics);
+        StartDicomListener(options, assembler.get(), &metrics, audit.get());
     if (!scp.ok()) {
       manager.Shutdown(std::chrono::milliseconds(0));
       return fail(scp.status());
@@ -476,6 +490,7 @@ int RunServer(ServerOptions options) {
       options.upload_idle_timeout_seconds;
   service_options.uploads.total_timeout_seconds =
       options.upload_timeout_seconds;
+  service_options.audit = audit.get();
   InterSliceService service(service_options, &manager, spool->get(), &io,
                             &metrics);
   Forwarder forwarder(peer_credentials);
@@ -524,6 +539,12 @@ int RunServer(ServerOptions options) {
     spdlog::info("metrics on {} (port {})", options.metrics_listen,
                  metrics.port());
   }
+  if (audit != nullptr) {
+    audit->Record({.event = "server.started",
+                   .source = options.advertise,
+                   .detail = "listening; audit trail open"});
+  }
+
   if (!options.port_file.empty()) {
     std::string ports = absl::StrCat(port, "\n", metrics.port(), "\n");
     if (dicom_scp) absl::StrAppend(&ports, dicom_scp->port(), "\n");
@@ -560,6 +581,11 @@ int RunServer(ServerOptions options) {
   server->Wait();
   signal_thread.join();
   spdlog::info("stopped");
+  if (audit != nullptr) {
+    audit->Record({.event = "server.stopped",
+                   .source = options.advertise,
+                   .detail = "drained and stopped"});
+  }
   return 0;
 }
 

@@ -68,6 +68,10 @@ struct ServerOptions {
   // (atomically), for tests and scripts that listen on port 0; with a DICOM
   // listener, "<dicom port>\n" follows.
   std::string port_file;
+  // The audit trail (server/audit.h, docs/audit.md): empty = none.
+  std::string audit_log;
+  int64_t audit_max_bytes = int64_t{64} << 20;
+  int audit_keep = 10;
 
   // The DICOM node's receiving side (server/dicom/, docs/dicom-node.md).
   // Empty dicom_listen: no DICOM listener. "HOST:PORT"; port 0 picks one.

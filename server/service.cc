@@ -15,6 +15,7 @@
 #include "core/dicom/series_reader.h"
 #include "job/job.h"
 #include "job/wire.h"
+#include "server/audit.h"
 #include "server/log_safe.h"
 #include "server/status_map.h"
 #include "spdlog/spdlog.h"
@@ -831,8 +832,18 @@ absl::StatusOr<Caller> InterSliceService::Authenticate(
   if (!caller.ok()) {
     spdlog::warn("refused a call from {}: missing or wrong bearer token",
                  LogSafe(context->peer()));
+    AuditEvent e;
+    e.event = "auth.refused";
+    e.outcome = AuditOutcome::kMinorFailure;
+    e.source = context->peer();
+    e.detail = "missing or wrong bearer token";
+    Audit(std::move(e));
   }
   return caller;
+}
+
+void InterSliceService::Audit(AuditEvent event) const {
+  if (options_.audit != nullptr) options_.audit->Record(std::move(event));
 }
 
 std::optional<std::string> InterSliceService::ForwardTarget(
@@ -925,6 +936,14 @@ grpc::ServerWriteReactor<v1::ArtifactChunk>* InterSliceService::Fetch(
     return new ErrorWriteReactor<v1::ArtifactChunk>(grpc::Status(
         grpc::INVALID_ARGUMENT, "chunk_size must be in [0, 1 MiB]"));
   }
+  AuditEvent fetched;
+  fetched.event = "job.fetched";
+  fetched.identity = caller->identity;
+  fetched.source = context->peer();
+  fetched.job = job->id();
+  fetched.detail =
+      absl::StrCat("artifact ", info->name(), " from byte ", request->offset());
+  Audit(std::move(fetched));
   auto reader = std::make_shared<ArtifactReader>(
       (fs::path(spool_->OutputDir(job->id())) / info->name()).string(), *info,
       request->offset(), chunk);
@@ -946,11 +965,18 @@ grpc::ServerUnaryReactor* InterSliceService::Cancel(
     return reactor;
   }
   // Cancelling a queued job persists its record: off the reactor thread.
-  io_->Post([this, reactor, response, id, caller = *caller] {
+  io_->Post([this, reactor, response, id, caller = *caller,
+             source = context->peer()] {
     if (!FindVisibleJob(manager_, id, caller)) {
       reactor->Finish(grpc::Status(grpc::NOT_FOUND, "no such job"));
       return;
     }
+    AuditEvent e;
+    e.event = "job.cancel_requested";
+    e.identity = caller.identity;
+    e.source = source;
+    e.job = id;
+    Audit(std::move(e));
     absl::StatusOr<v1::JobStatus> status = manager_->Cancel(id);
     if (status.ok()) *response = *status;
     reactor->Finish(ToGrpcStatus(status.status()));
@@ -974,6 +1000,12 @@ grpc::ServerUnaryReactor* InterSliceService::List(
   for (v1::JobStatus& s : manager_->List(request->include_finished(), owner)) {
     *response->add_jobs() = std::move(s);
   }
+  AuditEvent listed;
+  listed.event = "jobs.listed";
+  listed.identity = caller->identity;
+  listed.source = context->peer();
+  listed.count = response->jobs_size();
+  Audit(std::move(listed));
   reactor->Finish(grpc::Status::OK);
   return reactor;
 }

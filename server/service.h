@@ -34,6 +34,9 @@
 
 namespace interslice::server {
 
+class AuditLog;
+struct AuditEvent;
+
 struct ServiceOptions {
   // Bearer tokens, one of which every call must carry; empty = none (the
   // identity then comes from a client certificate, if any).
@@ -43,6 +46,8 @@ struct ServiceOptions {
   int max_chunk_bytes = 1 << 20;
   UploadGuardOptions uploads;
   std::string version = "0.1.0";
+  // The audit trail (server/audit.h); null = none. Outlives the service.
+  AuditLog* audit = nullptr;
 };
 
 class InterSliceService final : public v1::InterSlice::CallbackService {
@@ -95,6 +100,8 @@ class InterSliceService final : public v1::InterSlice::CallbackService {
  private:
   absl::StatusOr<Caller> Authenticate(
       grpc::CallbackServerContext* context) const;
+  // Records `event` in the audit trail, if there is one.
+  void Audit(AuditEvent event) const;
   // The owner to forward a call for `job_id` to, if it is not held here.
   std::optional<std::string> ForwardTarget(
       const grpc::CallbackServerContext& context,

@@ -23,6 +23,7 @@
 #include "dcmtk/dcmnet/dul.h"
 #include "dcmtk/dcmnet/scpthrd.h"
 #include "dcmtk/dcmtls/tlslayer.h"
+#include "server/audit.h"
 #include "server/dicom/config.h"
 #include "server/dicom/series_assembler.h"
 #include "server/dicom/tls.h"
@@ -323,6 +324,13 @@ class AssociationScp : public DcmThreadSCP {
       // (for the sub-operations) accepted; it then gives up by itself.
       impl_->Count("presentation_contexts_refused", refused);
     }
+    if (impl_->options.audit != nullptr) {
+      AuditEvent e;
+      e.event = "association.accepted";
+      e.identity = absl::StrCat("dicom:", calling_, "->", called_);
+      e.source = source_;
+      impl_->options.audit->Record(std::move(e));
+    }
     spdlog::info(
         "dicom: association {} -> {} from {} accepted{}", LogSafe(calling_),
         LogSafe(called_), LogSafe(source_),
@@ -355,6 +363,18 @@ class AssociationScp : public DcmThreadSCP {
     const bool clean = released_ && !cut_off_;
     impl_->assembler->EndAssociation(association_, clean);
     association_ = 0;
+    if (impl_->options.audit != nullptr) {
+      AuditEvent e;
+      e.event = "association.ended";
+      e.outcome = clean && refused_ == 0 ? AuditOutcome::kSuccess
+                                         : AuditOutcome::kMinorFailure;
+      e.identity = absl::StrCat("dicom:", calling_, "->", called_);
+      e.source = source_;
+      e.count = stored_;
+      e.detail = absl::StrCat(clean ? "released" : "aborted", ": ", stored_,
+                              " instance(s) kept, ", refused_, " refused");
+      impl_->options.audit->Record(std::move(e));
+    }
     spdlog::info(
         "dicom: association {} -> {} {}: {} instance(s) kept, {} refused",
         LogSafe(calling_), LogSafe(called_), clean ? "released" : "aborted",

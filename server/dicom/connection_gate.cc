@@ -14,6 +14,7 @@
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "server/audit.h"
 #include "server/log_safe.h"
 #include "server/metrics.h"
 #include "spdlog/spdlog.h"
@@ -48,6 +49,14 @@ void RefusalLog::Refused(const char* reason, const std::string& source,
   if (log) {
     spdlog::warn("dicom: connection from {} refused or cut ({}): {}",
                  LogSafe(source), reason, LogSafe(detail));
+    if (audit_ != nullptr) {
+      AuditEvent e;
+      e.event = "association.refused";
+      e.outcome = AuditOutcome::kMinorFailure;
+      e.source = source;
+      e.detail = absl::StrCat(reason, ": ", detail);
+      audit_->Record(std::move(e));
+    }
   }
 }
 
@@ -71,6 +80,16 @@ void RefusalLog::Flush() {
         "dicom: {} more connection(s) refused or cut ({}) in the last 10 s, "
         "not logged one by one",
         n, reason);
+    if (audit_ != nullptr) {
+      AuditEvent e;
+      e.event = "association.refused";
+      e.outcome = AuditOutcome::kMinorFailure;
+      e.count = n;
+      e.detail = absl::StrCat(reason, ": ", n,
+                              " more refused in the last 10 s, not recorded "
+                              "one by one");
+      audit_->Record(std::move(e));
+    }
   }
 }
 

@@ -52,6 +52,7 @@
 #include "server/dicom/pdu_guard.h"
 
 namespace interslice::server {
+class AuditLog;
 class Metrics;
 }  // namespace interslice::server
 
@@ -78,7 +79,10 @@ inline constexpr char kOtherRejection[] = "rejected";
 // Counts and logs refused or cut connections (thread-safe).
 class RefusalLog {
  public:
-  explicit RefusalLog(Metrics* metrics) : metrics_(metrics) {}
+  // `audit` (may be null): every refusal logged one by one is also an
+  // audit record, and so is each sum of those that were not.
+  explicit RefusalLog(Metrics* metrics, AuditLog* audit = nullptr)
+      : metrics_(metrics), audit_(audit) {}
   // `source`: the peer's address; `detail`: what happened, no patient data.
   void Refused(const char* reason, const std::string& source,
                const std::string& detail);
@@ -92,6 +96,7 @@ class RefusalLog {
     int64_t suppressed = 0;
   };
   Metrics* const metrics_;
+  AuditLog* const audit_;
   std::mutex mu_;
   std::map<std::string, PerReason> reasons_;
 };

@@ -117,7 +117,7 @@ absl::StatusOr<std::unique_ptr<StorageScp>> StorageScp::Start(
   impl.per_source_limit = options.max_associations_per_source > 0
                               ? options.max_associations_per_source
                               : std::max(1, (options.max_associations + 1) / 2);
-  impl.refusals = std::make_unique<RefusalLog>(metrics);
+  impl.refusals = std::make_unique<RefusalLog>(metrics, options.audit);
 
   GateOptions gate;
   gate.host = options.host;

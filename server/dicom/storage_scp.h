@@ -36,6 +36,7 @@
 #include "server/dicom/peer.h"
 
 namespace interslice::server {
+class AuditLog;
 class Metrics;
 }  // namespace interslice::server
 
@@ -64,6 +65,9 @@ struct StorageScpOptions {
   // All three set: TLS (server/dicom/tls.h), peers must present a
   // certificate a listed CA signed. All empty: plain TCP.
   DicomTlsFiles tls;
+  // Associations accepted, ended and refused are recorded here (may be
+  // null: no audit trail). Outlives the listener.
+  AuditLog* audit = nullptr;
 };
 
 class StorageScp {

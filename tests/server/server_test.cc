@@ -21,6 +21,7 @@
 #include "dcmtk/dcmdata/dcfilefo.h"
 #include "grpcpp/grpcpp.h"
 #include "interslice/v1/interslice.grpc.pb.h"
+#include "nlohmann/json.hpp"
 #include "tests/testing/files.h"
 #include "tests/testing/process.h"
 #include "tests/testing/server_process.h"
@@ -736,6 +737,95 @@ TEST(ServerTest, BearerTokenAuth) {
   EXPECT_EQ(right.exit_code, 0) << right.err;
   // Health checks (Kubernetes probes) need no token.
   EXPECT_EQ(Cli(Cat({"health"}, server.ServerFlag())).exit_code, 0);
+}
+
+// The audit trail (--audit-log, docs/audit.md): who did what, from where,
+// to which job; DICOM associations accepted and refused; no patient data.
+TEST(ServerTest, AuditTrailRecordsWhoDidWhatWithoutPatientData) {
+  TempDir dir;
+  std::ofstream(dir / "tokens") << "alice:secret-a\n";
+  std::ofstream(dir / "peers.yaml")
+      << "peers:\n"
+         "  - {name: echo, ae_title: ECHOSCU, host: 127.0.0.1, port: 1}\n";
+  const std::string audit = dir / "audit.jsonl";
+  ServerProcess server(
+      {.spool = dir / "spool",
+       .log = dir / "server.log",
+       .extra = {"--auth-token-file", dir / "tokens", "--audit-log", audit,
+                 "--dicom-listen", "127.0.0.1:0", "--dicom-peers",
+                 dir / "peers.yaml"}});
+  ASSERT_TRUE(server.Start());
+  const std::vector<std::string> as_alice = {"--token-file",
+                                             dir / "alice-token"};
+  std::ofstream(dir / "alice-token") << "secret-a\n";
+
+  EXPECT_EQ(Cli(Cat({"list"}, server.ServerFlag())).exit_code, 1);
+  CommandResult submit =
+      Cli(Cat(Cat(Cat({"submit"}, as_alice), kSmallJob), server.ServerFlag()));
+  ASSERT_EQ(submit.exit_code, 0) << submit.err;
+  const std::string id = Trim(submit.out);
+  ASSERT_EQ(
+      Cli(Cat(Cat({"watch", id, "--quiet"}, as_alice), server.ServerFlag()))
+          .exit_code,
+      0);
+  CommandResult fetch = Cli(Cat(
+      Cat({"fetch", id, "--out", dir / "out"}, as_alice), server.ServerFlag()));
+  ASSERT_EQ(fetch.exit_code, 0) << fetch.err;
+  EXPECT_EQ(
+      Cli(Cat(Cat({"list", "--all"}, as_alice), server.ServerFlag())).exit_code,
+      0);
+  const std::string port = std::to_string(server.dicom_port());
+  EXPECT_EQ(
+      RunCommand({"/usr/bin/echoscu", "-aec", "INTERSLICE", "127.0.0.1", port})
+          .exit_code,
+      0);
+  EXPECT_NE(
+      RunCommand({"/usr/bin/echoscu", "-aec", "NOT_OURS", "127.0.0.1", port})
+          .exit_code,
+      0);
+  ASSERT_EQ(server.Stop(), 0) << server.Log();
+
+  std::ifstream in(audit);
+  std::vector<nlohmann::json> events;
+  std::string text;
+  for (std::string line; std::getline(in, line);) {
+    ASSERT_NO_THROW(events.push_back(nlohmann::json::parse(line))) << line;
+    text += line + "\n";
+  }
+  auto find = [&](const std::string& event) -> const nlohmann::json* {
+    for (const nlohmann::json& e : events) {
+      if (e["event"] == event) return &e;
+    }
+    return nullptr;
+  };
+  for (const char* event :
+       {"server.started", "auth.refused", "job.submitted", "job.succeeded",
+        "job.fetched", "jobs.listed", "association.accepted",
+        "association.ended", "association.refused", "server.stopped"}) {
+    EXPECT_NE(find(event), nullptr) << event << " missing in:\n" << text;
+  }
+  if (const nlohmann::json* e = find("job.submitted")) {
+    EXPECT_EQ((*e)["identity"], "alice");
+    EXPECT_EQ((*e)["job"], id);
+    EXPECT_EQ((*e)["atna"], "110107 Import");
+  }
+  if (const nlohmann::json* e = find("job.fetched")) {
+    EXPECT_EQ((*e)["identity"], "alice");
+    EXPECT_EQ((*e)["job"], id);
+    EXPECT_THAT((*e)["source"].get<std::string>(), HasSubstr("127.0.0.1"));
+  }
+  if (const nlohmann::json* e = find("auth.refused")) {
+    EXPECT_EQ((*e)["outcome"], "minor failure");
+    EXPECT_FALSE(e->contains("identity"));
+  }
+  if (const nlohmann::json* e = find("association.accepted")) {
+    EXPECT_EQ((*e)["identity"], "dicom:ECHOSCU->INTERSLICE");
+  }
+  if (const nlohmann::json* e = find("association.refused")) {
+    EXPECT_THAT((*e)["detail"].get<std::string>(), HasSubstr("called_ae"));
+  }
+  // The series' UIDs (and any other UID) never appear.
+  EXPECT_THAT(text, Not(::testing::ContainsRegex("[0-9]+(\\.[0-9]+){4,}")));
 }
 
 TEST(ServerTest, PatientDataNeverReachesLogsOrErrors) {

@@ -11,6 +11,8 @@
 #include <thread>
 #include <vector>
 
+#include "nlohmann/json.hpp"
+#include "server/audit.h"
 #include "server/auth.h"
 #include "server/job_worker.h"
 #include "server/log_safe.h"
@@ -24,6 +26,117 @@ namespace {
 
 using ::testing::HasSubstr;
 using ::testing::Not;
+
+std::vector<std::string> ReadLines(const std::filesystem::path& path) {
+  std::ifstream in(path);
+  std::vector<std::string> lines;
+  for (std::string line; std::getline(in, line);) lines.push_back(line);
+  return lines;
+}
+
+TEST(AuditLogTest, WritesOneJsonObjectPerLineWithTheAtnaEvent) {
+  testing::TempDir dir;
+  const std::string path = dir.path() / "audit.jsonl";
+  absl::StatusOr<std::unique_ptr<AuditLog>> log =
+      AuditLog::Open({.path = path});
+  ASSERT_TRUE(log.ok()) << log.status();
+  (*log)->Record({.event = "job.fetched",
+                  .identity = "alice",
+                  .source = "ipv4:127.0.0.1:5000",
+                  .job = "0123abcd",
+                  .detail = "artifact seg.dcm\nFORGED line"});
+  (*log)->Record({.event = "delivery.failed",
+                  .outcome = AuditOutcome::kSeriousFailure,
+                  .peer = "pacs",
+                  .count = 3,
+                  .detail = "series 1.2.840.113619.2.55.3.604688119 refused"});
+  (*log)->Flush();
+  const std::vector<std::string> lines = ReadLines(path);
+  ASSERT_EQ(lines.size(), 2u);
+  const nlohmann::json first = nlohmann::json::parse(lines[0]);
+  EXPECT_EQ(first["event"], "job.fetched");
+  EXPECT_EQ(first["atna"], "110106 Export");
+  EXPECT_EQ(first["outcome"], "success");
+  EXPECT_EQ(first["identity"], "alice");
+  EXPECT_EQ(first["job"], "0123abcd");
+  EXPECT_FALSE(first.contains("count"));
+  // One line stays one line, whatever the detail holds.
+  EXPECT_EQ(first["detail"], "artifact seg.dcm\\nFORGED line");
+  EXPECT_THAT(first["time"].get<std::string>(),
+              ::testing::MatchesRegex("20[0-9-]+T[0-9:]+\\.[0-9]{3}Z"));
+  const nlohmann::json second = nlohmann::json::parse(lines[1]);
+  EXPECT_EQ(second["atna"], "110104 DICOM Instances Transferred");
+  EXPECT_EQ(second["outcome"], "serious failure");
+  EXPECT_EQ(second["count"], 3);
+  EXPECT_EQ(second["peer"], "pacs");
+  // No UIDs: they identify a patient's study.
+  EXPECT_EQ(second["detail"], "series <uid> refused");
+}
+
+TEST(AuditLogTest, AppendsAcrossReopensAndRotatesKeepingTheNewestFiles) {
+  testing::TempDir dir;
+  const std::string path = dir.path() / "audit.jsonl";
+  std::ofstream(path) << "{\"earlier\":true}\n";
+  {
+    absl::StatusOr<std::unique_ptr<AuditLog>> log =
+        AuditLog::Open({.path = path, .max_bytes = 4096, .keep = 2});
+    ASSERT_TRUE(log.ok()) << log.status();
+    for (int i = 0; i < 200; ++i) {
+      (*log)->Record({.event = "jobs.listed",
+                      .count = i,
+                      .detail = std::string(100, 'x')});
+    }
+  }  // the destructor writes what is queued
+  EXPECT_TRUE(std::filesystem::exists(path + ".1"));
+  EXPECT_TRUE(std::filesystem::exists(path + ".2"));
+  EXPECT_FALSE(std::filesystem::exists(path + ".3"));
+  for (const std::string& file : {path, path + ".1", path + ".2"}) {
+    EXPECT_LE(std::filesystem::file_size(file), 4096u) << file;
+    for (const std::string& line : ReadLines(file)) {
+      EXPECT_NO_THROW(nlohmann::json::parse(line)) << line;
+    }
+  }
+  // The newest events are in PATH, the last one last.
+  const std::vector<std::string> newest = ReadLines(path);
+  ASSERT_FALSE(newest.empty());
+  EXPECT_EQ(nlohmann::json::parse(newest.back())["count"], 199);
+}
+
+TEST(AuditLogTest, ConcurrentRecordsAreAllWrittenOrCountedAsDropped) {
+  testing::TempDir dir;
+  const std::string path = dir.path() / "audit.jsonl";
+  absl::StatusOr<std::unique_ptr<AuditLog>> log =
+      AuditLog::Open({.path = path, .max_queued = 8});
+  ASSERT_TRUE(log.ok()) << log.status();
+  std::vector<std::thread> threads;
+  for (int t = 0; t < 4; ++t) {
+    threads.emplace_back([&log] {
+      for (int i = 0; i < 500; ++i) (*log)->Record({.event = "jobs.listed"});
+    });
+  }
+  for (std::thread& t : threads) t.join();
+  (*log)->Flush();
+  const int64_t dropped = (*log)->dropped_total();
+  log->reset();  // writes a pending "audit.dropped" line, if any
+  int64_t listed = 0, dropped_noted = 0;
+  for (const std::string& line : ReadLines(path)) {
+    const nlohmann::json j = nlohmann::json::parse(line);
+    if (j["event"] == "jobs.listed") ++listed;
+    if (j["event"] == "audit.dropped")
+      dropped_noted += j["count"].get<int64_t>();
+  }
+  EXPECT_EQ(listed + dropped, 2000);
+  EXPECT_EQ(dropped_noted, dropped);
+}
+
+TEST(AuditLogTest, RefusesBadOptions) {
+  testing::TempDir dir;
+  EXPECT_FALSE(AuditLog::Open({.path = ""}).ok());
+  EXPECT_FALSE(
+      AuditLog::Open({.path = dir.path() / "a", .max_bytes = 10}).ok());
+  EXPECT_FALSE(AuditLog::Open({.path = dir.path() / "a", .keep = 0}).ok());
+  EXPECT_FALSE(AuditLog::Open({.path = dir.path() / "no/such/dir/a"}).ok());
+}
 
 // Regression: a worker whose output does not parse was stopped and reported
 // as "the job was cancelled" although nobody cancelled it.
