@@ -12,7 +12,7 @@ packages=(
   libgtest-dev libgmock-dev libbenchmark-dev
   libfftw3-dev libtbb-dev
   libopenvdb-dev libboost-iostreams-dev
-  libcli11-dev prometheus-cpp-dev libabsl-dev nlohmann-json3-dev
+  libcli11-dev prometheus-cpp-dev libcivetweb-dev libabsl-dev nlohmann-json3-dev
   zlib1g-dev libdeflate-dev libgdcm-dev libssl-dev
   # previews (core/preview): Cairo draws the 2D views and writes PNG; the
   # legend's font is DejaVu Sans, loaded from its file (no fontconfig lookup)

@@ -83,6 +83,7 @@ const char* AtnaEventFor(const std::string& event) {
       {"job.cancel_requested", "110103 DICOM Instances Accessed"},
       {"job.fetched", "110106 Export"},
       {"jobs.listed", "110112 Query"},
+      {"status.viewed", "110112 Query"},
       {"delivery.delivered", "110104 DICOM Instances Transferred"},
       {"delivery.failed", "110104 DICOM Instances Transferred"},
       {"association.accepted", "110102 Begin Transferring DICOM Instances"},

@@ -43,6 +43,11 @@ class Authenticator {
 
   bool tokens_required() const { return !tokens_.empty(); }
 
+  // Whether `identity` is one of the admin identities.
+  bool IsAdmin(std::string_view identity) const {
+    return !identity.empty() && admins_.count(identity) > 0;
+  }
+
   // The name of the token in an "authorization" metadata value ("Bearer
   // <token>"), compared in constant time against every token; nullopt if
   // none matches.

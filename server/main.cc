@@ -87,6 +87,10 @@ int main(int argc, char** argv) {
                  "repeatable");
   app.add_option("--metrics-listen", o.metrics_listen,
                  "HOST:PORT for Prometheus /metrics (off when empty)");
+  app.add_option("--status-listen", o.status_listen,
+                 "HOST:PORT for the status page (/status: jobs, peers, "
+                 "rules, spool; admin identities only when tokens are "
+                 "used); off when empty");
   app.add_option("--audit-log", o.audit_log,
                  "Append an audit trail here: JSON lines of job, delivery, "
                  "DICOM association and authentication events, no patient "

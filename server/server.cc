@@ -15,9 +15,11 @@
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
 #include "core/dicom/series_reader.h"
 #include "grpcpp/grpcpp.h"
 #include "grpcpp/health_check_service_interface.h"
+#include "re2/re2.h"
 #include "server/audit.h"
 #include "server/auth.h"
 #include "server/dicom/config.h"
@@ -31,6 +33,7 @@
 #include "server/metrics.h"
 #include "server/service.h"
 #include "server/spool.h"
+#include "server/status_page.h"
 #include "spdlog/pattern_formatter.h"
 #include "spdlog/sinks/stdout_sinks.h"
 #include "spdlog/spdlog.h"
@@ -155,6 +158,33 @@ int AvailableCpus() {
 }
 
 namespace {
+
+// "modality CT, called AE INTERSLICE, slices 20-": what a rule matches, for
+// the status page (no patient data: the criteria are the rule file's).
+std::string DescribeMatch(const dicom::RuleMatch& m) {
+  std::vector<std::string> parts;
+  auto range = [](const dicom::ValueRange& r) {
+    return absl::StrCat(r.min ? absl::StrCat(*r.min) : "", "-",
+                        r.max ? absl::StrCat(*r.max) : "");
+  };
+  if (m.modality) parts.push_back("modality " + *m.modality);
+  if (m.body_part) parts.push_back("body part " + *m.body_part);
+  if (m.calling_ae) parts.push_back("calling AE " + *m.calling_ae);
+  if (m.called_ae) parts.push_back("called AE " + *m.called_ae);
+  if (m.series_description) {
+    parts.push_back("description ~ " + m.series_description->pattern());
+  }
+  if (m.protocol_name)
+    parts.push_back("protocol ~ " + m.protocol_name->pattern());
+  if (m.slice_thickness_mm) {
+    parts.push_back("thickness " + range(*m.slice_thickness_mm) + " mm");
+  }
+  if (m.slice_spacing_mm) {
+    parts.push_back("spacing " + range(*m.slice_spacing_mm) + " mm");
+  }
+  if (m.slice_count) parts.push_back("slices " + range(*m.slice_count));
+  return parts.empty() ? "every series" : absl::StrJoin(parts, ", ");
+}
 
 absl::StatusOr<std::unique_ptr<dicom::SeriesAssembler>> StartDicomAssembler(
     const ServerOptions& options, Spool* spool, Metrics* metrics,
@@ -481,6 +511,8 @@ int RunServer(ServerOptions options) {
 
   Executor io(options.io_threads);
   ServiceOptions service_options;
+  // The status page authenticates by the same tokens and admin identities.
+  const Authenticator page_auth(tokens, options.admin_identities);
   service_options.tokens = std::move(tokens);
   service_options.admin_identities = options.admin_identities;
   service_options.max_chunk_bytes = options.max_chunk_bytes;
@@ -539,6 +571,49 @@ int RunServer(ServerOptions options) {
     spdlog::info("metrics on {} (port {})", options.metrics_listen,
                  metrics.port());
   }
+  // The status page (docs/status-page.md): stopped before what it reads.
+  std::unique_ptr<StatusServer> status_page;
+  if (!options.status_listen.empty()) {
+    auto snapshot = [&]() {
+      StatusSnapshot s;
+      s.version = service_options.version;
+      s.now_unix_ms = std::chrono::duration_cast<std::chrono::milliseconds>(
+                          std::chrono::system_clock::now().time_since_epoch())
+                          .count();
+      s.jobs = manager.List(true, nullptr);
+      s.queued = manager.queued();
+      s.running = manager.running();
+      s.spool_used_bytes = (*spool)->used_bytes();
+      s.spool_quota_bytes = (*spool)->quota_bytes();
+      for (const dicom::DicomPeer& p : options.dicom_peers) {
+        s.peers.push_back({.name = p.name,
+                           .ae_title = p.ae_title,
+                           .address = absl::StrCat(p.host, ":", p.port),
+                           .tls = p.tls});
+      }
+      if (assembler != nullptr) {
+        s.rules_file = assembler->rules().path;
+        for (const dicom::Rule& r : assembler->rules().rules) {
+          s.rules.push_back({.name = r.name,
+                             .match = DescribeMatch(r.match),
+                             .send_to = r.send_to});
+        }
+      }
+      return s;
+    };
+    absl::StatusOr<std::unique_ptr<StatusServer>> started = StatusServer::Start(
+        {.listen = options.status_listen}, snapshot, &page_auth, audit.get());
+    if (!started.ok()) {
+      manager.Shutdown(std::chrono::milliseconds(0));
+      return fail(started.status());
+    }
+    status_page = *std::move(started);
+    spdlog::info("status page on {} (port {}){}", options.status_listen,
+                 status_page->port(),
+                 page_auth.tokens_required()
+                     ? ": admin identities only"
+                     : ": open to anyone who reaches it (no tokens)");
+  }
   if (audit != nullptr) {
     audit->Record({.event = "server.started",
                    .source = options.advertise,
@@ -548,6 +623,10 @@ int RunServer(ServerOptions options) {
   if (!options.port_file.empty()) {
     std::string ports = absl::StrCat(port, "\n", metrics.port(), "\n");
     if (dicom_scp) absl::StrAppend(&ports, dicom_scp->port(), "\n");
+    if (status_page) {
+      if (!dicom_scp) ports += "0\n";
+      absl::StrAppend(&ports, status_page->port(), "\n");
+    }
     if (absl::Status s = WriteFileAtomically(options.port_file, ports);
         !s.ok()) {
       spdlog::error("cannot write the port file: {}", std::string(s.message()));

@@ -70,6 +70,10 @@ struct ServerOptions {
   std::string port_file;
   // The audit trail (server/audit.h, docs/audit.md): empty = none.
   std::string audit_log;
+  // The status page (server/status_page.h): HOST:PORT, port 0 picks one
+  // (written to the port file after the DICOM port, 0 when there is no DICOM
+  // listener); empty = none.
+  std::string status_listen;
   int64_t audit_max_bytes = int64_t{64} << 20;
   int audit_keep = 10;
 

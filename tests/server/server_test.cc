@@ -828,6 +828,101 @@ TEST(ServerTest, AuditTrailRecordsWhoDidWhatWithoutPatientData) {
   EXPECT_THAT(text, Not(::testing::ContainsRegex("[0-9]+(\\.[0-9]+){4,}")));
 }
 
+CommandResult Curl(const std::vector<std::string>& args) {
+  return RunCommand(Cat(
+      {"/usr/bin/curl", "-s", "-S", "--max-time", "30", "-w", "\n%{http_code}"},
+      args));
+}
+
+// The HTTP status code curl printed last, and the body before it.
+std::pair<int, std::string> CodeAndBody(const CommandResult& r) {
+  const size_t newline = r.out.rfind('\n');
+  if (newline == std::string::npos) return {0, r.out};
+  return {std::atoi(r.out.c_str() + newline + 1), r.out.substr(0, newline)};
+}
+
+// The status page (--status-listen, docs/status-page.md): admins only when
+// tokens are used; jobs with their state, origin, error and deliveries.
+TEST(ServerTest, StatusPageShowsEveryJobToAdminsOnly) {
+  TempDir dir;
+  std::ofstream(dir / "tokens") << "alice:tok-alice\nops:tok-ops\n";
+  std::ofstream(dir / "alice") << "tok-alice\n";
+  std::ofstream(dir / "peers.yaml")
+      << "peers:\n"
+         "  - {name: pacs, ae_title: PACS, host: 127.0.0.1, port: 1}\n";
+  const int status_port = FreeTcpPort();
+  const std::string base = absl::StrCat("http://127.0.0.1:", status_port);
+  setenv("INTERSLICE_WORKER_FAULT", "abort:contour:777", 1);
+  ServerProcess server(
+      {.spool = dir / "spool",
+       .log = dir / "server.log",
+       .extra = {"--auth-token-file", dir / "tokens", "--admin-identity", "ops",
+                 "--status-listen", absl::StrCat("127.0.0.1:", status_port),
+                 "--dicom-peers", dir / "peers.yaml", "--audit-log",
+                 dir / "audit.jsonl"}});
+  ASSERT_TRUE(server.Start());
+  unsetenv("INTERSLICE_WORKER_FAULT");
+  const std::vector<std::string> as_alice = {"--token-file", dir / "alice"};
+  CommandResult good =
+      Cli(Cat(Cat(Cat({"submit"}, as_alice), kSmallJob), server.ServerFlag()));
+  ASSERT_EQ(good.exit_code, 0) << good.err;
+  CommandResult bad =
+      Cli(Cat(Cat(Cat({"submit"}, as_alice), {kSeries, "--threshold", "777",
+                                              "--roi", "176,176,0,336,336,4"}),
+              server.ServerFlag()));
+  ASSERT_EQ(bad.exit_code, 0) << bad.err;
+  for (const CommandResult* r : {&good, &bad}) {
+    Cli(Cat(Cat({"watch", Trim(r->out), "--quiet"}, as_alice),
+            server.ServerFlag()));
+  }
+
+  auto [anonymous, challenge] = CodeAndBody(Curl({base + "/status"}));
+  EXPECT_EQ(anonymous, 401) << challenge;
+  EXPECT_EQ(CodeAndBody(Curl({"-u", "x:wrong", base + "/status"})).first, 401);
+  EXPECT_EQ(CodeAndBody(Curl({"-u", "x:tok-alice", base + "/status"})).first,
+            403);
+  auto [code, html] = CodeAndBody(Curl({"-u", "x:tok-ops", base + "/status"}));
+  ASSERT_EQ(code, 200) << html;
+  EXPECT_THAT(html, HasSubstr(Trim(good.out)));
+  EXPECT_THAT(html, HasSubstr(Trim(bad.out)));
+  EXPECT_THAT(html, HasSubstr("worker process crashed (SIGABRT)"));
+  EXPECT_THAT(html, HasSubstr("<td>PACS</td><td>127.0.0.1:1</td>"));
+  auto [json_code, json] = CodeAndBody(
+      Curl({"-H", "Authorization: Bearer tok-ops", base + "/status.json"}));
+  ASSERT_EQ(json_code, 200) << json;
+  const nlohmann::json parsed = nlohmann::json::parse(json);
+  EXPECT_EQ(parsed["jobs"].size(), 2u);
+  EXPECT_EQ(
+      CodeAndBody(Curl({"-u", "x:tok-ops", "-X", "POST", base + "/status"}))
+          .first,
+      405);
+  EXPECT_EQ(CodeAndBody(Curl({"-u", "x:tok-ops", "--path-as-is",
+                              base + "/../../etc/passwd"}))
+                .first,
+            404);
+
+  // A real browser renders it (and the screenshot in docs/ comes from the
+  // same command): chromium's DOM holds both jobs' rows.
+  CommandResult browser = RunCommand(
+      {"/usr/bin/chromium", "--headless", "--no-sandbox", "--disable-gpu",
+       "--no-first-run", "--disable-background-networking",
+       "--disable-component-update", "--disable-sync",
+       "--user-data-dir=" + std::string(dir / "chromium"), "--dump-dom",
+       absl::StrCat("http://x:tok-ops@127.0.0.1:", status_port, "/status")},
+      120);
+  ASSERT_EQ(browser.exit_code, 0) << browser.err;
+  EXPECT_THAT(browser.out, HasSubstr("<tr class=\"failed\">"));
+  EXPECT_THAT(browser.out, HasSubstr(Trim(good.out)));
+  ASSERT_EQ(server.Stop(), 0) << server.Log();
+  std::ifstream audit(dir / "audit.jsonl");
+  const std::string trail((std::istreambuf_iterator<char>(audit)),
+                          std::istreambuf_iterator<char>());
+  EXPECT_THAT(
+      trail,
+      HasSubstr("\"event\":\"status.viewed\",\"atna\":\"110112 Query\""));
+  EXPECT_THAT(trail, HasSubstr("\"identity\":\"ops\""));
+}
+
 TEST(ServerTest, PatientDataNeverReachesLogsOrErrors) {
   TempDir dir;
   fs::create_directories(dir / "series");

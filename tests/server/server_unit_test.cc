@@ -17,6 +17,7 @@
 #include "server/job_worker.h"
 #include "server/log_safe.h"
 #include "server/status_map.h"
+#include "server/status_page.h"
 #include "server/upload_guard.h"
 #include "tests/testing/temp_dir.h"
 #include "tests/testing/wait_for.h"
@@ -136,6 +137,66 @@ TEST(AuditLogTest, RefusesBadOptions) {
       AuditLog::Open({.path = dir.path() / "a", .max_bytes = 10}).ok());
   EXPECT_FALSE(AuditLog::Open({.path = dir.path() / "a", .keep = 0}).ok());
   EXPECT_FALSE(AuditLog::Open({.path = dir.path() / "no/such/dir/a"}).ok());
+}
+
+StatusSnapshot SnapshotWithTwoJobs() {
+  StatusSnapshot s;
+  s.version = "9.9";
+  s.now_unix_ms = 1764129600000;  // 2025-11-26 04:00:00 UTC
+  v1::JobStatus older;
+  older.set_job_id("older-job");
+  older.set_state(v1::JOB_STATE_FAILED);
+  older.set_created_unix_ms(1764129000000);
+  older.set_origin("dicom:MODALITY->INTERSLICE rule ct-bone");
+  older.set_error_message("the series needs at least 2 slices");
+  v1::JobStatus newer;
+  newer.set_job_id("newer-job");
+  newer.set_state(v1::JOB_STATE_SUCCEEDED);
+  newer.set_created_unix_ms(1764129500000);
+  newer.set_label("<script>alert(1)</script>");
+  v1::Delivery* d = newer.add_deliveries();
+  d->set_peer("pacs");
+  d->set_state(v1::Delivery::PENDING);
+  d->set_instances_total(10);
+  d->set_instances_sent(4);
+  d->set_last_error("association rejected");
+  s.jobs = {older, newer};
+  s.peers = {{.name = "pacs", .ae_title = "ORTHANC", .address = "h:4242"}};
+  s.rules = {{.name = "ct-bone", .match = "modality CT", .send_to = {"pacs"}}};
+  s.spool_used_bytes = int64_t{3} << 30;
+  s.spool_quota_bytes = int64_t{20} << 30;
+  return s;
+}
+
+TEST(StatusPageTest, ShowsJobsNewestFirstWithOriginErrorsAndDeliveries) {
+  const std::string html = RenderStatusHtml(SnapshotWithTwoJobs());
+  const size_t newer = html.find("newer-job"), older = html.find("older-job");
+  ASSERT_NE(newer, std::string::npos);
+  ASSERT_NE(older, std::string::npos);
+  EXPECT_LT(newer, older);
+  EXPECT_THAT(html, HasSubstr("dicom:MODALITY-&gt;INTERSLICE rule ct-bone"));
+  EXPECT_THAT(html, HasSubstr("the series needs at least 2 slices"));
+  EXPECT_THAT(html, HasSubstr("pacs: pending 4/10"));
+  EXPECT_THAT(html, HasSubstr("(association rejected)"));
+  EXPECT_THAT(html, HasSubstr("2025-11-26 04:00:00 UTC"));
+  EXPECT_THAT(html, HasSubstr("spool 3.0 GiB of 20.0 GiB"));
+  EXPECT_THAT(html, HasSubstr("Jobs (2, 1 failed)"));
+  // The peer's row counts its pending delivery.
+  EXPECT_THAT(html, HasSubstr("<td>h:4242</td><td>1</td><td>0</td><td>0</td>"));
+  EXPECT_THAT(html, HasSubstr("<td>ct-bone</td><td>modality CT</td>"));
+}
+
+TEST(StatusPageTest, EscapesEverythingAndHasNoScript) {
+  const std::string html = RenderStatusHtml(SnapshotWithTwoJobs());
+  EXPECT_THAT(html, HasSubstr("&lt;script&gt;alert(1)&lt;/script&gt;"));
+  EXPECT_THAT(html, Not(HasSubstr("<script")));
+  const nlohmann::json json =
+      nlohmann::json::parse(RenderStatusJson(SnapshotWithTwoJobs()));
+  ASSERT_EQ(json["jobs"].size(), 2u);
+  EXPECT_EQ(json["jobs"][0]["job_id"], "newer-job");
+  EXPECT_EQ(json["jobs"][0]["deliveries"][0]["state"], "pending");
+  EXPECT_EQ(json["jobs"][1]["state"], "failed");
+  EXPECT_EQ(json["peers"][0]["ae_title"], "ORTHANC");
 }
 
 // Regression: a worker whose output does not parse was stopped and reported
