@@ -6,9 +6,12 @@
 // a new example file cannot be left untested.
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <chrono>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <map>
 #include <set>
 #include <sstream>
@@ -20,8 +23,10 @@
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
 #include "absl/strings/strip.h"
+#include "tests/testing/process.h"
 #include "tests/testing/server_process.h"
 #include "tests/testing/temp_dir.h"
+#include "tests/testing/wait_for.h"
 #include "yaml-cpp/yaml.h"
 
 namespace interslice::testing {
@@ -42,8 +47,11 @@ std::string ReadText(const std::string& path) {
 // heredoc before it (`cat > NAME <<'END' ... END`).
 struct DocumentedCommand {
   std::string where;  // "README.md:367", for messages
+  int block = 0;      // which ```sh block of its document
   std::vector<std::string> argv;
   std::map<std::string, std::string> heredocs;  // file name -> content
+  // The DCMTK commands (echoscu, storescu) that follow it in its block.
+  std::vector<std::vector<std::string>> dcmtk_commands;
 };
 
 // The `interslice-server` commands of the ```sh blocks of `doc`: `\`
@@ -54,11 +62,13 @@ std::vector<DocumentedCommand> ServerCommands(const std::string& doc) {
   const std::vector<std::string> lines =
       absl::StrSplit(ReadText(kSource + "/" + doc), '\n');
   bool in_block = false;
+  int block = 0;
   std::map<std::string, std::string> heredocs;
   for (size_t i = 0; i < lines.size(); ++i) {
     const std::string& line = lines[i];
     if (absl::StartsWith(line, "```")) {
       in_block = !in_block && absl::StartsWith(line, "```sh");
+      ++block;
       heredocs.clear();
       continue;
     }
@@ -75,9 +85,22 @@ std::vector<DocumentedCommand> ServerCommands(const std::string& doc) {
       heredocs[file] = body;
       continue;
     }
+    if ((absl::StartsWith(line, "storescu ") ||
+         absl::StartsWith(line, "echoscu ")) &&
+        !commands.empty() && commands.back().block == block) {
+      std::vector<std::string> argv;
+      for (absl::string_view word :
+           absl::StrSplit(line, ' ', absl::SkipWhitespace())) {
+        if (absl::StartsWith(word, "#")) break;
+        argv.emplace_back(word);
+      }
+      commands.back().dcmtk_commands.push_back(argv);
+      continue;
+    }
     if (!absl::StartsWith(line, "interslice-server ")) continue;
     DocumentedCommand command;
     command.where = absl::StrCat(doc, ":", i + 1);
+    command.block = block;
     command.heredocs = heredocs;
     std::string joined = line;
     while (absl::EndsWith(joined, "\\") && i + 1 < lines.size()) {
@@ -102,7 +125,8 @@ std::vector<DocumentedCommand> ServerCommands(const std::string& doc) {
 // wrote them. Records which repository files it read in `used`.
 void ExpectStarts(const std::string& where, std::vector<std::string> argv,
                   const std::map<std::string, std::string>& heredocs,
-                  std::set<std::string>* used) {
+                  std::set<std::string>* used,
+                  const std::function<void(ServerProcess&)>& then = nullptr) {
   SCOPED_TRACE(where);
   TempDir dir;
   std::vector<std::string> extra;
@@ -136,6 +160,7 @@ void ExpectStarts(const std::string& where, std::vector<std::string> argv,
   }
   ServerProcess server({.spool = dir / "spool", .extra = extra});
   ASSERT_TRUE(server.Start()) << "refused: " << absl::StrJoin(argv, " ");
+  if (then) then(server);
   EXPECT_EQ(server.Stop(), 0) << server.Log();
 }
 
@@ -181,6 +206,62 @@ TEST(ShippedConfigTest, EveryDocumentedCommandAndExampleFileStartsAServer) {
           << "a server with it";
     }
   }
+}
+
+// The README's first block as written: the server with the shipped
+// examples, then its storescu of the phantom (to the server's port), makes
+// the job of the examples' ct-bone rule (the phantom is "STD BRAIN 5MM").
+TEST(ShippedConfigTest, ReadmeStorescuOfThePhantomMakesTheExampleRulesJob) {
+  const std::vector<DocumentedCommand> commands = ServerCommands("README.md");
+  // The "Next to a PACS" one: the server with the example rules.
+  auto with_rules = std::find_if(
+      commands.begin(), commands.end(), [](const DocumentedCommand& c) {
+        return std::find(c.argv.begin(), c.argv.end(),
+                         "docs/examples/rules.yaml") != c.argv.end();
+      });
+  ASSERT_NE(with_rules, commands.end());
+  const DocumentedCommand& first = *with_rules;
+  ASSERT_FALSE(first.dcmtk_commands.empty()) << first.where;
+  std::set<std::string> used;
+  ExpectStarts(
+      first.where, first.argv, first.heredocs, &used,
+      [&](ServerProcess& server) {
+        for (std::vector<std::string> argv : first.dcmtk_commands) {
+          std::vector<std::string> expanded = {"/usr/bin/" + argv[0]};
+          for (size_t i = 1; i < argv.size(); ++i) {
+            std::string word = argv[i];
+            if (word == "11112") {
+              word = std::to_string(server.dicom_port());
+            }
+            const size_t star = word.find("/*");
+            if (star == std::string::npos) {
+              expanded.push_back(word);
+              continue;
+            }
+            // A shell glob "DIR/*SUFFIX": the files, sorted.
+            const std::string folder = kSource + "/" + word.substr(0, star);
+            const std::string suffix = word.substr(star + 2);
+            std::vector<std::string> files;
+            for (const auto& e : fs::directory_iterator(folder)) {
+              if (absl::EndsWith(e.path().string(), suffix)) {
+                files.push_back(e.path().string());
+              }
+            }
+            std::sort(files.begin(), files.end());
+            EXPECT_FALSE(files.empty()) << word;
+            expanded.insert(expanded.end(), files.begin(), files.end());
+          }
+          CommandResult r = RunCommand(expanded, 300);
+          EXPECT_EQ(r.exit_code, 0)
+              << absl::StrJoin(argv, " ") << ": " << r.err;
+        }
+        EXPECT_TRUE(WaitFor(
+            [&] {
+              return absl::StrContains(server.Log(), "made by rule ct-bone");
+            },
+            std::chrono::seconds(120), std::chrono::milliseconds(200)))
+            << server.Log();
+      });
 }
 
 }  // namespace
