@@ -204,6 +204,12 @@ int main(int argc, char** argv) {
   app.add_option("--dicom-tls-ca", o.dicom_tls_ca,
                  "DICOM TLS: CA certificates (PEM) that sign peer "
                  "certificates; peers without one are refused");
+  bool check_config = false;
+  app.add_flag("--check-config", check_config,
+               "Check the DICOM configuration and exit: load the peers and "
+               "rules files as a start would, C-ECHO every peer, print what "
+               "each rule matches; exit code 0, or 1 with one line per "
+               "problem");
   try {
     app.parse(argc, argv);
   } catch (const CLI::CallForHelp& e) {
@@ -215,5 +221,6 @@ int main(int argc, char** argv) {
                  e.what());
     return 1;
   }
+  if (check_config) return interslice::server::CheckConfig(o);
   return interslice::server::RunServer(o);
 }

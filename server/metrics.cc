@@ -67,7 +67,7 @@ Metrics::Metrics() : registry_(std::make_shared<prometheus::Registry>()) {
        {"associations", "associations_rejected", "instances_received",
         "instances_refused", "series_completed", "jobs_created",
         "series_incomplete", "series_incomplete_dropped",
-        "presentation_contexts_refused"}) {
+        "presentation_contexts_refused", "config_reload_refused"}) {
     dicom_->Add({{"event", event}});
   }
   dicom_refused_ =
@@ -77,6 +77,29 @@ Metrics::Metrics() : registry_(std::make_shared<prometheus::Registry>()) {
                "Connections to the DICOM listener refused or cut, by reason "
                "(before or during an association)")
            .Register(*registry_);
+  dicom_peer_reachable_ =
+      &prometheus::BuildGauge()
+           .Name("interslice_dicom_peer_reachable")
+           .Help(
+               "1 when the peer answered the last C-ECHO (at start-up), 0 "
+               "when not, by peer name")
+           .Register(*registry_);
+  dicom_config_generation_ =
+      &prometheus::BuildGauge()
+           .Name("interslice_dicom_config_generation")
+           .Help(
+               "The DICOM node's peers and rules in force: 1 at start, +1 "
+               "per reload (SIGHUP) taken")
+           .Register(*registry_)
+           .Add({});
+}
+
+void Metrics::DicomConfigGeneration(int generation) {
+  dicom_config_generation_->Set(generation);
+}
+
+void Metrics::DicomPeerReachable(const std::string& peer, bool reachable) {
+  dicom_peer_reachable_->Add({{"peer", peer}}).Set(reachable ? 1 : 0);
 }
 
 void Metrics::DicomConnectionRefused(const std::string& reason) {

@@ -49,6 +49,12 @@ class Metrics {
   // (interslice_dicom_connections_refused_total{reason=...}; the reasons
   // are listed in server/dicom/connection_gate.h).
   void DicomConnectionRefused(const std::string& reason);
+  // interslice_dicom_peer_reachable{peer}: 1 when the peer's last C-ECHO
+  // (at start-up) was answered, 0 when not.
+  void DicomPeerReachable(const std::string& peer, bool reachable);
+  // interslice_dicom_config_generation: 1 at start, +1 per SIGHUP reload
+  // of the peers and rules files that was taken (a refused one leaves it).
+  void DicomConfigGeneration(int generation);
 
  private:
   std::shared_ptr<prometheus::Registry> registry_;
@@ -63,6 +69,8 @@ class Metrics {
   prometheus::Family<prometheus::Counter>* dicom_sent_;
   prometheus::Family<prometheus::Counter>* dicom_send_failed_;
   prometheus::Family<prometheus::Counter>* dicom_refused_;
+  prometheus::Family<prometheus::Gauge>* dicom_peer_reachable_;
+  prometheus::Gauge* dicom_config_generation_;
   int port_ = 0;
 };
 

@@ -8,9 +8,12 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <fstream>
 #include <memory>
+#include <optional>
 #include <sstream>
+#include <stop_token>
 #include <thread>
 
 #include "absl/strings/numbers.h"
@@ -19,11 +22,12 @@
 #include "core/dicom/series_reader.h"
 #include "grpcpp/grpcpp.h"
 #include "grpcpp/health_check_service_interface.h"
-#include "re2/re2.h"
 #include "server/audit.h"
 #include "server/auth.h"
 #include "server/dicom/config.h"
 #include "server/dicom/delivery.h"
+#include "server/dicom/echo.h"
+#include "server/dicom/scu.h"
 #include "server/dicom/series_assembler.h"
 #include "server/dicom/storage_scp.h"
 #include "server/executor.h"
@@ -159,56 +163,34 @@ int AvailableCpus() {
 
 namespace {
 
-// "modality CT, called AE INTERSLICE, slices 20-": what a rule matches, for
-// the status page (no patient data: the criteria are the rule file's).
-std::string DescribeMatch(const dicom::RuleMatch& m) {
-  std::vector<std::string> parts;
-  auto range = [](const dicom::ValueRange& r) {
-    return absl::StrCat(r.min ? absl::StrCat(*r.min) : "", "-",
-                        r.max ? absl::StrCat(*r.max) : "");
-  };
-  if (m.modality) parts.push_back("modality " + *m.modality);
-  if (m.body_part) parts.push_back("body part " + *m.body_part);
-  if (m.calling_ae) parts.push_back("calling AE " + *m.calling_ae);
-  if (m.called_ae) parts.push_back("called AE " + *m.called_ae);
-  if (m.series_description) {
-    parts.push_back("description ~ " + m.series_description->pattern());
-  }
-  if (m.protocol_name)
-    parts.push_back("protocol ~ " + m.protocol_name->pattern());
-  if (m.slice_thickness_mm) {
-    parts.push_back("thickness " + range(*m.slice_thickness_mm) + " mm");
-  }
-  if (m.slice_spacing_mm) {
-    parts.push_back("spacing " + range(*m.slice_spacing_mm) + " mm");
-  }
-  if (m.slice_count) parts.push_back("slices " + range(*m.slice_count));
-  return parts.empty() ? "every series" : absl::StrJoin(parts, ", ");
-}
-
-absl::StatusOr<std::unique_ptr<dicom::SeriesAssembler>> StartDicomAssembler(
-    const ServerOptions& options, Spool* spool, Metrics* metrics,
-    JobManager* manager) {
+// The DICOM node's configuration as a start would take it: the peers
+// file, the rules file (send_to names checked against the peers), the
+// listener's AE titles, and every rule's called_ae among them.
+struct DicomConfig {
   dicom::PeersConfig peers;
+  dicom::RuleSet rules;
+  std::vector<std::string> ae_titles;  // normalized; never empty
+};
+
+absl::StatusOr<DicomConfig> LoadDicomConfig(const ServerOptions& options) {
+  DicomConfig config;
   if (!options.dicom_peers_file.empty()) {
     absl::StatusOr<dicom::PeersConfig> loaded =
         dicom::LoadPeersConfig(options.dicom_peers_file);
     if (!loaded.ok()) return loaded.status();
-    peers = *std::move(loaded);
+    config.peers = *std::move(loaded);
   }
-  dicom::RuleSet rules;
   if (!options.rules_file.empty()) {
     absl::StatusOr<dicom::RuleSet> loaded =
-        dicom::LoadRulesFile(options.rules_file, peers.peers);
+        dicom::LoadRulesFile(options.rules_file, config.peers.peers);
     if (!loaded.ok()) return loaded.status();
-    rules = *std::move(loaded);
+    config.rules = *std::move(loaded);
   } else {
-    rules.path = "(none: --rules not given)";
-    spdlog::warn("dicom: no --rules: received series make no jobs");
+    config.rules.path = "(none: --rules not given)";
   }
-  std::vector<std::string> titles = options.dicom_ae_titles;
-  if (titles.empty()) titles.push_back("INTERSLICE");
-  for (std::string& ae : titles) {
+  config.ae_titles = options.dicom_ae_titles;
+  if (config.ae_titles.empty()) config.ae_titles.push_back("INTERSLICE");
+  for (std::string& ae : config.ae_titles) {
     absl::StatusOr<std::string> normal = dicom::NormalizeAeTitle(ae);
     if (!normal.ok()) {
       return absl::InvalidArgumentError(absl::StrCat(
@@ -216,15 +198,29 @@ absl::StatusOr<std::unique_ptr<dicom::SeriesAssembler>> StartDicomAssembler(
     }
     ae = *normal;
   }
-  for (size_t i = 0; i < rules.rules.size(); ++i) {
-    const auto& called = rules.rules[i].match.called_ae;
+  const std::vector<std::string>& titles = config.ae_titles;
+  for (size_t i = 0; i < config.rules.rules.size(); ++i) {
+    const auto& called = config.rules.rules[i].match.called_ae;
     if (called &&
         std::find(titles.begin(), titles.end(), *called) == titles.end()) {
       return absl::InvalidArgumentError(absl::StrCat(
-          options.rules_file, ": rule '", rules.rules[i].name, "' (#", i + 1,
-          "): match.called_ae: ", *called,
-          " is not an AE title this server listens as (--dicom-ae)"));
+          options.rules_file, ": rule '", config.rules.rules[i].name, "' (#",
+          i + 1, "): match.called_ae: ", *called,
+          " is not an AE title this server listens as (--dicom-ae ",
+          absl::StrJoin(titles, ", --dicom-ae "), ")"));
     }
+  }
+  return config;
+}
+
+absl::StatusOr<std::unique_ptr<dicom::SeriesAssembler>> StartDicomAssembler(
+    const ServerOptions& options, Spool* spool, Metrics* metrics,
+    JobManager* manager) {
+  absl::StatusOr<DicomConfig> config = LoadDicomConfig(options);
+  if (!config.ok()) return config.status();
+  dicom::RuleSet rules = std::move(config->rules);
+  if (options.rules_file.empty()) {
+    spdlog::warn("dicom: no --rules: received series make no jobs");
   }
   dicom::AssemblerOptions a;
   a.root = options.spool + "/dicom-in";
@@ -292,6 +288,79 @@ absl::StatusOr<std::unique_ptr<dicom::StorageScp>> StartDicomListener(
   return dicom::StorageScp::Start(o, assembler, metrics);
 }
 
+// Outgoing associations call as the first --dicom-ae (DeliveryOptions'
+// default when none is given).
+std::string CallingAeTitle(const ServerOptions& options) {
+  if (options.dicom_ae_titles.empty()) return "INTERSLICE";
+  absl::StatusOr<std::string> ae =
+      dicom::NormalizeAeTitle(options.dicom_ae_titles.front());
+  return ae.ok() ? *ae : options.dicom_ae_titles.front();
+}
+
+dicom::DicomTlsFiles DicomTls(const ServerOptions& options) {
+  dicom::DicomTlsFiles tls;
+  tls.certificate = options.dicom_tls_cert;
+  tls.private_key = options.dicom_tls_key;
+  tls.ca_certificates = options.dicom_tls_ca;
+  return tls;
+}
+
+// Seconds a C-ECHO of a peer may take per step (connect, associate,
+// answer): short, so that a check of several dead peers stays quick.
+constexpr int kEchoTimeoutSeconds = 5;
+
+// "a series with modality CT, called_ae INTERSLICE -> job (complete on
+// release), send_to orthanc"
+std::string DescribeRule(const dicom::Rule& rule) {
+  std::string text = absl::StrCat(
+      rule.job.has_fill() ? "a segmentation (SEG, RTSTRUCT) with "
+                          : "a series with ",
+      rule.match.Describe(), " -> ", rule.job.has_fill() ? "fill job" : "job");
+  if (rule.complete_on_release)
+    absl::StrAppend(&text, " (complete on release)");
+  if (!rule.send_to.empty()) {
+    absl::StrAppend(&text, ", send_to ", absl::StrJoin(rule.send_to, ", "));
+  }
+  return text;
+}
+
+// SIGHUP: the peers and rules files read again and checked exactly as at
+// start-up; the listener's accepted callers and the assembler's rules are
+// replaced only when all of it is valid. Deliveries keep the peers of the
+// start (a delivery in flight must not change its destination), so a rule
+// may send only to peers the outbox holds with the same address. Jobs
+// already made keep their spec.
+absl::Status ReloadDicomConfig(const ServerOptions& options,
+                               dicom::SeriesAssembler* assembler,
+                               dicom::StorageScp* listener,
+                               const dicom::DeliveryQueue* outbox) {
+  absl::StatusOr<DicomConfig> config = LoadDicomConfig(options);
+  if (!config.ok()) return config.status();
+  for (size_t i = 0; i < config->rules.rules.size(); ++i) {
+    const dicom::Rule& rule = config->rules.rules[i];
+    for (const std::string& name : rule.send_to) {
+      const dicom::DicomPeer* now = nullptr;
+      for (const dicom::DicomPeer& peer : config->peers.peers) {
+        if (peer.name == name) now = &peer;
+      }
+      std::optional<dicom::DicomPeer> started;
+      if (outbox != nullptr) started = outbox->FindPeer(name);
+      if (now == nullptr || !started || started->ae_title != now->ae_title ||
+          started->host != now->host || started->port != now->port ||
+          started->tls != now->tls) {
+        return absl::FailedPreconditionError(absl::StrCat(
+            options.rules_file, ": rule '", rule.name, "' (#", i + 1,
+            "): send_to: peer '", name,
+            "' is new or changed since the start; deliveries use the peers "
+            "of the start (restart the server to change them)"));
+      }
+    }
+  }
+  listener->SetPeers(std::move(config->peers));
+  assembler->SetRules(std::move(config->rules));
+  return absl::OkStatus();
+}
+
 }  // namespace
 
 int RunServer(ServerOptions options) {
@@ -301,6 +370,7 @@ int RunServer(ServerOptions options) {
   sigemptyset(&signals);
   sigaddset(&signals, SIGTERM);
   sigaddset(&signals, SIGINT);
+  sigaddset(&signals, SIGHUP);  // reloads the DICOM node's files
   pthread_sigmask(SIG_BLOCK, &signals, nullptr);
   // Uploads, records and the artifacts the core writes: owner only.
   ::umask(077);
@@ -486,6 +556,33 @@ int RunServer(ServerOptions options) {
   if (absl::Status s = manager.Recover(); !s.ok()) return fail(s);
   manager.Start();
   if (outbox != nullptr) outbox->Start();
+  // A wrong host, port or AE title of a peer shows at start (a warning and
+  // interslice_dicom_peer_reachable{peer} 0), not after a day of delivery
+  // retries. Off the start-up path: a silent peer costs its timeout here
+  // only. Joined when RunServer returns (before the metrics go).
+  std::jthread peer_check;
+  if (!options.dicom_peers.empty()) {
+    peer_check = std::jthread(
+        [peers = options.dicom_peers, calling = CallingAeTitle(options),
+         tls = DicomTls(options), &metrics](std::stop_token stop) {
+          for (const dicom::DicomPeer& peer : peers) {
+            if (stop.stop_requested()) return;
+            absl::Status echo =
+                dicom::EchoPeer(peer, calling, tls, kEchoTimeoutSeconds);
+            metrics.DicomPeerReachable(peer.name, echo.ok());
+            if (echo.ok()) {
+              spdlog::info("dicom: {} answered a C-ECHO",
+                           LogSafe(dicom::PeerLabel(peer)));
+            } else {
+              spdlog::warn(
+                  "dicom: {} did not answer a C-ECHO at start-up ({}); "
+                  "deliveries to it will be retried",
+                  LogSafe(dicom::PeerLabel(peer)),
+                  LogSafe(std::string(echo.message())));
+            }
+          }
+        });
+  }
 
   // The DICOM listener: configuration errors stop the start-up with the
   // file's one-line message.
@@ -592,10 +689,13 @@ int RunServer(ServerOptions options) {
                            .tls = p.tls});
       }
       if (assembler != nullptr) {
-        s.rules_file = assembler->rules().path;
-        for (const dicom::Rule& r : assembler->rules().rules) {
+        // The generation live now (SIGHUP may replace it).
+        const std::shared_ptr<const dicom::RuleSet> rules =
+            assembler->rules();
+        s.rules_file = rules->path;
+        for (const dicom::Rule& r : rules->rules) {
           s.rules.push_back({.name = r.name,
-                             .match = DescribeMatch(r.match),
+                             .match = r.match.Describe(),
                              .send_to = r.send_to});
         }
       }
@@ -636,7 +736,30 @@ int RunServer(ServerOptions options) {
   // The drain runs here, on an ordinary thread, never in a signal handler.
   std::thread signal_thread([&] {
     int signal_number = 0;
-    sigwait(&signals, &signal_number);
+    int generation = 1;
+    metrics.DicomConfigGeneration(generation);
+    while (sigwait(&signals, &signal_number) == 0 && signal_number == SIGHUP) {
+      if (assembler == nullptr) {
+        spdlog::info("SIGHUP: no DICOM listener, nothing to reload");
+        continue;
+      }
+      absl::Status reloaded = ReloadDicomConfig(options, assembler.get(),
+                                                dicom_scp.get(), outbox.get());
+      if (reloaded.ok()) {
+        ++generation;
+        metrics.DicomConfigGeneration(generation);
+        spdlog::info(
+            "SIGHUP: dicom: peers and rules reloaded; configuration "
+            "generation {} is live",
+            generation);
+      } else {
+        metrics.DicomEvent("config_reload_refused");
+        spdlog::error(
+            "SIGHUP: dicom: reload refused, configuration generation {} stays "
+            "live: {}",
+            generation, LogSafe(std::string(reloaded.message())));
+      }
+    }
     spdlog::info("{}: draining (grace {} s): health NOT_SERVING, no new jobs",
                  signal_number == SIGTERM ? "SIGTERM" : "SIGINT",
                  options.drain_grace_seconds);
@@ -665,6 +788,73 @@ int RunServer(ServerOptions options) {
                    .source = options.advertise,
                    .detail = "drained and stopped"});
   }
+  return 0;
+}
+
+int CheckConfig(const ServerOptions& options) {
+  int problems = 0;
+  auto problem = [&problems](const std::string& line) {
+    ++problems;
+    std::fprintf(stderr, "interslice-server: problem: %s\n", line.c_str());
+  };
+  QuietDicomToolkitLogging();
+  absl::StatusOr<DicomConfig> config = LoadDicomConfig(options);
+  std::vector<dicom::DicomPeer> peers = options.dicom_peers;
+  if (!config.ok()) {
+    problem(std::string(config.status().message()));
+    // The peers are still worth an echo when their own file is valid.
+    if (!options.dicom_peers_file.empty()) {
+      absl::StatusOr<std::vector<dicom::DicomPeer>> file =
+          dicom::LoadPeersFile(options.dicom_peers_file);
+      if (file.ok()) peers.insert(peers.end(), file->begin(), file->end());
+    }
+  } else {
+    if (!options.dicom_peers_file.empty()) {
+      std::printf("peers file %s: %zu peer(s)%s\n",
+                  options.dicom_peers_file.c_str(), config->peers.peers.size(),
+                  config->peers.accept_unknown_callers
+                      ? ", unknown callers accepted"
+                      : "");
+    }
+    peers.insert(peers.end(), config->peers.peers.begin(),
+                 config->peers.peers.end());
+    if (!options.dicom_listen.empty()) {
+      std::printf("listening for DICOM on %s as %s\n",
+                  options.dicom_listen.c_str(),
+                  absl::StrJoin(config->ae_titles, ", ").c_str());
+    }
+    if (options.rules_file.empty()) {
+      std::printf("no --rules: received series make no jobs\n");
+    } else {
+      std::printf(
+          "rules file %s: %zu rule(s), stable_seconds %g; the first "
+          "that matches wins\n",
+          options.rules_file.c_str(), config->rules.rules.size(),
+          config->rules.stable_seconds);
+      for (size_t i = 0; i < config->rules.rules.size(); ++i) {
+        const dicom::Rule& rule = config->rules.rules[i];
+        std::printf("  rule '%s' (#%zu): %s\n", rule.name.c_str(), i + 1,
+                    DescribeRule(rule).c_str());
+      }
+    }
+  }
+  const std::string calling = CallingAeTitle(options);
+  for (const dicom::DicomPeer& peer : peers) {
+    absl::Status echo =
+        dicom::EchoPeer(peer, calling, DicomTls(options), kEchoTimeoutSeconds);
+    if (echo.ok()) {
+      std::printf("  %s: C-ECHO answered (calling as %s)\n",
+                  dicom::PeerLabel(peer).c_str(), calling.c_str());
+    } else {
+      problem(std::string(echo.message()));
+    }
+  }
+  if (problems > 0) {
+    std::fprintf(stderr, "interslice-server: --check-config: %d problem(s)\n",
+                 problems);
+    return 1;
+  }
+  std::printf("configuration OK\n");
   return 0;
 }
 

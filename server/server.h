@@ -107,6 +107,14 @@ int AvailableCpus();
 // only its signal thread receives them).
 int RunServer(ServerOptions options);
 
+// `interslice-server --check-config`: loads the peers and rules files and
+// checks them with the AE titles exactly as a start would, C-ECHOes every
+// peer (as the first --dicom-ae, with the --dicom-tls-* files for tls peers),
+// and prints what each rule would match to stdout. Each problem (an invalid
+// file, a peer that does not answer) is one line on stderr. Returns 0 when
+// there is none, 1 otherwise. Starts nothing and writes nothing.
+int CheckConfig(const ServerOptions& options);
+
 }  // namespace interslice::server
 
 #endif  // INTERSLICE_SERVER_SERVER_H_

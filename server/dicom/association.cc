@@ -63,6 +63,15 @@ struct AssociationRunner::Impl {
   std::unique_ptr<DcmTransportLayer> layer;
   T_ASC_Network* network = nullptr;
   DcmSharedSCPConfig config;
+  // The peers in force (replaced whole by SetPeers on a reload); each
+  // association checks its caller against one snapshot.
+  std::mutex peers_mu;
+  std::shared_ptr<const PeersConfig> peers;
+
+  std::shared_ptr<const PeersConfig> Peers() {
+    std::lock_guard<std::mutex> lock(peers_mu);
+    return peers;
+  }
 
   void Count(const char* event, double n = 1) {
     if (metrics != nullptr) metrics->DicomEvent(event, n);
@@ -261,7 +270,8 @@ class AssociationScp : public DcmThreadSCP {
     const std::string ae = Trimmed(calling.c_str());
     bool known = false;
     std::vector<std::string> allowed;
-    for (const DicomPeer& peer : impl_->options.peers.peers) {
+    const std::shared_ptr<const PeersConfig> peers = impl_->Peers();
+    for (const DicomPeer& peer : peers->peers) {
       if (peer.ae_title != ae) continue;
       known = true;
       if (peer.allowed_sources.empty()) return OFTrue;
@@ -271,7 +281,7 @@ class AssociationScp : public DcmThreadSCP {
       }
     }
     if (!known) {
-      if (impl_->options.peers.accept_unknown_callers) return OFTrue;
+      if (peers->accept_unknown_callers) return OFTrue;
       rejection_ = refusal::kCallingAe;
       rejection_detail_ = absl::StrCat("calling AE title ", LogSafe(ae),
                                        " is not in the peers file");
@@ -470,6 +480,12 @@ class AssociationScp : public DcmThreadSCP {
 
 }  // namespace
 
+void AssociationRunner::SetPeers(PeersConfig peers) {
+  auto next = std::make_shared<const PeersConfig>(std::move(peers));
+  std::lock_guard<std::mutex> lock(impl_->peers_mu);
+  impl_->peers = std::move(next);
+}
+
 absl::StatusOr<std::unique_ptr<AssociationRunner>> AssociationRunner::Create(
     const StorageScpOptions& options, SeriesAssembler* assembler,
     Metrics* metrics, RefusalLog* refusals, ConnectionGate* gate) {
@@ -477,6 +493,7 @@ absl::StatusOr<std::unique_ptr<AssociationRunner>> AssociationRunner::Create(
   runner->impl_ = std::make_unique<Impl>();
   Impl& impl = *runner->impl_;
   impl.options = options;
+  impl.peers = std::make_shared<const PeersConfig>(options.peers);
   impl.assembler = assembler;
   impl.metrics = metrics;
   impl.refusals = refusals;

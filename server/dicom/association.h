@@ -56,6 +56,9 @@ class AssociationRunner {
   // Blocking, on the calling thread: the whole association on `connection`
   // (its socket is closed at the end).
   void Serve(ReadyConnection connection);
+  // Replaces the peers whose calling AE titles are accepted (a reload);
+  // associations already accepted are not affected.
+  void SetPeers(PeersConfig peers);
 
   struct Impl;
 

@@ -457,33 +457,106 @@ bool ValueRange::Contains(double value) const {
   return (!min || value >= *min) && (!max || value <= *max);
 }
 
-bool RuleMatch::Matches(const SeriesFacts& f) const {
-  if (modality && !SameText(*modality, f.modality)) return false;
-  if (body_part && !SameText(*body_part, f.body_part)) return false;
-  if (calling_ae && !SameText(*calling_ae, f.calling_ae)) return false;
-  if (called_ae && !SameText(*called_ae, f.called_ae)) return false;
+namespace {
+
+std::string RangeText(const ValueRange& range) {
+  if (range.min && range.max) {
+    return absl::StrCat("in [", *range.min, ", ", *range.max, "]");
+  }
+  if (range.min) return absl::StrCat(">= ", *range.min);
+  if (range.max) return absl::StrCat("<= ", *range.max);
+  return "any";
+}
+
+// "modality is 'MR', not 'CT'" for a text criterion that failed.
+std::string TextFailure(const char* criterion, const std::string& value,
+                        const std::string& wanted) {
+  return absl::StrCat(criterion, " is '", value, "', not '", wanted, "'");
+}
+
+std::string RangeFailure(const char* criterion,
+                         const std::optional<double>& value,
+                         const ValueRange& range) {
+  if (!value)
+    return absl::StrCat(criterion, " unknown, wanted ", RangeText(range));
+  return absl::StrCat(criterion, " ", *value, " not ", RangeText(range));
+}
+
+}  // namespace
+
+std::string RuleMatch::FirstFailure(const SeriesFacts& f) const {
+  if (modality && !SameText(*modality, f.modality)) {
+    return TextFailure("modality", f.modality, *modality);
+  }
+  if (body_part && !SameText(*body_part, f.body_part)) {
+    return TextFailure("body_part", f.body_part, *body_part);
+  }
+  if (calling_ae && !SameText(*calling_ae, f.calling_ae)) {
+    return TextFailure("calling_ae", f.calling_ae, *calling_ae);
+  }
+  if (called_ae && !SameText(*called_ae, f.called_ae)) {
+    return TextFailure("called_ae", f.called_ae, *called_ae);
+  }
+  // Free text may name a patient or a study: only the criterion is named.
   if (series_description &&
       !re2::RE2::PartialMatch(f.series_description, *series_description)) {
-    return false;
+    return absl::StrCat("series_description does not match /",
+                        series_description->pattern(), "/");
   }
   if (protocol_name &&
       !re2::RE2::PartialMatch(f.protocol_name, *protocol_name)) {
-    return false;
+    return absl::StrCat("protocol_name does not match /",
+                        protocol_name->pattern(), "/");
   }
   if (slice_thickness_mm &&
       (!f.slice_thickness_mm ||
        !slice_thickness_mm->Contains(*f.slice_thickness_mm))) {
-    return false;
+    return RangeFailure("slice_thickness", f.slice_thickness_mm,
+                        *slice_thickness_mm);
   }
   if (slice_spacing_mm && (!f.slice_spacing_mm ||
                            !slice_spacing_mm->Contains(*f.slice_spacing_mm))) {
-    return false;
+    return RangeFailure("slice_spacing", f.slice_spacing_mm, *slice_spacing_mm);
   }
   if (slice_count &&
       !slice_count->Contains(static_cast<double>(f.slice_count))) {
-    return false;
+    return RangeFailure("slice_count", static_cast<double>(f.slice_count),
+                        *slice_count);
   }
-  return true;
+  return "";
+}
+
+bool RuleMatch::Matches(const SeriesFacts& f) const {
+  return FirstFailure(f).empty();
+}
+
+std::string RuleMatch::Describe() const {
+  std::vector<std::string> parts;
+  if (modality) parts.push_back(absl::StrCat("modality ", *modality));
+  if (body_part) parts.push_back(absl::StrCat("body_part ", *body_part));
+  if (calling_ae) parts.push_back(absl::StrCat("calling_ae ", *calling_ae));
+  if (called_ae) parts.push_back(absl::StrCat("called_ae ", *called_ae));
+  if (series_description) {
+    parts.push_back(absl::StrCat("series_description /",
+                                 series_description->pattern(), "/"));
+  }
+  if (protocol_name) {
+    parts.push_back(
+        absl::StrCat("protocol_name /", protocol_name->pattern(), "/"));
+  }
+  if (slice_thickness_mm) {
+    parts.push_back(
+        absl::StrCat("slice_thickness ", RangeText(*slice_thickness_mm)));
+  }
+  if (slice_spacing_mm) {
+    parts.push_back(
+        absl::StrCat("slice_spacing ", RangeText(*slice_spacing_mm)));
+  }
+  if (slice_count) {
+    parts.push_back(absl::StrCat("slice_count ", RangeText(*slice_count)));
+  }
+  if (parts.empty()) return "every series";
+  return absl::StrJoin(parts, ", ");
 }
 
 const Rule* RuleSet::FirstMatch(const SeriesFacts& facts) const {
@@ -494,6 +567,24 @@ const Rule* RuleSet::FirstMatch(const SeriesFacts& facts) const {
     if (rule.match.Matches(facts)) return &rule;
   }
   return nullptr;
+}
+
+std::string RuleSet::ExplainNoMatch(const SeriesFacts& facts) const {
+  if (rules.empty()) return "the rule set has no rules";
+  std::vector<std::string> reasons;
+  for (const Rule& rule : rules) {
+    std::string why;
+    if (rule.job.has_fill() && !facts.segmentation) {
+      why = "a fill rule (segmentations only)";
+    } else if (!rule.job.has_fill() && facts.segmentation) {
+      why = "a job rule (not for segmentations)";
+    } else {
+      why = rule.match.FirstFailure(facts);
+      if (why.empty()) why = "matches";
+    }
+    reasons.push_back(absl::StrCat("rule '", rule.name, "': ", why));
+  }
+  return absl::StrJoin(reasons, "; ");
 }
 
 absl::StatusOr<PeersConfig> LoadPeersConfig(const std::string& path) {

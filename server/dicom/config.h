@@ -101,6 +101,16 @@ struct RuleMatch {
   std::shared_ptr<const re2::RE2> series_description, protocol_name;
   std::optional<ValueRange> slice_thickness_mm, slice_spacing_mm, slice_count;
   bool Matches(const SeriesFacts& facts) const;
+  // The first criterion (in the order above) that does not hold, as one
+  // phrase naming it and, for modality, body part, AE titles and the
+  // numeric ranges, the series' value ("modality is 'MR', not 'CT'"); a
+  // regular expression's value is never shown (free text may identify a
+  // patient). Empty when the match holds. The series' values are raw:
+  // callers that log it pass it through LogSafe.
+  std::string FirstFailure(const SeriesFacts& facts) const;
+  // The criteria as written, "modality CT, called_ae INTERSLICE", or
+  // "every series".
+  std::string Describe() const;
 };
 
 struct Rule {
@@ -131,6 +141,11 @@ struct RuleSet {
   // The first rule whose match holds, or null. Only fill rules are tried
   // for a segmentation (facts.segmentation), only the others for a series.
   const Rule* FirstMatch(const SeriesFacts& facts) const;
+  // Why no rule matched `facts`: for each rule in order, "rule 'NAME': " and
+  // its first failing criterion (RuleMatch::FirstFailure), or that it is a
+  // fill rule for a series / a job rule for a segmentation; "; " between
+  // rules. One line, no UIDs or patient data.
+  std::string ExplainNoMatch(const SeriesFacts& facts) const;
 };
 
 // `peers` are those of the peers file: send_to names must be among them.

@@ -222,10 +222,21 @@ SeriesAssembler::SeriesAssembler(const AssemblerOptions& options, RuleSet rules,
                                  Spool* spool, Metrics* metrics,
                                  JobSubmitter submitter)
     : options_(options),
-      rules_(std::move(rules)),
+      rules_(std::make_shared<const RuleSet>(std::move(rules))),
       spool_(spool),
       metrics_(metrics),
       submitter_(std::move(submitter)) {}
+
+std::shared_ptr<const RuleSet> SeriesAssembler::rules() const {
+  std::lock_guard<std::mutex> lock(rules_mu_);
+  return rules_;
+}
+
+void SeriesAssembler::SetRules(RuleSet rules) {
+  auto next = std::make_shared<const RuleSet>(std::move(rules));
+  std::lock_guard<std::mutex> lock(rules_mu_);
+  rules_ = std::move(next);
+}
 
 absl::StatusOr<std::unique_ptr<SeriesAssembler>> SeriesAssembler::Open(
     const AssemblerOptions& options, RuleSet rules, Spool* spool,
@@ -673,10 +684,11 @@ void SeriesAssembler::EndAssociation(uint64_t association, bool released) {
 }
 
 int SeriesAssembler::CompleteStableSeries() {
+  const std::shared_ptr<const RuleSet> rules = this->rules();
   const auto now = std::chrono::steady_clock::now();
   const auto stable =
       std::chrono::duration_cast<std::chrono::steady_clock::duration>(
-          std::chrono::duration<double>(rules_.stable_seconds));
+          std::chrono::duration<double>(rules->stable_seconds));
   std::vector<std::pair<std::string, Pending>> ready;
   std::vector<std::string> dirs;
   {
@@ -700,7 +712,7 @@ int SeriesAssembler::CompleteStableSeries() {
         SeriesFacts facts = ReadSeriesFacts(SeriesDir(it->first));
         facts.calling_ae = p.calling_ae;
         facts.called_ae = p.called_ae;
-        const Rule* rule = rules_.FirstMatch(facts);
+        const Rule* rule = rules->FirstMatch(facts);
         p.release_requested = false;
         if (rule == nullptr || !rule->complete_on_release) {
           ++it;
@@ -736,15 +748,19 @@ void SeriesAssembler::Complete(const std::string& key, const Pending& p,
   SeriesFacts facts = ReadSeriesFacts(dir);
   facts.calling_ae = p.calling_ae;
   facts.called_ae = p.called_ae;
-  const Rule* rule = rules_.FirstMatch(facts);
+  // One generation of the rules for this series (held while its job is
+  // made: `rule` points into it).
+  const std::shared_ptr<const RuleSet> rules = this->rules();
+  const Rule* rule = rules->FirstMatch(facts);
   const std::string from =
       absl::StrCat(LogSafe(p.calling_ae), " -> ", LogSafe(p.called_ae));
   if (rule == nullptr) {
     KeepUnmatched(key, dir);
     spdlog::warn(
         "dicom: no rule of rule set {} matched a series from {} ({} "
-        "instance(s), modality {}); kept for {} s, then removed",
-        LogSafe(rules_.path), from, p.instances, LogSafe(facts.modality),
+        "instance(s), modality {}): {}; kept for {} s, then removed",
+        LogSafe(rules->path), from, p.instances, LogSafe(facts.modality),
+        LogSafe(rules->ExplainNoMatch(facts)),
         options_.unmatched_retention_seconds);
     return;
   }

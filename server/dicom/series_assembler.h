@@ -137,7 +137,11 @@ class SeriesAssembler {
   void Start();
   void Stop();
 
-  const RuleSet& rules() const { return rules_; }
+  // The rules in force. SetRules replaces them whole (a reload on SIGHUP,
+  // server/server.cc); every completion takes one set for all it decides,
+  // and a job made before keeps the spec it was made with.
+  std::shared_ptr<const RuleSet> rules() const;
+  void SetRules(RuleSet rules);
   // The most bytes one instance may have: the per-series limit. The
   // listener cuts off (aborts) a reception that passes it while it streams
   // in, since no status can answer an instance before all of it arrived.
@@ -249,7 +253,8 @@ class SeriesAssembler {
   std::string NewestHeld(const std::string& key) const;
 
   const AssemblerOptions options_;
-  const RuleSet rules_;
+  mutable std::mutex rules_mu_;
+  std::shared_ptr<const RuleSet> rules_;  // guarded by rules_mu_
   Spool* const spool_;
   Metrics* const metrics_;
   const JobSubmitter submitter_;

@@ -164,6 +164,10 @@ absl::StatusOr<std::unique_ptr<StorageScp>> StorageScp::Start(
   return scp;
 }
 
+void StorageScp::SetPeers(PeersConfig peers) {
+  if (impl_) impl_->runner->SetPeers(std::move(peers));
+}
+
 int StorageScp::port() const { return impl_ ? impl_->gate->port() : 0; }
 
 StorageScp::~StorageScp() { Stop(); }

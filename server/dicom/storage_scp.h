@@ -82,6 +82,9 @@ class StorageScp {
   ~StorageScp();  // Stop()
 
   int port() const;
+  // Replaces the peers file's content (a reload on SIGHUP): associations
+  // requested from now on are checked against it.
+  void SetPeers(PeersConfig peers);
   // Stops accepting connections (waiting ones are closed) and waits for the
   // associations in progress to end (bounded by the timeouts).
   void Stop();

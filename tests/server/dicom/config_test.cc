@@ -541,5 +541,64 @@ TEST_F(ConfigTest, DocumentedExamplesParse) {
   EXPECT_THAT(rules->rules[0].name, Not(HasSubstr("#")));
 }
 
+// Issue 25: a series no rule takes is explained rule by rule, with the
+// first criterion that failed, and never with free-text values.
+TEST_F(ConfigTest, NoMatchIsExplainedRuleByRule) {
+  absl::StatusOr<RuleSet> set = LoadRulesFile(
+      Write("explain.yaml",
+            "rules:\n"
+            "  - name: ct-bone\n"
+            "    match: {modality: CT, called_ae: INTERSLICE}\n"
+            "    job: {threshold: 300}\n"
+            "  - name: head\n"
+            "    match: {modality: MR, series_description: \"(?i)head\"}\n"
+            "    job: {threshold: 100}\n"
+            "  - name: thick\n"
+            "    match: {modality: MR, slice_thickness: {min: 2.5},\n"
+            "            slice_count: [10, 400]}\n"
+            "    job: {threshold: 100}\n"
+            "  - name: seg\n"
+            "    match: {modality: SEG}\n"
+            "    fill: {}\n"),
+      Peers());
+  ASSERT_TRUE(set.ok()) << set.status();
+  SeriesFacts mr;
+  mr.modality = "MR";
+  mr.called_ae = "INTERSLICE";
+  mr.series_description = "Doe^Jane brain";  // free text: never shown
+  mr.slice_thickness_mm = 1.0;
+  mr.slice_count = 3;
+  ASSERT_EQ(set->FirstMatch(mr), nullptr);
+  const std::string why = set->ExplainNoMatch(mr);
+  EXPECT_EQ(why,
+            "rule 'ct-bone': modality is 'MR', not 'CT'; "
+            "rule 'head': series_description does not match /(?i)head/; "
+            "rule 'thick': slice_thickness 1 not >= 2.5; "
+            "rule 'seg': a fill rule (segmentations only)");
+  EXPECT_THAT(why, Not(HasSubstr("Doe")));
+  // The first failing criterion in the documented order: the AE title
+  // before the thickness.
+  SeriesFacts ct = mr;
+  ct.modality = "ct ";  // case and spaces ignored
+  ct.called_ae = "OTHER";
+  EXPECT_THAT(set->ExplainNoMatch(ct),
+              HasSubstr("rule 'ct-bone': called_ae is 'OTHER', not "
+                        "'INTERSLICE'"));
+  SeriesFacts unknown_thickness = mr;
+  unknown_thickness.series_description = "head";
+  unknown_thickness.slice_thickness_mm.reset();
+  EXPECT_THAT(set->ExplainNoMatch(unknown_thickness),
+              HasSubstr("rule 'head': matches; rule 'thick': "
+                        "slice_thickness unknown, wanted >= 2.5"));
+  SeriesFacts seg;
+  seg.modality = "SEG";
+  seg.segmentation = true;
+  EXPECT_THAT(set->ExplainNoMatch(seg),
+              HasSubstr("rule 'ct-bone': a job rule (not for segmentations)"));
+  EXPECT_EQ(set->rules[2].match.Describe(),
+            "modality MR, slice_thickness >= 2.5, slice_count in [10, 400]");
+  EXPECT_EQ(set->rules[3].match.Describe(), "modality SEG");
+}
+
 }  // namespace
 }  // namespace interslice::server::dicom

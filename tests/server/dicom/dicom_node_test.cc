@@ -137,6 +137,7 @@ class DicomServer {
   // SIGTERM: the drain; the exit code (-1: killed after `wait_seconds`).
   int Terminate(double wait_seconds) { return server_.Stop(wait_seconds); }
   bool running() const { return server_.running(); }
+  pid_t pid() const { return server_.pid(); }
   std::string port() const { return std::to_string(server_.dicom_port()); }
   std::vector<std::string> Client() const {
     return Cat(server_.ServerFlag(), {"--token-file", token_file_});
@@ -1391,6 +1392,284 @@ TEST_F(DicomFillTest, SeriesTakenByAJobRuleIsStillHeldForItsSeg) {
   }
   EXPECT_THAT(server.Log(), HasSubstr("(fill) made by rule fill-seg"));
   EXPECT_THAT(server.Log(), HasSubstr("made by rule ct "));
+}
+
+// ---- Issue 25: a node that explains itself ------------------------------
+
+const std::string kServer = INTERSLICE_SERVER_PATH;
+const std::string kStoreScp = "/usr/bin/storescp";
+
+// storescp answering C-ECHO as `ae` on a free port (a live peer); stopped
+// with the object.
+class LivePeer {
+ public:
+  LivePeer(const TempDir& dir, const std::string& ae) : port_(FreeTcpPort()) {
+    fs::create_directories(dir / "storescp-out");
+    pid_ = StartProcess({kStoreScp, "-aet", ae, "-od", dir / "storescp-out",
+                         std::to_string(port_)},
+                        dir / "storescp.log");
+    ready_ = WaitUntil(
+        [&] {
+          return RunCommand(
+                     {kEchoScu, "-aec", ae, "127.0.0.1", std::to_string(port_)},
+                     30)
+                     .exit_code == 0;
+        },
+        60);
+  }
+  ~LivePeer() { StopProcess(pid_, 10); }
+  bool ready() const { return ready_; }
+  int port() const { return port_; }
+
+ private:
+  int port_;
+  pid_t pid_;
+  bool ready_ = false;
+};
+
+// Peers: a live storescp, and a port nobody listens on.
+std::string WriteLiveAndDeadPeers(const TempDir& dir, int live_port,
+                                  int dead_port) {
+  const std::string path = dir / "peers-live-dead.yaml";
+  WriteFile(path, absl::StrCat(
+                      "peers:\n"
+                      "  - {name: tools, ae_title: STORESCU, host: 127.0.0.1, "
+                      "port: ",
+                      live_port,
+                      "}\n"
+                      "  - {name: live, ae_title: LIVE, host: 127.0.0.1, "
+                      "port: ",
+                      live_port,
+                      "}\n"
+                      "  - {name: dead, ae_title: DEAD, host: 127.0.0.1, "
+                      "port: ",
+                      dead_port, "}\n"));
+  return path;
+}
+
+std::vector<std::string> ProblemLines(const std::string& err) {
+  std::vector<std::string> problems;
+  for (absl::string_view line : absl::StrSplit(err, '\n')) {
+    if (absl::StartsWith(line, "interslice-server: problem: ")) {
+      problems.emplace_back(line);
+    }
+  }
+  return problems;
+}
+
+TEST(DicomNodeConfigTest, CheckConfigEchoesPeersAndPrintsTheRules) {
+  TempDir dir;
+  // storescu calls as STORESCU: the live peer answers as that AE title too
+  // (storescp accepts any called AE title unless told otherwise).
+  LivePeer live(dir, "LIVE");
+  ASSERT_TRUE(live.ready()) << ReadFileOrEmpty(dir / "storescp.log");
+  const int dead_port = FreeTcpPort();
+  const std::string rules = dir / "rules-check.yaml";
+  WriteFile(rules,
+            "stable_seconds: 2\n"
+            "rules:\n"
+            "  - name: ct-bone\n"
+            "    match: {modality: CT, called_ae: INTERSLICE, "
+            "slice_count: {min: 20}}\n"
+            "    job: {threshold: 300}\n"
+            "    send_to: [live]\n"
+            "  - name: seg\n"
+            "    match: {modality: SEG}\n"
+            "    fill: {}\n");
+  auto check = [&](const std::string& peers, const std::string& rules_file) {
+    return RunCommand(
+        {kServer, "--check-config", "--spool", dir / "spool", "--dicom-listen",
+         "127.0.0.1:0", "--dicom-ae", "INTERSLICE", "--dicom-peers", peers,
+         "--rules", rules_file},
+        120);
+  };
+  CommandResult r =
+      check(WriteLiveAndDeadPeers(dir, live.port(), dead_port), rules);
+  EXPECT_EQ(r.exit_code, 1) << r.out << r.err;
+  EXPECT_THAT(r.out,
+              HasSubstr("rule 'ct-bone' (#1): a series with modality CT, "
+                        "called_ae INTERSLICE, slice_count >= 20 -> job, "
+                        "send_to live"));
+  EXPECT_THAT(r.out, HasSubstr("rule 'seg' (#2): a segmentation (SEG, "
+                               "RTSTRUCT) with modality SEG -> fill job"));
+  EXPECT_THAT(r.out,
+              HasSubstr(absl::StrCat("peer live (LIVE@127.0.0.1:", live.port(),
+                                     "): C-ECHO answered")));
+  // One line for the one problem: the dead peer, named.
+  std::vector<std::string> problems = ProblemLines(r.err);
+  ASSERT_EQ(problems.size(), 1u) << r.err;
+  EXPECT_THAT(problems[0], HasSubstr(absl::StrCat(
+                               "peer dead (DEAD@127.0.0.1:", dead_port, ")")));
+  // A check starts nothing and writes nothing.
+  EXPECT_FALSE(fs::exists(dir / "spool"));
+
+  // Only live peers: exit code 0.
+  const std::string good = dir / "peers-good.yaml";
+  WriteFile(good, absl::StrCat("peers:\n  - {name: live, ae_title: LIVE, "
+                               "host: 127.0.0.1, port: ",
+                               live.port(), "}\n"));
+  r = check(good, rules);
+  EXPECT_EQ(r.exit_code, 0) << r.out << r.err;
+  EXPECT_THAT(r.out, HasSubstr("configuration OK"));
+  EXPECT_TRUE(ProblemLines(r.err).empty()) << r.err;
+
+  // A rule for an AE title the server does not listen as: the problem line
+  // says which rule and which titles it does listen as.
+  const std::string bad = dir / "rules-bad.yaml";
+  WriteFile(bad,
+            "rules:\n  - name: three-d\n    match: {called_ae: INTERSLICE_3D}\n"
+            "    job: {threshold: 300}\n");
+  r = check(good, bad);
+  EXPECT_EQ(r.exit_code, 1) << r.out << r.err;
+  problems = ProblemLines(r.err);
+  ASSERT_EQ(problems.size(), 1u) << r.err;
+  EXPECT_THAT(problems[0],
+              HasSubstr("rule 'three-d' (#1): match.called_ae: INTERSLICE_3D "
+                        "is not an AE title this server listens as "
+                        "(--dicom-ae INTERSLICE)"));
+}
+
+TEST(DicomNodeConfigTest, UnreachablePeerIsAWarningAndAMetricAtStart) {
+  TempDir dir;
+  LivePeer live(dir, "LIVE");
+  ASSERT_TRUE(live.ready()) << ReadFileOrEmpty(dir / "storescp.log");
+  const int dead_port = FreeTcpPort();
+  DicomServer server(
+      dir, "spool",
+      {"--dicom-peers", WriteLiveAndDeadPeers(dir, live.port(), dead_port),
+       "--rules", WriteRules(dir, 1, false)});
+  ASSERT_TRUE(server.up()) << server.Log();
+  const std::string reachable = "interslice_dicom_peer_reachable{peer=\"";
+  ASSERT_TRUE(WaitUntil(
+      [&] {
+        return server.Metric(reachable + "live\"}") >= 0 &&
+               server.Metric(reachable + "dead\"}") >= 0;
+      },
+      120))
+      << server.Log();
+  EXPECT_EQ(server.Metric(reachable + "live\"}"), 1);
+  EXPECT_EQ(server.Metric(reachable + "dead\"}"), 0);
+  const std::string log = server.Log();
+  EXPECT_THAT(log,
+              HasSubstr(absl::StrCat("peer dead (DEAD@127.0.0.1:", dead_port,
+                                     ") did not answer a C-ECHO at "
+                                     "start-up")));
+  EXPECT_THAT(log, HasSubstr(absl::StrCat("peer live (LIVE@127.0.0.1:",
+                                          live.port(), ") answered a C-ECHO")));
+  // The server serves anyway.
+  CommandResult echo = RunCommand({kEchoScu, "-aet", "STORESCU", "-aec",
+                                   "INTERSLICE", "127.0.0.1", server.port()});
+  EXPECT_EQ(echo.exit_code, 0) << echo.err;
+}
+
+// A series no rule takes: one log line naming each rule and the first
+// criterion that failed, with no UID or patient data.
+TEST(DicomNodeConfigTest, UnmatchedSeriesLogSaysWhichCriterionFailed) {
+  TempDir dir;
+  DicomServer server(dir, "spool",
+                     {"--dicom-peers", WritePeers(dir), "--rules",
+                      WriteRules(dir, 0.5, true)});
+  ASSERT_TRUE(server.up()) << server.Log();
+  // 5 slices of the phantom: fewer than ct-head's slice_count min 20.
+  std::vector<std::string> files = PhantomFiles();
+  files.resize(5);
+  CommandResult store = StoreScu(server, {}, files);
+  ASSERT_EQ(store.exit_code, 0) << store.err;
+  std::string line;
+  ASSERT_TRUE(WaitUntil(
+      [&] {
+        for (absl::string_view l : absl::StrSplit(server.Log(), '\n')) {
+          if (absl::StrContains(l, "no rule of rule set")) {
+            line = std::string(l);
+            return true;
+          }
+        }
+        return false;
+      },
+      120))
+      << server.Log();
+  EXPECT_THAT(line, HasSubstr("rule 'not-mr': modality is 'CT', not 'MR'; "
+                              "rule 'ct-head': slice_count 5 not >= 20"));
+  EXPECT_THAT(line, ::testing::Not(HasSubstr("1.3.46.670589")));
+  EXPECT_TRUE(server.Jobs().empty());
+}
+
+// SIGHUP reloads the peers and rules files: a bad file keeps the old
+// configuration and says why; a good one becomes the next generation, for
+// series completed and associations requested from then on.
+TEST(DicomNodeConfigTest, SighupReloadsPeersAndRulesAndRefusesABadFile) {
+  TempDir dir;
+  const std::string peers = WritePeers(dir);
+  const std::string rules = dir / "rules-reload.yaml";
+  WriteFile(
+      rules,
+      "stable_seconds: 0.5\nrules:\n"
+      "  - {name: mr-only, match: {modality: MR}, job: {threshold: 1}}\n");
+  DicomServer server(dir, "spool", {"--dicom-peers", peers, "--rules", rules});
+  ASSERT_TRUE(server.up()) << server.Log();
+  const std::string generation = "interslice_dicom_config_generation";
+  EXPECT_EQ(server.Metric(generation), 1);
+  auto log_has = [&](const std::string& text) {
+    return WaitUntil([&] { return absl::StrContains(server.Log(), text); },
+                     120);
+  };
+  auto hangup = [&] { ASSERT_EQ(::kill(server.pid(), SIGHUP), 0); };
+  std::vector<std::string> files = PhantomFiles();
+  files.resize(5);
+  // Generation 1: the CT series matches nothing.
+  ASSERT_EQ(StoreScu(server, {}, files).exit_code, 0);
+  ASSERT_TRUE(log_has("rule 'mr-only': modality is 'CT', not 'MR'"))
+      << server.Log();
+  // NEWCOMER is not a peer yet.
+  auto newcomer_echo = [&] {
+    return RunCommand({kEchoScu, "-aet", "NEWCOMER", "-aec", "INTERSLICE",
+                       "127.0.0.1", server.port()})
+        .exit_code;
+  };
+  EXPECT_NE(newcomer_echo(), 0);
+
+  // A bad rules file: refused, generation 1 stays, the log says why.
+  WriteFile(rules,
+            "rules:\n  - {name: x, match: {modality: CT}, job: "
+            "{threshold: 300, methd: direct}}\n");
+  hangup();
+  ASSERT_TRUE(log_has("reload refused, configuration generation 1 stays live"))
+      << server.Log();
+  EXPECT_THAT(server.Log(), HasSubstr("methd"));
+  EXPECT_EQ(server.Metric(generation), 1);
+  // A rule that would send to a peer the outbox does not hold: refused.
+  WriteFile(peers + ".new",
+            ReadFileOrEmpty(peers) +
+                "  - {name: brandnew, ae_title: NEW, host: 127.0.0.1, "
+                "port: 2}\n");
+  fs::rename(peers + ".new", peers);
+  WriteFile(rules,
+            "rules:\n  - {name: x, match: {modality: CT}, job: "
+            "{threshold: 300}, send_to: [brandnew]}\n");
+  hangup();
+  ASSERT_TRUE(log_has("peer 'brandnew' is new or changed since the start"))
+      << server.Log();
+  EXPECT_EQ(server.Metric(generation), 1);
+
+  // Good files: generation 2, with the new caller and the new rule.
+  WriteFile(peers,
+            "peers:\n"
+            "  - {name: tools, ae_title: STORESCU, host: 127.0.0.1, port: 1}\n"
+            "  - {name: newcomer, ae_title: NEWCOMER, host: 127.0.0.1, "
+            "port: 1}\n");
+  WriteFile(rules,
+            "stable_seconds: 0.5\nrules:\n"
+            "  - name: ct-any\n"
+            "    match: {modality: CT}\n"
+            "    job: {threshold: 300, roi: [208, 208, 0, 304, 304, 5], "
+            "mesh: none, volume: [nii], previews: none}\n");
+  hangup();
+  ASSERT_TRUE(log_has("configuration generation 2 is live")) << server.Log();
+  EXPECT_EQ(server.Metric(generation), 2);
+  EXPECT_EQ(newcomer_echo(), 0) << server.Log();
+  ASSERT_EQ(StoreScu(server, {}, files).exit_code, 0);
+  ASSERT_TRUE(log_has("made by rule ct-any")) << server.Log();
+  EXPECT_EQ(server.Jobs().size(), 1u);
 }
 
 }  // namespace
