@@ -71,6 +71,12 @@ constexpr OptionDef<IO> kInterpolationOptions[] = {
      ValueKind::kText, &IO::dicom_compression,
      "Pixel data of the DICOM intensity series: none (native) or rle (RLE "
      "Lossless: the same values, fewer bytes)"},
+    {"dicom_layout", "spec.derived_series.layout", ValueKind::kText,
+     &IO::dicom_layout,
+     "Layout of the DICOM intensity series: classic (one CT/MR image per "
+     "slice, DIR/series-intensity/IM00001.dcm ...) or enhanced (one Enhanced "
+     "CT multi-frame instance, DIR/series-intensity/enhanced.dcm; CT "
+     "sources only)"},
     {"intensity_method", "spec.derived_series.intensity_method",
      ValueKind::kText, &IO::intensity_method,
      "Grey values of the DICOM intensity series between source slices: morph "
@@ -509,6 +515,12 @@ absl::StatusOr<JobSpec> BuildJobSpec(const InterpolationOptions& o) {
                                     "' (choose from none, rle)"));
   }
   spec.dicom_compression = o.dicom_compression;
+  if (o.dicom_layout != "classic" && o.dicom_layout != "enhanced") {
+    return OptionError("dicom_layout",
+                       absl::StrCat("unknown value '", o.dicom_layout,
+                                    "' (choose from classic, enhanced)"));
+  }
+  spec.dicom_layout = o.dicom_layout;
   if (absl::Status s = CheckIntensityMethod(o.intensity_method); !s.ok()) {
     return s;
   }

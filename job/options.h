@@ -77,6 +77,7 @@ struct InterpolationOptions {
   std::string output_series;  // "mask,distance,intensity"
   bool seg = false;
   std::string dicom_compression = "none";
+  std::string dicom_layout = "classic";
   std::string intensity_method = "morph";
   std::string uid_root;
   bool random_uids = false;

@@ -212,6 +212,9 @@ v1::JobSpec ToWire(const JobSpec& spec) {
   }
   p.mutable_derived_series()->set_intensity_method(
       WireIntensityMethod(spec.intensity_method));
+  if (spec.dicom_layout == "enhanced") {
+    p.mutable_derived_series()->set_layout(v1::DICOM_LAYOUT_ENHANCED);
+  }
   p.mutable_segmentation()->set_enabled(spec.write_seg);
   for (const std::string& content : spec.output_series) {
     p.mutable_derived_series()->add_contents(content);
@@ -283,6 +286,18 @@ absl::StatusOr<InterpolationOptions> InterpolationOptionsFromWire(
       return OptionError(
           "dicom_compression",
           absl::StrCat("unknown compression ", d.pixel_compression()));
+  }
+  switch (d.layout()) {
+    case v1::DICOM_LAYOUT_UNSPECIFIED:
+    case v1::DICOM_LAYOUT_CLASSIC:
+      o.dicom_layout = "classic";
+      break;
+    case v1::DICOM_LAYOUT_ENHANCED:
+      o.dicom_layout = "enhanced";
+      break;
+    default:
+      return OptionError("dicom_layout",
+                         absl::StrCat("unknown layout ", d.layout()));
   }
   absl::StatusOr<std::string> intensity =
       IntensityMethodName(d.intensity_method(), o.intensity_method);

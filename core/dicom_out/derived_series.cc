@@ -32,33 +32,7 @@
 namespace interslice {
 namespace {
 
-namespace fs = std::filesystem;
-using dicom_out_internal::AddReferencedSeries;
-using dicom_out_internal::CommitFile;
-using dicom_out_internal::CopyPatientStudyFrameOfReference;
-using dicom_out_internal::CurrentDate;
-using dicom_out_internal::CurrentTime;
-using dicom_out_internal::FormatDecimalString;
-using dicom_out_internal::kSourceImagePurposeCode;
-using dicom_out_internal::kSourceImagePurposeMeaning;
-using dicom_out_internal::LoadSourceHeader;
-using dicom_out_internal::NearestSourceSlices;
-using dicom_out_internal::SaveFileUnsynced;
-using dicom_out_internal::SlicePositionAlongNormal;
-using dicom_out_internal::SyncDirectory;
-using dicom_out_internal::ValidateOutputGrid;
-
-// How modality values become stored values: value = stored * slope +
-// intercept.
-struct Encoding {
-  double slope = 1;
-  double intercept = 0;
-  bool is_signed = false;
-  double window_center = 0;
-  double window_width = 1;
-  std::string rescale_type;  // "US" (unspecified) or "HU"
-  std::string description;   // appended to DerivationDescription
-};
+using dicom_out_internal::Encoding;
 
 // The 1-2-5 ladder times `base`: base, 2 base, 5 base, 10 base, ...
 double LadderStep(double base, int step) {
@@ -108,15 +82,10 @@ absl::Status FitSlope(const Range& range, double base, double intercept,
                       range.min, range.max));
 }
 
-// A pair of window values and its explanation (VOI LUT module).
-struct Window {
-  double center = 0;
-  double width = 1;
-  std::string explanation;
-};
+}  // namespace
 
-// Every WindowCenter/WindowWidth pair of the source (with its explanation),
-// or none when they are absent, unpaired or unusable.
+namespace dicom_out_internal {
+
 std::vector<Window> SourceWindows(DcmItem& source_header) {
   std::vector<Window> windows;
   for (unsigned long i = 0;; ++i) {
@@ -165,6 +134,58 @@ absl::StatusOr<Encoding> ChooseEncoding(const DicomSeries& source,
             "positions";
   return e;
 }
+
+std::optional<double> StoredPaddingValue(const Encoding& encoding,
+                                         std::optional<float> padding) {
+  if (!padding.has_value()) return std::nullopt;
+  const double stored =
+      std::round((*padding - encoding.intercept) / encoding.slope);
+  if (encoding.is_signed ? (stored >= -32768 && stored <= 32767)
+                         : (stored >= 0 && stored <= 65535)) {
+    return stored;
+  }
+  return std::nullopt;
+}
+
+void EncodeSlice(const Volume<float>& values, int64_t k,
+                 const Encoding& encoding, uint16_t* stored) {
+  const size_t pixels =
+      static_cast<size_t>(values.grid.size[0] * values.grid.size[1]);
+  const float* slice = &values.data[pixels * static_cast<size_t>(k)];
+  for (size_t i = 0; i < pixels; ++i) {
+    const double value =
+        std::round((slice[i] - encoding.intercept) / encoding.slope);
+    stored[i] = encoding.is_signed
+                    ? static_cast<Uint16>(static_cast<int16_t>(value))
+                    : static_cast<Uint16>(value);
+  }
+}
+
+}  // namespace dicom_out_internal
+
+namespace {
+
+namespace fs = std::filesystem;
+using dicom_out_internal::AddReferencedSeries;
+using dicom_out_internal::ChooseEncoding;
+using dicom_out_internal::CommitFile;
+using dicom_out_internal::CopyPatientStudyFrameOfReference;
+using dicom_out_internal::CurrentDate;
+using dicom_out_internal::CurrentTime;
+using dicom_out_internal::EncodeSlice;
+using dicom_out_internal::Encoding;
+using dicom_out_internal::FormatDecimalString;
+using dicom_out_internal::kSourceImagePurposeCode;
+using dicom_out_internal::kSourceImagePurposeMeaning;
+using dicom_out_internal::LoadSourceHeader;
+using dicom_out_internal::NearestSourceSlices;
+using dicom_out_internal::SaveFileUnsynced;
+using dicom_out_internal::SlicePositionAlongNormal;
+using dicom_out_internal::SourceWindows;
+using dicom_out_internal::StoredPaddingValue;
+using dicom_out_internal::SyncDirectory;
+using dicom_out_internal::ValidateOutputGrid;
+using dicom_out_internal::Window;
 
 enum class Iod { kCt, kMr, kSecondaryCapture };
 
@@ -295,15 +316,8 @@ absl::StatusOr<std::vector<std::string>> WriteIntensitySeries(
   // values never needs).
   INTERSLICE_ASSIGN_OR_RETURN(const std::optional<float> padding,
                               SourcePixelPadding(source));
-  std::optional<double> stored_padding;
-  if (padding.has_value()) {
-    const double stored =
-        std::round((*padding - encoding.intercept) / encoding.slope);
-    if (encoding.is_signed ? (stored >= -32768 && stored <= 32767)
-                           : (stored >= 0 && stored <= 65535)) {
-      stored_padding = stored;
-    }
-  }
+  const std::optional<double> stored_padding =
+      StoredPaddingValue(encoding, padding);
   INTERSLICE_RETURN_IF_ERROR(CreateFolder(output_dir));
 
   const Iod iod = ChooseIod(identity.sop_class_uid);
@@ -485,14 +499,7 @@ absl::StatusOr<std::vector<std::string>> WriteIntensitySeries(
       }
     }
 
-    const float* slice = &values.data[static_cast<size_t>(nx * ny * k)];
-    for (size_t i = 0; i < pixels.size(); ++i) {
-      const double stored =
-          std::round((slice[i] - encoding.intercept) / encoding.slope);
-      pixels[i] = encoding.is_signed
-                      ? static_cast<Uint16>(static_cast<int16_t>(stored))
-                      : static_cast<Uint16>(stored);
-    }
+    EncodeSlice(values, k, encoding, pixels.data());
     ds.putAndInsertUint16Array(DCM_PixelData, pixels.data(),
                                static_cast<unsigned long>(pixels.size()));
 

@@ -5,6 +5,7 @@
 
 #include <cstdint>
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -42,6 +43,47 @@ double SlicePositionAlongNormal(const Grid& grid, int64_t k);
 std::vector<int64_t> NearestSourceSlices(const DicomSeries& source,
                                          double position);
 
+// How the intensity series stores modality values (derived_series.cc; the
+// classic and the enhanced layout share it, so both hold the same stored
+// values): value = stored * slope + intercept.
+struct Encoding {
+  double slope = 1;
+  double intercept = 0;
+  bool is_signed = false;
+  double window_center = 0;
+  double window_width = 1;
+  std::string rescale_type;  // "US" (unspecified) or "HU"
+  std::string description;   // appended to DerivationDescription
+};
+
+// A pair of window values and its explanation (VOI LUT module).
+struct Window {
+  double center = 0;
+  double width = 1;
+  std::string explanation;
+};
+
+// Every WindowCenter/WindowWidth pair of the source (with its explanation),
+// or none when they are absent, unpaired or unusable.
+std::vector<Window> SourceWindows(DcmItem& source_header);
+
+// The encoding of `values` (WriteIntensitySeries' contract: the first source
+// slice's rescale, the slope raised along 1-2-5 steps only if a value does
+// not fit 16 bits). INVALID_ARGUMENT for non-finite or unencodable values.
+absl::StatusOr<Encoding> ChooseEncoding(const DicomSeries& source,
+                                        const Volume<float>& values,
+                                        const DicomWriteOptions& options);
+
+// The source's padding (modality units) as a stored value of `encoding`, if
+// it is representable.
+std::optional<double> StoredPaddingValue(const Encoding& encoding,
+                                         std::optional<float> padding);
+
+// Stores slice k of `values` into `stored` (nx * ny values; signed values
+// as their two's complement bits).
+void EncodeSlice(const Volume<float>& values, int64_t k,
+                 const Encoding& encoding, uint16_t* stored);
+
 // Loads the first source file without its pixel data. FAILED_PRECONDITION
 // (naming the file's base name) if it cannot be read.
 absl::StatusOr<std::unique_ptr<DcmFileFormat>> LoadSourceHeader(
@@ -68,9 +110,25 @@ void AddReferencedSeries(const DicomSeries& source, DcmItem& to);
 // image series this object lies on), replacing any there.
 void AddReferencedImageSeries(const DerivedObjectIdentity& series, DcmItem& to);
 
+// True for the SOP classes of the enhanced layout's intensity object
+// (Enhanced CT Image, Enhanced MR Image): one multi-frame instance whose
+// frame k + 1 is output slice k (core/dicom_out/enhanced_series.h).
+bool IsEnhancedImageSopClass(const std::string& sop_class_uid);
+
+// The image slice k of `referenced` (an intensity object on the same grid)
+// is: image k of a classic series (frame_number 0: the whole single-frame
+// instance), or frame k + 1 of the one enhanced instance.
+struct SliceImageReference {
+  std::string sop_instance_uid;
+  int64_t frame_number = 0;
+};
+SliceImageReference ReferenceSliceImage(const DerivedObjectIdentity& referenced,
+                                        int64_t k);
+
 // INVALID_ARGUMENT unless `identity` names one instance (with a series and a
 // dimension organization UID) and `referenced` names one image per slice of
-// `grid`. `what` names the object in messages.
+// `grid` (or is one enhanced multi-frame instance, a frame per slice). `what`
+// names the object in messages.
 absl::Status CheckReferencedSeries(const DerivedObjectIdentity& identity,
                                    const DerivedObjectIdentity& referenced,
                                    const Grid& grid, const char* what);

@@ -27,6 +27,7 @@
 #include "dcmtk/dcmdata/dcfilefo.h"
 #include "dcmtk/dcmdata/dcitem.h"
 #include "dcmtk/dcmdata/dcrleerg.h"
+#include "dcmtk/dcmdata/dcuid.h"
 #include "dcmtk/dcmdata/dcvrda.h"
 #include "dcmtk/dcmdata/dcvrtm.h"
 
@@ -320,6 +321,20 @@ void AddReferencedImageSeries(const DerivedObjectIdentity& series,
   }
 }
 
+bool IsEnhancedImageSopClass(const std::string& sop_class_uid) {
+  return sop_class_uid == UID_EnhancedCTImageStorage ||
+         sop_class_uid == UID_EnhancedMRImageStorage;
+}
+
+SliceImageReference ReferenceSliceImage(const DerivedObjectIdentity& referenced,
+                                        int64_t k) {
+  if (IsEnhancedImageSopClass(referenced.sop_class_uid) &&
+      referenced.sop_instance_uids.size() == 1) {
+    return {referenced.sop_instance_uids.front(), k + 1};
+  }
+  return {referenced.sop_instance_uids[static_cast<size_t>(k)], 0};
+}
+
 absl::Status CheckReferencedSeries(const DerivedObjectIdentity& identity,
                                    const DerivedObjectIdentity& referenced,
                                    const Grid& grid, const char* what) {
@@ -333,8 +348,12 @@ absl::Status CheckReferencedSeries(const DerivedObjectIdentity& identity,
         ": its identity needs a series UID, one SOP instance UID, a "
         "dimension organization UID and a series number"));
   }
-  if (static_cast<int64_t>(referenced.sop_instance_uids.size()) !=
-          grid.size[2] ||
+  const bool one_multi_frame_instance =
+      IsEnhancedImageSopClass(referenced.sop_class_uid) &&
+      referenced.sop_instance_uids.size() == 1;
+  if ((!one_multi_frame_instance &&
+       static_cast<int64_t>(referenced.sop_instance_uids.size()) !=
+           grid.size[2]) ||
       referenced.series_instance_uid.empty() ||
       referenced.sop_class_uid.empty()) {
     return absl::InvalidArgumentError(absl::StrFormat(

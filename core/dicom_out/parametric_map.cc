@@ -473,10 +473,18 @@ absl::Status WriteDistanceMap(const DicomSeries& source,
     INTERSLICE_RETURN_IF_ERROR(Check(
         reference.setReferencedSOPClassUID(referenced.sop_class_uid.c_str()),
         "set the referenced SOP class"));
-    INTERSLICE_RETURN_IF_ERROR(
-        Check(reference.setReferencedSOPInstanceUID(
-                  referenced.sop_instance_uids[static_cast<size_t>(k)].c_str()),
-              "set the referenced SOP instance"));
+    // Image k of a classic series, or frame k + 1 of the enhanced instance.
+    const dicom_out_internal::SliceImageReference image =
+        dicom_out_internal::ReferenceSliceImage(referenced, k);
+    INTERSLICE_RETURN_IF_ERROR(Check(
+        reference.setReferencedSOPInstanceUID(image.sop_instance_uid.c_str()),
+        "set the referenced SOP instance"));
+    if (image.frame_number > 0) {
+      INTERSLICE_RETURN_IF_ERROR(
+          Check(reference.addReferencedFrameNumber(
+                    static_cast<Uint16>(image.frame_number)),
+                "reference the frame of the enhanced intensity image"));
+    }
     OFVector<ImageSOPInstanceReferenceMacro> references;
     references.push_back(reference);
     std::unique_ptr<FGDerivationImage> derivation(

@@ -35,8 +35,10 @@ using dicom_out_internal::CurrentDate;
 using dicom_out_internal::CurrentTime;
 using dicom_out_internal::FormatDecimalString;
 using dicom_out_internal::LoadSourceHeader;
+using dicom_out_internal::ReferenceSliceImage;
 using dicom_out_internal::SaveFileAtomically;
 using dicom_out_internal::SaveSegmentation;
+using dicom_out_internal::SliceImageReference;
 using dicom_out_internal::ValidateOutputGrid;
 
 absl::Status Check(const OFCondition& cond, const char* what) {
@@ -167,10 +169,17 @@ absl::Status AddSegmentationFrame(DcmSegmentation& seg, const Grid& grid,
 
   // Frame k lies on image k of the referenced series: that image is what it
   // was derived from and what a viewer overlays it on.
+  // (of the enhanced layout's one instance: frame k + 1 of it).
+  const SliceImageReference image = ReferenceSliceImage(referenced, k);
   OFVector<ImageSOPInstanceReferenceMacro> references(1);
   references[0].setReferencedSOPClassUID(referenced.sop_class_uid.c_str());
-  references[0].setReferencedSOPInstanceUID(
-      referenced.sop_instance_uids[static_cast<size_t>(k)].c_str());
+  references[0].setReferencedSOPInstanceUID(image.sop_instance_uid.c_str());
+  if (image.frame_number > 0) {
+    INTERSLICE_RETURN_IF_ERROR(
+        Check(references[0].addReferencedFrameNumber(
+                  static_cast<Uint16>(image.frame_number)),
+              "reference the frame of the enhanced intensity image"));
+  }
   std::unique_ptr<FGDerivationImage> derivation(
       DcmSegmentation::createDerivationImageFG(
           references, derivation_description.substr(0, 1024).c_str()));

@@ -21,6 +21,7 @@
 #include "core/dicom/series_reader.h"
 #include "core/dicom_out/dicom_writer.h"
 #include "core/dicom_out/encapsulated_stl.h"
+#include "core/dicom_out/enhanced_series.h"
 #include "core/dicom_out/preview_series.h"
 #include "core/morph/intensity_morph.h"
 #include "core/morph/morph.h"
@@ -143,6 +144,36 @@ absl::Status WriteIntensityFolder(const DicomSeries& source,
   INTERSLICE_RETURN_IF_ERROR(
       WriteIntensitySeries(source, intensity, identity, options, temp.string())
           .status());
+  std::filesystem::remove_all(folder, ec);
+  std::filesystem::rename(temp, folder, ec);
+  if (ec) {
+    return absl::InternalError(
+        absl::StrCat("cannot move the derived series into ", folder.string(),
+                     ": ", ec.message()));
+  }
+  return absl::OkStatus();
+}
+
+// WriteIntensityFolder for the enhanced layout: the one instance in a fresh
+// sibling folder, renamed into place (so a classic series of an earlier run
+// in `folder` is replaced, never mixed with it).
+absl::Status WriteEnhancedIntensityFolder(const DicomSeries& source,
+                                          const Volume<float>& intensity,
+                                          const DerivedObjectIdentity& identity,
+                                          const DicomWriteOptions& options,
+                                          const std::filesystem::path& folder) {
+  const std::filesystem::path temp =
+      folder.parent_path() / ("." + folder.filename().string() + ".tmp");
+  std::error_code ec;
+  std::filesystem::remove_all(temp, ec);
+  std::filesystem::create_directories(temp, ec);
+  if (ec) {
+    return absl::InternalError(
+        absl::StrCat("cannot create ", temp.string(), ": ", ec.message()));
+  }
+  INTERSLICE_RETURN_IF_ERROR(
+      WriteEnhancedIntensity(source, intensity, identity, options,
+                             (temp / kEnhancedIntensityFileName).string()));
   std::filesystem::remove_all(folder, ec);
   std::filesystem::rename(temp, folder, ec);
   if (ec) {
@@ -302,6 +333,11 @@ absl::Status ValidateJobSpec(const JobSpec& spec) {
         absl::StrCat("unknown DICOM compression '", spec.dicom_compression,
                      "' (choose from none, rle)"));
   }
+  if (spec.dicom_layout != "classic" && spec.dicom_layout != "enhanced") {
+    return absl::InvalidArgumentError(
+        absl::StrCat("unknown DICOM layout '", spec.dicom_layout,
+                     "' (choose from classic, enhanced)"));
+  }
   if (spec.intensity_method != "linear" && spec.intensity_method != "morph") {
     return absl::InvalidArgumentError(
         absl::StrCat("unknown intensity method '", spec.intensity_method,
@@ -416,6 +452,15 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
                        spec.roi.has_value() ? "region of interest" : "series",
                        " has ", image.grid.size[2]));
     }
+  }
+  if (wants_intensity && spec.dicom_layout == "enhanced" &&
+      source.modality != "CT") {
+    // Said now, not after the whole computation (PlanEnhancedIntensity
+    // says it again at the write).
+    return absl::FailedPreconditionError(absl::StrCat(
+        "--dicom-layout enhanced writes Enhanced CT only; this series' "
+        "modality is '",
+        source.modality, "' (use the classic layout)"));
   }
   INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
 
@@ -570,6 +615,13 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
       INTERSLICE_ASSIGN_OR_RETURN(
           objects,
           PlanDerivedObjects(source, field.grid.size[2], dicom_options));
+      if (spec.dicom_layout == "enhanced") {
+        // One Enhanced CT instance instead of an image per slice; the SEG,
+        // distance map, previews and STL reference it.
+        INTERSLICE_ASSIGN_OR_RETURN(
+            objects.intensity,
+            PlanEnhancedIntensity(source, objects.intensity, dicom_options));
+      }
       INTERSLICE_ASSIGN_OR_RETURN(const std::optional<float> padding,
                                   SourcePixelPadding(source));
       report.intensity_method = spec.intensity_method;
@@ -633,10 +685,19 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
     }
     if (wants_intensity) {
       const auto path = dir / "series-intensity";
-      tasks.push_back({"series-intensity", path, [&, path] {
-                         absl::Status written = WriteIntensityFolder(
-                             source, intensity, objects.intensity,
-                             dicom_options, path);
+      // The artifact is the folder either way: the server names its files
+      // "series-intensity/IM00001.dcm" ... or "series-intensity/enhanced.dcm"
+      // (at most one folder level).
+      const bool enhanced = spec.dicom_layout == "enhanced";
+      tasks.push_back({"series-intensity", path, [&, path, enhanced] {
+                         absl::Status written =
+                             enhanced
+                                 ? WriteEnhancedIntensityFolder(
+                                       source, intensity, objects.intensity,
+                                       dicom_options, path)
+                                 : WriteIntensityFolder(source, intensity,
+                                                        objects.intensity,
+                                                        dicom_options, path);
                          // Only this task reads the resampled volume: free
                          // it (one output volume) while the other outputs
                          // are still being written.

@@ -81,6 +81,14 @@ struct JobSpec {
   // distance map stay native. UIDs do not depend on it (the same instances,
   // transcoded losslessly).
   std::string dicom_compression = "none";
+  // Layout of the intensity series: "classic" (default: one CT/MR image per
+  // output slice, series-intensity/IM00001.dcm ...) or "enhanced" (one
+  // Enhanced CT Image instance, frame k = output slice k,
+  // series-intensity/enhanced.dcm, core/dicom_out/enhanced_series.h; the SEG
+  // and the distance map then reference its frames). Enhanced needs a CT
+  // source: FAILED_PRECONDITION otherwise, before any computation. Classic
+  // UIDs are unchanged; the enhanced object's are derived from them.
+  std::string dicom_layout = "classic";
   // How the intensity series (output_series "intensity", or brought along
   // by a SEG or distance map) gets the grey values of the output slices
   // between two source slices:

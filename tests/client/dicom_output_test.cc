@@ -21,6 +21,7 @@
 #include "itkGDCMImageIO.h"
 #include "itkGDCMSeriesFileNames.h"
 #include "itkImage.h"
+#include "itkImageFileReader.h"
 #include "itkImageSeriesReader.h"
 #include "nlohmann/json.hpp"
 #include "tests/testing/cli.h"
@@ -443,6 +444,131 @@ TEST_F(DicomOutputTest, RleIntensitySeriesReadsAsTheNativeOne) {
                                    (dir_ / "x").string());
   EXPECT_EQ(bad.exit_code, 1);
   EXPECT_THAT(bad.out, HasSubstr("--dicom-compression"));
+}
+
+// ITK's GDCM reader on the one Enhanced CT file (GDCM takes the geometry
+// from its functional groups) sees the grid of the report.
+void ExpectItkSeesReportGridInOneFile(const fs::path& file,
+                                      const nlohmann::json& report) {
+  using Image = itk::Image<float, 3>;
+  auto reader = itk::ImageFileReader<Image>::New();
+  reader->SetImageIO(itk::GDCMImageIO::New());
+  reader->SetFileName(file.string());
+  ASSERT_NO_THROW(reader->Update());
+  const Image* image = reader->GetOutput();
+  const auto size = image->GetLargestPossibleRegion().GetSize();
+  for (int a = 0; a < 3; ++a) {
+    EXPECT_EQ(static_cast<int64_t>(size[a]),
+              report["grid"]["size"][a].get<int64_t>());
+    EXPECT_NEAR(image->GetSpacing()[a],
+                report["grid"]["spacing"][a].get<double>(), 1e-4);
+    EXPECT_NEAR(image->GetOrigin()[a],
+                report["grid"]["origin"][a].get<double>(), 1e-3);
+    for (int c = 0; c < 3; ++c) {
+      EXPECT_NEAR(image->GetDirection()(a, c),
+                  report["grid"]["direction"][3 * a + c].get<double>(), 1e-5);
+    }
+  }
+}
+
+// --dicom-layout enhanced: the intensity series is one Enhanced CT file that
+// our reader and ITK/GDCM read as the classic series' volume (the phantom
+// and the tilted CT), valid for dciodvfy with the SEG and the distance map
+// that reference it; a bad value is a one-line error.
+TEST_F(DicomOutputTest, EnhancedLayoutIsTheClassicVolume) {
+  struct Source {
+    std::string name;
+    fs::path dir;
+    std::string args;
+  };
+  for (const Source& source : std::vector<Source>{
+           {"phantom", kPhantom, "--roi 150,100,0,350,300,6 --factor 3"},
+           {"tilt", kTilt, "--factor 2"}}) {
+    SCOPED_TRACE(source.name);
+    const std::string common =
+        "run " + source.dir.string() + " --threshold 300 " + source.args +
+        " --method direct --quiet --volume none --mesh none --previews none "
+        "--output-series intensity,mask,distance ";
+    for (const char* layout : {"classic", "enhanced"}) {
+      const std::string name = source.name + "-" + layout;
+      const CommandResult r =
+          RunCli(common + "--dicom-layout " + layout + " --out " +
+                 (dir_ / name).string() + " --report " +
+                 (dir_ / (name + ".json")).string());
+      ASSERT_EQ(r.exit_code, 0) << r.out;
+    }
+    const fs::path classic = dir_ / (source.name + "-classic");
+    const fs::path enhanced = dir_ / (source.name + "-enhanced");
+    const std::vector<fs::path> files =
+        SortedFiles(enhanced / "series-intensity");
+    ASSERT_EQ(files.size(), 1u);
+    EXPECT_EQ(files[0].filename(), "enhanced.dcm");
+    const nlohmann::json report =
+        ReadJson(dir_ / (source.name + "-enhanced.json"));
+    EXPECT_EQ(report["grid"],
+              ReadJson(dir_ / (source.name + "-classic.json"))["grid"]);
+    for (const fs::path& object :
+         {files[0], enhanced / "seg.dcm", enhanced / "distance.dcm"}) {
+      std::string errors;
+      EXPECT_EQ(DciodvfyErrors(object, &errors), 0)
+          << object.filename() << ": " << errors;
+    }
+    auto from_classic =
+        ReadDicomSeries({(classic / "series-intensity").string()}, {}, {});
+    auto from_enhanced =
+        ReadDicomSeries({(enhanced / "series-intensity").string()}, {}, {});
+    ASSERT_TRUE(from_classic.ok()) << from_classic.status();
+    ASSERT_TRUE(from_enhanced.ok()) << from_enhanced.status();
+    EXPECT_EQ(from_enhanced->sop_class_uid, UID_EnhancedCTImageStorage);
+    const Grid& a = from_classic->image.grid;
+    const Grid& b = from_enhanced->image.grid;
+    for (int c = 0; c < 3; ++c) {
+      EXPECT_EQ(a.size[c], b.size[c]);
+      EXPECT_NEAR(a.spacing[c], b.spacing[c], 1e-6);
+      EXPECT_NEAR(a.origin[c], b.origin[c], 1e-6);
+    }
+    for (int i = 0; i < 9; ++i)
+      EXPECT_NEAR(a.direction[i], b.direction[i], 1e-9);
+    EXPECT_EQ(from_enhanced->image.data, from_classic->image.data);
+    ExpectItkSeesReportGridInOneFile(files[0], report);
+
+    // The SEG names the enhanced series and frame k + 1 of its instance.
+    DcmFileFormat seg;
+    ASSERT_TRUE(
+        seg.loadFile(OFFilename((enhanced / "seg.dcm").c_str())).good());
+    DcmItem* series = nullptr;
+    ASSERT_TRUE(
+        seg.getDataset()
+            ->findAndGetSequenceItem(DCM_ReferencedSeriesSequence, series, 0)
+            .good());
+    DcmFileFormat image;
+    ASSERT_TRUE(image.loadFile(OFFilename(files[0].c_str())).good());
+    EXPECT_EQ(GetString(*series, DCM_SeriesInstanceUID),
+              GetString(*image.getDataset(), DCM_SeriesInstanceUID));
+    DcmItem* frame = nullptr;
+    DcmItem* derivation = nullptr;
+    DcmItem* source_image = nullptr;
+    ASSERT_TRUE(seg.getDataset()
+                    ->findAndGetSequenceItem(
+                        DCM_PerFrameFunctionalGroupsSequence, frame, 2)
+                    .good());
+    ASSERT_TRUE(
+        frame
+            ->findAndGetSequenceItem(DCM_DerivationImageSequence, derivation, 0)
+            .good());
+    ASSERT_TRUE(
+        derivation
+            ->findAndGetSequenceItem(DCM_SourceImageSequence, source_image, 0)
+            .good());
+    EXPECT_EQ(GetString(*source_image, DCM_ReferencedSOPInstanceUID),
+              GetString(*image.getDataset(), DCM_SOPInstanceUID));
+    EXPECT_EQ(GetString(*source_image, DCM_ReferencedFrameNumber), "3");
+  }
+  const CommandResult bad = RunCli(
+      "run " + kTilt.string() +
+      " --threshold 300 --dicom-layout stacked --out " + (dir_ / "x").string());
+  EXPECT_EQ(bad.exit_code, 1);
+  EXPECT_THAT(bad.out, HasSubstr("--dicom-layout"));
 }
 
 // A tilted head CT: the tilt is corrected, reported and summarised, and the

@@ -64,6 +64,7 @@ TEST(OptionTableTest, SetOptionByKeyGivesTheSameSpecAsTypedValues) {
   typed.output_series = "intensity,mask";
   typed.seg = true;
   typed.dicom_compression = "rle";
+  typed.dicom_layout = "enhanced";
   typed.uid_root = "1.2.826.0.1.3680043.10.1";
   typed.series_number_base = 4000;
   typed.strict_spacing = true;
@@ -83,6 +84,7 @@ TEST(OptionTableTest, SetOptionByKeyGivesTheSameSpecAsTypedValues) {
            {"output_series", "intensity,mask"},
            {"seg", "true"},
            {"dicom_compression", "rle"},
+           {"dicom_layout", "enhanced"},
            {"uid_root", "1.2.826.0.1.3680043.10.1"},
            {"series_number_base", "4000"},
            {"strict_spacing", "yes"},
@@ -102,6 +104,8 @@ TEST(OptionTableTest, SetOptionByKeyGivesTheSameSpecAsTypedValues) {
   EXPECT_EQ(a->solver.units, EnergyUnits::kMillimetre);
   EXPECT_EQ(a->z_resolution.factor, 3);
   EXPECT_EQ(a->series_number_base, 4000);
+  EXPECT_EQ(a->dicom_layout, "enhanced");
+  EXPECT_EQ(BuildJobSpec(Minimal())->dicom_layout, "classic");
   EXPECT_EQ(a->mesh_formats, (std::vector<std::string>{"stl", "ply"}));
   EXPECT_EQ(a->preview_formats, (std::vector<std::string>{"dicom", "png"}));
   // The default on every door: PNG; "none" turns them off; a fill the same.
@@ -150,6 +154,7 @@ TEST(BuildJobSpecTest, ErrorsNameTheOption) {
            {"mesh", "vrml", "unknown value 'vrml'"},
            {"volume", "mha", "unknown value 'mha'"},
            {"dicom_compression", "jpeg", "unknown value 'jpeg'"},
+           {"dicom_layout", "multiframe", "unknown value 'multiframe'"},
            {"series_number_base", "0", "must be between 1 and 2147483641"},
            {"upper", "-5000", "not below the threshold"},
        }) {

@@ -9,6 +9,7 @@
 #include "gmock/gmock.h"
 #include "google/protobuf/descriptor.h"
 #include "gtest/gtest.h"
+#include "job/errors.h"
 #include "job/job.h"
 #include "job/options.h"
 
@@ -85,6 +86,26 @@ TEST(WireTest, UncompressedNiftiAndRleIntensityMap) {
   EXPECT_EQ(MediaTypeForArtifact("distance.nii"), "application/octet-stream");
 }
 
+// DicomSeriesOutput.layout: unspecified and CLASSIC are the classic layout,
+// ENHANCED the one Enhanced CT instance; an unknown value names the option.
+TEST(WireTest, DicomLayoutMaps) {
+  v1::JobSpec p;
+  p.set_threshold(300);
+  EXPECT_EQ(JobSpecFromWire(p)->dicom_layout, "classic");
+  EXPECT_EQ(ToWire(*JobSpecFromWire(p)).derived_series().layout(),
+            v1::DICOM_LAYOUT_UNSPECIFIED);
+  p.mutable_derived_series()->set_layout(v1::DICOM_LAYOUT_ENHANCED);
+  EXPECT_EQ(JobSpecFromWire(p)->dicom_layout, "enhanced");
+  EXPECT_EQ(ToWire(*JobSpecFromWire(p)).derived_series().layout(),
+            v1::DICOM_LAYOUT_ENHANCED);
+  p.mutable_derived_series()->set_layout(v1::DICOM_LAYOUT_CLASSIC);
+  EXPECT_EQ(JobSpecFromWire(p)->dicom_layout, "classic");
+  p.mutable_derived_series()->set_layout(static_cast<v1::DicomLayout>(7));
+  const absl::Status bad = JobSpecFromWire(p).status();
+  EXPECT_EQ(bad.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(ErrorOptionKey(bad), "dicom_layout");
+}
+
 // Each table row names its wire field by path ("spec.derived_series.
 // series_number"): the path must resolve in interslice.v1.JobSpec, so the
 // table cannot drift from the proto.
@@ -130,6 +151,7 @@ TEST(WireTest, InterpolationSpecsRoundTrip) {
   cases[1].output_series = "intensity,distance,mask";
   cases[1].seg = true;
   cases[1].dicom_compression = "rle";
+  cases[1].dicom_layout = "enhanced";
   cases[1].series_number_base = 2147483641;
   cases[1].previews = "png,dicom";
   cases[1].slab_deconvolution = true;

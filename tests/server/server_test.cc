@@ -18,6 +18,7 @@
 #include "core/dicom/series_reader.h"
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
+#include "dcmtk/dcmdata/dcuid.h"
 #include "dcmtk/dcmdata/dcfilefo.h"
 #include "grpcpp/grpcpp.h"
 #include "interslice/v1/interslice.grpc.pb.h"
@@ -357,6 +358,75 @@ TEST(ServerTest, DicomOutputsMatchRunInPixelsGeometryAndUids) {
                     (fs::path(dir / "remote") / "previews" / name).string()))
         << name;
   }
+}
+
+// --dicom-layout enhanced over gRPC (DicomSeriesOutput.layout): the server
+// writes the one Enhanced CT instance the local run writes (same UIDs, same
+// pixels), fetched as series-intensity/enhanced.dcm, and the SEG references
+// it.
+TEST(ServerTest, EnhancedLayoutTravelsOverTheWire) {
+  TempDir dir;
+  const std::vector<std::string> dicom = {"--output-series",
+                                          "intensity",
+                                          "--seg",
+                                          "--dicom-layout",
+                                          "enhanced",
+                                          "--volume",
+                                          "none",
+                                          "--mesh",
+                                          "none",
+                                          "--previews",
+                                          "none"};
+  CommandResult local = Cli(
+      Cat(Cat({"run"}, kSmallJob),
+          Cat(dicom, {"--out", dir / "local", "--quiet", "--threads", "1"})));
+  ASSERT_EQ(local.exit_code, 0) << local.err;
+  ServerProcess server({.spool = dir / "spool", .log = dir / "server.log"});
+  ASSERT_TRUE(server.Start());
+  CommandResult r =
+      Cli(Cat(Cat({"interpolate"}, kSmallJob),
+              Cat(dicom, Cat(server.ServerFlag(), {"--out", dir / "remote"}))));
+  ASSERT_EQ(r.exit_code, 0) << r.err << server.Log();
+  std::vector<std::string> names;
+  for (const auto& entry :
+       fs::directory_iterator(fs::path(dir / "remote") / "series-intensity")) {
+    names.push_back(entry.path().filename().string());
+  }
+  EXPECT_EQ(names, std::vector<std::string>{"enhanced.dcm"});
+  auto header = [](const fs::path& path, const DcmTagKey& tag) {
+    DcmFileFormat file;
+    EXPECT_TRUE(file.loadFile(path.c_str()).good()) << path;
+    OFString value;
+    file.getDataset()->findAndGetOFString(tag, value);
+    return std::string(value.c_str());
+  };
+  const fs::path remote =
+      fs::path(dir / "remote") / "series-intensity" / "enhanced.dcm";
+  const fs::path here =
+      fs::path(dir / "local") / "series-intensity" / "enhanced.dcm";
+  EXPECT_EQ(header(remote, DCM_SOPClassUID), UID_EnhancedCTImageStorage);
+  EXPECT_EQ(header(remote, DCM_SOPInstanceUID),
+            header(here, DCM_SOPInstanceUID));
+  EXPECT_EQ(header(remote, DCM_NumberOfFrames),
+            header(here, DCM_NumberOfFrames));
+  const auto a = ReadDicomSeries({here.parent_path().string()}, {}, {});
+  const auto b = ReadDicomSeries({remote.parent_path().string()}, {}, {});
+  ASSERT_TRUE(a.ok()) << a.status();
+  ASSERT_TRUE(b.ok()) << b.status();
+  EXPECT_EQ(a->image.grid.origin, b->image.grid.origin);
+  EXPECT_TRUE(a->image.data == b->image.data);
+  DcmFileFormat seg;
+  ASSERT_TRUE(
+      seg.loadFile((fs::path(dir / "remote") / "seg.dcm").c_str()).good());
+  DcmItem* series = nullptr;
+  ASSERT_TRUE(
+      seg.getDataset()
+          ->findAndGetSequenceItem(DCM_ReferencedSeriesSequence, series, 0)
+          .good());
+  OFString referenced;
+  series->findAndGetOFString(DCM_SeriesInstanceUID, referenced);
+  EXPECT_EQ(std::string(referenced.c_str()),
+            header(remote, DCM_SeriesInstanceUID));
 }
 
 TEST(ArtifactNameTest, OnlyPlainNamesWithOneFolderLevelAreSafe) {

@@ -267,6 +267,34 @@ TEST_F(ConfigTest, FullRulesFile) {
   EXPECT_EQ(set->FirstMatch(other), &set->rules[1]);
 }
 
+// The rule key `dicom_layout` (job/options.cc) reaches the rule's wire spec,
+// which the server turns back into the JobSpec its pipeline writes from.
+TEST_F(ConfigTest, RuleDicomLayoutReachesTheJobSpec) {
+  absl::StatusOr<RuleSet> set = LoadRulesFile(
+      Write("rules.yaml",
+            "rules:\n"
+            "  - name: enhanced\n"
+            "    job: {threshold: 300, output_series: [intensity, mask],\n"
+            "          dicom_layout: enhanced}\n"
+            "  - name: default\n"
+            "    job: {threshold: 300}\n"),
+      Peers());
+  ASSERT_TRUE(set.ok()) << set.status();
+  ASSERT_EQ(set->rules.size(), 2u);
+  EXPECT_EQ(set->rules[0].job.derived_series().layout(),
+            v1::DICOM_LAYOUT_ENHANCED);
+  absl::StatusOr<interslice::JobSpec> spec =
+      job::JobSpecFromWire(set->rules[0].job);
+  ASSERT_TRUE(spec.ok()) << spec.status();
+  EXPECT_EQ(spec->dicom_layout, "enhanced");
+  EXPECT_EQ(set->rules[1].job.derived_series().layout(),
+            v1::DICOM_LAYOUT_UNSPECIFIED);
+  EXPECT_EQ(job::JobSpecFromWire(set->rules[1].job)->dicom_layout, "classic");
+  EXPECT_THAT(
+      RuleError("  - {name: a, job: {threshold: 1, dicom_layout: tiled}}\n"),
+      HasSubstr("dicom_layout"));
+}
+
 TEST_F(ConfigTest, RulesFileAsJson) {
   absl::StatusOr<RuleSet> set =
       LoadRulesFile(Write("rules.json",
