@@ -192,10 +192,9 @@ absl::StatusOr<DicomSeries> ReadDicomSeries(
   // An anonymiser that blanked the SOP Instance UIDs leaves the pixels as
   // what identifies the series (core/dicom_out names the study, frame of
   // reference and derived objects of such a source from it).
-  if (std::any_of(result.slices.begin(), result.slices.end(),
-                  [](const DicomSliceInfo& s) {
-                    return s.sop_instance_uid.empty();
-                  })) {
+  if (std::any_of(
+          result.slices.begin(), result.slices.end(),
+          [](const DicomSliceInfo& s) { return s.sop_instance_uid.empty(); })) {
     Sha256 digest;
     digest.Update(std::string_view(
         reinterpret_cast<const char*>(result.image.data.data()),

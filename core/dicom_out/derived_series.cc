@@ -35,11 +35,11 @@ namespace {
 namespace fs = std::filesystem;
 using dicom_out_internal::AddReferencedSeries;
 using dicom_out_internal::CommitFile;
+using dicom_out_internal::CopyAnatomy;
 using dicom_out_internal::CopyPatientStudyFrameOfReference;
 using dicom_out_internal::CurrentDate;
 using dicom_out_internal::CurrentTime;
 using dicom_out_internal::FormatDecimalString;
-using dicom_out_internal::CopyAnatomy;
 using dicom_out_internal::kSourceImagePurposeCode;
 using dicom_out_internal::kSourceImagePurposeMeaning;
 using dicom_out_internal::LoadSourceHeader;

@@ -247,19 +247,19 @@ void CopyAnatomy(DcmItem& from, DcmItem& to) {
   // paired.
   static const std::set<std::string>* const kUnpaired =
       new std::set<std::string>{
-          "ABDOMEN",     "ABDOMENPELVIS", "AORTA",       "BLADDER",
-          "BRAIN",       "CERVIX",        "CHEST",       "CHESTABDOMEN",
-          "CHESTABDPELVIS", "COCCYX",     "COLON",       "CSPINE",
-          "CTSPINE",     "DUODENUM",      "ESOPHAGUS",   "FACE",
-          "GALLBLADDER", "HEAD",          "HEADNECK",    "HEART",
-          "ILEUM",       "JAW",           "JEJUNUM",     "LARYNX",
-          "LIVER",       "LSPINE",        "MAXILLA",     "MEDIASTINUM",
-          "MOUTH",       "NECK",          "NOSE",        "PANCREAS",
-          "PELVIS",      "PENIS",         "PHARYNX",     "PROSTATE",
-          "RECTUM",      "SKULL",         "SPINE",       "SPLEEN",
-          "STERNUM",     "STOMACH",       "THYMUS",      "THYROID",
-          "TLSPINE",     "TRACHEA",       "TSPINE",      "UTERUS",
-          "VAGINA",      "WHOLEBODY"};
+          "ABDOMEN",        "ABDOMENPELVIS", "AORTA",     "BLADDER",
+          "BRAIN",          "CERVIX",        "CHEST",     "CHESTABDOMEN",
+          "CHESTABDPELVIS", "COCCYX",        "COLON",     "CSPINE",
+          "CTSPINE",        "DUODENUM",      "ESOPHAGUS", "FACE",
+          "GALLBLADDER",    "HEAD",          "HEADNECK",  "HEART",
+          "ILEUM",          "JAW",           "JEJUNUM",   "LARYNX",
+          "LIVER",          "LSPINE",        "MAXILLA",   "MEDIASTINUM",
+          "MOUTH",          "NECK",          "NOSE",      "PANCREAS",
+          "PELVIS",         "PENIS",         "PHARYNX",   "PROSTATE",
+          "RECTUM",         "SKULL",         "SPINE",     "SPLEEN",
+          "STERNUM",        "STOMACH",       "THYMUS",    "THYROID",
+          "TLSPINE",        "TRACHEA",       "TSPINE",    "UTERUS",
+          "VAGINA",         "WHOLEBODY"};
   const auto value_of = [&from](const DcmTagKey& tag) {
     OFString value;
     if (from.findAndGetOFString(tag, value).good()) {

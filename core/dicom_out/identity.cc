@@ -102,9 +102,8 @@ class UidNamer {
         "study ", source.study_instance_uid, "\nseries ",
         source.series_instance_uid, "\nvolume ", source.volume, "\n");
     INTERSLICE_ASSIGN_OR_RETURN(
-        namer.source_,
-        DeriveDicomUid("", absl::StrCat("interslice source v1\n", series,
-                                        instances)));
+        namer.source_, DeriveDicomUid("", absl::StrCat("interslice source v1\n",
+                                                       series, instances)));
     // The job's identity: the source's, the root and the job's parameters.
     // Hashed once into a UID that names the job; each object's UID is then
     // named from it. (The text is what it was before sources without SOP
@@ -128,8 +127,7 @@ class UidNamer {
   // Something of the source, the same for every job on it.
   absl::StatusOr<std::string> SourceUid(std::string_view what) const {
     if (random_) return GenerateDicomUid(root_);
-    return DeriveDicomUid(root_,
-                          absl::StrCat(source_, "/", std::string(what)));
+    return DeriveDicomUid(root_, absl::StrCat(source_, "/", std::string(what)));
   }
 
  private:

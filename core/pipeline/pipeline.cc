@@ -675,23 +675,22 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
     }
     if (wants_seg) {
       const auto path = dir / "seg.dcm";
-      tasks.push_back({"seg", path, [&, path]() -> absl::Status {
-                         std::optional<CodedConcept> code;
-                         if (!spec.segment_code.empty()) {
-                           INTERSLICE_ASSIGN_OR_RETURN(
-                               code, ParseCodedConcept(spec.segment_code));
-                         }
-                         INTERSLICE_ASSIGN_OR_RETURN(
-                             const SegmentDescription segment,
-                             DescribeThresholdSegment(
-                                 source, spec.lower_threshold,
-                                 spec.upper_threshold, spec.segment_label,
-                                 code));
-                         return WriteSegmentation(
-                             source, mask, objects.segmentation,
-                             objects.intensity, segment, dicom_options,
-                             path.string());
-                       }});
+      tasks.push_back(
+          {"seg", path, [&, path]() -> absl::Status {
+             std::optional<CodedConcept> code;
+             if (!spec.segment_code.empty()) {
+               INTERSLICE_ASSIGN_OR_RETURN(
+                   code, ParseCodedConcept(spec.segment_code));
+             }
+             INTERSLICE_ASSIGN_OR_RETURN(
+                 const SegmentDescription segment,
+                 DescribeThresholdSegment(source, spec.lower_threshold,
+                                          spec.upper_threshold,
+                                          spec.segment_label, code));
+             return WriteSegmentation(source, mask, objects.segmentation,
+                                      objects.intensity, segment, dicom_options,
+                                      path.string());
+           }});
     }
     std::vector<RgbPicture> pictures;
     if (previews.has_value() && Contains(spec.preview_formats, "png")) {

@@ -439,8 +439,7 @@ TEST_F(FillCliTest, AnonymisedSeriesKeepsOneStudyForRunAndFill) {
                                    DCM_FrameOfReferenceUID}) {
         file.getDataset()->findAndDeleteElement(tag);
       }
-      ASSERT_TRUE(
-          file.saveFile((to / entry.path().filename()).c_str()).good());
+      ASSERT_TRUE(file.saveFile((to / entry.path().filename()).c_str()).good());
     }
   };
   const fs::path anonymous = dir_ / "anonymous";

@@ -616,14 +616,13 @@ DicomSeries DoctoredCopy(const DicomSeries& original, const fs::path& dir,
     EXPECT_TRUE(file->loadAllDataIntoMemory().good());
     edit(*file->getDataset());
     if (drop_media_uid) {
-      file->getMetaInfo()->findAndDeleteElement(
-          DCM_MediaStorageSOPInstanceUID);
+      file->getMetaInfo()->findAndDeleteElement(DCM_MediaStorageSOPInstanceUID);
     }
-    EXPECT_TRUE(file->saveFile(to.c_str(), EXS_Unknown, EET_UndefinedLength,
-                               EGL_recalcGL, EPD_noChange, 0, 0,
-                               drop_media_uid ? EWM_dontUpdateMeta
-                                              : EWM_fileformat)
-                    .good());
+    EXPECT_TRUE(
+        file->saveFile(to.c_str(), EXS_Unknown, EET_UndefinedLength,
+                       EGL_recalcGL, EPD_noChange, 0, 0,
+                       drop_media_uid ? EWM_dontUpdateMeta : EWM_fileformat)
+            .good());
     source.slices[s].path = to.string();
   }
   return source;
@@ -631,8 +630,8 @@ DicomSeries DoctoredCopy(const DicomSeries& original, const fs::path& dir,
 
 // The UIDs an anonymiser blanks.
 void StripUids(DcmDataset& ds) {
-  for (const DcmTagKey& tag : {DCM_SOPInstanceUID, DCM_StudyInstanceUID,
-                               DCM_FrameOfReferenceUID}) {
+  for (const DcmTagKey& tag :
+       {DCM_SOPInstanceUID, DCM_StudyInstanceUID, DCM_FrameOfReferenceUID}) {
     ds.findAndDeleteElement(tag);
   }
 }
@@ -818,8 +817,7 @@ TEST_F(DicomWriterTest, AnonymisedSourceKeepsOneStudyAndFrameForEveryJob) {
   TempDir dir;
   for (const bool drop_media_uid : {false, true}) {
     SCOPED_TRACE(drop_media_uid ? "pixels identify it" : "meta identifies it");
-    const fs::path copies =
-        dir.path() / (drop_media_uid ? "no-meta" : "meta");
+    const fs::path copies = dir.path() / (drop_media_uid ? "no-meta" : "meta");
     DoctoredCopy(*source_, copies, StripUids, drop_media_uid);
     {
       DcmFileFormat copy;
@@ -874,8 +872,8 @@ TEST_F(DicomWriterTest, AnonymisedSourceKeepsOneStudyAndFrameForEveryJob) {
               a->intensity.sop_instance_uids);
 
     // Another series (the first three slices only) is another source.
-    const fs::path fewer = dir.path() / (drop_media_uid ? "fewer-no-meta"
-                                                        : "fewer-meta");
+    const fs::path fewer =
+        dir.path() / (drop_media_uid ? "fewer-no-meta" : "fewer-meta");
     fs::create_directories(fewer);
     for (const auto& entry : fs::directory_iterator(copies)) {
       if (entry.path().filename() != "I40.dcm") {
@@ -886,8 +884,7 @@ TEST_F(DicomWriterTest, AnonymisedSourceKeepsOneStudyAndFrameForEveryJob) {
     ASSERT_TRUE(other.ok()) << other.status();
     auto c = PlanDerivedObjects(*other, 5, run);
     ASSERT_TRUE(c.ok());
-    EXPECT_NE(c->intensity.study_instance_uid,
-              a->intensity.study_instance_uid);
+    EXPECT_NE(c->intensity.study_instance_uid, a->intensity.study_instance_uid);
     EXPECT_NE(c->intensity.frame_of_reference_uid,
               a->intensity.frame_of_reference_uid);
 
@@ -896,8 +893,7 @@ TEST_F(DicomWriterTest, AnonymisedSourceKeepsOneStudyAndFrameForEveryJob) {
     random.random_uids = true;
     auto r = PlanDerivedObjects(source, 5, random);
     ASSERT_TRUE(r.ok());
-    EXPECT_NE(r->intensity.study_instance_uid,
-              a->intensity.study_instance_uid);
+    EXPECT_NE(r->intensity.study_instance_uid, a->intensity.study_instance_uid);
   }
 }
 
@@ -995,10 +991,9 @@ TEST_F(DicomWriterTest, SegmentIsNamedForModalityAndThreshold) {
     EXPECT_EQ(segment->label, "Region above 2500 BQML");
   }
   {
-    const DicomSeries us =
-        DoctoredCopy(*source_, dir.path() / "us", [](DcmDataset& ds) {
-          ds.putAndInsertString(DCM_RescaleType, "US");
-        });
+    const DicomSeries us = DoctoredCopy(
+        *source_, dir.path() / "us",
+        [](DcmDataset& ds) { ds.putAndInsertString(DCM_RescaleType, "US"); });
     DicomSeries source = us;
     source.modality = "MR";
     auto segment =
@@ -1069,8 +1064,7 @@ TEST_F(DicomWriterTest, LateralityIsValidWhateverTheSourceLacks) {
   const Case cases[] = {
       {"no body part", nullptr, nullptr, nullptr, nullptr, "", nullptr},
       {"paired, no laterality", "KNEE", nullptr, nullptr, "KNEE", "", nullptr},
-      {"unknown term", "KNEEJOINT", nullptr, nullptr, "KNEEJOINT", "",
-       nullptr},
+      {"unknown term", "KNEEJOINT", nullptr, nullptr, "KNEEJOINT", "", nullptr},
       {"unpaired", "HEAD", nullptr, nullptr, "HEAD", nullptr, nullptr},
       {"paired with laterality", "KNEE", "R", nullptr, "KNEE", "R", nullptr},
       {"image laterality", "BREAST", nullptr, "L", "BREAST", nullptr, "L"},
@@ -1117,17 +1111,17 @@ TEST_F(DicomWriterTest, LateralityIsValidWhateverTheSourceLacks) {
     picture.height = 8;
     picture.rgb = &rgb;
     picture.description = "test";
-    auto preview_identity = PlanPreviewSeries(source, {"axial"}, Options(),
-                                              &objects.intensity);
+    auto preview_identity =
+        PlanPreviewSeries(source, {"axial"}, Options(), &objects.intensity);
     ASSERT_TRUE(preview_identity.ok()) << preview_identity.status();
-    auto previews =
-        WritePreviewSeries(source, *grid_, {picture}, *preview_identity,
-                           &objects.intensity, Options(), (here / "p").string());
+    auto previews = WritePreviewSeries(source, *grid_, {picture},
+                                       *preview_identity, &objects.intensity,
+                                       Options(), (here / "p").string());
     ASSERT_TRUE(previews.ok()) << previews.status();
     std::string errors;
-    EXPECT_EQ(DciodvfyErrors({paths->front(), seg, map, previews->front()},
-                             &errors),
-              0)
+    EXPECT_EQ(
+        DciodvfyErrors({paths->front(), seg, map, previews->front()}, &errors),
+        0)
         << errors;
 
     auto file = Load(paths->front());

@@ -194,8 +194,9 @@ TEST_F(PipelineTest, SegmentLabelAndCodeReachTheSeg) {
     OFString label, code, scheme, uid;
     seg->getSegment(1)->getSegmentLabel(label);
     seg->getSegment(1)->getSegmentedPropertyTypeCode().getCodeValue(code);
-    seg->getSegment(1)->getSegmentedPropertyTypeCode().getCodingSchemeDesignator(
-        scheme);
+    seg->getSegment(1)
+        ->getSegmentedPropertyTypeCode()
+        .getCodingSchemeDesignator(scheme);
     seg->getSOPCommon().getSOPInstanceUID(uid);
     uids[n++] = uid.c_str();
     if (std::string(name) == "default") {
