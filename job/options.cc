@@ -10,6 +10,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
+#include "core/dicom_out/dicom_writer.h"
 #include "job/errors.h"
 
 namespace interslice::job {
@@ -67,6 +68,15 @@ constexpr OptionDef<IO> kInterpolationOptions[] = {
     {"seg", "spec.segmentation.enabled", ValueKind::kFlag, &IO::seg,
      "Write the mask as a binary DICOM SEG (DIR/seg.dcm; same as "
      "--output-series mask)"},
+    {"segment_label", "spec.segmentation.segment_label", ValueKind::kText,
+     &IO::segment_label,
+     "Label of the SEG's segment, e.g. Brain (default: Bone for CT at >= 200 "
+     "HU, else 'Region above N <units>'; with --segment-code, its meaning)"},
+    {"segment_code", "spec.segmentation.segment_code", ValueKind::kText,
+     &IO::segment_code,
+     "Coded type of the SEG's segment as scheme:value:meaning, e.g. "
+     "SCT:12738006:Brain (default: SCT:272673000:Bone for CT at >= 200 HU, "
+     "else SCT:91723000:Anatomical Structure)"},
     {"dicom_compression", "spec.derived_series.pixel_compression",
      ValueKind::kText, &IO::dicom_compression,
      "Pixel data of the DICOM intensity series: none (native) or rle (RLE "
@@ -526,6 +536,31 @@ absl::StatusOr<JobSpec> BuildJobSpec(const InterpolationOptions& o) {
   }
   spec.intensity_method = o.intensity_method;
   spec.write_seg = o.seg;
+  const bool writes_seg =
+      o.seg || std::find(spec.output_series.begin(), spec.output_series.end(),
+                         "mask") != spec.output_series.end();
+  for (const auto& [key, value] :
+       {std::pair<absl::string_view, const std::string*>{"segment_label",
+                                                         &o.segment_label},
+        {"segment_code", &o.segment_code}}) {
+    if (!value->empty() && !writes_seg) {
+      return OptionError(key,
+                         "names the SEG's segment, but no SEG is written (add "
+                         "seg, or mask to output_series)");
+    }
+  }
+  if (!o.segment_label.empty()) {
+    if (absl::Status s = ValidateSegmentLabel(o.segment_label); !s.ok()) {
+      return OptionError("segment_label", s.message());
+    }
+    spec.segment_label = o.segment_label;
+  }
+  if (!o.segment_code.empty()) {
+    if (absl::Status s = ParseCodedConcept(o.segment_code).status(); !s.ok()) {
+      return OptionError("segment_code", s.message());
+    }
+    spec.segment_code = o.segment_code;
+  }
   spec.uid_root = o.uid_root;
   spec.random_uids = o.random_uids;
   if (o.series_number_base.has_value()) {

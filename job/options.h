@@ -76,6 +76,8 @@ struct InterpolationOptions {
   bool slab_deconvolution = false;
   std::string output_series;  // "mask,distance,intensity"
   bool seg = false;
+  std::string segment_label;
+  std::string segment_code;  // "scheme:value:meaning"
   std::string dicom_compression = "none";
   std::string dicom_layout = "classic";
   std::string intensity_method = "morph";

@@ -216,6 +216,8 @@ v1::JobSpec ToWire(const JobSpec& spec) {
     p.mutable_derived_series()->set_layout(v1::DICOM_LAYOUT_ENHANCED);
   }
   p.mutable_segmentation()->set_enabled(spec.write_seg);
+  p.mutable_segmentation()->set_segment_label(spec.segment_label);
+  p.mutable_segmentation()->set_segment_code(spec.segment_code);
   for (const std::string& content : spec.output_series) {
     p.mutable_derived_series()->add_contents(content);
   }
@@ -304,6 +306,8 @@ absl::StatusOr<InterpolationOptions> InterpolationOptionsFromWire(
   if (!intensity.ok()) return intensity.status();
   o.intensity_method = *intensity;
   o.seg = p.segmentation().enabled();
+  o.segment_label = p.segmentation().segment_label();
+  o.segment_code = p.segmentation().segment_code();
   o.multiframe_volume = p.multiframe_volume();
   if (p.has_outputs()) {
     absl::StatusOr<std::string> volume =

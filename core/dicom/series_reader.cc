@@ -7,11 +7,13 @@
 #include <map>
 #include <mutex>
 #include <string>
+#include <string_view>
 #include <utility>
 #include <vector>
 
 #include "absl/status/status.h"
 #include "absl/strings/str_format.h"
+#include "core/common/sha256.h"
 #include "core/common/status_macros.h"
 #include "core/dicom/dicom_header.h"
 #include "core/dicom/pixel_decode.h"
@@ -186,6 +188,18 @@ absl::StatusOr<DicomSeries> ReadDicomSeries(
     slice.position_along_normal = stack.positions[k];
     slice.rescale_slope = s.rescale_slope;
     slice.rescale_intercept = s.rescale_intercept;
+  }
+  // An anonymiser that blanked the SOP Instance UIDs leaves the pixels as
+  // what identifies the series (core/dicom_out names the study, frame of
+  // reference and derived objects of such a source from it).
+  if (std::any_of(
+          result.slices.begin(), result.slices.end(),
+          [](const DicomSliceInfo& s) { return s.sop_instance_uid.empty(); })) {
+    Sha256 digest;
+    digest.Update(std::string_view(
+        reinterpret_cast<const char*>(result.image.data.data()),
+        result.image.data.size() * sizeof(float)));
+    result.pixel_digest = HexString(digest.Finish());
   }
   const FileHeader& first = headers[stack.order.front().header];
   result.series_instance_uid = first.series_uid;

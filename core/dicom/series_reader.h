@@ -145,6 +145,10 @@ struct DicomSeries {
   std::string modality;
   std::string sop_class_uid;
   std::string volume;  // the multi-frame volume read; empty for single frames
+  // SHA-256 (hex) of image.data as read (the modality values, after any
+  // gantry tilt correction), only when some slice has no SOP Instance UID
+  // (an anonymised source); else empty. What identifies such a source.
+  std::string pixel_digest;
   // Gaps between consecutive slice positions, mm (0 for one slice), and
   // whether all are within 1% (or 0.01 mm) of the median.
   bool uniform_spacing = true;

@@ -169,6 +169,7 @@ namespace fs = std::filesystem;
 using dicom_out_internal::AddReferencedSeries;
 using dicom_out_internal::ChooseEncoding;
 using dicom_out_internal::CommitFile;
+using dicom_out_internal::CopyAnatomy;
 using dicom_out_internal::CopyPatientStudyFrameOfReference;
 using dicom_out_internal::CurrentDate;
 using dicom_out_internal::CurrentTime;
@@ -248,9 +249,9 @@ void CopyAcquisitionAttributes(Iod iod, DcmItem& from, DcmItem& to) {
       CopyIfNotEmpty(from, to, tag);
     }
   }
-  for (const DcmTagKey& tag : {DCM_PatientPosition, DCM_BodyPartExamined}) {
-    CopyIfNotEmpty(from, to, tag);
-  }
+  CopyIfNotEmpty(from, to, DCM_PatientPosition);
+  // BodyPartExamined and the Laterality it may require.
+  CopyAnatomy(from, to);
   // Patient Position is type 2C for CT and MR images (required unless a
   // Patient Orientation Code Sequence is present, which we never write).
   if (iod != Iod::kSecondaryCapture && !to.tagExists(DCM_PatientPosition)) {

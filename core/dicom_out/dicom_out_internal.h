@@ -101,6 +101,16 @@ void CopyPatientStudyFrameOfReference(DcmItem& from,
                                       const DerivedObjectIdentity& identity,
                                       DcmItem& to);
 
+// The anatomy of an image series that shows the source (General Series
+// BodyPartExamined and Laterality, General Image ImageLaterality): the
+// source's values when valid (BodyPartExamined a CS; Laterality R or L;
+// ImageLaterality R, L, U or B), dropped otherwise. Laterality is type 2C,
+// required unless the body part is unpaired or ImageLaterality is sent
+// (PS3.3 C.7.3.1): with neither in the source and a body part that is absent
+// or not known to be unpaired (DICOM PS3.16 Annex L; the terms dciodvfy
+// knows as unpaired), it is written empty, meaning unknown.
+void CopyAnatomy(DcmItem& from, DcmItem& to);
+
 // Adds ReferencedSeriesSequence (Common Instance Reference module) listing
 // every source instance that has a SOP Instance UID (none when the source
 // has no SeriesInstanceUID: an anonymised source cannot be referenced).

@@ -14,10 +14,12 @@
 #include <memory>
 #include <mutex>
 #include <random>
+#include <set>
 #include <string>
 #include <vector>
 
 #include "absl/status/status.h"
+#include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "core/dicom_out/dicom_out_internal.h"
@@ -239,6 +241,63 @@ const DcmTagKey kCopiedTags[] = {
 };
 
 }  // namespace
+
+void CopyAnatomy(DcmItem& from, DcmItem& to) {
+  // Body parts PS3.16 Annex L lists as unpaired and dciodvfy (dicom3tools)
+  // accepts without Laterality; every other term, known or not, may be
+  // paired.
+  static const std::set<std::string>* const kUnpaired =
+      new std::set<std::string>{
+          "ABDOMEN",        "ABDOMENPELVIS", "AORTA",     "BLADDER",
+          "BRAIN",          "CERVIX",        "CHEST",     "CHESTABDOMEN",
+          "CHESTABDPELVIS", "COCCYX",        "COLON",     "CSPINE",
+          "CTSPINE",        "DUODENUM",      "ESOPHAGUS", "FACE",
+          "GALLBLADDER",    "HEAD",          "HEADNECK",  "HEART",
+          "ILEUM",          "JAW",           "JEJUNUM",   "LARYNX",
+          "LIVER",          "LSPINE",        "MAXILLA",   "MEDIASTINUM",
+          "MOUTH",          "NECK",          "NOSE",      "PANCREAS",
+          "PELVIS",         "PENIS",         "PHARYNX",   "PROSTATE",
+          "RECTUM",         "SKULL",         "SPINE",     "SPLEEN",
+          "STERNUM",        "STOMACH",       "THYMUS",    "THYROID",
+          "TLSPINE",        "TRACHEA",       "TSPINE",    "UTERUS",
+          "VAGINA",         "WHOLEBODY"};
+  const auto value_of = [&from](const DcmTagKey& tag) {
+    OFString value;
+    if (from.findAndGetOFString(tag, value).good()) {
+      return std::string(absl::StripAsciiWhitespace(value.c_str()));
+    }
+    return std::string();
+  };
+  to.findAndDeleteElement(DCM_BodyPartExamined);
+  to.findAndDeleteElement(DCM_Laterality);
+  to.findAndDeleteElement(DCM_ImageLaterality);
+  std::string body_part = value_of(DCM_BodyPartExamined);
+  const bool valid_cs =
+      !body_part.empty() && body_part.size() <= 16 &&
+      std::all_of(body_part.begin(), body_part.end(), [](char c) {
+        return absl::ascii_isupper(c) || absl::ascii_isdigit(c) || c == ' ' ||
+               c == '_';
+      });
+  if (valid_cs) {
+    to.putAndInsertString(DCM_BodyPartExamined, body_part.c_str());
+  } else {
+    body_part.clear();
+  }
+  const std::string laterality = value_of(DCM_Laterality);
+  const std::string image_laterality = value_of(DCM_ImageLaterality);
+  const bool has_image_laterality =
+      image_laterality == "R" || image_laterality == "L" ||
+      image_laterality == "U" || image_laterality == "B";
+  if (has_image_laterality) {
+    to.putAndInsertString(DCM_ImageLaterality, image_laterality.c_str());
+    return;  // Laterality only when ImageLaterality is not sent
+  }
+  if (laterality == "R" || laterality == "L") {
+    to.putAndInsertString(DCM_Laterality, laterality.c_str());
+  } else if (kUnpaired->count(body_part) == 0) {
+    to.insertEmptyElement(DCM_Laterality);
+  }
+}
 
 void CopyPatientStudyFrameOfReference(DcmItem& from,
                                       const DerivedObjectIdentity& identity,

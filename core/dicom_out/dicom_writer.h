@@ -36,13 +36,19 @@
 //   DICOM PS3.5 B.2), or the root followed by the UUID's decimal digits. So
 //   the same job on the same source names its results the same, and sending
 //   them to a PACS again replaces instead of duplicating. random_uids gives
-//   fresh random UIDs every run. A source without SOP Instance UIDs (blanked
-//   by an anonymiser) gives random UIDs: nothing identifies it.
+//   fresh random UIDs every run. A source whose SOP Instance UIDs were
+//   blanked by an anonymiser is identified instead by its files' meta
+//   header MediaStorageSOPInstanceUIDs, else by the digest of its pixels
+//   (DicomSeries::pixel_digest): its UIDs are as stable across reruns.
 // - StudyInstanceUID, FrameOfReferenceUID and the Patient, General Study and
 //   Patient Study modules (and SpecificCharacterSet) are copied from the first
 //   source file; empty source values of conditional attributes are dropped
 //   (so a source with DICOM errors of its own does not pass them on), and
-//   type 2 attributes absent there are written empty.
+//   type 2 attributes absent there are written empty. A source without a
+//   StudyInstanceUID or FrameOfReferenceUID gets ones named from the source
+//   alone (its instance identity above and the UID root, not the job): every
+//   job on the same series (`run`, `fill`, a rerun) puts its objects in the
+//   same study and frame of reference; another series gets others.
 // - Series numbers: options.series_number_base, else 1000 x the source's
 //   SeriesNumber, else 9000; the intensity series gets base + 1, the distance
 //   map base + 2, the SEG base + 3, the Encapsulated STL mesh base + 4, a
@@ -244,14 +250,62 @@ struct CodedConcept {
   std::string meaning;
 };
 
+// The one segment of a job's SEG: SegmentLabel, SegmentedPropertyCategory
+// (DICOM PS3.16 CID 7150 "Segmentation Property Categories") and
+// SegmentedPropertyType. The default is only what WriteSegmentation needs to
+// be called; a job names its segment with DescribeThresholdSegment.
 struct SegmentDescription {
   std::string label = "Bone";
-  // CID 7150 "Segmentation Property Categories" and CID 7166 "Common Tissue
-  // Segmentation Types" (DICOM PS3.16).
   CodedConcept category = {"85756007", "SCT", "Tissue"};
   CodedConcept type = {"272673000", "SCT", "Bone"};
   std::string algorithm_name = "interslice";
 };
+
+// The codes DescribeThresholdSegment chooses from. Bone: SNOMED CT
+// 272673000 "Bone structure" (CID 7166 "Common Tissue Segmentation Types"
+// meaning "Bone") in category SCT 85756007 "Tissue" (CID 7150). Anything
+// else: SNOMED CT 91723000 "Anatomical structure", the root of SNOMED CT's
+// anatomy hierarchy and CID 7150's "Anatomical Structure" category, as both
+// category and type: true of any region a threshold cuts out of a body
+// without claiming what tissue it is.
+inline constexpr char kBoneCodeValue[] = "272673000";
+inline constexpr char kTissueCodeValue[] = "85756007";
+inline constexpr char kAnatomicalStructureCodeValue[] = "91723000";
+
+// Below this lower threshold (HU) a CT region is not called bone: the
+// cancellous bone of the skull and spine starts at about 200-300 HU, while
+// contrast-enhanced vessels and soft tissue reach 100-200 HU.
+inline constexpr double kBoneThresholdHu = 200;
+
+// A coded concept as a person writes it: "scheme:value:meaning", e.g.
+// "SCT:272673000:Bone" (the meaning may contain ':'). The scheme must be a
+// valid DICOM CS designator (1-16 of A-Z, 0-9, space, '_'; e.g. SCT, DCM,
+// FMA, LN, RADLEX, 99LOCAL), the value a valid SH (1-16 characters, no
+// backslash or control character), the meaning a valid LO (1-64, no
+// backslash or control character). INVALID_ARGUMENT saying which part is
+// wrong (never echoing the text).
+absl::StatusOr<CodedConcept> ParseCodedConcept(std::string_view text);
+
+// INVALID_ARGUMENT unless `label` is a valid SegmentLabel (LO: 1-64
+// characters, no backslash or control character).
+absl::Status ValidateSegmentLabel(std::string_view label);
+
+// The segment of a threshold job on `source` (object = lower <= value
+// (<= upper), modality units):
+// - `code` given: type = code, category Tissue for the tissue codes above
+//   (bone, tissue), else Anatomical Structure; label = `label`, else the
+//   code's meaning.
+// - no code: Bone (SCT 272673000, category Tissue) only for CT with lower
+//   >= kBoneThresholdHu; otherwise "Region above N <units>" ("Region N to M
+//   <units>" with an upper threshold) coded Anatomical Structure, where the
+//   units are HU for CT, else the first source file's RescaleType (0028,1054)
+//   or Units (0054,1001, e.g. BQML for PET), else "units". `label` replaces
+//   the label, not the code.
+// FAILED_PRECONDITION when the first source file cannot be read again;
+// INVALID_ARGUMENT for a label that is not a valid SegmentLabel.
+absl::StatusOr<SegmentDescription> DescribeThresholdSegment(
+    const DicomSeries& source, double lower, std::optional<double> upper,
+    std::string_view label, const std::optional<CodedConcept>& code);
 
 // Writes `mask` (nonzero = inside; on the output grid, see the contract
 // above) as a binary DICOM Segmentation with one segment (SegmentAlgorithmType

@@ -4,9 +4,11 @@
 // while all three are written in parallel.
 #include <cstdint>
 #include <limits>
+#include <map>
 #include <memory>
 #include <optional>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include "absl/status/status.h"
@@ -21,6 +23,7 @@
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
 #include "dcmtk/dcmdata/dcfilefo.h"
+#include "dcmtk/dcmdata/dcmetinf.h"
 #include "dcmtk/dcmdata/dcuid.h"
 
 namespace interslice {
@@ -29,38 +32,85 @@ namespace {
 // Series numbers when the source has none (the SEG's was 9001 before).
 constexpr int kFallbackSeriesNumberBase = 9000;
 
+// What identifies the source itself, whatever job runs on it, as lines of
+// text: its SOP Instance UIDs (with the frame, for multi-frame sources);
+// when an anonymiser blanked them, the MediaStorageSOPInstanceUIDs of its
+// files' meta headers (anonymisers often leave those); else the digest of
+// its pixels (DicomSeries::pixel_digest). Empty when none is there (a
+// series made up in memory): nothing identifies it.
+absl::StatusOr<std::string> SourceInstanceIdentity(const DicomSeries& source) {
+  if (source.slices.empty()) return std::string();
+  std::string lines;
+  bool complete = true;
+  for (const DicomSliceInfo& slice : source.slices) {
+    if (slice.sop_instance_uid.empty()) complete = false;
+    absl::StrAppend(&lines, "instance ", slice.sop_instance_uid, " frame ",
+                    slice.frame, "\n");
+  }
+  if (complete) return lines;
+  // The file meta headers, each file read once (not its data set).
+  lines.clear();
+  complete = true;
+  std::map<std::string, std::string> media_uid_of_file;
+  for (const DicomSliceInfo& slice : source.slices) {
+    auto [it, inserted] = media_uid_of_file.try_emplace(slice.path);
+    if (inserted) {
+      DcmFileFormat file;
+      OFString uid;
+      if (file.loadFile(slice.path.c_str(), EXS_Unknown, EGL_noChange,
+                        DCM_MaxReadLength, ERM_metaOnly)
+              .good() &&
+          file.getMetaInfo()
+              ->findAndGetOFString(DCM_MediaStorageSOPInstanceUID, uid)
+              .good()) {
+        it->second = uid.c_str();
+      }
+    }
+    if (it->second.empty()) complete = false;
+    absl::StrAppend(&lines, "media instance ", it->second, " frame ",
+                    slice.frame, "\n");
+  }
+  if (complete) return lines;
+  if (!source.pixel_digest.empty()) {
+    return absl::StrCat("pixels ", source.pixel_digest, " slices ",
+                        source.slices.size(), "\n");
+  }
+  return std::string();
+}
+
 // Names UIDs within one job: deterministic (a name-based UUID of the job's
-// own UID and the object's name) or random.
+// own UID and the object's name) or random. The study and frame of
+// reference a source lacks are named from the source alone (SourceUid), so
+// that every job on it (`run`, `fill`) lands in the same study and frame.
 class UidNamer {
  public:
   static absl::StatusOr<UidNamer> Create(const DicomSeries& source,
                                          const DicomWriteOptions& options) {
     UidNamer namer;
     namer.root_ = options.uid_root;
-    bool identified = !source.slices.empty();
-    for (const DicomSliceInfo& slice : source.slices) {
-      if (slice.sop_instance_uid.empty()) identified = false;
-    }
-    if (options.random_uids || !identified) {
+    INTERSLICE_ASSIGN_OR_RETURN(const std::string instances,
+                                SourceInstanceIdentity(source));
+    if (options.random_uids || instances.empty()) {
       // Validates the root as a side effect.
       INTERSLICE_RETURN_IF_ERROR(GenerateDicomUid(options.uid_root).status());
       namer.random_ = true;
       return namer;
     }
-    // The job's identity: every source instance (and frame, for multi-frame
-    // sources), in volume order, the study and series they belong to, the
-    // root and the job's parameters. Hashed once into a UID that names the
-    // job; each object's UID is then named from it.
+    // The source's identity: its instances (above), in volume order, the
+    // series they belong to and the volume read.
+    const std::string series = absl::StrCat(
+        "study ", source.study_instance_uid, "\nseries ",
+        source.series_instance_uid, "\nvolume ", source.volume, "\n");
+    INTERSLICE_ASSIGN_OR_RETURN(
+        namer.source_, DeriveDicomUid("", absl::StrCat("interslice source v1\n",
+                                                       series, instances)));
+    // The job's identity: the source's, the root and the job's parameters.
+    // Hashed once into a UID that names the job; each object's UID is then
+    // named from it. (The text is what it was before sources without SOP
+    // Instance UIDs were named, so the UIDs of the others stay.)
     std::string name = "interslice derived objects v1\n";
-    absl::StrAppend(&name, "study ", source.study_instance_uid, "\nseries ",
-                    source.series_instance_uid, "\nvolume ", source.volume,
-                    "\n");
-    for (const DicomSliceInfo& slice : source.slices) {
-      absl::StrAppend(&name, "instance ", slice.sop_instance_uid, " frame ",
-                      slice.frame, "\n");
-    }
-    absl::StrAppend(&name, "root ", options.uid_root, "\nkey ",
-                    options.derivation_key, "\n");
+    absl::StrAppend(&name, series, instances, "root ", options.uid_root,
+                    "\nkey ", options.derivation_key, "\n");
     INTERSLICE_ASSIGN_OR_RETURN(namer.job_, DeriveDicomUid("", name));
     // Validates the root.
     INTERSLICE_RETURN_IF_ERROR(
@@ -68,13 +118,21 @@ class UidNamer {
     return namer;
   }
 
+  // An object of the job.
   absl::StatusOr<std::string> Uid(std::string_view object) const {
     if (random_) return GenerateDicomUid(root_);
     return DeriveDicomUid(root_, absl::StrCat(job_, "/", std::string(object)));
   }
 
+  // Something of the source, the same for every job on it.
+  absl::StatusOr<std::string> SourceUid(std::string_view what) const {
+    if (random_) return GenerateDicomUid(root_);
+    return DeriveDicomUid(root_, absl::StrCat(source_, "/", std::string(what)));
+  }
+
  private:
   std::string root_;
+  std::string source_;
   std::string job_;
   bool random_ = false;
 };
@@ -121,12 +179,13 @@ absl::Status SetStudyAndFrame(const DicomSeries& source, const UidNamer& namer,
                               DerivedObjectIdentity& object) {
   object.study_instance_uid = source.study_instance_uid;
   if (object.study_instance_uid.empty()) {
-    INTERSLICE_ASSIGN_OR_RETURN(object.study_instance_uid, namer.Uid("study"));
+    INTERSLICE_ASSIGN_OR_RETURN(object.study_instance_uid,
+                                namer.SourceUid("study"));
   }
   object.frame_of_reference_uid = source.frame_of_reference_uid;
   if (object.frame_of_reference_uid.empty()) {
     INTERSLICE_ASSIGN_OR_RETURN(object.frame_of_reference_uid,
-                                namer.Uid("frame-of-reference"));
+                                namer.SourceUid("frame-of-reference"));
   }
   return absl::OkStatus();
 }
@@ -187,21 +246,15 @@ absl::StatusOr<DerivedObjects> PlanDerivedObjects(
   INTERSLICE_ASSIGN_OR_RETURN(const int64_t base,
                               SeriesNumberBase(*header->getDataset(), options));
   // An anonymised source may have no study or frame of reference: the
-  // job's objects then share new ones (type 1 in every IOD written here).
-  std::string study = source.study_instance_uid;
-  if (study.empty()) {
-    INTERSLICE_ASSIGN_OR_RETURN(study, namer.Uid("study"));
-  }
-  std::string frame = source.frame_of_reference_uid;
-  if (frame.empty()) {
-    INTERSLICE_ASSIGN_OR_RETURN(frame, namer.Uid("frame-of-reference"));
-  }
+  // job's objects then share ones named from the source alone (type 1 in
+  // every IOD written here), the same for every job on it.
   DerivedObjects objects;
+  INTERSLICE_RETURN_IF_ERROR(
+      SetStudyAndFrame(source, namer, objects.intensity));
   for (DerivedObjectIdentity* o :
-       {&objects.intensity, &objects.distance_map, &objects.segmentation,
-        &objects.surface_stl}) {
-    o->study_instance_uid = study;
-    o->frame_of_reference_uid = frame;
+       {&objects.distance_map, &objects.segmentation, &objects.surface_stl}) {
+    o->study_instance_uid = objects.intensity.study_instance_uid;
+    o->frame_of_reference_uid = objects.intensity.frame_of_reference_uid;
   }
   DerivedObjectIdentity& intensity = objects.intensity;
   INTERSLICE_ASSIGN_OR_RETURN(intensity.series_instance_uid,

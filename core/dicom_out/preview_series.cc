@@ -22,6 +22,7 @@ namespace interslice {
 namespace {
 
 namespace fs = std::filesystem;
+using dicom_out_internal::CopyAnatomy;
 using dicom_out_internal::kSourceImagePurposeCode;
 using dicom_out_internal::kSourceImagePurposeMeaning;
 
@@ -37,25 +38,6 @@ void AddSourceImage(DcmItem& ds, const std::string& sop_class,
   purpose->putAndInsertString(DCM_CodeValue, kSourceImagePurposeCode);
   purpose->putAndInsertString(DCM_CodingSchemeDesignator, "DCM");
   purpose->putAndInsertString(DCM_CodeMeaning, kSourceImagePurposeMeaning);
-}
-
-// The anatomy the pictures show is the source's: its BodyPartExamined and
-// laterality. General Series' Laterality is type 2C (required unless the
-// body part is unpaired or ImageLaterality says it): without any of these
-// in the source it is written empty, meaning unknown.
-void CopyAnatomy(DcmItem& from, DcmItem& to) {
-  bool laterality = false;
-  for (const DcmTagKey& tag :
-       {DCM_BodyPartExamined, DCM_Laterality, DCM_ImageLaterality}) {
-    OFString value;
-    if (from.findAndGetOFStringArray(tag, value).good() && !value.empty()) {
-      to.putAndInsertOFStringArray(tag, value);
-      if (tag != DCM_BodyPartExamined) laterality = true;
-    }
-  }
-  if (!laterality && !to.tagExists(DCM_BodyPartExamined)) {
-    to.insertEmptyElement(DCM_Laterality);
-  }
 }
 
 absl::Status CheckPictures(const std::vector<RgbPicture>& pictures,

@@ -2,11 +2,16 @@
 #include <cstdint>
 #include <filesystem>
 #include <memory>
+#include <optional>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include "absl/status/status.h"
+#include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "absl/strings/str_split.h"
 #include "core/common/status_macros.h"
 #include "core/dicom_out/dicom_out_internal.h"
 #include "core/dicom_out/dicom_writer.h"
@@ -55,7 +60,127 @@ absl::Status ValidateCode(const CodedConcept& code, const char* what) {
   return absl::OkStatus();
 }
 
+// DICOM PS3.5 6.2: the default character repertoire minus backslash (the
+// value delimiter) and control characters.
+bool IsPlainText(std::string_view text) {
+  for (const char c : text) {
+    const auto u = static_cast<unsigned char>(c);
+    if (c == '\\' || u < 0x20 || u == 0x7f) return false;
+  }
+  return true;
+}
+
+// CS: upper-case letters, digits, space and underscore (PS3.5 table 6.2-1).
+bool IsCodeString(std::string_view text) {
+  for (const char c : text) {
+    if (!(absl::ascii_isupper(c) || absl::ascii_isdigit(c) || c == ' ' ||
+          c == '_')) {
+      return false;
+    }
+  }
+  return true;
+}
+
+// The source's units for a label: HU for CT, else what its first file
+// says its modality values are, else "units".
+absl::StatusOr<std::string> SourceUnits(const DicomSeries& source) {
+  if (source.modality == "CT") return std::string("HU");
+  INTERSLICE_ASSIGN_OR_RETURN(std::unique_ptr<DcmFileFormat> file,
+                              LoadSourceHeader(source));
+  DcmDataset& header = *file->getDataset();
+  for (const DcmTagKey& tag : {DCM_RescaleType, DCM_Units}) {
+    OFString value;
+    if (header.findAndGetOFString(tag, value).good()) {
+      std::string units(absl::StripAsciiWhitespace(value.c_str()));
+      // "US" is RescaleType's "unspecified" (PS3.3 C.11.1.1.2).
+      if (!units.empty() && units != "US" && IsPlainText(units) &&
+          units.size() <= 16) {
+        return units;
+      }
+    }
+  }
+  return std::string("units");
+}
+
+std::string FormatThreshold(double value) {
+  return absl::StrFormat("%g", value);
+}
+
 }  // namespace
+
+absl::StatusOr<CodedConcept> ParseCodedConcept(std::string_view text) {
+  const std::vector<std::string> parts = absl::StrSplit(
+      absl::string_view(text.data(), text.size()), absl::MaxSplits(':', 2));
+  if (parts.size() != 3) {
+    return absl::InvalidArgumentError(
+        "expected scheme:value:meaning, e.g. SCT:272673000:Bone");
+  }
+  CodedConcept code{parts[1], parts[0], parts[2]};
+  if (code.scheme.empty() || code.scheme.size() > 16 ||
+      !IsCodeString(code.scheme)) {
+    return absl::InvalidArgumentError(
+        "the coding scheme must be 1-16 upper-case letters, digits, spaces "
+        "or underscores (e.g. SCT, DCM, FMA)");
+  }
+  if (code.value.empty() || code.value.size() > 16 ||
+      !IsPlainText(code.value)) {
+    return absl::InvalidArgumentError(
+        "the code value must be 1-16 characters without backslash or "
+        "control characters");
+  }
+  if (code.meaning.empty() || code.meaning.size() > 64 ||
+      !IsPlainText(code.meaning)) {
+    return absl::InvalidArgumentError(
+        "the code meaning must be 1-64 characters without backslash or "
+        "control characters");
+  }
+  return code;
+}
+
+absl::Status ValidateSegmentLabel(std::string_view label) {
+  if (label.empty() || label.size() > 64 || !IsPlainText(label)) {
+    return absl::InvalidArgumentError(
+        "the segment label must be 1-64 characters without backslash or "
+        "control characters");
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<SegmentDescription> DescribeThresholdSegment(
+    const DicomSeries& source, double lower, std::optional<double> upper,
+    std::string_view label, const std::optional<CodedConcept>& code) {
+  if (!label.empty()) INTERSLICE_RETURN_IF_ERROR(ValidateSegmentLabel(label));
+  const CodedConcept tissue = {kTissueCodeValue, "SCT", "Tissue"};
+  const CodedConcept bone = {kBoneCodeValue, "SCT", "Bone"};
+  const CodedConcept anatomical = {kAnatomicalStructureCodeValue, "SCT",
+                                   "Anatomical Structure"};
+  SegmentDescription segment;
+  if (code.has_value()) {
+    segment.type = *code;
+    const bool is_tissue =
+        code->scheme == "SCT" &&
+        (code->value == kBoneCodeValue || code->value == kTissueCodeValue);
+    segment.category = is_tissue ? tissue : anatomical;
+    segment.label = label.empty() ? code->meaning : std::string(label);
+    return segment;
+  }
+  if (source.modality == "CT" && lower >= kBoneThresholdHu) {
+    segment.category = tissue;
+    segment.type = bone;
+    segment.label = "Bone";
+  } else {
+    INTERSLICE_ASSIGN_OR_RETURN(const std::string units, SourceUnits(source));
+    segment.category = anatomical;
+    segment.type = anatomical;
+    segment.label =
+        upper.has_value()
+            ? absl::StrCat("Region ", FormatThreshold(lower), " to ",
+                           FormatThreshold(*upper), " ", units)
+            : absl::StrCat("Region above ", FormatThreshold(lower), " ", units);
+  }
+  if (!label.empty()) segment.label = std::string(label);
+  return segment;
+}
 
 namespace dicom_out_internal {
 

@@ -115,6 +115,14 @@ std::string DerivationKey(const JobSpec& spec, const Grid& output_grid) {
   if (spec.intensity_method != "linear") {
     absl::StrAppend(&key, " intensity=", spec.intensity_method);
   }
+  // Absent for the default segment, so that the UIDs of jobs that name
+  // none stay as they were.
+  if (!spec.segment_label.empty()) {
+    absl::StrAppend(&key, " segment-label=", spec.segment_label);
+  }
+  if (!spec.segment_code.empty()) {
+    absl::StrAppend(&key, " segment-code=", spec.segment_code);
+  }
   if (spec.roi.has_value()) {
     absl::StrAppend(&key, " roi=", absl::StrJoin(spec.roi->begin, ","), ",",
                     absl::StrJoin(spec.roi->end, ","));
@@ -317,6 +325,19 @@ absl::Status ValidateJobSpec(const JobSpec& spec) {
        *spec.upper_threshold < spec.lower_threshold)) {
     return absl::InvalidArgumentError(
         "upper threshold must be finite and not below the threshold");
+  }
+  if (!spec.segment_label.empty()) {
+    if (absl::Status s = ValidateSegmentLabel(spec.segment_label); !s.ok()) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("segment_label: ", s.message()));
+    }
+  }
+  if (!spec.segment_code.empty()) {
+    if (absl::Status s = ParseCodedConcept(spec.segment_code).status();
+        !s.ok()) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("segment_code: ", s.message()));
+    }
   }
   if (!(spec.mesh_adaptivity >= 0 && spec.mesh_adaptivity <= 1)) {
     return absl::InvalidArgumentError("mesh adaptivity must be in [0, 1]");
@@ -715,12 +736,22 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
     }
     if (wants_seg) {
       const auto path = dir / "seg.dcm";
-      tasks.push_back({"seg", path, [&, path] {
-                         return WriteSegmentation(
-                             source, mask, objects.segmentation,
-                             objects.intensity, SegmentDescription{},
-                             dicom_options, path.string());
-                       }});
+      tasks.push_back(
+          {"seg", path, [&, path]() -> absl::Status {
+             std::optional<CodedConcept> code;
+             if (!spec.segment_code.empty()) {
+               INTERSLICE_ASSIGN_OR_RETURN(
+                   code, ParseCodedConcept(spec.segment_code));
+             }
+             INTERSLICE_ASSIGN_OR_RETURN(
+                 const SegmentDescription segment,
+                 DescribeThresholdSegment(source, spec.lower_threshold,
+                                          spec.upper_threshold,
+                                          spec.segment_label, code));
+             return WriteSegmentation(source, mask, objects.segmentation,
+                                      objects.intensity, segment, dicom_options,
+                                      path.string());
+           }});
     }
     std::vector<RgbPicture> pictures;
     if (previews.has_value() && Contains(spec.preview_formats, "png")) {

@@ -75,6 +75,15 @@ struct JobSpec {
   //   them), so either one also writes series-intensity/.
   std::vector<std::string> output_series;
   bool write_seg = false;
+  // What the SEG's segment is (core/dicom_out DescribeThresholdSegment):
+  // segment_label its SegmentLabel (1-64 characters), segment_code its
+  // SegmentedPropertyType as "scheme:value:meaning" (ParseCodedConcept, e.g.
+  // "SCT:272673000:Bone"). Empty = the default from modality and threshold:
+  // "Bone" for CT at >= 200 HU, else "Region above N <units>" coded
+  // Anatomical Structure. Either one given is part of the UIDs' derivation
+  // (the SEG says something else, so it is another object).
+  std::string segment_label;
+  std::string segment_code;
   // Pixel data of the intensity series: "none" (default, native Explicit VR
   // Little Endian) or "rle" (encapsulated RLE Lossless: the same values in
   // fewer bytes; see DicomWriteOptions::intensity_encoding). The SEG and the

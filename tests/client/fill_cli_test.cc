@@ -414,6 +414,81 @@ TEST_F(FillCliTest, WritesSegAndRtStructOfALabelMap) {
   EXPECT_EQ(j["polygon_key_slices"], 0);
 }
 
+// The study, frame of reference and SOP Instance UID of a written object.
+std::array<std::string, 3> StudyFrameInstance(const fs::path& file) {
+  auto loaded = ::interslice::testing::LoadDicom(file.string());
+  DcmDataset& ds = *loaded->getDataset();
+  return {::interslice::testing::GetString(ds, DCM_StudyInstanceUID),
+          ::interslice::testing::GetString(ds, DCM_FrameOfReferenceUID),
+          ::interslice::testing::GetString(ds, DCM_SOPInstanceUID)};
+}
+
+// Issue 26: `run` and `fill` of one anonymised series (SOP Instance, Study
+// Instance and Frame of Reference UIDs blanked; the file meta headers kept)
+// land in one study with one frame of reference, a rerun names everything
+// the same, and another series gets another study.
+TEST_F(FillCliTest, AnonymisedSeriesKeepsOneStudyForRunAndFill) {
+  const auto strip = [&](const fs::path& from, const fs::path& to) {
+    fs::create_directories(to);
+    for (const auto& entry : fs::directory_iterator(from)) {
+      if (entry.path().extension() != ".dcm") continue;
+      DcmFileFormat file;
+      ASSERT_TRUE(file.loadFile(entry.path().c_str()).good());
+      ASSERT_TRUE(file.loadAllDataIntoMemory().good());
+      for (const DcmTagKey& tag : {DCM_SOPInstanceUID, DCM_StudyInstanceUID,
+                                   DCM_FrameOfReferenceUID}) {
+        file.getDataset()->findAndDeleteElement(tag);
+      }
+      ASSERT_TRUE(file.saveFile((to / entry.path().filename()).c_str()).good());
+    }
+  };
+  const fs::path anonymous = dir_ / "anonymous";
+  const fs::path other = dir_ / "other";
+  strip(fs::path(INTERSLICE_TEST_DATA_DIR) / "ct-thick", anonymous);
+  strip(fs::path(INTERSLICE_TEST_DATA_DIR) / "ct-tilt", other);
+  // A label map on the series' own grid: a run at factor 1 gives one.
+  const fs::path labels_run = dir_ / "labels-run";
+  ASSERT_EQ(RunCli("run " + anonymous.string() +
+                   " --threshold 300 --factor 1 --method linear --mesh none "
+                   "--previews none --quiet --out " +
+                   labels_run.string())
+                .exit_code,
+            0);
+  const auto run = [&](const fs::path& input, const std::string& out) {
+    const CommandResult r =
+        RunCli("run " + input.string() +
+               " --threshold 300 --method linear --seg --mesh none --volume "
+               "none --previews none --quiet --out " +
+               (dir_ / out).string());
+    EXPECT_EQ(r.exit_code, 0) << r.out;
+    return StudyFrameInstance(dir_ / out / "seg.dcm");
+  };
+  const auto fill = [&](const std::string& out) {
+    const CommandResult r =
+        RunCli("fill " + (labels_run / "mask.nii.gz").string() +
+               " --reference " + anonymous.string() +
+               " --method linear --seg --mesh none --volume none --previews "
+               "none --quiet --out " +
+               (dir_ / out).string());
+    EXPECT_EQ(r.exit_code, 0) << r.out;
+    return StudyFrameInstance(dir_ / out / "seg.dcm");
+  };
+  const std::array<std::string, 3> run1 = run(anonymous, "run1");
+  const std::array<std::string, 3> run2 = run(anonymous, "run2");
+  const std::array<std::string, 3> fill1 = fill("fill1");
+  const std::array<std::string, 3> fill2 = fill("fill2");
+  const std::array<std::string, 3> tilt = run(other, "other");
+  EXPECT_FALSE(run1[0].empty());
+  EXPECT_FALSE(run1[1].empty());
+  EXPECT_EQ(fill1[0], run1[0]);  // one study
+  EXPECT_EQ(fill1[1], run1[1]);  // one frame of reference
+  EXPECT_NE(fill1[2], run1[2]);  // two objects
+  EXPECT_EQ(run2, run1);         // a rerun replaces, never duplicates
+  EXPECT_EQ(fill2, fill1);
+  EXPECT_NE(tilt[0], run1[0]);
+  EXPECT_NE(tilt[1], run1[1]);
+}
+
 // --label-names: a colour table names the labels of a label map; the names,
 // colours and codes reach the SEG's segments and the RTSTRUCT's ROIs.
 TEST_F(FillCliTest, LabelNamesReachSegAndRtStruct) {

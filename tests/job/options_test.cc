@@ -176,6 +176,55 @@ TEST(BuildJobSpecTest, ErrorsNameTheOption) {
   EXPECT_EQ(ErrorOptionKey(BuildJobSpec(none).status()), "threshold");
 }
 
+// Issue 26: the SEG's segment is named by --segment-label / --segment-code
+// (rules and wire alike), each checked, and only where a SEG is written.
+TEST(BuildJobSpecTest, SegmentLabelAndCode) {
+  InterpolationOptions o = Minimal();
+  o.seg = true;
+  ASSERT_TRUE(SetOption(o, "segment_label", "Brain").ok());
+  ASSERT_TRUE(SetOption(o, "segment_code", "SCT:12738006:Brain").ok());
+  absl::StatusOr<JobSpec> spec = BuildJobSpec(o);
+  ASSERT_TRUE(spec.ok()) << spec.status();
+  EXPECT_EQ(spec->segment_label, "Brain");
+  EXPECT_EQ(spec->segment_code, "SCT:12738006:Brain");
+  // mask in output_series writes the SEG too.
+  InterpolationOptions mask = Minimal();
+  mask.output_series = "mask";
+  mask.segment_label = "Brain";
+  EXPECT_TRUE(BuildJobSpec(mask).ok());
+
+  struct Case {
+    std::string key, value, message;
+  };
+  for (const Case& c : std::vector<Case>{
+           {"segment_label", std::string(65, 'x'), "1-64 characters"},
+           {"segment_label", "a\\b", "without backslash"},
+           {"segment_code", "SCT:12738006", "scheme:value:meaning"},
+           {"segment_code", "sct:12738006:Brain", "coding scheme"},
+           {"segment_code", "SCT::Brain", "code value"},
+           {"segment_code", "SCT:12738006:", "code meaning"},
+       }) {
+    InterpolationOptions bad = Minimal();
+    bad.seg = true;
+    ASSERT_TRUE(SetOption(bad, c.key, c.value).ok()) << c.key;
+    absl::StatusOr<JobSpec> refused = BuildJobSpec(bad);
+    ASSERT_FALSE(refused.ok()) << c.value;
+    EXPECT_EQ(ErrorOptionKey(refused.status()), c.key) << refused.status();
+    EXPECT_THAT(ErrorMessageWithoutKey(refused.status()), HasSubstr(c.message))
+        << c.value;
+  }
+  // Without a SEG a segment name would be silently ignored: refused.
+  for (const char* key : {"segment_label", "segment_code"}) {
+    InterpolationOptions no_seg = Minimal();
+    ASSERT_TRUE(SetOption(no_seg, key, "SCT:12738006:Brain").ok());
+    absl::StatusOr<JobSpec> refused = BuildJobSpec(no_seg);
+    ASSERT_FALSE(refused.ok()) << key;
+    EXPECT_EQ(ErrorOptionKey(refused.status()), key);
+    EXPECT_THAT(ErrorMessageWithoutKey(refused.status()),
+                HasSubstr("no SEG is written"));
+  }
+}
+
 // The derived objects are numbered base + 1 ... base + 6 (the previews): the
 // largest base whose + 6 is still a DICOM IS (signed 32-bit) is accepted,
 // one more is not, by every door and by the core itself before anything

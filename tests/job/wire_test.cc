@@ -150,6 +150,8 @@ TEST(WireTest, InterpolationSpecsRoundTrip) {
   cases[1].spacing = 0.7;
   cases[1].output_series = "intensity,distance,mask";
   cases[1].seg = true;
+  cases[1].segment_label = "Skull";
+  cases[1].segment_code = "SCT:272673000:Bone";
   cases[1].dicom_compression = "rle";
   cases[1].dicom_layout = "enhanced";
   cases[1].series_number_base = 2147483641;
@@ -196,6 +198,8 @@ TEST(WireTest, InterpolationSpecsRoundTrip) {
     EXPECT_EQ(back->intensity_method, spec->intensity_method);
     EXPECT_EQ(back->series_number_base, spec->series_number_base);
     EXPECT_EQ(back->series_instance_uid, spec->series_instance_uid);
+    EXPECT_EQ(back->segment_label, spec->segment_label);
+    EXPECT_EQ(back->segment_code, spec->segment_code);
     EXPECT_TRUE(back->inputs.empty());
     EXPECT_TRUE(back->output_dir.empty());
   }

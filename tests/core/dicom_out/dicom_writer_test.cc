@@ -16,7 +16,9 @@
 #include <vector>
 
 #include "absl/status/status.h"
+#include "absl/strings/str_cat.h"
 #include "core/dicom/series_reader.h"
+#include "core/dicom_out/preview_series.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "tests/core/dicom_out/dicom_test_util.h"
@@ -600,6 +602,40 @@ TEST(ResampleSourceSlicesTest, MismatchedGridsAndPositionsAreInvalid) {
             absl::StatusCode::kInvalidArgument);
 }
 
+// Without `drop_media_uid` DCMTK keeps the file meta header up to date
+// with the data set; with it the meta header loses its
+// MediaStorageSOPInstanceUID and is written as it is.
+template <typename Edit>
+DicomSeries DoctoredCopy(const DicomSeries& original, const fs::path& dir,
+                         Edit edit, bool drop_media_uid = false) {
+  fs::create_directories(dir);
+  DicomSeries source = original;
+  for (size_t s = 0; s < source.slices.size(); ++s) {
+    const fs::path to = dir / fs::path(source.slices[s].path).filename();
+    auto file = Load(source.slices[s].path);
+    EXPECT_TRUE(file->loadAllDataIntoMemory().good());
+    edit(*file->getDataset());
+    if (drop_media_uid) {
+      file->getMetaInfo()->findAndDeleteElement(DCM_MediaStorageSOPInstanceUID);
+    }
+    EXPECT_TRUE(
+        file->saveFile(to.c_str(), EXS_Unknown, EET_UndefinedLength,
+                       EGL_recalcGL, EPD_noChange, 0, 0,
+                       drop_media_uid ? EWM_dontUpdateMeta : EWM_fileformat)
+            .good());
+    source.slices[s].path = to.string();
+  }
+  return source;
+}
+
+// The UIDs an anonymiser blanks.
+void StripUids(DcmDataset& ds) {
+  for (const DcmTagKey& tag :
+       {DCM_SOPInstanceUID, DCM_StudyInstanceUID, DCM_FrameOfReferenceUID}) {
+    ds.findAndDeleteElement(tag);
+  }
+}
+
 TEST_F(DicomWriterTest, UidsAreDerivedFromSourceAndJob) {
   const DerivedObjects a = Plan();
   const DerivedObjects b = Plan();
@@ -648,10 +684,16 @@ TEST_F(DicomWriterTest, UidsAreDerivedFromSourceAndJob) {
             r2.intensity.sop_instance_uids[0]);
   EXPECT_THAT(r1.intensity.series_instance_uid, StartsWith(kTestRoot));
 
-  // A source whose SOP Instance UIDs were blanked cannot be identified:
-  // random UIDs rather than the same UIDs for every such series.
-  DicomSeries anonymous = *source_;
+  // A source whose SOP Instance UIDs were blanked is identified by its
+  // files' meta headers (AnonymisedSourceKeepsOneStudyAndFrameForEveryJob);
+  // one that nothing identifies (no meta UIDs, no pixel digest: a series
+  // made up in memory) gets random UIDs rather than the same UIDs as every
+  // other such series.
+  TempDir dir;
+  DicomSeries anonymous = DoctoredCopy(
+      *source_, dir.path(), [](DcmDataset&) {}, /*drop_media_uid=*/true);
   for (DicomSliceInfo& s : anonymous.slices) s.sop_instance_uid.clear();
+  anonymous.pixel_digest.clear();
   EXPECT_NE(PlanDerivedObjects(anonymous, grid_->size[2], Options())
                 ->intensity.series_instance_uid,
             PlanDerivedObjects(anonymous, grid_->size[2], Options())
@@ -763,6 +805,339 @@ TEST_F(DicomWriterTest, EmptyConditionalSourceAttributesAreDropped) {
   EXPECT_THAT(GetString(*file->getDataset(), DCM_DeidentificationMethod),
               HasSubstr("unknown"));
   EXPECT_EQ(GetString(*file->getDataset(), DCM_PatientIdentityRemoved), "YES");
+}
+
+// A copy of the source's files in `dir`, each edited by `edit`, and the
+// series pointing at the copies.
+// Issue 26: an anonymised source (no SOP Instance, Study Instance or Frame
+// of Reference UIDs) got a new random study for every job: `run` and `fill`
+// of one series landed in two studies and a rerun duplicated both. Now its
+// file meta UIDs, else its pixels, identify it.
+TEST_F(DicomWriterTest, AnonymisedSourceKeepsOneStudyAndFrameForEveryJob) {
+  TempDir dir;
+  for (const bool drop_media_uid : {false, true}) {
+    SCOPED_TRACE(drop_media_uid ? "pixels identify it" : "meta identifies it");
+    const fs::path copies = dir.path() / (drop_media_uid ? "no-meta" : "meta");
+    DoctoredCopy(*source_, copies, StripUids, drop_media_uid);
+    {
+      DcmFileFormat copy;
+      ASSERT_TRUE(copy.loadFile((copies / "I10.dcm").c_str()).good());
+      EXPECT_EQ(copy.getMetaInfo()->tagExists(DCM_MediaStorageSOPInstanceUID),
+                !drop_media_uid);
+    }
+    // As a job reads it: the reader sees no SOP Instance UIDs.
+    auto read = ReadDicomSeries({copies.string()}, {}, {});
+    ASSERT_TRUE(read.ok()) << read.status();
+    const DicomSeries& source = *read;
+    ASSERT_TRUE(source.study_instance_uid.empty());
+    ASSERT_TRUE(source.frame_of_reference_uid.empty());
+    ASSERT_TRUE(source.slices[0].sop_instance_uid.empty());
+    EXPECT_EQ(source.pixel_digest.size(), 64u);
+
+    DicomWriteOptions run = Options();
+    run.derivation_key = "run job";
+    DicomWriteOptions fill = Options();
+    fill.derivation_key = "fill job";
+    auto a = PlanDerivedObjects(source, 5, run);
+    auto again = PlanDerivedObjects(source, 5, run);
+    auto b = PlanDerivedObjects(source, 5, fill);
+    ASSERT_TRUE(a.ok() && again.ok() && b.ok());
+    EXPECT_FALSE(a->intensity.study_instance_uid.empty());
+    EXPECT_FALSE(a->intensity.frame_of_reference_uid.empty());
+    EXPECT_NE(a->intensity.study_instance_uid,
+              a->intensity.frame_of_reference_uid);
+    // One study and frame for both jobs, and for every object of each.
+    EXPECT_EQ(b->segmentation.study_instance_uid,
+              a->intensity.study_instance_uid);
+    EXPECT_EQ(b->segmentation.frame_of_reference_uid,
+              a->intensity.frame_of_reference_uid);
+    EXPECT_EQ(a->surface_stl.study_instance_uid,
+              a->intensity.study_instance_uid);
+    auto previews =
+        PlanPreviewSeries(source, {"axial"}, fill, /*same_study=*/nullptr);
+    ASSERT_TRUE(previews.ok());
+    EXPECT_EQ(previews->study_instance_uid, a->intensity.study_instance_uid);
+    EXPECT_EQ(previews->frame_of_reference_uid,
+              a->intensity.frame_of_reference_uid);
+    // The jobs' own objects differ; a rerun names everything the same.
+    EXPECT_NE(b->segmentation.series_instance_uid,
+              a->segmentation.series_instance_uid);
+    EXPECT_EQ(again->intensity.study_instance_uid,
+              a->intensity.study_instance_uid);
+    EXPECT_EQ(again->intensity.frame_of_reference_uid,
+              a->intensity.frame_of_reference_uid);
+    EXPECT_EQ(again->segmentation.series_instance_uid,
+              a->segmentation.series_instance_uid);
+    EXPECT_EQ(again->intensity.sop_instance_uids,
+              a->intensity.sop_instance_uids);
+
+    // Another series (the first three slices only) is another source.
+    const fs::path fewer =
+        dir.path() / (drop_media_uid ? "fewer-no-meta" : "fewer-meta");
+    fs::create_directories(fewer);
+    for (const auto& entry : fs::directory_iterator(copies)) {
+      if (entry.path().filename() != "I40.dcm") {
+        fs::copy_file(entry.path(), fewer / entry.path().filename());
+      }
+    }
+    auto other = ReadDicomSeries({fewer.string()}, {}, {});
+    ASSERT_TRUE(other.ok()) << other.status();
+    auto c = PlanDerivedObjects(*other, 5, run);
+    ASSERT_TRUE(c.ok());
+    EXPECT_NE(c->intensity.study_instance_uid, a->intensity.study_instance_uid);
+    EXPECT_NE(c->intensity.frame_of_reference_uid,
+              a->intensity.frame_of_reference_uid);
+
+    // random_uids still asks for fresh ones.
+    DicomWriteOptions random = run;
+    random.random_uids = true;
+    auto r = PlanDerivedObjects(source, 5, random);
+    ASSERT_TRUE(r.ok());
+    EXPECT_NE(r->intensity.study_instance_uid, a->intensity.study_instance_uid);
+  }
+}
+
+std::string SegmentLabelOf(const std::string& path, std::string* type_code,
+                           std::string* category_code) {
+  DcmSegmentation* raw = nullptr;
+  if (!DcmSegmentation::loadFile(path.c_str(), raw).good()) return "";
+  std::unique_ptr<DcmSegmentation> seg(raw);
+  DcmSegment* segment = seg->getSegment(1);
+  if (segment == nullptr) return "";
+  OFString label, type, category;
+  segment->getSegmentLabel(label);
+  segment->getSegmentedPropertyTypeCode().getCodeValue(type);
+  segment->getSegmentedPropertyCategoryCode().getCodeValue(category);
+  *type_code = type.c_str();
+  *category_code = category.c_str();
+  return label.c_str();
+}
+
+// Issue 26: every SEG was "Bone", an MR brain mask at 100 too.
+TEST_F(DicomWriterTest, SegmentIsNamedForModalityAndThreshold) {
+  TempDir dir;
+  struct Case {
+    const char* name;
+    const char* modality;
+    double lower;
+    std::optional<double> upper;
+    std::string label;
+    std::optional<CodedConcept> code;
+    const char* expected_label;
+    const char* expected_type;
+    const char* expected_category;
+  };
+  const CodedConcept brain = {"12738006", "SCT", "Brain"};
+  const Case cases[] = {
+      {"ct bone", "CT", 300, std::nullopt, "", std::nullopt, "Bone",
+       kBoneCodeValue, kTissueCodeValue},
+      {"ct at 200", "CT", 200, std::nullopt, "", std::nullopt, "Bone",
+       kBoneCodeValue, kTissueCodeValue},
+      {"ct soft tissue", "CT", 40, std::nullopt, "", std::nullopt,
+       "Region above 40 HU", kAnatomicalStructureCodeValue,
+       kAnatomicalStructureCodeValue},
+      {"ct window", "CT", -500, 199.5, "", std::nullopt,
+       "Region -500 to 199.5 HU", kAnatomicalStructureCodeValue,
+       kAnatomicalStructureCodeValue},
+      {"mr", "MR", 100, std::nullopt, "", std::nullopt,
+       "Region above 100 units", kAnatomicalStructureCodeValue,
+       kAnatomicalStructureCodeValue},
+      {"mr named", "MR", 100, std::nullopt, "Brain mask", std::nullopt,
+       "Brain mask", kAnatomicalStructureCodeValue,
+       kAnatomicalStructureCodeValue},
+      {"mr coded", "MR", 100, std::nullopt, "", brain, "Brain", "12738006",
+       kAnatomicalStructureCodeValue},
+      {"ct coded bone, labelled", "CT", 100, std::nullopt, "Skull",
+       CodedConcept{kBoneCodeValue, "SCT", "Bone"}, "Skull", kBoneCodeValue,
+       kTissueCodeValue},
+  };
+  // Without RescaleType: an MR's values have no units of their own.
+  const DicomSeries plain =
+      DoctoredCopy(*source_, dir.path() / "plain", [](DcmDataset& ds) {
+        ds.findAndDeleteElement(DCM_RescaleType);
+        ds.findAndDeleteElement(DCM_Units);
+      });
+  const DerivedObjects objects = Plan();
+  for (const Case& c : cases) {
+    SCOPED_TRACE(c.name);
+    DicomSeries source = plain;
+    source.modality = c.modality;
+    absl::StatusOr<SegmentDescription> segment =
+        DescribeThresholdSegment(source, c.lower, c.upper, c.label, c.code);
+    ASSERT_TRUE(segment.ok()) << segment.status();
+    // What the SEG says, read back with DCMTK.
+    const std::string path = (dir.path() / "seg.dcm").string();
+    ASSERT_TRUE(WriteSegmentation(source, Mask(Distance()),
+                                  objects.segmentation, objects.intensity,
+                                  *segment, Options(), path)
+                    .ok());
+    std::string type, category;
+    EXPECT_EQ(SegmentLabelOf(path, &type, &category), c.expected_label);
+    EXPECT_EQ(type, c.expected_type);
+    EXPECT_EQ(category, c.expected_category);
+  }
+  // The source's own units: PET's Units, else a RescaleType.
+  {
+    const DicomSeries pet =
+        DoctoredCopy(*source_, dir.path() / "pet", [](DcmDataset& ds) {
+          ds.findAndDeleteElement(DCM_RescaleType);
+          ds.putAndInsertString(DCM_Units, "BQML");
+        });
+    DicomSeries source = pet;
+    source.modality = "PT";
+    auto segment =
+        DescribeThresholdSegment(source, 2500, std::nullopt, "", std::nullopt);
+    ASSERT_TRUE(segment.ok()) << segment.status();
+    EXPECT_EQ(segment->label, "Region above 2500 BQML");
+  }
+  {
+    const DicomSeries us = DoctoredCopy(
+        *source_, dir.path() / "us",
+        [](DcmDataset& ds) { ds.putAndInsertString(DCM_RescaleType, "US"); });
+    DicomSeries source = us;
+    source.modality = "MR";
+    auto segment =
+        DescribeThresholdSegment(source, 7, std::nullopt, "", std::nullopt);
+    ASSERT_TRUE(segment.ok()) << segment.status();
+    EXPECT_EQ(segment->label, "Region above 7 units");  // US = unspecified
+  }
+  EXPECT_EQ(DescribeThresholdSegment(*source_, 300, std::nullopt,
+                                     std::string(65, 'x'), std::nullopt)
+                .status()
+                .code(),
+            absl::StatusCode::kInvalidArgument);
+}
+
+TEST(ParseCodedConceptTest, SchemeValueMeaningEachChecked) {
+  auto bone = ParseCodedConcept("SCT:272673000:Bone");
+  ASSERT_TRUE(bone.ok()) << bone.status();
+  EXPECT_EQ(bone->scheme, "SCT");
+  EXPECT_EQ(bone->value, "272673000");
+  EXPECT_EQ(bone->meaning, "Bone");
+  auto colon = ParseCodedConcept("99LOCAL_X:a-1:Ratio 1:2");
+  ASSERT_TRUE(colon.ok()) << colon.status();
+  EXPECT_EQ(colon->meaning, "Ratio 1:2");
+  struct Bad {
+    const char* text;
+    const char* says;
+  };
+  for (const Bad& bad : {
+           Bad{"SCT:272673000", "scheme:value:meaning"},
+           Bad{"sct:272673000:Bone", "coding scheme"},
+           Bad{":272673000:Bone", "coding scheme"},
+           Bad{"SCHEMEWAYTOOLONG17:1:Bone", "coding scheme"},
+           Bad{"SCT::Bone", "code value"},
+           Bad{"SCT:12345678901234567:Bone", "code value"},
+           Bad{"SCT:1\\2:Bone", "code value"},
+           Bad{"SCT:272673000:", "code meaning"},
+           Bad{"SCT:272673000:Bone\\Marrow", "code meaning"},
+       }) {
+    SCOPED_TRACE(bad.text);
+    absl::Status status = ParseCodedConcept(bad.text).status();
+    EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument);
+    EXPECT_THAT(std::string(status.message()), HasSubstr(bad.says));
+  }
+  EXPECT_FALSE(
+      ParseCodedConcept(absl::StrCat("SCT:1:", std::string(65, 'm'))).ok());
+  EXPECT_TRUE(ValidateSegmentLabel("Region above 100 units").ok());
+  EXPECT_FALSE(ValidateSegmentLabel("").ok());
+  EXPECT_FALSE(ValidateSegmentLabel("a\\b").ok());
+  EXPECT_FALSE(ValidateSegmentLabel("tab\there").ok());
+}
+
+// Issue 26: dciodvfy found Laterality (General Series, type 2C) missing on
+// the intensity series of sources without BodyPartExamined or with a paired
+// one and no laterality. Each case: the intensity series, the SEG, the
+// distance map and the preview series pass dciodvfy.
+TEST_F(DicomWriterTest, LateralityIsValidWhateverTheSourceLacks) {
+  TempDir dir;
+  struct Case {
+    const char* name;
+    const char* body_part;         // null = absent
+    const char* laterality;        // null = absent
+    const char* image_laterality;  // null = absent
+    // Expected in the intensity series: null = absent, "" = empty.
+    const char* expected_body_part;
+    const char* expected_laterality;
+    const char* expected_image_laterality;
+  };
+  const Case cases[] = {
+      {"no body part", nullptr, nullptr, nullptr, nullptr, "", nullptr},
+      {"paired, no laterality", "KNEE", nullptr, nullptr, "KNEE", "", nullptr},
+      {"unknown term", "KNEEJOINT", nullptr, nullptr, "KNEEJOINT", "", nullptr},
+      {"unpaired", "HEAD", nullptr, nullptr, "HEAD", nullptr, nullptr},
+      {"paired with laterality", "KNEE", "R", nullptr, "KNEE", "R", nullptr},
+      {"image laterality", "BREAST", nullptr, "L", "BREAST", nullptr, "L"},
+      {"invalid values dropped", "head", "X", nullptr, nullptr, "", nullptr},
+      {"empty laterality, unpaired", "CHEST", "", nullptr, "CHEST", nullptr,
+       nullptr},
+  };
+  const DerivedObjects objects = Plan();
+  const Volume<float> intensity = Intensity();
+  const Volume<float> distance = Distance();
+  const std::vector<uint8_t> rgb(16 * 8 * 3, 128);
+  for (const Case& c : cases) {
+    SCOPED_TRACE(c.name);
+    const fs::path here = dir.path() / c.name;
+    const DicomSeries source =
+        DoctoredCopy(*source_, here / "source", [&c](DcmDataset& ds) {
+          for (const DcmTagKey& tag :
+               {DCM_BodyPartExamined, DCM_Laterality, DCM_ImageLaterality}) {
+            ds.findAndDeleteElement(tag);
+          }
+          if (c.body_part) {
+            ds.putAndInsertString(DCM_BodyPartExamined, c.body_part);
+          }
+          if (c.laterality) ds.putAndInsertString(DCM_Laterality, c.laterality);
+          if (c.image_laterality) {
+            ds.putAndInsertString(DCM_ImageLaterality, c.image_laterality);
+          }
+        });
+    auto paths = WriteIntensitySeries(source, intensity, objects.intensity,
+                                      Options(), (here / "i").string());
+    ASSERT_TRUE(paths.ok()) << paths.status();
+    const std::string seg = (here / "seg.dcm").string();
+    ASSERT_TRUE(WriteSegmentation(source, Mask(distance), objects.segmentation,
+                                  objects.intensity, SegmentDescription(),
+                                  Options(), seg)
+                    .ok());
+    const std::string map = (here / "distance.dcm").string();
+    ASSERT_TRUE(WriteDistanceMap(source, distance, objects.distance_map,
+                                 objects.intensity, Options(), map)
+                    .ok());
+    RgbPicture picture;
+    picture.name = "axial";
+    picture.width = 16;
+    picture.height = 8;
+    picture.rgb = &rgb;
+    picture.description = "test";
+    auto preview_identity =
+        PlanPreviewSeries(source, {"axial"}, Options(), &objects.intensity);
+    ASSERT_TRUE(preview_identity.ok()) << preview_identity.status();
+    auto previews = WritePreviewSeries(source, *grid_, {picture},
+                                       *preview_identity, &objects.intensity,
+                                       Options(), (here / "p").string());
+    ASSERT_TRUE(previews.ok()) << previews.status();
+    std::string errors;
+    EXPECT_EQ(
+        DciodvfyErrors({paths->front(), seg, map, previews->front()}, &errors),
+        0)
+        << errors;
+
+    auto file = Load(paths->front());
+    DcmDataset& ds = *file->getDataset();
+    const auto expect = [&ds](const DcmTagKey& tag, const char* expected) {
+      if (expected == nullptr) {
+        EXPECT_FALSE(ds.tagExists(tag)) << tag.toString();
+      } else {
+        EXPECT_TRUE(ds.tagExists(tag)) << tag.toString();
+        EXPECT_EQ(GetString(ds, tag), expected) << tag.toString();
+      }
+    };
+    expect(DCM_BodyPartExamined, c.expected_body_part);
+    expect(DCM_Laterality, c.expected_laterality);
+    expect(DCM_ImageLaterality, c.expected_image_laterality);
+  }
 }
 
 TEST_F(DicomWriterTest, UnwritableFolderIsAClearError) {

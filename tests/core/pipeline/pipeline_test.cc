@@ -12,11 +12,14 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "nlohmann/json.hpp"
+#include "tests/testing/dciodvfy.h"
 // osconfig.h must precede every other DCMTK header.
 #include "absl/strings/str_format.h"
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
 #include "dcmtk/dcmdata/dcfilefo.h"
+#include "dcmtk/dcmseg/segdoc.h"
+#include "dcmtk/dcmseg/segment.h"
 
 namespace interslice {
 namespace {
@@ -96,6 +99,116 @@ TEST_F(PipelineTest, RunsEveryStageAndWritesConsistentOutputs) {
   for (size_t n = 0; n < mask->data.size(); ++n) {
     ASSERT_EQ(mask->data[n], distance->data[n] >= 0 ? 1.0f : 0.0f) << n;
   }
+}
+
+// Issue 26: every DICOM object a job writes (intensity series, SEG, distance
+// map, Encapsulated STL, preview series) passes dciodvfy (exit status and
+// no Error line) on every real series in tests/data, and the SEG's segment
+// is named for what it is: bone for CT at 300 HU, a region above the
+// threshold for MR.
+TEST_F(PipelineTest, EveryObjectOfEveryRealSeriesPassesDciodvfy) {
+  const std::string data = INTERSLICE_TEST_DATA_DIR;
+  struct Case {
+    const char* name;
+    std::string input;
+    float threshold;
+    std::string volume;
+    const char* segment_label;
+  };
+  const Case cases[] = {
+      {"ct-thick", data + "/ct-thick", 300, "", "Bone"},
+      {"ct-tilt", data + "/ct-tilt", 300, "", "Bone"},
+      {"mr-xa10", data + "/multiframe/siemens-xa10-6_1.dcm", 100, "",
+       "Region above 100 units"},
+      {"mr-enhanced", data + "/multiframe/philips-enhanced-mr-64frames.dcm",
+       100,
+       "stack 1, temporal position 1, frame type "
+       "ORIGINAL\\PRIMARY\\T1\\M (MAGNITUDE)",
+       "Region above 100 units"},
+  };
+  for (const Case& c : cases) {
+    SCOPED_TRACE(c.name);
+    JobSpec spec;
+    spec.inputs = {c.input};
+    spec.multiframe_volume = c.volume;
+    spec.lower_threshold = c.threshold;
+    spec.solver.method = SolverMethod::kLinear;
+    spec.z_resolution.factor = 2;
+    spec.output_dir = (dir_ / c.name).string();
+    spec.volume_formats = {};
+    spec.mesh_formats = {"stl"};
+    spec.output_series = {"intensity", "distance", "mask"};
+    spec.intensity_method = "linear";
+    spec.preview_formats = {"dicom"};
+    absl::StatusOr<JobReport> report = RunJob(spec, {.threads = 2});
+    ASSERT_TRUE(report.ok()) << report.status();
+    std::vector<std::string> files;
+    for (const Artifact& a : report->artifacts) {
+      if (fs::is_directory(a.path)) {
+        for (const auto& entry : fs::directory_iterator(a.path)) {
+          if (entry.path().extension() == ".dcm") {
+            files.push_back(entry.path().string());
+          }
+        }
+      } else if (fs::path(a.path).extension() == ".dcm") {
+        files.push_back(a.path);
+      }
+    }
+    // intensity slices, seg, distance, surface STL, four previews
+    ASSERT_GE(files.size(), 8u);
+    std::string errors;
+    EXPECT_EQ(testing::DciodvfyErrors(files, &errors), 0) << errors;
+
+    DcmSegmentation* raw = nullptr;
+    ASSERT_TRUE(
+        DcmSegmentation::loadFile((dir_ / c.name / "seg.dcm").c_str(), raw)
+            .good());
+    std::unique_ptr<DcmSegmentation> seg(raw);
+    OFString label;
+    seg->getSegment(1)->getSegmentLabel(label);
+    EXPECT_EQ(std::string(label.c_str()), c.segment_label);
+  }
+}
+
+// --segment-label / --segment-code reach the SEG, and change its UIDs (it is
+// another object).
+TEST_F(PipelineTest, SegmentLabelAndCodeReachTheSeg) {
+  JobSpec spec = SmallJob();
+  spec.mesh_formats = {};
+  spec.write_seg = true;
+  spec.preview_formats = {};
+  spec.output_dir = (dir_ / "default").string();
+  ASSERT_TRUE(RunJob(spec, {}).ok());
+  spec.segment_label = "Brain mask";
+  spec.segment_code = "SCT:12738006:Brain";
+  spec.output_dir = (dir_ / "named").string();
+  ASSERT_TRUE(RunJob(spec, {}).ok());
+  std::string uids[2];
+  int n = 0;
+  for (const char* name : {"default", "named"}) {
+    DcmSegmentation* raw = nullptr;
+    ASSERT_TRUE(
+        DcmSegmentation::loadFile((dir_ / name / "seg.dcm").c_str(), raw)
+            .good());
+    std::unique_ptr<DcmSegmentation> seg(raw);
+    OFString label, code, scheme, uid;
+    seg->getSegment(1)->getSegmentLabel(label);
+    seg->getSegment(1)->getSegmentedPropertyTypeCode().getCodeValue(code);
+    seg->getSegment(1)
+        ->getSegmentedPropertyTypeCode()
+        .getCodingSchemeDesignator(scheme);
+    seg->getSOPCommon().getSOPInstanceUID(uid);
+    uids[n++] = uid.c_str();
+    if (std::string(name) == "default") {
+      EXPECT_EQ(std::string(label.c_str()), "Bone");
+      EXPECT_EQ(std::string(code.c_str()), "272673000");
+    } else {
+      EXPECT_EQ(std::string(label.c_str()), "Brain mask");
+      EXPECT_EQ(std::string(code.c_str()), "12738006");
+      EXPECT_EQ(std::string(scheme.c_str()), "SCT");
+    }
+  }
+  EXPECT_NE(uids[0], uids[1]);
 }
 
 TEST_F(PipelineTest, ReportJsonHasTheDocumentedFields) {
