@@ -520,7 +520,10 @@ await goToSlice(0);
 const first = await readView();
 const nSlices = first.nSlices;
 const checked = [];
-for (let n = 0; n < SLICES_TO_CHECK; n++) checked.push(Math.round(((n + 1) * (nSlices - 1)) / (SLICES_TO_CHECK + 1)));
+for (let n = 0; n < SLICES_TO_CHECK; n++) {
+  const index = Math.round(((n + 1) * (nSlices - 1)) / (SLICES_TO_CHECK + 1));
+  if (!checked.includes(index)) checked.push(index);
+}
 if (process.env.OHIF_TEST_SLICES) checked.splice(0, checked.length, ...process.env.OHIF_TEST_SLICES.split(",").map(Number));
 const problems = [];
 const results = [];

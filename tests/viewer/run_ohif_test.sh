@@ -3,7 +3,7 @@
 # interslice CLI, serves the pinned prebuilt OHIF (ohif/ohif-app.pin) against a real Orthanc with
 # DICOMweb and checks in headless chromium that the overlay tracks the anatomy.
 #   bash tests/viewer/run_ohif_test.sh BIN_DIR CASE [--displaced]
-# CASE: phantom (the shipped thick CT phantom). --displaced runs the same check against a copy of
+# CASE: phantom (the shipped thick CT phantom), tilt (the real tilted CT of tests/data/ct-tilt). --displaced runs the same check against a copy of
 # the SEG moved 12 columns and succeeds only if the check FAILS on it (the test can fail).
 # Needs node, npm (first run), chromium and Orthanc with its DICOMweb plugin.
 set -euo pipefail
@@ -30,6 +30,14 @@ case "$case_name" in
     threshold=300
     "$interslice" run "$repo/data/ct-head-phantom-thick" --threshold $threshold --method direct \
       --roi 200,150,0,300,250,28 --seg --output-series intensity --volume nii --mesh none \
+      --out "$tmp/out" --quiet
+    ;;
+  tilt)
+    # a real gantry-tilted head CT (tests/data/ct-tilt, three slices of dcm_qa_ct: the slice plane
+    # tilted 18.5 degrees about the patient x axis)
+    threshold=300
+    "$interslice" run "$repo/tests/data/ct-tilt" --threshold $threshold --method direct \
+      --roi 150,150,0,350,350,2 --seg --output-series intensity --volume nii --mesh none \
       --out "$tmp/out" --quiet
     ;;
   *)
