@@ -1,21 +1,27 @@
 // The SEG in a real viewer: the prebuilt OHIF v3 app (@ohif/app's dist, ohif/ohif-app.pin) served
 // against a real Orthanc with its DICOMweb plugin, driven by Debian's chromium in headless mode.
-// Loads the study, opens the SEG over the intensity series as a user does (the SEG's display set
-// in the viewport, then its "Load"), pages through the slices and checks, from the screenshots,
-// that the overlay tracks the anatomy:
+// Loads the study and opens the SEG over the intensity series as a user does (a double click on
+// the SEG's thumbnail, then the viewport's LOAD badge), scrolls with the mouse wheel to several
+// slices where the mask has voxels, and checks from screenshots of the viewport that the overlay
+// tracks the anatomy:
 //   - overlay: the pixels of the segment's colour, with the segmentation shown;
-//   - image: the same view with the segmentation hidden, grey bright where the CT is >= threshold;
-//   - mask: mask.nii.gz (sform) sampled at each screen pixel's patient point, as the viewer's
-//     camera maps canvas to patient coordinates.
-// At each checked slice the overlay must cover the mask's projection (Dice) and the image must show
-// bright anatomy where the overlay is (the CT and the overlay on the same slice).
+//   - image: the same view with the segmentation hidden;
+//   - reference: mask.nii.gz (sform) and the intensity series itself (read with dcmjs), sampled
+//     at each screen pixel's patient point as the viewer's camera maps canvas to patient.
+// At each checked slice the overlay must match the mask's projection (Dice) and the image shown
+// must match the series' CT at the same points (grey within a tolerance in a bone window the test
+// sets): the overlay and the CT image on the same anatomy. A displaced SEG fails the first, a CT
+// image left behind while the overlay moves (the reported tilted-series failure) the second.
 //
 //   node ohif_test.mjs --dist OHIF_DIST --series DIR --seg SEG.dcm --mask MASK.nii.gz
 //                      --threshold HU [--shots DIR]
 //
 // Prints one line per checked slice and a summary; exit 0 only if every check holds, else exit 1
 // with a one-line reason. CHROMIUM (default /usr/bin/chromium) and ORTHANC (default
-// /usr/sbin/Orthanc) name the programs.
+// /usr/sbin/Orthanc) name the programs. For investigating (not set by the tests):
+// OHIF_TEST_MODE (the OHIF mode's route, default viewer), OHIF_TEST_SLICES (viewer indices to
+// check, comma separated), OHIF_TEST_NO_SWIFTSHADER (no WebGL: Cornerstone's CPU fallback),
+// OHIF_TEST_DEBUG (the viewport's type before LOAD, each view's camera).
 
 import { spawn } from 'node:child_process';
 import { createServer, request as httpRequest } from 'node:http';
@@ -34,8 +40,9 @@ const MIN_MASK_DICE = 0.75;
 const MIN_IMAGE_MATCH = 0.9;
 const IMAGE_GREY_TOL = 40; // grey levels of 255: 310 HU in the 2000 HU window the test sets
 const MIN_OVERLAY_PIXELS = 30; // a checked slice must show some overlay
-const SLICES_TO_CHECK = 7;
-const MIN_SLICES_WITH_MASK = 3; // of those, at least this many must show some of the mask
+const SLICES_TO_CHECK = 4;
+const WHEEL_NOTCHES = 2; // the last slices to each checked one are scrolled with the mouse wheel
+const MIN_SLICES_WITH_MASK = 3; // at least this many checked slices must show the mask
 
 let cleanup = [];
 async function fail(reason) {
@@ -67,6 +74,8 @@ function parseArgs(argv) {
   return args;
 }
 const args = parseArgs(process.argv.slice(2));
+const t0 = Date.now();
+const elapsed = () => `${((Date.now() - t0) / 1000).toFixed(1)} s`;
 const threshold = Number(args.threshold);
 
 // ------------------------------------------------------------------ the mask (sform only)
@@ -264,6 +273,7 @@ for (const path of uploads) {
   const r = await http('POST', orthancHttp, '/instances', readFileSync(path), { 'Content-Type': 'application/dicom' });
   if (r.status !== 200) await fail(`Orthanc refused ${path}: HTTP ${r.status}`);
 }
+console.log(`ohif: ${uploads.length} instances in Orthanc at ${elapsed()}`);
 const studies = JSON.parse((await http('GET', orthancHttp, '/dicom-web/studies')).body);
 if (studies.length !== 1) await fail(`Orthanc holds ${studies.length} studies after the upload, expected one`);
 const studyUID = studies[0]['0020000D'].Value[0];
@@ -369,8 +379,7 @@ try {
       '--disable-component-update',
       '--disable-sync',
       // WebGL in software (SwiftShader): Cornerstone3D renders with WebGL.
-      '--use-angle=swiftshader',
-      '--enable-unsafe-swiftshader',
+      ...(process.env.OHIF_TEST_NO_SWIFTSHADER ? [] : ['--use-angle=swiftshader', '--enable-unsafe-swiftshader']),
     ],
   });
 } catch (e) {
@@ -380,7 +389,10 @@ cleanup.push(() => browser.close());
 const page = await browser.newPage();
 const pageErrors = [];
 page.on('pageerror', (e) => pageErrors.push(e.message));
-await page.goto(`${origin}/viewer?StudyInstanceUIDs=${studyUID}`, { waitUntil: 'load', timeout: 120000 });
+page.on('console', (m) => {
+  if (m.text().startsWith('ohif-test:')) console.log(m.text());
+});
+await page.goto(`${origin}/${process.env.OHIF_TEST_MODE ?? 'viewer'}?StudyInstanceUIDs=${studyUID}`, { waitUntil: 'load', timeout: 120000 });
 // The first-visit tour (a dialog over the viewport, dimming it) is not what is tested.
 await page.addStyleTag({ content: '.shepherd-element, .shepherd-modal-overlay-container { display: none !important; }' });
 
@@ -400,19 +412,38 @@ const ids = await pollUntil('the viewer to show the intensity series', 120000, (
   }),
 );
 
-// Open the SEG as a user does: its display set in the viewport (a double click on its thumbnail),
-// then "Load" (the viewport's hydrate command).
-await page.evaluate(async ({ seg, viewportId }) => {
-  const s = window.services;
-  s.viewportGridService.setDisplaySetsForViewport({ viewportId, displaySetInstanceUIDs: [seg] });
-}, ids);
-await pollUntil('the SEG display set to load', 60000, () =>
-  page.evaluate(({ seg }) => window.services.displaySetService.getDisplaySetByUID(seg)?.isLoaded === true, ids),
+// Open the SEG as a user does: a double click on its thumbnail in the study browser puts it in
+// the viewport (over its referenced series), then the viewport's LOAD badge hydrates it.
+// (Clicked by position: the study browser re-renders while it loads, detaching element handles.)
+const centreOf = (selector, text) =>
+  page.evaluate(
+    ({ selector, text }) => {
+      for (const e of document.querySelectorAll(selector)) {
+        if (!new RegExp(text, 'i').test(e.textContent)) continue;
+        const target = e.querySelector('button') ?? e;
+        const r = target.getBoundingClientRect();
+        if (r.width > 0 && r.height > 0) return { x: r.x + r.width / 2, y: r.y + r.height / 2 };
+      }
+      return null;
+    },
+    { selector, text },
+  );
+const thumb = await pollUntil('the SEG thumbnail in the study browser', 60000, () =>
+  centreOf('[data-cy="study-browser-thumbnail-no-image"]', 'SEG'),
 );
-await page.evaluate(async ({ seg, viewportId }) => {
-  const displaySet = window.services.displaySetService.getDisplaySetByUID(seg);
-  await window.commandsManager.runCommand('hydrateSecondaryDisplaySet', { displaySet, viewportId });
-}, ids);
+await page.mouse.click(thumb.x, thumb.y, { count: 2 });
+const load = await pollUntil('the LOAD badge on the viewport', 60000, () => centreOf('[data-cy^="ModalityLoadBadge-"]', 'load'));
+if (process.env.OHIF_TEST_DEBUG) {
+  console.log(
+    'before LOAD:',
+    await page.evaluate(({ viewportId }) => {
+      const s = window.services;
+      const vp = s.cornerstoneViewportService.getCornerstoneViewport(viewportId);
+      return JSON.stringify({ type: vp?.type, reps: (s.segmentationService.getSegmentationRepresentations(viewportId) ?? []).length });
+    }, ids),
+  );
+}
+await page.mouse.click(load.x, load.y);
 const segInfo = await pollUntil('the segmentation on the viewport', 60000, () =>
   page.evaluate(({ viewportId }) => {
     const s = window.services;
@@ -424,24 +455,65 @@ const segInfo = await pollUntil('the segmentation on the viewport', 60000, () =>
     return { segmentationId, viewportType: vp.type, viewportId: vp.id, color: [...color] };
   }, ids),
 );
-console.log(`ohif: study loaded, SEG hydrated; viewport ${segInfo.viewportType}, segment colour ${segInfo.color.slice(0, 3)}`);
+console.log(`ohif: study loaded, SEG hydrated at ${elapsed()}; viewport ${segInfo.viewportType}, segment colour ${segInfo.color.slice(0, 3)}`);
 
 // ------------------------------------------------------------------ page through and check
+// Scrolls as a user does, with the mouse wheel over the viewport (OHIF binds it to stack scroll,
+// one slice a notch), until the viewport reports the slice; then waits until that image is drawn.
 async function goToSlice(index) {
+  // Wheel events are handled after they are sent: a late one can move the viewer on; go again
+  // (bounded) until the slice holds.
+  for (let round = 0; round < 5; round++) {
+    await scrollToSlice(index);
+    const now = await page.evaluate(
+      ({ viewportId }) => window.services.cornerstoneViewportService.getCornerstoneViewport(viewportId).getCurrentImageIdIndex(),
+      { viewportId: ids.viewportId },
+    );
+    if (now === index) return;
+  }
+}
+async function scrollToSlice(index) {
+  const state = () =>
+    page.evaluate(
+      ({ viewportId }) => {
+        const vp = window.services.cornerstoneViewportService.getCornerstoneViewport(viewportId);
+        const r = vp.canvas.getBoundingClientRect();
+        return { current: vp.getCurrentImageIdIndex(), x: r.x + r.width / 2, y: r.y + r.height / 2 };
+      },
+      { viewportId: ids.viewportId },
+    );
+  // Most of the way by the viewer's own jump (a wheel notch costs a render), the last
+  // WHEEL_NOTCHES slices by the wheel, as a user scrolls.
+  const start = Math.max(0, Math.min(nSlicesHint - 1, index + (index >= WHEEL_NOTCHES ? -WHEEL_NOTCHES : WHEEL_NOTCHES)));
+  await page.evaluate(
+    async ({ viewportId, start }) => {
+      const vp = window.services.cornerstoneViewportService.getCornerstoneViewport(viewportId);
+      await window.cornerstone.utilities.jumpToSlice(vp.element, { imageIndex: start });
+    },
+    { viewportId: ids.viewportId, start },
+  );
+  let st = await state();
+  await page.mouse.move(st.x, st.y);
+  for (let notches = 0; st.current !== index; notches++) {
+    if (notches > 4 * nSlicesHint + 20) await fail(`the mouse wheel did not bring the viewer to slice ${index} (at ${st.current})`);
+    await page.mouse.wheel({ deltaY: index > st.current ? 100 : -100 });
+    st = await state();
+  }
   return page.evaluate(
     async ({ viewportId, index, threshold }) => {
       const vp = window.services.cornerstoneViewportService.getCornerstoneViewport(viewportId);
-      await window.cornerstone.utilities.jumpToSlice(vp.element, { imageIndex: index });
-      // Stack viewports load the image asynchronously: wait (bounded) until it is the one shown.
+      // Stack viewports load the image asynchronously: wait (bounded) until it is the one shown
       // (the index moves at once; csImage, the image drawn, when it has loaded).
       const shown = () => {
         if (vp.getCurrentImageIdIndex() !== index) return false;
         const want = vp.getImageIds ? vp.getImageIds()[index] : undefined;
         return !want || !('csImage' in vp) || vp.csImage?.imageId === want;
       };
-      for (let n = 0; n < 300 && !shown(); n++) {
+      let waited = 0;
+      for (; waited < 300 && !shown(); waited++) {
         await new Promise((r) => setTimeout(r, 50));
       }
+      if (waited === 300) console.warn(`ohif-test: slice ${index} not shown after 15 s: csImage ${vp.csImage?.imageId} vs ${vp.getImageIds()[index]}`);
       // A bone window centred on the threshold (as a user picks a W/L preset).
       vp.setProperties({ voiRange: { lower: threshold - 1000, upper: threshold + 1000 } });
       vp.render();
@@ -487,14 +559,17 @@ async function setSegVisible(visible) {
 }
 // The viewer renders the image and the segmentation asynchronously: a screenshot counts once two
 // taken in a row are identical (bounded: 40 tries, then the last one is checked as it is).
+let shotTries = 0;
 async function shot(rect, name) {
   let buf = await page.screenshot({ clip: rect, type: 'png' });
-  for (let n = 0; n < 40; n++) {
-    await new Promise((r) => setTimeout(r, 150));
+  let tries = 0;
+  for (; tries < 40; tries++) {
+    await new Promise((r) => setTimeout(r, 100));
     const again = await page.screenshot({ clip: rect, type: 'png' });
     if (Buffer.compare(Buffer.from(again), Buffer.from(buf)) === 0) break;
     buf = again;
   }
+  shotTries += tries + 2;
   if (args.shots) {
     mkdirSync(args.shots, { recursive: true });
     writeFileSync(join(args.shots, name), buf);
@@ -516,15 +591,43 @@ function isSegmentColour(r, g, b) {
   return off < 0.3 * along * Math.sqrt(segChroma2);
 }
 
-await goToSlice(0);
+let nSlicesHint = 1000;
 const first = await readView();
 const nSlices = first.nSlices;
+nSlicesHint = nSlices;
+// The slices to check: spread over those where the mask has voxels (sampled on a 32x32 grid of
+// each image's plane as the viewer's metadata places it), so that every check sees overlay.
+const planes = await page.evaluate(
+  ({ viewportId }) => {
+    const vp = window.services.cornerstoneViewportService.getCornerstoneViewport(viewportId);
+    return vp.getImageIds().map((id) => {
+      const p = window.cornerstone.metaData.get('imagePlaneModule', id);
+      return { ipp: p.imagePositionPatient, row: p.rowCosines, col: p.columnCosines, ps: [p.rowPixelSpacing, p.columnPixelSpacing], rows: p.rows, cols: p.columns };
+    });
+  },
+  { viewportId: ids.viewportId },
+);
+const withContent = [];
+planes.forEach((p, index) => {
+  for (let a = 0; a < 32; a++) {
+    for (let b = 0; b < 32; b++) {
+      const c = ((a + 0.5) / 32) * p.cols * p.ps[1];
+      const r = ((b + 0.5) / 32) * p.rows * p.ps[0];
+      const lps = [0, 1, 2].map((k) => p.ipp[k] + c * p.row[k] + r * p.col[k]);
+      if (mask.at(lps)) {
+        withContent.push(index);
+        return;
+      }
+    }
+  }
+});
+if (withContent.length === 0) await fail('the mask has voxels on none of the viewer\'s images');
 const checked = [];
 for (let n = 0; n < SLICES_TO_CHECK; n++) {
-  const index = Math.round(((n + 1) * (nSlices - 1)) / (SLICES_TO_CHECK + 1));
+  const index = withContent[Math.round(((n + 0.5) * (withContent.length - 1)) / SLICES_TO_CHECK)];
   if (!checked.includes(index)) checked.push(index);
 }
-if (process.env.OHIF_TEST_SLICES) checked.splice(0, checked.length, ...process.env.OHIF_TEST_SLICES.split(",").map(Number));
+if (process.env.OHIF_TEST_SLICES) checked.splice(0, checked.length, ...process.env.OHIF_TEST_SLICES.split(',').map(Number));
 const problems = [];
 const results = [];
 for (const index of checked) {
@@ -598,5 +701,5 @@ if (withMask < MIN_SLICES_WITH_MASK) problems.push(`only ${withMask} of the ${ch
 if (pageErrors.length > 0) console.log(`ohif: page errors: ${pageErrors.slice(0, 3).join(' | ')}`);
 if (problems.length > 0) await fail(problems.join('; '));
 for (const f of cleanup.reverse()) await f();
-console.log('PASS');
+console.log(`PASS (${elapsed()}, ${shotTries} screenshots)`);
 process.exit(0);
