@@ -636,7 +636,9 @@ for (const index of checked) {
   let view;
   let withSeg;
   let plain;
-  for (let attempt = 0; ; attempt++) {
+  const sliceStart = Date.now();
+  let attempt = 0;
+  for (; ; attempt++) {
     await goToSlice(index);
     const before = await readView();
     await setSegVisible(true);
@@ -684,7 +686,7 @@ for (const index of checked) {
   if (process.env.OHIF_TEST_DEBUG) console.log(JSON.stringify(view));
   console.log(
     `ohif: slice ${index}/${nSlices} (viewer index ${view.imageIndex}) overlay_px=${overlay} mask_px=${maskPx} ` +
-      `dice=${dice.toFixed(3)} image_px=${imagePx} image_match=${imageMatch.toFixed(3)}`,
+      `dice=${dice.toFixed(3)} image_px=${imagePx} image_match=${imageMatch.toFixed(3)} (${attempt + 1} captures, ${((Date.now() - sliceStart) / 1000).toFixed(1)} s)`,
   );
   results.push({ index, maskPx, overlay, dice, imageMatch });
   if (view.imageIndex !== index) problems.push(`slice ${index}: the viewer shows index ${view.imageIndex}`);
