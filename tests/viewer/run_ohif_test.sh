@@ -3,7 +3,7 @@
 # interslice CLI, serves the pinned prebuilt OHIF (ohif/ohif-app.pin) against a real Orthanc with
 # DICOMweb and checks in headless chromium that the overlay tracks the anatomy.
 #   bash tests/viewer/run_ohif_test.sh BIN_DIR CASE [--displaced]
-# CASE: phantom (the shipped thick CT phantom), tilt (the real tilted CT of tests/data/ct-tilt). --displaced runs the same check against a copy of
+# CASE: phantom (the shipped thick CT phantom), tilt (the real tilted CT of tests/data/ct-tilt), uneven (the phantom with gaps). --displaced runs the same check against a copy of
 # the SEG moved 12 columns and succeeds only if the check FAILS on it (the test can fail).
 # Needs node, npm (first run), chromium and Orthanc with its DICOMweb plugin.
 set -euo pipefail
@@ -38,6 +38,18 @@ case "$case_name" in
     threshold=300
     "$interslice" run "$repo/tests/data/ct-tilt" --threshold $threshold --method direct \
       --roi 150,150,0,350,350,2 --seg --output-series intensity --volume nii --mesh none \
+      --out "$tmp/out" --quiet
+    ;;
+  uneven)
+    # the shipped phantom with three slices left out (I100, I110, I200): gaps of 2, 3 and 4 times
+    # the spacing in one series
+    mkdir "$tmp/uneven"
+    for f in "$repo"/data/ct-head-phantom-thick/I*.dcm; do
+      case "$(basename "$f")" in I100.dcm | I110.dcm | I200.dcm) ;; *) cp "$f" "$tmp/uneven/" ;; esac
+    done
+    threshold=300
+    "$interslice" run "$tmp/uneven" --threshold $threshold --method direct \
+      --roi 200,150,0,300,250,25 --seg --output-series intensity --volume nii --mesh none \
       --out "$tmp/out" --quiet
     ;;
   *)
