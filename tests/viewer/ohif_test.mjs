@@ -502,8 +502,15 @@ async function scrollToSlice(index) {
   return page.evaluate(
     async ({ viewportId, index, threshold }) => {
       const vp = window.services.cornerstoneViewportService.getCornerstoneViewport(viewportId);
-      // The index moves at once, the image is drawn when it has loaded: the screenshots wait for
-      // the view to settle, and the image check compares what is drawn with the series' CT.
+      // The index moves at once, the image is drawn when it has loaded: wait (bounded) until
+      // it is in Cornerstone's cache; then the screenshots wait for the view to settle, and the
+      // image check compares what is drawn with the series' CT.
+      const want = vp.getImageIds()[index];
+      let waited = 0;
+      for (; waited < 300 && !window.cornerstone.cache.getImage(want); waited++) {
+        await new Promise((r) => setTimeout(r, 50));
+      }
+      if (waited === 300) console.warn(`ohif-test: image ${index} not loaded after 15 s`);
       // A bone window centred on the threshold (as a user picks a W/L preset).
       vp.setProperties({ voiRange: { lower: threshold - 1000, upper: threshold + 1000 } });
       vp.render();
