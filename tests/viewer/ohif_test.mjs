@@ -32,11 +32,12 @@ import { gunzipSync } from 'node:zlib';
 import { PNG } from 'pngjs';
 import puppeteer from 'puppeteer-core';
 
-// Pass bars. A rendered overlay differs from the voxel mask at its edges (bilinear image
-// interpolation, the outline drawn over the fill, subpixel camera placement); a displaced or
-// misplaced overlay loses most of its overlap. Measured on the shipped phantom: Dice >= 0.9 and
-// >= 0.85 of the overlay on bright pixels; a 12-pixel displacement drops both below 0.5.
-const MIN_MASK_DICE = 0.75;
+// Pass bars. A rendered overlay differs from the voxel mask at its edges (the outline drawn over
+// the fill, subpixel camera placement); a displaced or misplaced overlay loses much of its
+// overlap. Measured (OHIF 3.13.2, SwiftShader): Dice 0.96-0.999 per checked slice on the phantom,
+// the tilted CTs and the uneven series; a SEG displaced by 12 columns (5.4 mm) gives 0.0-0.71
+// (thick bone keeps most of its overlap). Image match 0.96-0.998 where the right slice is shown.
+const MIN_MASK_DICE = 0.9;
 const MIN_IMAGE_MATCH = 0.9;
 const IMAGE_GREY_TOL = 40; // grey levels of 255: 310 HU in the 2000 HU window the test sets
 const MIN_OVERLAY_PIXELS = 30; // a checked slice must show some overlay
