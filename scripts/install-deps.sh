@@ -30,6 +30,9 @@ packages=(
   clang libclang-rt-14-dev
   # a user's tools reading our label maps back (tests/core/labels: nibabel)
   python3-nibabel
+  # the OHIF viewer test (tests/viewer/ohif_test.mjs) drives Debian's chromium
+  # headless (puppeteer-core, no browser download)
+  chromium
 )
 # Node.js for the viewer test (tests/viewer: a DICOM SEG loaded as OHIF v3
 # loads it): Debian's nodejs + npm unless node and npm are already there (a
@@ -48,6 +51,8 @@ viewer_npm() {
     echo "install-deps: npm ci in tests/viewer"
     npm ci --prefix "$dir" --no-audit --no-fund --ignore-scripts
   fi
+  # the prebuilt OHIF viewer, pinned by tests/viewer/ohif/ohif-app.pin
+  bash "$dir/ohif/fetch_ohif.sh" >/dev/null
 }
 # --image: only what building the server and the client needs (the
 # container image's build stage, deploy/Dockerfile): no test, lint, fuzzing,
@@ -55,7 +60,7 @@ viewer_npm() {
 if [ "${1:-}" = "--image" ]; then
   not_for_image=" libgtest-dev libgmock-dev libbenchmark-dev dicom3tools "
   not_for_image+=" git orthanc orthanc-dicomweb yamllint clang "
-  not_for_image+=" libclang-rt-14-dev nodejs npm python3-nibabel "
+  not_for_image+=" libclang-rt-14-dev nodejs npm python3-nibabel chromium "
   kept=()
   for p in "${packages[@]}"; do
     [[ $not_for_image == *" $p "* ]] || kept+=("$p")

@@ -5,6 +5,9 @@
 #   2. plain build    build/: GCC, RelWithDebInfo, every target (the
 #                     binaries that ship, the benchmarks, the eval tools)
 #   3. plain tests    ctest -L plain in build/
+#   3b. viewer        ctest -L ohif in build/: the OHIF viewer test (prebuilt
+#                     OHIF, Orthanc with DICOMweb, headless chromium), on
+#                     its own budget (each case takes both cores ~1.5 min)
 #   4. deployment     scripts/test-deploy.sh: the server image packed from
 #                     build/'s binaries (deploy/Dockerfile.prebuilt), the
 #                     compose stack with Orthanc and the phantom through it,
@@ -120,15 +123,20 @@ plain_build() {
   fi
 }
 plain_tests() {
-  ctest --test-dir build --output-on-failure -j"$jobs" -L '^plain$' \
+  ctest --test-dir build --output-on-failure -j"$jobs" -L '^plain$' -LE '^ohif$' \
+    --stop-time "$STAGE_STOP_TIME"
+}
+viewer_tests() {
+  ctest --test-dir build --output-on-failure -j"$jobs" -L '^ohif$' \
     --stop-time "$STAGE_STOP_TIME"
 }
 
 export jobs
-export -f plain_build plain_tests
+export -f plain_build plain_tests viewer_tests
 stage deps 900 bash scripts/install-deps.sh
 stage "plain build" 1500 bash -c plain_build
 stage "plain tests" 900 bash -c plain_tests
+stage viewer 600 bash -c viewer_tests
 if [[ ${INTERSLICE_QUICK:-0} == 1 ]]; then
   summary
   exit 0

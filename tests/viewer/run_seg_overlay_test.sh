@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # Writes a DICOM SEG and the intensity series it overlays with the interslice CLI, then loads them the
 # way OHIF v3 does (seg_overlay_test.mjs) and checks the overlay against the mask NIfTI.
-#   bash tests/viewer/run_seg_overlay_test.sh BIN_DIR    (BIN_DIR holds the interslice executable)
+#   bash tests/viewer/run_seg_overlay_test.sh BIN_DIR [CASE]  (BIN_DIR holds the interslice executable)
+# CASE: phantom (default: the shipped thick CT phantom) or tilt (tests/data/ct-tilt, a real
+# gantry-tilted CT: an oblique grid, whose NIfTI qform is a float32 quaternion near 180 degrees).
 # Needs node (>= 18.19) and, when node_modules is missing or older than the lockfile, npm.
 set -euo pipefail
 
@@ -23,9 +25,22 @@ fi
 tmp="$(mktemp -d "${TMPDIR:-/tmp}/seg-overlay.XXXXXX")"
 trap 'rm -rf "$tmp"' EXIT
 
-"$interslice" run "$repo/data/ct-head-phantom-thick" --threshold 300 --method direct \
-  --roi 200,150,0,300,250,28 --seg --output-series intensity --volume nii --mesh none \
-  --out "$tmp/out" --quiet
+case "${2:-phantom}" in
+  phantom)
+    "$interslice" run "$repo/data/ct-head-phantom-thick" --threshold 300 --method direct \
+      --roi 200,150,0,300,250,28 --seg --output-series intensity --volume nii --mesh none \
+      --out "$tmp/out" --quiet
+    ;;
+  tilt)
+    "$interslice" run "$repo/tests/data/ct-tilt" --threshold 300 --method direct \
+      --roi 150,150,0,350,350,2 --seg --output-series intensity --volume nii --mesh none \
+      --out "$tmp/out" --quiet
+    ;;
+  *)
+    echo "FAIL: unknown case $2"
+    exit 1
+    ;;
+esac
 
 "$node" "$here/seg_overlay_test.mjs" --seg "$tmp/out/seg.dcm" \
   --series "$tmp/out/series-intensity" --mask "$tmp/out/mask.nii.gz"
