@@ -770,6 +770,65 @@ int RunList(const Connection& connection, bool all) {
   return 0;
 }
 
+// Studies, then their series, one per line with their UIDs (for
+// `submit --pacs PEER --study UID --series UID`). Text from the PACS reaches
+// the terminal without control characters.
+int RunFind(const Connection& connection, const v1::FindRequest& request) {
+  auto stub = v1::InterSlice::NewStub(connection.channel());
+  grpc::ClientContext context;
+  connection.Authorize(context);
+  // Two queries per study on the server's side, each within the peer's
+  // timeout: a generous bound.
+  SetTimeout(context, 600);
+  v1::FindResponse response;
+  const grpc::Status s = stub->Find(&context, request, &response);
+  // The peer's failure (named in the message: "cannot associate with peer
+  // NAME (...)"), not the server's: said as it is.
+  if (s.error_code() == grpc::UNAVAILABLE &&
+      s.error_message().find("peer " + request.peer() + " (") !=
+          std::string::npos) {
+    return Fail(s.error_message());
+  }
+  if (!s.ok()) return Fail(DescribeRpcError(s, connection.address()));
+  auto printable = [](std::string text) {
+    for (char& c : text) {
+      if (static_cast<unsigned char>(c) < 0x20 || c == 0x7f) c = '?';
+    }
+    return text;
+  };
+  for (const v1::FoundStudy& study : response.studies()) {
+    std::printf("study %s  date %s  patient %s  accession %s  %s  \"%s\"\n",
+                printable(study.study_instance_uid()).c_str(),
+                printable(study.study_date()).c_str(),
+                printable(study.patient_id()).c_str(),
+                printable(study.accession_number()).c_str(),
+                printable(study.modalities_in_study()).c_str(),
+                printable(study.study_description()).c_str());
+    for (const v1::FoundSeries& series : study.series()) {
+      const std::string instances =
+          series.instances() >= 0
+              ? absl::StrCat(series.instances(), " instance(s)")
+              : std::string("? instance(s)");
+      std::printf("  series %s  %s  #%s  %s  \"%s\"\n",
+                  printable(series.series_instance_uid()).c_str(),
+                  printable(series.modality()).c_str(),
+                  printable(series.series_number()).c_str(), instances.c_str(),
+                  printable(series.series_description()).c_str());
+    }
+  }
+  if (response.studies().empty()) {
+    std::fprintf(stderr, "no study on peer %s matches\n",
+                 request.peer().c_str());
+  }
+  if (response.truncated()) {
+    std::fprintf(stderr,
+                 "more matched than the caps (%d studies, %d series): the "
+                 "first are listed; narrow the keys (or --max-studies)\n",
+                 response.max_studies(), response.max_series());
+  }
+  return 0;
+}
+
 int RunInfo(const Connection& connection) {
   auto stub = v1::InterSlice::NewStub(connection.channel());
   grpc::ClientContext context;
@@ -906,6 +965,27 @@ void RemoteCommands::Register(CLI::App& app) {
   health_ = app.add_subcommand(
       "health", "Check the server's health (exit 0 only when SERVING)");
   AddConnectionOptions(*health_, connection_);
+
+  find_ = app.add_subcommand(
+      "find",
+      "List the studies and series (with their UIDs) on a DICOM peer of the "
+      "server (C-FIND), for `submit --pacs PEER --study UID --series UID`");
+  find_
+      ->add_option("--pacs", find_peer_,
+                   "The peer (a name from the server's --dicom-peers file)")
+      ->required();
+  find_->add_option("--patient-id", find_patient_id_,
+                    "Patient ID (wildcards * and ? allowed)");
+  find_->add_option("--study-date", find_study_date_,
+                    "YYYYMMDD, or a range YYYYMMDD-YYYYMMDD (either end may "
+                    "be left out)");
+  find_->add_option("--modality", find_modality_,
+                    "CT, MR, ...: studies that have it, and only those series");
+  find_->add_option("--accession", find_accession_,
+                    "Accession number (wildcards * and ? allowed)");
+  find_->add_option("--max-studies", find_max_studies_,
+                    "At most this many studies (default: the server's, 100)");
+  AddConnectionOptions(*find_, connection_);
 }
 
 void RemoteCommands::RegisterFill(CLI::App& fill, FillArguments& args) {
@@ -970,8 +1050,8 @@ int RemoteCommands::ExecuteFill() {
 }
 
 int RemoteCommands::Execute() {
-  CLI::App* commands[] = {interpolate_, submit_, watch_, fetch_,
-                          cancel_,      list_,   info_,  health_};
+  CLI::App* commands[] = {interpolate_, submit_, watch_,  fetch_, cancel_,
+                          list_,        info_,   health_, find_};
   bool any = false;
   for (CLI::App* c : commands) any = any || (c != nullptr && c->parsed());
   if (!any) return -1;
@@ -993,6 +1073,17 @@ int RemoteCommands::Execute() {
   if (cancel_->parsed()) return RunCancel(*connection, job_id_);
   if (list_->parsed()) return RunList(*connection, all_);
   if (info_->parsed()) return RunInfo(*connection);
+  if (find_->parsed()) {
+    if (find_max_studies_ < 0) return Fail("--max-studies must be >= 0");
+    v1::FindRequest request;
+    request.set_peer(find_peer_);
+    request.set_patient_id(find_patient_id_);
+    request.set_study_date(find_study_date_);
+    request.set_modality(find_modality_);
+    request.set_accession_number(find_accession_);
+    request.set_max_studies(find_max_studies_);
+    return RunFind(*connection, request);
+  }
   return RunHealth(*connection);
 }
 

@@ -1,5 +1,6 @@
 // The commands that talk to an interslice-server: interpolate (one call),
-// submit / watch / fetch / cancel / list (detached jobs), info and health.
+// submit / watch / fetch / cancel / list (detached jobs), info and health,
+// find (what a DICOM peer of the server holds).
 // Errors are one line on stderr and exit code 1.
 #ifndef INTERSLICE_CLIENT_REMOTE_COMMANDS_H_
 #define INTERSLICE_CLIENT_REMOTE_COMMANDS_H_
@@ -46,6 +47,13 @@ class RemoteCommands {
   bool all_ = false;
   bool quiet_ = false;
   bool fill_submit_ = false;
+  // find: the peer and the keys.
+  std::string find_peer_;
+  std::string find_patient_id_;
+  std::string find_study_date_;
+  std::string find_modality_;
+  std::string find_accession_;
+  int find_max_studies_ = 0;
   CLI::App* interpolate_ = nullptr;
   CLI::App* submit_ = nullptr;
   CLI::App* watch_ = nullptr;
@@ -54,6 +62,7 @@ class RemoteCommands {
   CLI::App* list_ = nullptr;
   CLI::App* info_ = nullptr;
   CLI::App* health_ = nullptr;
+  CLI::App* find_ = nullptr;
   CLI::App* fill_ = nullptr;
   FillArguments* fill_args_ = nullptr;
 };

@@ -136,6 +136,8 @@ class JobManager {
   // send_to hands it one delivery per peer, and results are kept past
   // retention while a delivery is PENDING.
   void SetDeliveryQueue(dicom::DeliveryQueue* queue) { deliveries_ = queue; }
+  // The outbox (its peers and options: the Find RPC uses them); may be null.
+  dicom::DeliveryQueue* deliveries() const { return deliveries_; }
   // Blocking. The outbox reports a delivery's new state: stored in the
   // job's status (JobStatus.deliveries, matched by peer) and spool record.
   // An Interpolate job whose call ended is deleted once none is PENDING.

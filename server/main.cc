@@ -4,10 +4,14 @@
 #include <string>
 
 #include "CLI/CLI.hpp"
+#include "server/dicom/scu.h"
 #include "server/job_worker.h"
 #include "server/server.h"
 
 int main(int argc, char** argv) {
+  // Before any thread starts (it sets an environment variable that DCMTK
+  // reads at each outgoing connection): see server/dicom/scu.h.
+  interslice::server::dicom::DisableNagleOnOutgoingAssociations();
   // A job's worker process (server/job_worker.h): the server starts this
   // executable again with this one argument.
   if (argc == 2 && std::string(argv[1]) == "--job-worker") {

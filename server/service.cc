@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <atomic>
 #include <cerrno>
+#include <chrono>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -16,6 +17,8 @@
 #include "job/job.h"
 #include "job/wire.h"
 #include "server/audit.h"
+#include "server/dicom/delivery.h"
+#include "server/dicom/find.h"
 #include "server/log_safe.h"
 #include "server/status_map.h"
 #include "spdlog/spdlog.h"
@@ -1007,6 +1010,101 @@ grpc::ServerUnaryReactor* InterSliceService::List(
   listed.count = response->jobs_size();
   Audit(std::move(listed));
   reactor->Finish(grpc::Status::OK);
+  return reactor;
+}
+
+grpc::ServerUnaryReactor* InterSliceService::Find(
+    grpc::CallbackServerContext* context, const v1::FindRequest* request,
+    v1::FindResponse* response) {
+  grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
+  absl::StatusOr<Caller> caller = Authenticate(context);
+  if (!caller.ok()) {
+    reactor->Finish(ToGrpcStatus(caller.status()));
+    return reactor;
+  }
+  // A PACS's index lists every patient's studies: not any one caller's.
+  if (!caller->admin && !caller->identity.empty()) {
+    reactor->Finish(grpc::Status(
+        grpc::PERMISSION_DENIED,
+        "Find lists a DICOM peer's studies: admin identities only"));
+    return reactor;
+  }
+  dicom::DeliveryQueue* peers = manager_->deliveries();
+  std::optional<dicom::DicomPeer> peer;
+  if (peers != nullptr) peer = peers->FindPeer(request->peer());
+  if (!peer.has_value()) {
+    reactor->Finish(ToGrpcStatus(absl::InvalidArgumentError(
+        absl::StrCat("peer: unknown DICOM peer \"", request->peer(),
+                     "\" (see the server's --dicom-peers file)"))));
+    return reactor;
+  }
+  dicom::FindQuery query{request->patient_id(), request->study_date(),
+                         request->modality(), request->accession_number()};
+  if (absl::Status s = dicom::CheckFindQuery(query); !s.ok()) {
+    reactor->Finish(ToGrpcStatus(s));
+    return reactor;
+  }
+  dicom::FindOptions options;
+  options.calling_ae_title = peers->options().calling_ae_title;
+  options.tls = peers->options().tls;
+  options.timeout_seconds = peers->options().timeout_seconds;
+  options.max_pdu_bytes = peers->options().max_pdu_bytes;
+  const auto cap = [](int32_t asked, int fallback, int most) {
+    if (asked <= 0) return fallback;
+    return std::min<int>(asked, most);
+  };
+  options.max_studies = cap(request->max_studies(), 100, 1000);
+  options.max_series = cap(request->max_series(), 1000, 10000);
+  if (dicom_queries_in_flight_.fetch_add(1) >= kMaxDicomQueries) {
+    dicom_queries_in_flight_.fetch_sub(1);
+    reactor->Finish(grpc::Status(
+        grpc::RESOURCE_EXHAUSTED,
+        absl::StrCat("already ", kMaxDicomQueries,
+                     " DICOM queries in progress; try again shortly")));
+    return reactor;
+  }
+  dicom_queries_->Post([this, reactor, response, peer = *peer, query, options] {
+    const auto started = std::chrono::steady_clock::now();
+    absl::StatusOr<dicom::FindResult> found =
+        dicom::FindStudiesAndSeries(peer, query, options);
+    dicom_queries_in_flight_.fetch_sub(1);
+    const double seconds = std::chrono::duration<double>(
+                               std::chrono::steady_clock::now() - started)
+                               .count();
+    if (!found.ok()) {
+      spdlog::info("find on peer {} failed after {:.2f} s: {}", peer.name,
+                   seconds, RedactPhi(found.status().message()));
+      reactor->Finish(ToGrpcStatus(found.status()));
+      return;
+    }
+    int series = 0;
+    for (dicom::FoundStudy& s : found->studies) {
+      v1::FoundStudy* study = response->add_studies();
+      study->set_study_instance_uid(std::move(s.study_instance_uid));
+      study->set_patient_id(std::move(s.patient_id));
+      study->set_study_date(std::move(s.study_date));
+      study->set_accession_number(std::move(s.accession_number));
+      study->set_study_description(std::move(s.study_description));
+      study->set_modalities_in_study(std::move(s.modalities));
+      for (dicom::FoundSeries& r : s.series) {
+        v1::FoundSeries* out = study->add_series();
+        out->set_series_instance_uid(std::move(r.series_instance_uid));
+        out->set_modality(std::move(r.modality));
+        out->set_series_number(std::move(r.series_number));
+        out->set_series_description(std::move(r.series_description));
+        out->set_instances(r.instances);
+        ++series;
+      }
+    }
+    response->set_truncated(found->truncated);
+    response->set_max_studies(options.max_studies);
+    response->set_max_series(options.max_series);
+    // Counts only: no keys, no UIDs.
+    spdlog::info("find on peer {}: {} study(ies), {} series{} in {:.2f} s",
+                 peer.name, response->studies_size(), series,
+                 found->truncated ? " (truncated at the caps)" : "", seconds);
+    reactor->Finish(grpc::Status::OK);
+  });
   return reactor;
 }
 

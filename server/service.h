@@ -17,6 +17,7 @@
 #ifndef INTERSLICE_SERVER_SERVICE_H_
 #define INTERSLICE_SERVER_SERVICE_H_
 
+#include <atomic>
 #include <memory>
 #include <optional>
 #include <string>
@@ -60,7 +61,8 @@ class InterSliceService final : public v1::InterSlice::CallbackService {
         manager_(manager),
         spool_(spool),
         io_(io),
-        metrics_(metrics) {}
+        metrics_(metrics),
+        dicom_queries_(std::make_unique<Executor>(kDicomQueryThreads)) {}
 
   grpc::ServerBidiReactor<v1::UploadRequest, v1::InterpolateResponse>*
   Interpolate(grpc::CallbackServerContext* context) override;
@@ -82,6 +84,9 @@ class InterSliceService final : public v1::InterSlice::CallbackService {
   grpc::ServerUnaryReactor* GetServerInfo(grpc::CallbackServerContext* context,
                                           const v1::ServerInfoRequest* request,
                                           v1::ServerInfo* response) override;
+  grpc::ServerUnaryReactor* Find(grpc::CallbackServerContext* context,
+                                 const v1::FindRequest* request,
+                                 v1::FindResponse* response) override;
 
   // Calls for jobs this replica does not hold go to their owner through
   // `forwarder` (server/forwarding.h); without one they are unknown jobs.
@@ -115,6 +120,13 @@ class InterSliceService final : public v1::InterSlice::CallbackService {
   Executor* const io_;
   Metrics* const metrics_;
   Forwarder* forwarder_ = nullptr;
+  // C-FINDs on DICOM peers block for up to their timeouts: threads of their
+  // own, never the reactors' nor io_'s; at most kMaxDicomQueries queued or
+  // running (then RESOURCE_EXHAUSTED).
+  static constexpr int kDicomQueryThreads = 2;
+  static constexpr int kMaxDicomQueries = 8;
+  std::atomic<int> dicom_queries_in_flight_{0};
+  const std::unique_ptr<Executor> dicom_queries_;
 };
 
 }  // namespace interslice::server

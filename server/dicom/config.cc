@@ -26,6 +26,10 @@
 namespace interslice::server::dicom {
 namespace {
 
+// A PACS serves each association with a thread or a process of its own;
+// beyond a handful the gain is nil and a small PACS may refuse us.
+constexpr int kMaxAssociationsPerPeer = 16;
+
 // Where in which file: prefixes every error so that it is one line naming
 // the file, the entry (peer or rule) and the field.
 class Context {
@@ -625,9 +629,9 @@ absl::StatusOr<PeersConfig> LoadPeersConfig(const std::string& path) {
       return ctx.Error("",
                        absl::StrCat("expected a mapping, got ", KindName(p)));
     }
-    keys = CheckKeys(
-        p, ctx, "",
-        {"name", "ae_title", "host", "port", "tls", "allowed_sources"});
+    keys = CheckKeys(p, ctx, "",
+                     {"name", "ae_title", "host", "port", "tls",
+                      "max_associations", "allowed_sources"});
     if (!keys.ok()) return keys;
     DicomPeer peer;
     for (const char* required : {"name", "ae_title", "host"}) {
@@ -661,6 +665,18 @@ absl::StatusOr<PeersConfig> LoadPeersConfig(const std::string& path) {
       absl::StatusOr<bool> tls = GetBool(p["tls"], ctx, "tls");
       if (!tls.ok()) return tls.status();
       peer.tls = *tls;
+    }
+    if (p["max_associations"]) {
+      absl::StatusOr<int64_t> n =
+          GetInteger(p["max_associations"], ctx, "max_associations");
+      if (!n.ok()) return n.status();
+      if (*n < 1 || *n > kMaxAssociationsPerPeer) {
+        return ctx.Error("max_associations",
+                         absl::StrCat("expected 1-", kMaxAssociationsPerPeer,
+                                      " (associations in parallel when "
+                                      "sending to this peer)"));
+      }
+      peer.max_associations = static_cast<int>(*n);
     }
     if (const YAML::Node sources = p["allowed_sources"]; sources) {
       if (!sources.IsSequence() || sources.size() == 0) {

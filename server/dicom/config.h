@@ -8,6 +8,8 @@
 //   peers:
 //     - {name: orthanc, ae_title: ORTHANC, host: 127.0.0.1, port: 4242,
 //        tls: false,                  # port default 104, tls default false
+//        max_associations: 4,         # optional, 1-16: deliveries to this
+//                                     # peer in parallel associations
 //        allowed_sources: [127.0.0.1, 10.20.0.0/16]}
 //                                     # optional: the addresses or networks
 //                                     # associations calling as this AE

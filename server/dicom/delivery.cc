@@ -7,6 +7,7 @@
 #include <limits>
 #include <memory>
 #include <string>
+#include <thread>
 #include <utility>
 #include <vector>
 
@@ -82,14 +83,12 @@ std::vector<std::string> ListDicomFiles(const std::string& dir) {
   return files;
 }
 
-absl::StatusOr<StoreResult> StoreFiles(const DicomPeer& peer,
-                                       const std::vector<std::string>& files,
-                                       const DeliveryOptions& options) {
-  // With DCMTK's decoders registered, DcmStorageSCU proposes a lossless
-  // encapsulated file (an RLE intensity series, --dicom-compression rle)
-  // together with the uncompressed syntaxes, and decompresses it for a peer
-  // that accepts only those; without them it proposes RLE alone.
-  RegisterDicomDecoders();
+namespace {
+
+// `files` over one association after another (one DcmStorageSCU).
+absl::StatusOr<StoreResult> StoreFilesSequentially(
+    const DicomPeer& peer, const std::vector<std::string>& files,
+    const DeliveryOptions& options) {
   CountingStorageScu scu;
   ConfigureScu(scu, peer, options.calling_ae_title, options.max_pdu_bytes,
                options.timeout_seconds);
@@ -133,8 +132,26 @@ absl::StatusOr<StoreResult> StoreFiles(const DicomPeer& peer,
   const size_t rounds = scu.getNumberOfSOPInstances() + 1;
   for (size_t round = 0;
        round < rounds && scu.getNumberOfSOPInstancesToBeSent() > 0; ++round) {
+    if (round > 0) {
+      // The contexts of what is left: releaseAssociation() dropped the
+      // last round's association parameters (without this, the next
+      // negotiation failed with "ASC Caller passed in a NULL key", and a
+      // peer that refused one SOP class made the whole delivery UNAVAILABLE).
+      cond = scu.addPresentationContexts();
+      if (cond == NET_EC_NoSOPInstancesToSend ||
+          cond == NET_EC_NoPresentationContextsDefined) {
+        break;
+      }
+      if (cond.bad()) {
+        return absl::InternalError(absl::StrCat(
+            "cannot propose presentation contexts: ", cond.text()));
+      }
+    }
     cond = scu.negotiateAssociation();
     if (cond == NET_EC_NoSOPInstancesToSend) break;
+    // What is left was refused in an earlier round's negotiation and the
+    // peer accepts none of it now either: counted as refused below.
+    if (round > 0 && cond == NET_EC_NoAcceptablePresentationContexts) break;
     if (cond.bad()) {
       return absl::UnavailableError(absl::StrCat(
           "cannot associate with ", PeerLabel(peer), ": ", cond.text()));
@@ -159,6 +176,61 @@ absl::StatusOr<StoreResult> StoreFiles(const DicomPeer& peer,
     }
   }
   return result;
+}
+
+}  // namespace
+
+absl::StatusOr<StoreResult> StoreFiles(const DicomPeer& peer,
+                                       const std::vector<std::string>& files,
+                                       const DeliveryOptions& options) {
+  // With DCMTK's decoders registered, DcmStorageSCU proposes a lossless
+  // encapsulated file (an RLE intensity series, --dicom-compression rle)
+  // together with the uncompressed syntaxes, and decompresses it for a peer
+  // that accepts only those; without them it proposes RLE alone. Once,
+  // before any sending thread starts (it changes DCMTK's global codec list).
+  RegisterDicomDecoders();
+  const size_t lanes = std::min<size_t>(
+      files.size(), static_cast<size_t>(std::max(1, peer.max_associations)));
+  if (lanes <= 1) return StoreFilesSequentially(peer, files, options);
+  // Dealt round-robin: the sorted list holds series one after another, so
+  // each lane gets a share of every series and of the large objects (SEG,
+  // Encapsulated STL) rather than one lane all of them.
+  std::vector<std::vector<std::string>> shares(lanes);
+  for (size_t i = 0; i < files.size(); ++i) {
+    shares[i % lanes].push_back(files[i]);
+  }
+  std::vector<absl::StatusOr<StoreResult>> results(lanes, StoreResult{});
+  {
+    std::vector<std::thread> threads;
+    threads.reserve(lanes);
+    for (size_t lane = 0; lane < lanes; ++lane) {
+      threads.emplace_back([&, lane] {
+        results[lane] = StoreFilesSequentially(peer, shares[lane], options);
+      });
+    }
+    for (std::thread& t : threads) t.join();
+  }
+  // One lane that failed fails the try (the queue retries every file; the
+  // instances other lanes stored are stored again, which a PACS replaces);
+  // INVALID_ARGUMENT (an unreadable file) before UNAVAILABLE, as the
+  // sequential path would have found it before associating.
+  StoreResult total;
+  const absl::Status* first_error = nullptr;
+  for (const absl::StatusOr<StoreResult>& r : results) {
+    if (!r.ok()) {
+      if (first_error == nullptr ||
+          (r.status().code() == absl::StatusCode::kInvalidArgument &&
+           first_error->code() != absl::StatusCode::kInvalidArgument)) {
+        first_error = &r.status();
+      }
+      continue;
+    }
+    total.accepted += r->accepted;
+    total.refused += r->refused;
+    if (total.first_refusal.empty()) total.first_refusal = r->first_refusal;
+  }
+  if (first_error != nullptr) return *first_error;
+  return total;
 }
 
 DeliveryQueue::DeliveryQueue(std::vector<DicomPeer> peers,

@@ -2,10 +2,15 @@
 // DcmStorageSCU), persistently: the outbox.
 //
 // Contract:
-// - StoreFiles sends DICOM files to one peer over as many associations as
-//   DcmStorageSCU needs (it proposes each file's SOP class with its own
-//   transfer syntax, plus the uncompressed ones, and splits at 128
-//   presentation contexts). It returns how many instances the peer accepted
+// - StoreFiles sends DICOM files to one peer. The files are dealt
+//   round-robin into min(peer.max_associations, files) shares sent at once,
+//   each by a DcmStorageSCU of its own over as many associations as it
+//   needs (it proposes each file's SOP class with its own transfer syntax,
+//   plus the uncompressed ones, and splits at 128 presentation contexts):
+//   so never more than max_associations associations with the peer at a
+//   time (the queue runs one delivery at a time). A share that fails fails
+//   the call (the queue's retry sends every file again); the counts are the
+//   sums of the shares'. It returns how many instances the peer accepted
 //   (DIMSE success or warning) and, for the first refusal, the peer's status
 //   ("0xA700 Refused: Out of resources"). A peer that cannot be reached or
 //   rejects the association is UNAVAILABLE naming the peer; files that

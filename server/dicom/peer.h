@@ -37,6 +37,10 @@ struct DicomPeer {
   std::string host;
   int port = 104;
   bool tls = false;  // associations with this peer use TLS
+  // Deliveries to this peer send over up to this many associations at once
+  // (1-16; 1: one after another). DIMSE waits for each C-STORE response, so
+  // parallel associations keep a PACS's storage busy while we wait.
+  int max_associations = 4;
   // Associations calling as this peer's AE title are accepted only from
   // these addresses (empty: from anywhere).
   std::vector<SourceNetwork> allowed_sources;

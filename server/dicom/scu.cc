@@ -1,11 +1,18 @@
 #include "server/dicom/scu.h"
 
+#include <cstdlib>
+
 #include "absl/strings/str_cat.h"
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmnet/scu.h"
 #include "dcmtk/dcmtls/tlslayer.h"
 
 namespace interslice::server::dicom {
+
+void DisableNagleOnOutgoingAssociations() {
+  // Overwrites: an inherited TCP_NODELAY=0 would bring the stalls back.
+  ::setenv("TCP_NODELAY", "1", /*overwrite=*/1);
+}
 
 std::string PeerLabel(const DicomPeer& peer) {
   return absl::StrCat("peer ", peer.name, " (", peer.ae_title, "@", peer.host,

@@ -82,7 +82,8 @@ TEST_F(ConfigTest, PeersFileWithDefaults) {
       "peers:\n"
       "  - {name: orthanc, ae_title: ' ORTHANC ', host: 127.0.0.1, port: "
       "4242, tls: false}\n"
-      "  - name: ws\n    ae_title: WS\n    host: ws.example\n    tls: true\n"));
+      "  - name: ws\n    ae_title: WS\n    host: ws.example\n    tls: true\n"
+      "    max_associations: 1\n"));
   ASSERT_TRUE(config.ok()) << config.status();
   EXPECT_TRUE(config->accept_unknown_callers);
   ASSERT_EQ(config->peers.size(), 2u);
@@ -92,6 +93,21 @@ TEST_F(ConfigTest, PeersFileWithDefaults) {
   EXPECT_FALSE(config->peers[0].tls);
   EXPECT_EQ(config->peers[1].port, 104);  // the DICOM default
   EXPECT_TRUE(config->peers[1].tls);
+  EXPECT_EQ(config->peers[0].max_associations, 4);  // the default
+  EXPECT_EQ(config->peers[1].max_associations, 1);
+}
+
+TEST_F(ConfigTest, MaxAssociationsIsBounded) {
+  for (const char* bad : {"0", "17", "-1"}) {
+    EXPECT_THAT(PeersError(absl::StrCat("peers:\n  - {name: a, ae_title: A, "
+                                        "host: h, max_associations: ",
+                                        bad, "}\n")),
+                HasSubstr("peer 'a' (#1): max_associations: expected 1-16"))
+        << bad;
+  }
+  EXPECT_THAT(PeersError("peers:\n  - {name: a, ae_title: A, host: h, "
+                         "max_associations: four}\n"),
+              HasSubstr("max_associations: expected an integer"));
 }
 
 TEST_F(ConfigTest, PeersFileAsJson) {

@@ -4,18 +4,22 @@
 
 #include <arpa/inet.h>
 #include <netinet/in.h>
+#include <poll.h>
 #include <sys/socket.h>
 #include <unistd.h>
 
 #include <chrono>
 #include <condition_variable>
 #include <filesystem>
+#include <fstream>
 #include <mutex>
+#include <set>
 #include <string>
 #include <thread>
 #include <vector>
 
 #include "absl/status/status.h"
+#include "absl/strings/str_cat.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "tests/testing/orthanc.h"
@@ -31,6 +35,11 @@ using ::testing::HasSubstr;
 using testing::Orthanc;
 
 const fs::path kThick = fs::path(INTERSLICE_TEST_DATA_DIR) / "ct-thick";
+const fs::path kPhantom =
+    fs::path(INTERSLICE_SOURCE_DIR) / "data" / "ct-head-phantom-thick";
+// Enhanced MR Image Storage (a SOP class the CT-only receiver refuses).
+const fs::path kEnhancedMr = fs::path(INTERSLICE_TEST_DATA_DIR) / "multiframe" /
+                             "philips-enhanced-mr-64frames.dcm";
 
 DicomPeer PeerOf(const Orthanc& orthanc) {
   DicomPeer peer;
@@ -325,6 +334,218 @@ TEST(DeliveryQueueTest, AttemptIsRecordedBeforeItIsMade) {
   EXPECT_EQ(started->last_error(), "");
   ::close(listener);  // the try now fails at once
   queue.Stop();
+}
+
+// A TCP listener on loopback that accepts and never answers (a PACS that
+// hangs): counts the associations a StoreFiles call opens at once.
+class SilentPeer {
+ public:
+  SilentPeer() {
+    fd_ = ::socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC | SOCK_NONBLOCK, 0);
+    sockaddr_in addr{};
+    addr.sin_family = AF_INET;
+    addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+    ::bind(fd_, reinterpret_cast<sockaddr*>(&addr), sizeof(addr));
+    ::listen(fd_, 32);
+    socklen_t len = sizeof(addr);
+    ::getsockname(fd_, reinterpret_cast<sockaddr*>(&addr), &len);
+    port_ = ntohs(addr.sin_port);
+  }
+  ~SilentPeer() {
+    CloseConnections();
+    ::close(fd_);
+  }
+  int port() const { return port_; }
+  // Accepts what is waiting; the connections accepted so far.
+  int Accept() {
+    int fd;
+    while ((fd = ::accept4(fd_, nullptr, nullptr, SOCK_CLOEXEC)) >= 0) {
+      connections_.push_back(fd);
+    }
+    return static_cast<int>(connections_.size());
+  }
+  // Whether every accepted connection is still open and has sent bytes
+  // (its A-ASSOCIATE-RQ): all of them in flight at once.
+  bool AllOpenWithARequest() const {
+    for (const int fd : connections_) {
+      char byte;
+      if (::recv(fd, &byte, 1, MSG_PEEK | MSG_DONTWAIT) != 1) return false;
+    }
+    return true;
+  }
+  void CloseConnections() {
+    for (const int fd : connections_) ::close(fd);
+    connections_.clear();
+  }
+
+ private:
+  int fd_ = -1;
+  int port_ = 0;
+  std::vector<int> connections_;
+};
+
+// Issue 25: a delivery sends over max_associations associations at once,
+// never more; 1 keeps the former one-at-a-time behaviour.
+class MaxAssociationsTest : public ::testing::TestWithParam<int> {};
+
+TEST_P(MaxAssociationsTest, OpensThatManyAssociationsAtOnce) {
+  const int max_associations = GetParam();
+  SilentPeer silent;
+  DicomPeer peer;
+  peer.name = "silent";
+  peer.ae_title = "SILENT";
+  peer.host = "127.0.0.1";
+  peer.port = silent.port();
+  peer.max_associations = max_associations;
+  DeliveryOptions options = FastOptions();
+  options.timeout_seconds = 60;  // the test ends the associations itself
+  std::vector<std::string> files;
+  for (const auto& e : fs::directory_iterator(kPhantom)) {
+    if (e.path().extension() == ".dcm") files.push_back(e.path().string());
+  }
+  ASSERT_EQ(files.size(), 28u);
+  absl::StatusOr<StoreResult> result = StoreResult{};
+  std::thread sender([&] { result = StoreFiles(peer, files, options); });
+  // Every lane connects and sends its request; none gets an answer.
+  const bool all_in_flight = testing::WaitFor(
+      [&] {
+        return silent.Accept() >= max_associations &&
+               silent.AllOpenWithARequest();
+      },
+      std::chrono::seconds(60));
+  EXPECT_TRUE(all_in_flight);
+  EXPECT_EQ(silent.Accept(), max_associations);
+  silent.CloseConnections();  // every lane fails now
+  sender.join();
+  EXPECT_FALSE(result.ok());
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kUnavailable);
+  EXPECT_THAT(result.status().message(), HasSubstr("silent"));
+  // Each lane tried once: no association beyond the limit, ever.
+  EXPECT_EQ(silent.Accept(), 0);
+}
+
+INSTANTIATE_TEST_SUITE_P(OneAndSeveral, MaxAssociationsTest,
+                         ::testing::Values(1, 3));
+
+// The SOP Instance UIDs of every instance Orthanc holds.
+std::multiset<std::string> OrthancSopInstanceUids(const Orthanc& orthanc) {
+  std::multiset<std::string> uids;
+  absl::StatusOr<nlohmann::json> all = orthanc.GetJson("/instances?expand");
+  EXPECT_TRUE(all.ok()) << all.status();
+  if (!all.ok()) return uids;
+  for (const nlohmann::json& i : *all) {
+    uids.insert(i["MainDicomTags"]["SOPInstanceUID"].get<std::string>());
+  }
+  return uids;
+}
+
+TEST(StoreFilesTest, FourAssociationsStoreEveryInstanceOnceInOrthanc) {
+  testing::TempDir dir("interslice_orthanc_");
+  auto orthanc = Orthanc::Start(dir.str(), {});
+  ASSERT_TRUE(orthanc.ok()) << orthanc.status();
+  std::vector<std::string> files = ListDicomFiles(kPhantom.string());
+  ASSERT_EQ(files.size(), 28u);
+  DicomPeer peer = PeerOf(**orthanc);
+  peer.max_associations = 4;
+  absl::StatusOr<StoreResult> sent = StoreFiles(peer, files, FastOptions());
+  ASSERT_TRUE(sent.ok()) << sent.status();
+  EXPECT_EQ(sent->accepted, 28);
+  EXPECT_EQ(sent->refused, 0);
+  // Each instance once, none missing: Orthanc's UIDs are the files' UIDs.
+  std::multiset<std::string> expected;
+  for (const std::string& f : files) {
+    const testing::CommandResult uid =
+        testing::RunCommand({"/usr/bin/dcmdump", "+P", "0008,0018", f}, 60);
+    const size_t open = uid.out.find('['), close = uid.out.find(']');
+    ASSERT_NE(open, std::string::npos) << uid.out;
+    expected.insert(uid.out.substr(open + 1, close - open - 1));
+  }
+  EXPECT_EQ(OrthancSopInstanceUids(**orthanc), expected);
+  // Sent again over four: still one copy each (fixed UIDs, Orthanc replaces).
+  sent = StoreFiles(peer, files, FastOptions());
+  ASSERT_TRUE(sent.ok()) << sent.status();
+  EXPECT_EQ(sent->accepted, 28);
+  EXPECT_EQ(OrthancSopInstanceUids(**orthanc), expected);
+}
+
+// A receiver that takes CT but not Enhanced MR (DCMTK's storescp with an
+// association profile): over four associations the refusal is counted once,
+// the rest stored, and the outbox keeps the delivery PENDING with the
+// peer's reason, as with one association.
+TEST(DeliveryQueueTest, PeerRefusingSomeInstancesOverFourAssociations) {
+  testing::TempDir dir("interslice_store_refuse_");
+  const std::string d = dir.str();
+  std::ofstream(d + "/ct-only.cfg")
+      << "[[TransferSyntaxes]]\n[Uncompressed]\n"
+         "TransferSyntax1 = LocalEndianExplicit\n"
+         "TransferSyntax2 = OppositeEndianExplicit\n"
+         "TransferSyntax3 = LittleEndianImplicit\n"
+         "[[PresentationContexts]]\n[CtOnly]\n"
+         "PresentationContext1 = CTImageStorage\\Uncompressed\n"
+         "[[Profiles]]\n[CtOnly]\nPresentationContexts = CtOnly\n";
+  const int port = testing::FreeTcpPort();
+  fs::create_directories(dir.path() / "received");
+  // --fork: an association each (storescp alone serves one at a time).
+  const pid_t scp = testing::StartProcess(
+      {"/usr/bin/storescp", "--fork", "-xf", d + "/ct-only.cfg", "CtOnly",
+       "-od", d + "/received", std::to_string(port)},
+      d + "/storescp.log");
+  ASSERT_TRUE(testing::WaitFor([&] { return Listening(port); },
+                               std::chrono::seconds(60)))
+      << testing::ReadFileOrEmpty(d + "/storescp.log");
+  DicomPeer peer;
+  peer.name = "ctonly";
+  peer.ae_title = "STORESCP";
+  peer.host = "127.0.0.1";
+  peer.port = port;
+  peer.max_associations = 4;
+  std::vector<std::string> files = ListDicomFiles(kThick.string());
+  files.push_back(kEnhancedMr.string());
+  absl::StatusOr<StoreResult> result = StoreFiles(peer, files, FastOptions());
+  ASSERT_TRUE(result.ok()) << result.status();
+  EXPECT_EQ(result->accepted, 4);
+  EXPECT_EQ(result->refused, 1);
+  EXPECT_THAT(result->first_refusal, HasSubstr("presentation context"));
+  // storescp's children write as they receive: wait for the four.
+  auto received = [&] {
+    int n = 0;
+    std::error_code ec;
+    for (const auto& e : fs::directory_iterator(dir.path() / "received", ec)) {
+      n += e.is_regular_file() ? 1 : 0;
+    }
+    return n;
+  };
+  EXPECT_TRUE(testing::WaitFor([&] { return received() == 4; },
+                               std::chrono::seconds(30)));
+  EXPECT_EQ(received(), 4);
+
+  Updates updates;
+  DeliveryQueue queue({peer}, FastOptions(), updates.callback());
+  queue.Start();
+  v1::Delivery delivery;
+  delivery.set_peer("ctonly");
+  queue.Add("job4", delivery, files,
+            std::chrono::duration_cast<std::chrono::milliseconds>(
+                std::chrono::system_clock::now().time_since_epoch())
+                .count());
+  ASSERT_TRUE(testing::WaitFor(
+      [&] {
+        for (const v1::Delivery& u : updates.all()) {
+          if (!u.last_error().empty()) return true;
+        }
+        return false;
+      },
+      std::chrono::seconds(60)));
+  queue.Stop();
+  v1::Delivery failed;
+  for (const v1::Delivery& u : updates.all()) {
+    if (!u.last_error().empty()) failed = u;
+  }
+  EXPECT_EQ(failed.state(), v1::Delivery::PENDING);  // retried later
+  EXPECT_EQ(failed.instances_total(), 5);
+  EXPECT_EQ(failed.instances_sent(), 4);
+  EXPECT_THAT(failed.last_error(), HasSubstr("1 of 5 instance(s) refused"));
+  testing::StopProcess(scp, 30);
 }
 
 TEST(DeliveryQueueTest, UnknownPeerNamesAreInvalidArgument) {

@@ -5,8 +5,11 @@
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 #include <netinet/in.h>
+#include <netinet/tcp.h>
+#include <poll.h>
 #include <signal.h>
 #include <sys/socket.h>
+#include <sys/syscall.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -282,6 +285,130 @@ TEST(DicomNodeTest, EchoAndAssociationPolicy) {
   EXPECT_THAT(unknown_called.err, HasSubstr("Called AE Title Not Recognized"));
   EXPECT_THAT(server.Log(),
               HasSubstr("calling AE title STRANGER is not in the peers file"));
+}
+
+int PortOf(const sockaddr_in& address) { return ntohs(address.sin_port); }
+
+// TCP_NODELAY (0 or 1) of the IPv4 TCP socket of process `pid` whose own
+// port is `local_port` and whose peer's is `remote_port`: each of its
+// descriptors is copied into this process (pidfd_getfd, Linux 5.6) and
+// asked. -1 when it has no such socket (yet).
+int NoDelayOfSocketIn(pid_t pid, int local_port, int remote_port) {
+  const int pidfd = static_cast<int>(::syscall(SYS_pidfd_open, pid, 0));
+  if (pidfd < 0) return -1;
+  int result = -1;
+  std::error_code ec;
+  for (const auto& entry :
+       fs::directory_iterator(absl::StrCat("/proc/", pid, "/fd"), ec)) {
+    const std::string target = fs::read_symlink(entry.path(), ec).string();
+    if (ec || !absl::StartsWith(target, "socket:")) continue;
+    int number = 0;
+    if (!absl::SimpleAtoi(entry.path().filename().string(), &number)) continue;
+    const int fd =
+        static_cast<int>(::syscall(SYS_pidfd_getfd, pidfd, number, 0));
+    if (fd < 0) continue;
+    sockaddr_in local{}, remote{};
+    socklen_t local_len = sizeof(local), remote_len = sizeof(remote);
+    int nodelay = 0;
+    socklen_t nodelay_len = sizeof(nodelay);
+    if (::getsockname(fd, reinterpret_cast<sockaddr*>(&local), &local_len) ==
+            0 &&
+        local.sin_family == AF_INET && PortOf(local) == local_port &&
+        ::getpeername(fd, reinterpret_cast<sockaddr*>(&remote), &remote_len) ==
+            0 &&
+        PortOf(remote) == remote_port &&
+        ::getsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &nodelay, &nodelay_len) ==
+            0) {
+      result = nodelay != 0 ? 1 : 0;
+    }
+    ::close(fd);
+    if (result >= 0) break;
+  }
+  ::close(pidfd);
+  return result;
+}
+
+// Issue 25: with Nagle's algorithm on, every DIMSE exchange waits ~40 ms for
+// a delayed acknowledgement. The listener's accepted sockets and the
+// server's outgoing associations (here a C-GET pull, DcmSCU: the same
+// connect path as delivery's DcmStorageSCU) must have TCP_NODELAY set. The
+// outgoing one is DCMTK's: without DisableNagleOnOutgoingAssociations() in
+// main() this reads 0.
+TEST(DicomNodeTest, NagleIsOffOnAcceptedAndOutgoingAssociations) {
+  TempDir dir;
+  // A "PACS" that accepts the server's connection and says nothing.
+  const int listener = ::socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0);
+  ASSERT_GE(listener, 0);
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  ASSERT_EQ(
+      ::bind(listener, reinterpret_cast<sockaddr*>(&address), sizeof(address)),
+      0);
+  ASSERT_EQ(::listen(listener, 4), 0);
+  socklen_t len = sizeof(address);
+  ::getsockname(listener, reinterpret_cast<sockaddr*>(&address), &len);
+  const int pacs_port = PortOf(address);
+  WriteFile(dir / "peers.yaml",
+            absl::StrCat("peers:\n"
+                         "  - {name: pacs, ae_title: PACS, host: 127.0.0.1, "
+                         "port: ",
+                         pacs_port, "}\n"));
+  // No TCP_NODELAY inherited from whoever runs the tests.
+  ASSERT_EQ(::unsetenv("TCP_NODELAY"), 0);
+  DicomServer server(dir, "spool", {"--dicom-peers", dir / "peers.yaml"});
+  ASSERT_TRUE(server.up()) << server.Log();
+
+  // Accepted: a connection that has not sent its request yet.
+  const int client = ::socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0);
+  sockaddr_in dicom{};
+  dicom.sin_family = AF_INET;
+  dicom.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  dicom.sin_port = htons(static_cast<uint16_t>(std::stoi(server.port())));
+  ASSERT_EQ(
+      ::connect(client, reinterpret_cast<sockaddr*>(&dicom), sizeof(dicom)), 0);
+  sockaddr_in client_address{};
+  len = sizeof(client_address);
+  ::getsockname(client, reinterpret_cast<sockaddr*>(&client_address), &len);
+  int accepted = -1;
+  EXPECT_TRUE(WaitUntil(
+      [&] {
+        accepted = NoDelayOfSocketIn(server.pid(), std::stoi(server.port()),
+                                     PortOf(client_address));
+        return accepted >= 0;
+      },
+      60));
+  EXPECT_EQ(accepted, 1) << "the listener's accepted socket has Nagle on";
+  ::close(client);
+
+  // Outgoing: the pull connects to our silent PACS.
+  const CommandResult submit =
+      RunCommand(Cat(Cat({kCli, "submit", "--threshold", "300", "--pacs",
+                          "pacs", "--study", "1.2.3", "--series", "1.2.3.4"},
+                         server.Client()),
+                     {}),
+                 60);
+  ASSERT_EQ(submit.exit_code, 0) << submit.err << server.Log();
+  pollfd waiting{listener, POLLIN, 0};
+  ASSERT_TRUE(WaitUntil([&] { return ::poll(&waiting, 1, 0) == 1; }, 120))
+      << "the server never connected to the peer\n"
+      << server.Log();
+  sockaddr_in server_side{};
+  len = sizeof(server_side);
+  const int connection = ::accept4(
+      listener, reinterpret_cast<sockaddr*>(&server_side), &len, SOCK_CLOEXEC);
+  ASSERT_GE(connection, 0);
+  int outgoing = -1;
+  EXPECT_TRUE(WaitUntil(
+      [&] {
+        outgoing =
+            NoDelayOfSocketIn(server.pid(), PortOf(server_side), pacs_port);
+        return outgoing >= 0;
+      },
+      60));
+  EXPECT_EQ(outgoing, 1) << "the outgoing association's socket has Nagle on";
+  ::close(connection);
+  ::close(listener);
 }
 
 TEST(DicomNodeTest, UnknownCallersAcceptedWhenThePeersFileSaysSo) {

@@ -1,0 +1,81 @@
+// The outbox's C-STORE path (server/dicom/delivery.h StoreFiles) timed on
+// its own, for bench/dicom_store.sh: every DICOM file under DIR (COPIES
+// times) sent to one peer over --associations associations at once, REPEAT
+// times; one line per run with the instances per second. --nagle-on leaves
+// Nagle's algorithm on (TCP_NODELAY unset: what the server did before issue
+// 25); otherwise the server's start-up setting
+// (DisableNagleOnOutgoingAssociations) is applied, as interslice-server's
+// main() does.
+#include <chrono>
+#include <cstdio>
+#include <cstdlib>
+#include <string>
+#include <vector>
+
+#include "CLI/CLI.hpp"
+#include "core/dicom/series_reader.h"
+#include "server/dicom/delivery.h"
+#include "server/dicom/scu.h"
+
+int main(int argc, char** argv) {
+  namespace dicom = interslice::server::dicom;
+  std::string dir, host = "127.0.0.1", ae = "STORESCP";
+  int port = 0, associations = 1, repeat = 1, copies = 1;
+  bool nagle_on = false;
+  CLI::App app{"C-STORE every DICOM file of a folder to a peer, timed"};
+  app.add_option("dir", dir, "Folder of DICOM files")->required();
+  app.add_option("--host", host);
+  app.add_option("--port", port)->required();
+  app.add_option("--ae", ae, "The peer's AE title");
+  app.add_option("--associations", associations, "max_associations");
+  app.add_option("--repeat", repeat);
+  app.add_option("--copies", copies,
+                 "Send the folder's files this many times per run (the same "
+                 "instances again: a PACS replaces them)");
+  app.add_flag("--nagle-on", nagle_on,
+               "Leave Nagle's algorithm on (the behaviour before issue 25)");
+  CLI11_PARSE(app, argc, argv);
+  if (std::getenv("INTERSLICE_DCMTK_LOG") == nullptr) {
+    interslice::QuietDicomToolkitLogging();
+  }
+  // Before any thread, as in the server's main().
+  if (nagle_on) {
+    ::unsetenv("TCP_NODELAY");
+  } else {
+    dicom::DisableNagleOnOutgoingAssociations();
+  }
+  dicom::DicomPeer peer;
+  peer.name = "bench";
+  peer.ae_title = ae;
+  peer.host = host;
+  peer.port = port;
+  peer.max_associations = associations;
+  dicom::DeliveryOptions options;
+  options.calling_ae_title = "INTERSLICE";
+  const std::vector<std::string> one = dicom::ListDicomFiles(dir);
+  std::vector<std::string> files;
+  for (int c = 0; c < copies; ++c) {
+    files.insert(files.end(), one.begin(), one.end());
+  }
+  for (int r = 0; r < repeat; ++r) {
+    const auto t0 = std::chrono::steady_clock::now();
+    absl::StatusOr<dicom::StoreResult> result =
+        dicom::StoreFiles(peer, files, options);
+    const double s =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - t0)
+            .count();
+    if (!result.ok() || result->accepted != static_cast<int>(files.size())) {
+      std::fprintf(stderr, "store failed: %s\n",
+                   result.ok()
+                       ? result->first_refusal.c_str()
+                       : std::string(result.status().message()).c_str());
+      return 1;
+    }
+    std::printf(
+        "%zu instances over %d association(s), Nagle %s: %.3f s, %.1f "
+        "instances/s\n",
+        files.size(), associations, nagle_on ? "on" : "off", s,
+        files.size() / s);
+  }
+  return 0;
+}
