@@ -690,8 +690,7 @@ int RunServer(ServerOptions options) {
       }
       if (assembler != nullptr) {
         // The generation live now (SIGHUP may replace it).
-        const std::shared_ptr<const dicom::RuleSet> rules =
-            assembler->rules();
+        const std::shared_ptr<const dicom::RuleSet> rules = assembler->rules();
         s.rules_file = rules->path;
         for (const dicom::Rule& r : rules->rules) {
           s.rules.push_back({.name = r.name,
@@ -752,12 +751,25 @@ int RunServer(ServerOptions options) {
             "SIGHUP: dicom: peers and rules reloaded; configuration "
             "generation {} is live",
             generation);
+        if (audit != nullptr) {
+          audit->Record({.event = "config.reloaded",
+                         .count = generation,
+                         .detail = "peers and rules reloaded (SIGHUP)"});
+        }
       } else {
         metrics.DicomEvent("config_reload_refused");
         spdlog::error(
             "SIGHUP: dicom: reload refused, configuration generation {} stays "
             "live: {}",
             generation, LogSafe(std::string(reloaded.message())));
+        if (audit != nullptr) {
+          audit->Record(
+              {.event = "config.reloaded",
+               .outcome = AuditOutcome::kMinorFailure,
+               .count = generation,
+               .detail = absl::StrCat("reload refused, generation ", generation,
+                                      " stays live: ", reloaded.message())});
+        }
       }
     }
     spdlog::info("{}: draining (grace {} s): health NOT_SERVING, no new jobs",

@@ -1732,7 +1732,10 @@ TEST(DicomNodeConfigTest, SighupReloadsPeersAndRulesAndRefusesABadFile) {
       rules,
       "stable_seconds: 0.5\nrules:\n"
       "  - {name: mr-only, match: {modality: MR}, job: {threshold: 1}}\n");
-  DicomServer server(dir, "spool", {"--dicom-peers", peers, "--rules", rules});
+  const std::string audit = dir / "audit.jsonl";
+  DicomServer server(
+      dir, "spool",
+      {"--dicom-peers", peers, "--rules", rules, "--audit-log", audit});
   ASSERT_TRUE(server.up()) << server.Log();
   const std::string generation = "interslice_dicom_config_generation";
   EXPECT_EQ(server.Metric(generation), 1);
@@ -1797,6 +1800,14 @@ TEST(DicomNodeConfigTest, SighupReloadsPeersAndRulesAndRefusesABadFile) {
   ASSERT_EQ(StoreScu(server, {}, files).exit_code, 0);
   ASSERT_TRUE(log_has("made by rule ct-any")) << server.Log();
   EXPECT_EQ(server.Jobs().size(), 1u);
+  // Each reload, refused or not, is in the audit trail (docs/audit.md).
+  const std::string trail = ReadFileOrEmpty(audit);
+  EXPECT_THAT(trail, HasSubstr("\"event\":\"config.reloaded\",\"atna\":"
+                               "\"110100 Application Activity\",\"outcome\":"
+                               "\"success\",\"count\":2"))
+      << trail;
+  EXPECT_THAT(trail, HasSubstr("reload refused, generation 1 stays live"))
+      << trail;
 }
 
 }  // namespace
