@@ -93,6 +93,24 @@ bool Contains(const std::vector<std::string>& list, const std::string& item) {
   return std::find(list.begin(), list.end(), item) != list.end();
 }
 
+// What tells this job's DICOM results apart from those of other parameters
+// in the study's series descriptions (dicom_writer.h, "Identity"): the
+// solver method, the threshold(s) (modality units; HU for CT) and the output
+// slice spacing, e.g. "cg >=300 HU, 0.5 mm" or "direct 300..1500 HU,
+// 0.625 mm"; at most 38 characters for every finite threshold (%.6g).
+std::string ParameterSummary(const JobSpec& spec, const std::string& modality,
+                             const Grid& output_grid) {
+  const std::string unit = modality == "CT" ? " HU" : "";
+  const std::string thresholds =
+      spec.upper_threshold.has_value()
+          ? absl::StrFormat("%.6g..%.6g", spec.lower_threshold,
+                            *spec.upper_threshold)
+          : absl::StrFormat(">=%.6g", spec.lower_threshold);
+  return absl::StrFormat("%s %s%s, %.3g mm",
+                         SolverMethodName(spec.solver.method), thresholds, unit,
+                         output_grid.spacing[2]);
+}
+
 // The job's parameters that shape its results, in a canonical text: with the
 // source instances and the UID root, it names the derived DICOM objects (see
 // DicomWriteOptions::derivation_key). Thread counts, output folders and file
@@ -560,6 +578,9 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
     dicom_options.random_uids = spec.random_uids;
     dicom_options.series_number_base = spec.series_number_base;
     dicom_options.derivation_key = DerivationKey(spec, field.grid);
+    dicom_options.parameter_set = dicom_options.derivation_key;
+    dicom_options.parameter_summary =
+        ParameterSummary(spec, source.modality, field.grid);
     if (spec.dicom_compression == "rle") {
       dicom_options.intensity_encoding =
           DicomWriteOptions::PixelEncoding::kRleLossless;
