@@ -62,6 +62,15 @@ std::vector<std::string> InterpolationSummary(const JobReport& report,
                                     report.mesh_triangles,
                                     report.mesh_vertices));
   }
+  if (report.dicom_mesh_adaptivity >= 0) {
+    lines.push_back(absl::StrFormat(
+        "  DICOM mesh %d triangles (adaptivity %g), %s %.3g mm (mean %.3g "
+        "mm) from the full surface",
+        report.dicom_mesh_triangles, report.dicom_mesh_adaptivity,
+        report.dicom_mesh_samples_beyond_band > 0 ? "at least" : "within",
+        report.dicom_mesh_max_deviation_mm,
+        report.dicom_mesh_mean_deviation_mm));
+  }
   std::string timings;
   double total = 0;
   for (const StageTiming& s : report.stages) {

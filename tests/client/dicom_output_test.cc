@@ -589,5 +589,56 @@ TEST_F(DicomOutputTest, RerunKeepsUidsAndRandomUidsDoNot) {
   }
 }
 
+// --dicom-mesh-adaptivity simplifies only the mesh stored as Encapsulated
+// STL, and the report says how far it lies from the full surface.
+TEST_F(DicomOutputTest, DicomMeshAdaptivitySimplifiesTheEncapsulatedStlOnly) {
+  auto run = [&](const std::string& name, const std::string& extra) {
+    const fs::path out = dir_ / name;
+    const CommandResult r = RunCli(
+        "run " + kPhantom.string() +
+        " --threshold 300 --roi 200,60,0,300,160,28 --method linear --quiet "
+        "--volume none --mesh stl --previews none --seg --out " +
+        out.string() + " --report " + (out / "report.json").string() + " " +
+        extra);
+    EXPECT_EQ(r.exit_code, 0) << r.out;
+    return ReadJson(out / "report.json");
+  };
+  const nlohmann::json full = run("full", "");
+  const nlohmann::json simple = run("simple", "--dicom-mesh-adaptivity 1");
+  // surface.stl is the same full mesh in both.
+  EXPECT_EQ(fs::file_size(dir_ / "full/surface.stl"),
+            fs::file_size(dir_ / "simple/surface.stl"));
+  const int64_t triangles = full["mesh"]["triangles"].get<int64_t>();
+  EXPECT_EQ(full["dicom_mesh"]["triangles"].get<int64_t>(), triangles);
+  EXPECT_EQ(full["dicom_mesh"]["max_deviation_mm"].get<double>(), 0);
+  const int64_t simplified = simple["dicom_mesh"]["triangles"].get<int64_t>();
+  EXPECT_LT(simplified, triangles / 2);
+  EXPECT_GT(simple["dicom_mesh"]["max_deviation_mm"].get<double>(), 0);
+  EXPECT_LT(simple["dicom_mesh"]["max_deviation_mm"].get<double>(), 5);
+  EXPECT_EQ(simple["dicom_mesh"]["samples_beyond_band"].get<int64_t>(), 0);
+  // The Encapsulated STL embeds the simplified mesh (binary STL: 84 + 50
+  // bytes per triangle), and no temporary file is left.
+  for (const auto& [name, count] :
+       {std::pair<std::string, int64_t>{"full", triangles},
+        {"simple", simplified}}) {
+    DcmFileFormat file;
+    ASSERT_TRUE(
+        file.loadFile(OFFilename((dir_ / name / "surface-stl.dcm").c_str()))
+            .good());
+    Uint32 length = 0;
+    ASSERT_TRUE(file.getDataset()
+                    ->findAndGetUint32(DCM_EncapsulatedDocumentLength, length)
+                    .good());
+    EXPECT_EQ(static_cast<int64_t>(length), 84 + 50 * count) << name;
+    EXPECT_FALSE(fs::exists(dir_ / name / ".surface-dicom.stl"));
+  }
+  const CommandResult bad =
+      RunCli("run " + kPhantom.string() +
+             " --threshold 300 --dicom-mesh-adaptivity 1.5 --out " +
+             (dir_ / "bad").string());
+  EXPECT_EQ(bad.exit_code, 1);
+  EXPECT_THAT(bad.out, HasSubstr("dicom-mesh-adaptivity"));
+}
+
 }  // namespace
 }  // namespace interslice
