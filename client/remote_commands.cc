@@ -4,6 +4,7 @@
 #include <cctype>
 #include <chrono>
 #include <cstdio>
+#include <ctime>
 #include <filesystem>
 #include <fstream>
 #include <memory>
@@ -573,13 +574,74 @@ bool HasPendingDelivery(const v1::JobStatus& status) {
   return false;
 }
 
+// Free text from the server (labels, AE titles, rule names, errors): no
+// control characters reach the terminal, one line stays one line.
+std::string Printable(std::string text) {
+  for (char& c : text) {
+    if (static_cast<unsigned char>(c) < 0x20 || c == 0x7f) c = '?';
+  }
+  return text;
+}
+
+// "2026-11-26 03:50:01Z" (UTC) for Unix ms; "-" for 0 (not yet).
+std::string UtcTime(int64_t unix_ms) {
+  if (unix_ms <= 0) return "-";
+  const std::time_t seconds = static_cast<std::time_t>(unix_ms / 1000);
+  std::tm utc{};
+  gmtime_r(&seconds, &utc);
+  char text[32];
+  std::strftime(text, sizeof(text), "%Y-%m-%d %H:%M:%SZ", &utc);
+  return text;
+}
+
+// Where the job came from, what it reads and when it ran: the lines
+// `list` and `watch` show under a job (UIDs included: only the job's owner
+// and admins receive its status).
+std::vector<std::string> DescribeJob(const v1::JobStatus& j) {
+  std::vector<std::string> lines;
+  const v1::JobOrigin& o = j.source();
+  std::string from;
+  if (o.door() == v1::JobOrigin::DICOM) {
+    from =
+        absl::StrCat("DICOM from ", Printable(o.calling_ae()), " to ",
+                     Printable(o.called_ae()), ", rule ", Printable(o.rule()));
+  } else if (o.door() == v1::JobOrigin::GRPC) {
+    from = o.client().empty() ? "client"
+                              : absl::StrCat("client ", Printable(o.client()));
+    if (!o.pacs_peer().empty()) {
+      absl::StrAppend(&from, ", series pulled from peer ",
+                      Printable(o.pacs_peer()));
+    }
+  } else if (!j.origin().empty()) {
+    from = Printable(j.origin());  // a record of an older server
+  }
+  if (!from.empty()) lines.push_back(absl::StrCat("  origin    ", from));
+  if (j.instance_count() > 0) {
+    lines.push_back(absl::StrFormat(
+        "  input     %s, %d instance(s)",
+        j.modality().empty() ? "modality unknown" : Printable(j.modality()),
+        j.instance_count()));
+  }
+  if (!j.study_instance_uid().empty() || !j.series_instance_uid().empty()) {
+    lines.push_back(
+        absl::StrCat("  study     ", Printable(j.study_instance_uid())));
+    lines.push_back(
+        absl::StrCat("  series    ", Printable(j.series_instance_uid())));
+  }
+  lines.push_back(absl::StrCat("  times     created ",
+                               UtcTime(j.created_unix_ms()), ", started ",
+                               UtcTime(j.started_unix_ms()), ", finished ",
+                               UtcTime(j.finished_unix_ms())));
+  return lines;
+}
+
 void PrintDeliveries(const v1::JobStatus& status) {
   for (const v1::Delivery& d : status.deliveries()) {
-    std::printf(
-        "  to %s: %s, %d of %d instance(s) stored, %d attempt(s)%s%s\n",
-        d.peer().c_str(), DeliveryStateName(d.state()), d.instances_sent(),
-        d.instances_total(), d.attempts(),
-        d.last_error().empty() ? "" : "; last error: ", d.last_error().c_str());
+    std::printf("  to %s: %s, %d of %d instance(s) stored, %d attempt(s)%s%s\n",
+                Printable(d.peer()).c_str(), DeliveryStateName(d.state()),
+                d.instances_sent(), d.instances_total(), d.attempts(),
+                d.last_error().empty() ? "" : "; last error: ",
+                Printable(d.last_error()).c_str());
   }
 }
 
@@ -623,6 +685,9 @@ int RunWatch(const Connection& connection, const std::string& job_id,
         "job %s succeeded: %d artifact(s); get them with "
         "`interslice fetch %s --out DIR`\n",
         job_id.c_str(), final.artifacts_size(), job_id.c_str());
+    for (const std::string& line : DescribeJob(final)) {
+      std::printf("%s\n", line.c_str());
+    }
     PrintDeliveries(final);
   }
   for (const v1::Delivery& d : final.deliveries()) {
@@ -755,17 +820,15 @@ int RunList(const Connection& connection, bool all) {
   const grpc::Status s = stub->List(&context, request, &response);
   if (!s.ok()) return Fail(DescribeRpcError(s, connection.address()));
   // Labels are free text from whoever submitted (an admin lists everyone's):
-  // no control characters reach the terminal, one job stays one line.
-  auto printable = [](std::string text) {
-    for (char& c : text) {
-      if (static_cast<unsigned char>(c) < 0x20 || c == 0x7f) c = '?';
-    }
-    return text;
-  };
+  // Printable.
   for (const v1::JobStatus& j : response.jobs()) {
     std::printf("%s  %-9s  %-8s %5.1f%%  %s\n", j.job_id().c_str(),
                 StateName(j.state()), j.progress().stage().c_str(),
-                j.progress().stage_percent(), printable(j.label()).c_str());
+                j.progress().stage_percent(), Printable(j.label()).c_str());
+    for (const std::string& line : DescribeJob(j)) {
+      std::printf("%s\n", line.c_str());
+    }
+    PrintDeliveries(j);
   }
   return 0;
 }

@@ -7,6 +7,7 @@
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "core/dicom/series_index.h"
 #include "job/wire.h"
 
 namespace interslice::job {
@@ -60,6 +61,15 @@ std::vector<std::string> InterpolationSummary(const JobReport& report,
     lines.push_back(absl::StrFormat("  surface   %d triangles, %d vertices",
                                     report.mesh_triangles,
                                     report.mesh_vertices));
+  }
+  if (report.dicom_mesh_adaptivity >= 0) {
+    lines.push_back(absl::StrFormat(
+        "  DICOM mesh %d triangles (adaptivity %g), %s %.3g mm (mean %.3g "
+        "mm) from the full surface",
+        report.dicom_mesh_triangles, report.dicom_mesh_adaptivity,
+        report.dicom_mesh_samples_beyond_band > 0 ? "at least" : "within",
+        report.dicom_mesh_max_deviation_mm,
+        report.dicom_mesh_mean_deviation_mm));
   }
   std::string timings;
   double total = 0;
@@ -285,6 +295,35 @@ std::string LabelNamesUploadPath(const std::string& client_name) {
     if (absl::EndsWith(lower, e)) extension = e;
   }
   return absl::StrCat(kSegmentationFolder, "/label-names", extension);
+}
+
+absl::StatusOr<SourceSeries> DescribeSourceSeries(
+    const std::string& upload_dir, const std::string& series_uid,
+    const ComputeContext& context) {
+  std::vector<std::string> files;
+  std::error_code ec;
+  for (const auto& entry : fs::directory_iterator(upload_dir, ec)) {
+    if (entry.is_regular_file(ec)) files.push_back(entry.path().string());
+  }
+  if (ec) return absl::NotFoundError("cannot list the job's files");
+  std::sort(files.begin(), files.end());
+  absl::StatusOr<DicomFileIndex> index = IndexDicomFiles(files, context);
+  if (!index.ok()) return index.status();
+  absl::StatusOr<const DicomSeriesGroup*> series =
+      FindDicomSeries(*index, series_uid);
+  if (!series.ok()) return series.status();
+  SourceSeries source;
+  source.series_instance_uid = (*series)->summary.series_instance_uid;
+  source.modality = (*series)->summary.modality;
+  source.instance_count = (*series)->summary.image_count;
+  for (size_t member : (*series)->members) {
+    const std::string& study = index->headers[member].study_uid;
+    if (!study.empty()) {
+      source.study_instance_uid = study;
+      break;
+    }
+  }
+  return source;
 }
 
 std::string MediaTypeForArtifact(const std::string& name) {

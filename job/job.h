@@ -118,6 +118,26 @@ std::string SegmentationUploadPath(const std::string& client_name);
 // any other).
 std::string LabelNamesUploadPath(const std::string& client_name);
 
+// The series a job reads, from its files' headers (never pixel data), for
+// a job's status. Carries UIDs: for the job's owner, never for logs.
+struct SourceSeries {
+  std::string study_instance_uid;
+  std::string series_instance_uid;  // or "no-uid-N" (core/dicom)
+  std::string modality;
+  // Files of the series (a multi-frame instance counts once).
+  int64_t instance_count = 0;
+};
+
+// The series at the top level of `upload_dir` (where UseSpool reads a job's
+// series) that `series_uid` names (JobSpec.series_instance_uid; empty = the
+// only one): the reader's own choice (core/dicom/series_index.h
+// FindDicomSeries), so that it is the series the job reads. Its errors
+// (NOT_FOUND, FAILED_PRECONDITION) when the folder holds none, several or
+// not that one; the job's own read then says the same.
+absl::StatusOr<SourceSeries> DescribeSourceSeries(
+    const std::string& upload_dir, const std::string& series_uid,
+    const ComputeContext& context);
+
 // "distance"/"mask"/... file name -> its media type (application/dicom,
 // model/stl, ...).
 std::string MediaTypeForArtifact(const std::string& file_name);

@@ -87,6 +87,9 @@ struct InterpolationOptions {
   std::string multiframe_volume;
   std::optional<double> band;
   double adaptivity = 0;
+  // The Encapsulated STL's own adaptivity; unset: the core's default
+  // (core/pipeline kDefaultDicomMeshAdaptivity).
+  std::optional<double> dicom_mesh_adaptivity;
   std::string mesh = "stl";
   std::string volume = "nii";
   // Previews (core/pipeline JobSpec::preview_formats): PNG by default, on

@@ -206,6 +206,7 @@ v1::JobSpec ToWire(const JobSpec& spec) {
     p.mutable_derived_series()->set_series_number(spec.series_number_base);
   }
   p.set_multiframe_volume(spec.multiframe_volume);
+  p.set_dicom_mesh_adaptivity(spec.dicom_mesh_adaptivity);
   if (spec.dicom_compression == "rle") {
     p.mutable_derived_series()->set_pixel_compression(
         v1::DICOM_PIXEL_COMPRESSION_RLE_LOSSLESS);
@@ -309,6 +310,9 @@ absl::StatusOr<InterpolationOptions> InterpolationOptionsFromWire(
   o.segment_label = p.segmentation().segment_label();
   o.segment_code = p.segmentation().segment_code();
   o.multiframe_volume = p.multiframe_volume();
+  if (p.has_dicom_mesh_adaptivity()) {
+    o.dicom_mesh_adaptivity = p.dicom_mesh_adaptivity();
+  }
   if (p.has_outputs()) {
     absl::StatusOr<std::string> volume =
         FormatNames(p.outputs().volume_formats(), kVolumeFormats, "volume");
@@ -331,6 +335,9 @@ absl::StatusOr<FillJobOptions> FillOptionsFromWire(const v1::JobSpec& p) {
   if (p.strict_spacing()) return NotForFill("strict_spacing");
   if (p.slab_deconvolution()) return NotForFill("slab_deconvolution");
   if (!p.multiframe_volume().empty()) return NotForFill("multiframe_volume");
+  if (p.has_dicom_mesh_adaptivity()) {
+    return NotForFill("dicom_mesh_adaptivity");
+  }
   if (p.derived_series().ByteSizeLong() > 0) {
     return NotForFill("derived_series");
   }

@@ -4,13 +4,16 @@
 
 #include <algorithm>
 #include <filesystem>
+#include <fstream>
 #include <random>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "absl/strings/strip.h"
 #include "core/common/sha256.h"
 #include "job/job.h"
 #include "job/wire.h"
+#include "nlohmann/json.hpp"
 #include "server/audit.h"
 #include "server/dicom/delivery.h"
 #include "server/dicom/retrieve.h"
@@ -133,12 +136,58 @@ absl::StatusOr<std::vector<v1::ArtifactInfo>> DescribeArtifacts(
   return artifacts;
 }
 
+// The structured origin of a job the DICOM listener made, whose origin text
+// is "dicom:<calling AE>-><called AE> rule <name>" (JobStatus.origin). AE
+// titles may hold "->" or " rule ": the titles the listener wrote beside
+// the series' files (origin.json) take precedence when the text starts with
+// them; else the first "->" and the first " rule " after it split the text.
+v1::JobOrigin DicomOrigin(const std::string& text,
+                          const std::string& files_dir) {
+  v1::JobOrigin origin;
+  origin.set_door(v1::JobOrigin::DICOM);
+  absl::string_view rest(text);
+  if (!absl::ConsumePrefix(&rest, "dicom:")) return origin;
+  std::ifstream file(fs::path(files_dir) / "origin.json");
+  const nlohmann::json written = nlohmann::json::parse(file, nullptr, false);
+  if (written.is_object()) {
+    const std::string calling = written.value("calling_ae", "");
+    const std::string called = written.value("called_ae", "");
+    absl::string_view after = rest;
+    if (absl::ConsumePrefix(&after,
+                            absl::StrCat(calling, "->", called, " rule "))) {
+      origin.set_calling_ae(calling);
+      origin.set_called_ae(called);
+      origin.set_rule(std::string(after));
+      return origin;
+    }
+  }
+  const size_t arrow = rest.find("->");
+  const size_t rule =
+      arrow == absl::string_view::npos ? arrow : rest.find(" rule ", arrow + 2);
+  if (rule == absl::string_view::npos) return origin;
+  origin.set_calling_ae(std::string(rest.substr(0, arrow)));
+  origin.set_called_ae(std::string(rest.substr(arrow + 2, rule - arrow - 2)));
+  origin.set_rule(std::string(rest.substr(rule + 6)));
+  return origin;
+}
+
 }  // namespace
 
 int64_t UnixMillisNow() {
   return std::chrono::duration_cast<std::chrono::milliseconds>(
              std::chrono::system_clock::now().time_since_epoch())
       .count();
+}
+
+void JobManager::RecordSource(Job& job, const job::SourceSeries& source) {
+  job.Update([&source](JobRecord& r) {
+    v1::JobStatus* s = r.mutable_status();
+    s->set_modality(source.modality);
+    s->set_instance_count(static_cast<int32_t>(
+        std::min<int64_t>(source.instance_count, INT32_MAX)));
+    s->set_study_instance_uid(source.study_instance_uid);
+    s->set_series_instance_uid(source.series_instance_uid);
+  });
 }
 
 v1::JobStatus Job::Snapshot(bool with_report) const {
@@ -413,6 +462,10 @@ absl::StatusOr<std::shared_ptr<Job>> JobManager::Admit(
   r.mutable_status()->set_sequence(1);
   r.mutable_status()->set_created_unix_ms(UnixMillisNow());
   r.mutable_status()->set_label(header.options().label());
+  v1::JobOrigin* source = r.mutable_status()->mutable_source();
+  source->set_door(v1::JobOrigin::GRPC);
+  source->set_client(owner);
+  source->set_pacs_peer(header.spec().pacs_source().peer());
   *r.mutable_spec() = header.spec();
   *r.mutable_options() = header.options();
   r.set_ephemeral(ephemeral);
@@ -556,8 +609,11 @@ absl::StatusOr<std::string> JobManager::SubmitLocalFiles(
           "cannot place a received file into a job's upload folder");
     }
   }
-  (*job)->Update(
-      [&origin](JobRecord& r) { r.mutable_status()->set_origin(origin); });
+  const v1::JobOrigin source = DicomOrigin(origin, files_dir);
+  (*job)->Update([&origin, &source](JobRecord& r) {
+    r.mutable_status()->set_origin(origin);
+    *r.mutable_status()->mutable_source() = source;
+  });
   if (absl::Status s = Enqueue(*job); !s.ok()) {
     Abandon(*job);
     return s;
@@ -977,8 +1033,9 @@ absl::StatusOr<job::JobResult> JobManager::Execute(
     request.set_threads(options_.threads_per_job);
     request.set_server_pid(::getpid());
     WorkerOutcome outcome;
-    absl::StatusOr<job::JobResult> result =
-        RunInWorkerProcess(request, context, options_.worker, &outcome);
+    absl::StatusOr<job::JobResult> result = RunInWorkerProcess(
+        request, context, options_.worker, &outcome,
+        [job](const job::SourceSeries& source) { RecordSource(*job, source); });
     if (outcome.crashed) {
       spdlog::error(
           "job={} worker process crashed (signal {}) during stage {}; the "
@@ -992,6 +1049,14 @@ absl::StatusOr<job::JobResult> JobManager::Execute(
           work.UseSpool(upload_dir, output_dir, options_.max_output_voxels);
       !s.ok()) {
     return s;
+  }
+  // As the worker process does (job_worker.cc): which series, for the
+  // status; the job's own read reports a folder without one.
+  if (absl::StatusOr<job::SourceSeries> source = job::DescribeSourceSeries(
+          upload_dir, wire.series_instance_uid(),
+          ComputeContext{.threads = context.threads, .cancel = context.cancel});
+      source.ok()) {
+    RecordSource(*job, *source);
   }
   return work.Run(context);
 }

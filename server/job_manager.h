@@ -228,6 +228,8 @@ class JobManager {
   absl::Status Publish(const std::shared_ptr<Job>& job,
                        const job::JobResult& result, int64_t now,
                        int64_t expires);
+  // The series the job reads, into its status (JobStatus 18..21).
+  static void RecordSource(Job& job, const job::SourceSeries& source);
   void FailJob(const std::shared_ptr<Job>& job, const absl::Status& error,
                int64_t now, int64_t expires);
   void Persist(const std::shared_ptr<Job>& job);

@@ -119,7 +119,8 @@ void InjectFault(const Fault& fault, const std::string& stage,
 
 absl::StatusOr<job::JobResult> RunInWorkerProcess(
     const spool::v1::WorkerRequest& request, const ComputeContext& context,
-    const WorkerOptions& options, WorkerOutcome* outcome) {
+    const WorkerOptions& options, WorkerOutcome* outcome,
+    const std::function<void(const job::SourceSeries&)>& on_source) {
   WorkerOutcome local;
   WorkerOutcome& out = outcome != nullptr ? *outcome : local;
   out = WorkerOutcome{};
@@ -232,6 +233,12 @@ absl::StatusOr<job::JobResult> RunInWorkerProcess(
       } else if (event.has_result()) {
         result = event.result();
         have_result = true;
+      } else if (event.has_source() && on_source) {
+        const spool::v1::WorkerSource& w = event.source();
+        on_source({.study_instance_uid = w.study_instance_uid(),
+                   .series_instance_uid = w.series_instance_uid(),
+                   .modality = w.modality(),
+                   .instance_count = w.instance_count()});
       }
     }
   }
@@ -404,6 +411,21 @@ int RunJobWorker(int in_fd, int out_fd) {
     WriteFrame(protocol_fd, event);
     InjectFault(fault, e.stage, threshold);
   };
+  // Which series this is, for the job's status; a folder without one (or
+  // with several and no choice) is the job's own read's error to report.
+  if (absl::StatusOr<job::SourceSeries> source = job::DescribeSourceSeries(
+          request.input_dir(), request.spec().series_instance_uid(),
+          ComputeContext{.threads = request.threads(), .cancel = &token});
+      source.ok()) {
+    std::lock_guard<std::mutex> lock(protocol_mutex);
+    spool::v1::WorkerEvent event;
+    spool::v1::WorkerSource* w = event.mutable_source();
+    w->set_study_instance_uid(source->study_instance_uid);
+    w->set_series_instance_uid(source->series_instance_uid);
+    w->set_modality(source->modality);
+    w->set_instance_count(source->instance_count);
+    WriteFrame(protocol_fd, event);
+  }
   absl::StatusOr<job::JobResult> result = job.Run(context);
   if (!result.ok()) return finish(result.status(), {});
   return finish(absl::OkStatus(), *result);

@@ -21,6 +21,7 @@
 
 #include <chrono>
 #include <cstdint>
+#include <functional>
 #include <string>
 
 #include "absl/status/statusor.h"
@@ -54,9 +55,13 @@ struct WorkerOutcome {
 // "the job's worker process crashed (signal N, NAME) during stage S; ...";
 // one that cannot be started gives UNAVAILABLE. Blocking: call it from a
 // job worker thread.
+// `on_source` (may be null) is called with the series the job reads once
+// the worker has scanned its headers (before the job's own read), on this
+// thread.
 absl::StatusOr<job::JobResult> RunInWorkerProcess(
     const spool::v1::WorkerRequest& request, const ComputeContext& context,
-    const WorkerOptions& options, WorkerOutcome* outcome);
+    const WorkerOptions& options, WorkerOutcome* outcome,
+    const std::function<void(const job::SourceSeries&)>& on_source = nullptr);
 
 // The worker side: reads one WorkerRequest from `in_fd`, runs the job it
 // names (job/job.h MakeJobFromWire, on the request's folders) and writes its

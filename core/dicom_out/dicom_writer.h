@@ -50,12 +50,20 @@
 //   job on the same series (`run`, `fill`, a rerun) puts its objects in the
 //   same study and frame of reference; another series gets others.
 // - Series numbers: options.series_number_base, else 1000 x the source's
-//   SeriesNumber, else 9000; the intensity series gets base + 1, the distance
-//   map base + 2, the SEG base + 3, the Encapsulated STL mesh base + 4, a
-//   fill's RTSTRUCT base + 5 and the previews base + 6 (preview_series.h).
-//   A base that leaves no room for base + 6 in a DICOM IS (signed 32 bits)
-//   is INVALID_ARGUMENT; 1000 x a source number that does is replaced by
-//   9000.
+//   SeriesNumber (else 9000) + 10 x the parameter set's slot; the intensity
+//   series gets base + 1, the distance map base + 2, the SEG base + 3, the
+//   Encapsulated STL mesh base + 4, a fill's RTSTRUCT base + 5 and the
+//   previews base + 6 (preview_series.h). The slot (0..99) is the name-based
+//   UUID of options.parameter_set (uid.h DeriveDicomUid) modulo 100, so a
+//   rerun with the same parameters gets the same numbers (and, with the same
+//   derivation_key, the same UIDs: a PACS replaces the results), and another
+//   parameter set other numbers except with probability 1/100 (then the
+//   descriptions, and always the UIDs, still differ). Empty parameter_set
+//   or an explicit series_number_base: slot 0. A base that leaves no room
+//   for base + 6 in a DICOM IS (signed 32 bits) is INVALID_ARGUMENT; 1000 x
+//   a source number that does not is replaced by 9000.
+// - Series descriptions: the object ("interslice segmentation"), then ", "
+//   and options.parameter_summary when given, at most 64 characters (LO).
 // - Equipment (Manufacturer etc.) describes interslice, the creator of the
 //   derived objects, not the scanner.
 //
@@ -95,8 +103,15 @@ struct DicomWriteOptions {
   // get the same UIDs.
   std::string derivation_key;
   // First of the series numbers of the derived objects (see "Identity");
-  // <= 0 derives it from the source's SeriesNumber.
+  // <= 0 derives it from the source's SeriesNumber and parameter_set.
   int series_number_base = 0;
+  // Results of other parameters told apart (see "Identity"): the parameters
+  // that pick the series numbers' slot (the pipeline: method, thresholds,
+  // output grid, ...; empty = slot 0), and a short text of them for the
+  // series descriptions ("cg >=300 HU, 0.5 mm"; empty = none). Keep it
+  // within 38 characters and free of patient data.
+  std::string parameter_set;
+  std::string parameter_summary;
   // Start of DerivationDescription; the writer appends what the content is
   // (and, for intensity, the interpolator). Keep it free of patient data.
   std::string derivation_description =

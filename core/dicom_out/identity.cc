@@ -152,6 +152,26 @@ std::string ImageSopClass(const DicomSeries& source) {
   return UID_SecondaryCaptureImageStorage;
 }
 
+// Parameter sets per source series: 1000 numbers per source series, ten per
+// set (the objects use base + 1 ... base + 6).
+constexpr int64_t kParameterSlots = 100;
+constexpr int64_t kSlotStride = 10;
+
+// The parameter set's slot (dicom_writer.h, "Identity"): its name-based UUID
+// (decimal digits after "2.25.") modulo kParameterSlots.
+absl::StatusOr<int64_t> ParameterSlot(const std::string& parameter_set) {
+  if (parameter_set.empty()) return 0;
+  INTERSLICE_ASSIGN_OR_RETURN(
+      const std::string uid,
+      DeriveDicomUid(
+          "", absl::StrCat("interslice parameter set v1\n", parameter_set)));
+  int64_t slot = 0;
+  for (char c : uid.substr(uid.rfind('.') + 1)) {
+    slot = (slot * 10 + (c - '0')) % kParameterSlots;
+  }
+  return slot;
+}
+
 // The base of the derived series numbers (dicom_writer.h, "Identity"),
 // leaving room for the last of them, the previews (preview_series.h).
 absl::StatusOr<int64_t> SeriesNumberBase(DcmItem& header,
@@ -159,13 +179,17 @@ absl::StatusOr<int64_t> SeriesNumberBase(DcmItem& header,
   constexpr int64_t kLast = kPreviewSeriesNumberOffset;
   int64_t base = options.series_number_base;
   if (base <= 0) {
+    INTERSLICE_ASSIGN_OR_RETURN(const int64_t slot,
+                                ParameterSlot(options.parameter_set));
     const std::optional<int64_t> number = SourceSeriesNumber(header);
     base = kFallbackSeriesNumberBase;
     // IS holds a signed 32-bit value; 1000 x a huge source number would not.
     if (number.has_value() && *number > 0 &&
-        *number * 1000 + kLast <= std::numeric_limits<int32_t>::max()) {
+        *number * 1000 + (kParameterSlots - 1) * kSlotStride + kLast <=
+            std::numeric_limits<int32_t>::max()) {
       base = *number * 1000;
     }
+    base += slot * kSlotStride;
   }
   if (base + kLast > std::numeric_limits<int32_t>::max()) {
     return absl::InvalidArgumentError(absl::StrFormat(
@@ -188,6 +212,17 @@ absl::Status SetStudyAndFrame(const DicomSeries& source, const UidNamer& namer,
                                 namer.SourceUid("frame-of-reference"));
   }
   return absl::OkStatus();
+}
+
+// "<object>, <parameter summary>" (dicom_writer.h, "Identity"), or the
+// object alone without a summary; at most 64 characters (LO).
+std::string SeriesDescription(std::string_view object,
+                              const DicomWriteOptions& options) {
+  std::string text(object);
+  if (!options.parameter_summary.empty()) {
+    absl::StrAppend(&text, ", ", options.parameter_summary);
+  }
+  return text.substr(0, 64);
 }
 
 }  // namespace
@@ -228,7 +263,8 @@ absl::StatusOr<DerivedObjectIdentity> PlanPreviewSeries(
   }
   previews.series_number = static_cast<int>(base + kPreviewSeriesNumberOffset);
   previews.sop_class_uid = UID_SecondaryCaptureImageStorage;
-  previews.series_description = "interslice previews";
+  previews.series_description =
+      SeriesDescription("interslice previews", options);
   return previews;
 }
 
@@ -267,7 +303,10 @@ absl::StatusOr<DerivedObjects> PlanDerivedObjects(
   }
   intensity.series_number = static_cast<int>(base + 1);
   intensity.sop_class_uid = ImageSopClass(source);
-  intensity.series_description = "interslice resampled intensity";
+  intensity.series_description = SeriesDescription(
+      options.parameter_summary.empty() ? "interslice resampled intensity"
+                                        : "interslice intensity",
+      options);
 
   DerivedObjectIdentity& distance = objects.distance_map;
   INTERSLICE_ASSIGN_OR_RETURN(distance.series_instance_uid,
@@ -279,7 +318,10 @@ absl::StatusOr<DerivedObjects> PlanDerivedObjects(
                               namer.Uid("distance/dimensions"));
   distance.series_number = static_cast<int>(base + 2);
   distance.sop_class_uid = UID_ParametricMapStorage;
-  distance.series_description = "interslice signed distance (mm)";
+  distance.series_description = SeriesDescription(
+      options.parameter_summary.empty() ? "interslice signed distance (mm)"
+                                        : "interslice distance (mm)",
+      options);
 
   DerivedObjectIdentity& seg = objects.segmentation;
   INTERSLICE_ASSIGN_OR_RETURN(seg.series_instance_uid, namer.Uid("seg/series"));
@@ -289,7 +331,8 @@ absl::StatusOr<DerivedObjects> PlanDerivedObjects(
                               namer.Uid("seg/dimensions"));
   seg.series_number = static_cast<int>(base + 3);
   seg.sop_class_uid = UID_SegmentationStorage;
-  seg.series_description = "interslice segmentation";
+  seg.series_description =
+      SeriesDescription("interslice segmentation", options);
 
   DerivedObjectIdentity& stl = objects.surface_stl;
   INTERSLICE_ASSIGN_OR_RETURN(stl.series_instance_uid,
@@ -299,7 +342,10 @@ absl::StatusOr<DerivedObjects> PlanDerivedObjects(
   stl.sop_instance_uids = {stl_uid};
   stl.series_number = static_cast<int>(base + 4);
   stl.sop_class_uid = UID_EncapsulatedSTLStorage;
-  stl.series_description = "interslice surface mesh (STL)";
+  stl.series_description = SeriesDescription(
+      options.parameter_summary.empty() ? "interslice surface mesh (STL)"
+                                        : "interslice mesh (STL)",
+      options);
   return objects;
 }
 

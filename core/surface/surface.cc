@@ -1,6 +1,8 @@
 #include "core/surface/surface.h"
 
 #include <openvdb/openvdb.h>
+#include <openvdb/tools/Interpolation.h>
+#include <openvdb/tools/MeshToVolume.h>
 #include <openvdb/tools/VolumeToMesh.h>
 #include <tbb/task_arena.h>
 
@@ -192,6 +194,86 @@ absl::StatusOr<Mesh> ExtractSurface(const Volume<float>& field,
   for (const auto& t : triangles) add(t[0], t[1], t[2]);
   context.Report({.stage = "mesh", .fraction = 1.0});
   return mesh;
+}
+
+absl::StatusOr<MeshDeviation> MeasureMeshDeviation(
+    const Mesh& simplified, const Mesh& reference, double resolution_mm,
+    const ComputeContext& context) {
+  if (!(resolution_mm > 0) || !std::isfinite(resolution_mm)) {
+    return absl::InvalidArgumentError(
+        "mesh deviation resolution must be a positive number of mm");
+  }
+  MeshDeviation deviation;
+  deviation.resolution_mm = resolution_mm;
+  if (simplified.triangles.empty()) return deviation;
+  if (reference.triangles.empty()) {
+    return absl::InvalidArgumentError(
+        "the reference mesh is empty but the simplified mesh is not");
+  }
+  INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
+  surface_internal::InitializeOpenVdb();
+  const float band_voxels =
+      static_cast<float>(std::max(8.0, std::ceil(2.0 / resolution_mm)));
+  deviation.band_mm = band_voxels * resolution_mm;
+  std::vector<openvdb::Vec3s> points;
+  points.reserve(reference.vertices.size());
+  for (const auto& v : reference.vertices)
+    points.emplace_back(v[0], v[1], v[2]);
+  std::vector<openvdb::Vec3I> triangles;
+  triangles.reserve(reference.triangles.size());
+  for (const auto& t : reference.triangles) {
+    triangles.emplace_back(t[0], t[1], t[2]);
+  }
+  absl::Status status;
+  double sum = 0;
+  tbb::task_arena arena(context.threads > 0 ? context.threads
+                                            : tbb::task_arena::automatic);
+  arena.execute([&] {
+    try {
+      const openvdb::math::Transform::Ptr transform =
+          openvdb::math::Transform::createLinearTransform(resolution_mm);
+      const openvdb::FloatGrid::Ptr distance =
+          openvdb::tools::meshToUnsignedDistanceField<openvdb::FloatGrid>(
+              *transform, points, triangles, {}, band_voxels);
+      status = context.CheckCancelled();
+      if (!status.ok()) return;
+      const openvdb::tools::GridSampler<openvdb::FloatGrid,
+                                        openvdb::tools::BoxSampler>
+          sampler(*distance);
+      auto sample = [&](const openvdb::Vec3d& p) {
+        double d = sampler.wsSample(p);
+        // Inactive voxels hold the background, the band's width.
+        if (d >= deviation.band_mm * (1 - 1e-6)) {
+          d = deviation.band_mm;
+          ++deviation.beyond_band;
+        }
+        deviation.max_mm = std::max(deviation.max_mm, d);
+        sum += d;
+        ++deviation.samples;
+      };
+      for (const auto& t : simplified.triangles) {
+        openvdb::Vec3d corner[3];
+        for (int k = 0; k < 3; ++k) {
+          const auto& v = simplified.vertices[t[k]];
+          corner[k] = openvdb::Vec3d(v[0], v[1], v[2]);
+        }
+        // Each vertex and edge is sampled once per triangle that has it:
+        // the maximum does not mind, the mean weighs them a little more.
+        for (int k = 0; k < 3; ++k) {
+          sample(corner[k]);
+          sample(0.5 * (corner[k] + corner[(k + 1) % 3]));
+        }
+        sample((corner[0] + corner[1] + corner[2]) / 3.0);
+      }
+    } catch (const std::exception& e) {
+      status = absl::InternalError(
+          absl::StrCat("mesh deviation measurement failed: ", e.what()));
+    }
+  });
+  INTERSLICE_RETURN_IF_ERROR(status);
+  INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
+  deviation.mean_mm = sum / static_cast<double>(deviation.samples);
+  return deviation;
 }
 
 absl::Status WriteStl(const Mesh& mesh, const std::string& path) {

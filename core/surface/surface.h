@@ -43,6 +43,37 @@ absl::StatusOr<Mesh> ExtractSurface(const Volume<float>& field,
                                     const SurfaceOptions& options,
                                     const ComputeContext& context);
 
+// How far a simplified mesh (ExtractSurface with adaptivity > 0) lies from
+// the reference mesh of the same field (adaptivity 0), mm.
+struct MeshDeviation {
+  // Largest and mean distance from the simplified mesh's sample points (its
+  // vertices, edge midpoints and triangle centroids) to the reference
+  // surface: a one-sided Hausdorff distance sampled at those points.
+  double max_mm = 0;
+  double mean_mm = 0;
+  int64_t samples = 0;
+  // The distance grid's voxel size and band (see MeasureMeshDeviation), and
+  // the samples found at or beyond the band: their distance is only known
+  // to be at least band_mm (max_mm is then band_mm, a lower bound).
+  double resolution_mm = 0;
+  double band_mm = 0;
+  int64_t beyond_band = 0;
+};
+
+// The distances are exact point-to-triangle distances of the reference at
+// the voxel centres of an OpenVDB unsigned distance grid of voxel
+// `resolution_mm` (tools::meshToUnsignedDistanceField), trilinearly
+// interpolated at each sample: within about resolution_mm / 2 of the true
+// distance, erring high next to the surface (the distance is convex there).
+// The grid covers the band within max(2 mm, 8 voxels) of the reference;
+// samples farther away are counted in beyond_band.
+// INVALID_ARGUMENT for resolution_mm <= 0 or an empty reference with a
+// non-empty simplified mesh; an empty simplified mesh gives zeros.
+// Cancellation: polled before and after the distance grid.
+absl::StatusOr<MeshDeviation> MeasureMeshDeviation(
+    const Mesh& simplified, const Mesh& reference, double resolution_mm,
+    const ComputeContext& context);
+
 // Writers. Files are written in full or not at all (temporary + rename);
 // errors name the path. Binary little-endian STL and PLY; OBJ is text.
 absl::Status WriteStl(const Mesh& mesh, const std::string& path);

@@ -14,6 +14,7 @@
 #include <string>
 #include <vector>
 
+#include "absl/strings/str_format.h"
 #include "core/dicom/series_reader.h"
 #include "core/volume_io/volume_io.h"
 #include "gmock/gmock.h"
@@ -281,17 +282,26 @@ TEST_F(DicomOutputTest, ShippedPhantomObjectsValidateAndLieOnTheReportGrid) {
   ASSERT_EQ(count_floats, distance->data.size());
   EXPECT_TRUE(std::equal(distance->data.begin(), distance->data.end(), floats));
 
-  // Series numbers from the source's (201) and descriptions that say what
-  // each object holds.
+  // Series numbers from the source's (201 x 1000, + 10 x the parameter
+  // set's slot, + the object) and descriptions that say what each object
+  // holds and with which parameters (docs/dicom-output.md).
   DcmFileFormat first;
   ASSERT_TRUE(first.loadFile(OFFilename(files.front().c_str())).good());
-  EXPECT_EQ(GetString(*first.getDataset(), DCM_SeriesNumber), "201001");
-  EXPECT_EQ(GetString(*pmap.getDataset(), DCM_SeriesNumber), "201002");
-  EXPECT_THAT(GetString(*pmap.getDataset(), DCM_SeriesDescription),
-              HasSubstr("distance"));
+  const int intensity_number =
+      std::stoi(GetString(*first.getDataset(), DCM_SeriesNumber));
+  EXPECT_EQ(intensity_number / 1000, 201);
+  EXPECT_EQ(intensity_number % 10, 1);
+  EXPECT_EQ(GetString(*pmap.getDataset(), DCM_SeriesNumber),
+            std::to_string(intensity_number + 1));
+  EXPECT_EQ(
+      GetString(*pmap.getDataset(), DCM_SeriesDescription),
+      "interslice distance (mm), direct >=300 HU, " +
+          absl::StrFormat("%.3g", report["grid"]["spacing"][2].get<double>()) +
+          " mm");
   DcmFileFormat seg;
   ASSERT_TRUE(seg.loadFile(OFFilename((out / "seg.dcm").c_str())).good());
-  EXPECT_EQ(GetString(*seg.getDataset(), DCM_SeriesNumber), "201003");
+  EXPECT_EQ(GetString(*seg.getDataset(), DCM_SeriesNumber),
+            std::to_string(intensity_number + 2));
   EXPECT_EQ(GetString(*seg.getDataset(), DCM_SOPClassUID),
             "1.2.840.10008.5.1.4.1.1.66.4");
   EXPECT_EQ(GetString(*pmap.getDataset(), DCM_SOPClassUID),
@@ -645,6 +655,8 @@ TEST_F(DicomOutputTest, AnonymisedSourceGivesValidObjectsThatBelongTogether) {
 // The same job twice gives the same UIDs (a PACS replaces instead of
 // duplicating); --random-uids gives new ones.
 TEST_F(DicomOutputTest, RerunKeepsUidsAndRandomUidsDoNot) {
+  // UIDs, then "series number | series description" of each object.
+  std::map<std::string, std::vector<std::string>> series_of;
   auto run = [&](const std::string& name, const std::string& extra) {
     const fs::path out = dir_ / name;
     const CommandResult r =
@@ -661,6 +673,9 @@ TEST_F(DicomOutputTest, RerunKeepsUidsAndRandomUidsDoNot) {
       EXPECT_TRUE(file.loadFile(OFFilename(f.c_str())).good()) << f;
       uids.push_back(GetString(*file.getDataset(), DCM_SOPInstanceUID));
       uids.push_back(GetString(*file.getDataset(), DCM_SeriesInstanceUID));
+      series_of[name].push_back(
+          GetString(*file.getDataset(), DCM_SeriesNumber) + " | " +
+          GetString(*file.getDataset(), DCM_SeriesDescription));
     }
     return uids;
   };
@@ -670,6 +685,26 @@ TEST_F(DicomOutputTest, RerunKeepsUidsAndRandomUidsDoNot) {
   EXPECT_EQ(first, again);
   const std::vector<std::string> other_job = run("other", "--threshold 400");
   EXPECT_NE(first[0], other_job[0]);
+
+  // Results of other parameters are told apart in the study: thresholds 250
+  // and 300 give other series numbers and descriptions for every object; a
+  // rerun of 300 the same ones (so the PACS replaces them).
+  run("t250", "--threshold 250");
+  const std::vector<std::string>& t300 = series_of["first"];
+  ASSERT_EQ(t300.size(), 3u);
+  EXPECT_EQ(series_of["again"], t300);
+  EXPECT_EQ(t300[0].substr(0, t300[0].find(' ')).size(), 6u) << t300[0];
+  EXPECT_THAT(t300[0],
+              HasSubstr("| interslice segmentation, linear >=300 HU, "));
+  EXPECT_THAT(t300[1], HasSubstr("| interslice intensity, linear >=300 HU, "));
+  for (size_t k = 0; k < t300.size(); ++k) {
+    const std::string& a = t300[k];
+    const std::string& b = series_of["t250"][k];
+    EXPECT_NE(a.substr(0, a.find(' ')), b.substr(0, b.find(' ')))
+        << a << " vs " << b;
+    EXPECT_NE(a.substr(a.find('|')), b.substr(b.find('|')));
+    EXPECT_THAT(b, HasSubstr(">=250 HU"));
+  }
   const std::vector<std::string> random1 =
       run("random1", "--threshold 300 --random-uids");
   const std::vector<std::string> random2 =
@@ -678,6 +713,57 @@ TEST_F(DicomOutputTest, RerunKeepsUidsAndRandomUidsDoNot) {
     EXPECT_NE(random1[i], first[i]);
     EXPECT_NE(random1[i], random2[i]);
   }
+}
+
+// --dicom-mesh-adaptivity simplifies only the mesh stored as Encapsulated
+// STL, and the report says how far it lies from the full surface.
+TEST_F(DicomOutputTest, DicomMeshAdaptivitySimplifiesTheEncapsulatedStlOnly) {
+  auto run = [&](const std::string& name, const std::string& extra) {
+    const fs::path out = dir_ / name;
+    const CommandResult r = RunCli(
+        "run " + kPhantom.string() +
+        " --threshold 300 --roi 200,60,0,300,160,28 --method linear --quiet "
+        "--volume none --mesh stl --previews none --seg --out " +
+        out.string() + " --report " + (out / "report.json").string() + " " +
+        extra);
+    EXPECT_EQ(r.exit_code, 0) << r.out;
+    return ReadJson(out / "report.json");
+  };
+  const nlohmann::json full = run("full", "");
+  const nlohmann::json simple = run("simple", "--dicom-mesh-adaptivity 1");
+  // surface.stl is the same full mesh in both.
+  EXPECT_EQ(fs::file_size(dir_ / "full/surface.stl"),
+            fs::file_size(dir_ / "simple/surface.stl"));
+  const int64_t triangles = full["mesh"]["triangles"].get<int64_t>();
+  EXPECT_EQ(full["dicom_mesh"]["triangles"].get<int64_t>(), triangles);
+  EXPECT_EQ(full["dicom_mesh"]["max_deviation_mm"].get<double>(), 0);
+  const int64_t simplified = simple["dicom_mesh"]["triangles"].get<int64_t>();
+  EXPECT_LT(simplified, triangles / 2);
+  EXPECT_GT(simple["dicom_mesh"]["max_deviation_mm"].get<double>(), 0);
+  EXPECT_LT(simple["dicom_mesh"]["max_deviation_mm"].get<double>(), 5);
+  EXPECT_EQ(simple["dicom_mesh"]["samples_beyond_band"].get<int64_t>(), 0);
+  // The Encapsulated STL embeds the simplified mesh (binary STL: 84 + 50
+  // bytes per triangle), and no temporary file is left.
+  for (const auto& [name, count] :
+       {std::pair<std::string, int64_t>{"full", triangles},
+        {"simple", simplified}}) {
+    DcmFileFormat file;
+    ASSERT_TRUE(
+        file.loadFile(OFFilename((dir_ / name / "surface-stl.dcm").c_str()))
+            .good());
+    Uint32 length = 0;
+    ASSERT_TRUE(file.getDataset()
+                    ->findAndGetUint32(DCM_EncapsulatedDocumentLength, length)
+                    .good());
+    EXPECT_EQ(static_cast<int64_t>(length), 84 + 50 * count) << name;
+    EXPECT_FALSE(fs::exists(dir_ / name / ".surface-dicom.stl"));
+  }
+  const CommandResult bad =
+      RunCli("run " + kPhantom.string() +
+             " --threshold 300 --dicom-mesh-adaptivity 1.5 --out " +
+             (dir_ / "bad").string());
+  EXPECT_EQ(bad.exit_code, 1);
+  EXPECT_THAT(bad.out, HasSubstr("dicom-mesh-adaptivity"));
 }
 
 }  // namespace

@@ -14,6 +14,7 @@
 #include <thread>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "client/remote_commands.h"
 #include "core/dicom/series_reader.h"
 #include "dcmtk/config/osconfig.h"
@@ -1454,6 +1455,104 @@ TEST(ServerTest, JobsBelongToTheirSubmitter) {
               HasSubstr("no such job"));
   EXPECT_THAT(as("alice", {"list", "--all"}).out, HasSubstr(id));
   EXPECT_EQ(as("alice", {"watch", id, "--quiet"}).exit_code, 0);
+}
+
+// List and Watch say where a job came from, which series it reads and when
+// it ran; the UIDs reach the owner and admins only, never the log.
+TEST(ServerTest, ListAndWatchShowOriginSeriesAndTimes) {
+  TempDir dir;
+  std::ofstream(dir / "tokens") << "alice:tok-alice\nbob:tok-bob\n";
+  std::ofstream(dir / "alice") << "tok-alice\n";
+  ServerProcess server({.spool = dir / "spool",
+                        .log = dir / "server.log",
+                        .extra = {"--auth-token-file", dir / "tokens"}});
+  ASSERT_TRUE(server.Start());
+  CommandResult submit =
+      Cli(Cat(Cat({"submit"}, kSmallJob),
+              Cat({"--token-file", dir / "alice"}, server.ServerFlag())));
+  ASSERT_EQ(submit.exit_code, 0) << submit.err;
+  const std::string id = Trim(submit.out);
+  const v1::JobStatus done = WatchUntil(server, id, Ended, "tok-alice");
+  ASSERT_EQ(done.state(), v1::JOB_STATE_SUCCEEDED) << done.error_message();
+
+  // The series as its files say.
+  std::string study, series;
+  int files = 0;
+  for (const auto& e : fs::directory_iterator(kSeries)) {
+    if (e.path().extension() != ".dcm") continue;
+    ++files;
+    DcmFileFormat file;
+    ASSERT_TRUE(file.loadFile(OFFilename(e.path().c_str())).good());
+    OFString value;
+    file.getDataset()->findAndGetOFString(DCM_StudyInstanceUID, value);
+    study = value.c_str();
+    file.getDataset()->findAndGetOFString(DCM_SeriesInstanceUID, value);
+    series = value.c_str();
+  }
+  ASSERT_GT(files, 1);
+  ASSERT_FALSE(series.empty());
+
+  // Watch (the stub), then List, as the owner.
+  EXPECT_EQ(done.source().door(), v1::JobOrigin::GRPC);
+  EXPECT_EQ(done.source().client(), "alice");
+  EXPECT_EQ(done.modality(), "CT");
+  EXPECT_EQ(done.instance_count(), files);
+  EXPECT_EQ(done.study_instance_uid(), study);
+  EXPECT_EQ(done.series_instance_uid(), series);
+  EXPECT_GT(done.started_unix_ms(), 0);
+  EXPECT_GE(done.finished_unix_ms(), done.started_unix_ms());
+  {
+    auto stub = Stub(server);
+    grpc::ClientContext context;
+    context.AddMetadata("authorization", "Bearer tok-alice");
+    v1::ListRequest request;
+    request.set_include_finished(true);
+    v1::ListResponse response;
+    ASSERT_TRUE(stub->List(&context, request, &response).ok());
+    ASSERT_EQ(response.jobs_size(), 1);
+    EXPECT_EQ(response.jobs(0).series_instance_uid(), series);
+    EXPECT_EQ(response.jobs(0).instance_count(), files);
+    EXPECT_EQ(response.jobs(0).source().client(), "alice");
+  }
+  // Another identity sees neither the job nor its series.
+  {
+    auto stub = Stub(server);
+    grpc::ClientContext context;
+    context.AddMetadata("authorization", "Bearer tok-bob");
+    v1::ListRequest request;
+    request.set_include_finished(true);
+    v1::ListResponse response;
+    ASSERT_TRUE(stub->List(&context, request, &response).ok());
+    EXPECT_EQ(response.jobs_size(), 0);
+  }
+
+  // The CLI shows it.
+  const std::vector<std::string> as_alice =
+      Cat({"--token-file", dir / "alice"}, server.ServerFlag());
+  CommandResult list = Cli(Cat({"list", "--all"}, as_alice));
+  ASSERT_EQ(list.exit_code, 0) << list.err;
+  EXPECT_THAT(list.out, HasSubstr("origin    client alice\n"));
+  EXPECT_THAT(list.out, HasSubstr(absl::StrFormat(
+                            "input     CT, %d instance(s)\n", files)));
+  EXPECT_THAT(list.out, HasSubstr("study     " + study + "\n"));
+  EXPECT_THAT(list.out, HasSubstr("series    " + series + "\n"));
+  EXPECT_THAT(list.out, ::testing::ContainsRegex(
+                            "times     created 20[0-9-]+ [0-9:]+Z, started "
+                            "20[0-9-]+ [0-9:]+Z, finished 20[0-9-]+ [0-9:]+Z"));
+  CommandResult watch = Cli(Cat({"watch", id}, as_alice));
+  ASSERT_EQ(watch.exit_code, 0) << watch.err;
+  EXPECT_THAT(watch.out, HasSubstr("series    " + series + "\n"));
+
+  // Still there after a restart (the spool record).
+  server.Kill();
+  ASSERT_TRUE(server.Start());
+  EXPECT_THAT(Cli(Cat({"list", "--all", "--token-file", dir / "alice"},
+                      server.ServerFlag()))
+                  .out,
+              HasSubstr("series    " + series + "\n"));
+  // Never in the log.
+  EXPECT_THAT(server.Log(), Not(HasSubstr(series)));
+  EXPECT_THAT(server.Log(), Not(HasSubstr(study)));
 }
 
 TEST(ServerTest, UnreachableServerIsOneLineAndExitOne) {

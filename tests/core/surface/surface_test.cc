@@ -1,5 +1,6 @@
 #include "core/surface/surface.h"
 
+#include <algorithm>
 #include <array>
 #include <chrono>
 #include <cmath>
@@ -297,6 +298,75 @@ TEST(ExtractSurfaceTest, AdaptivityMergesTrianglesAndStaysClosed) {
   EXPECT_GT(ratio, 0.78);
   EXPECT_LT(ratio, 1.0);
   EXPECT_LT(MaxRadialError(*coarse, centre, radius), 0.6 * 0.8);
+}
+
+// The deviation of a simplified sphere from the full one agrees with the
+// analytic distance of the same sample points to the sphere; a mesh against
+// itself deviates by (almost) nothing, one shifted by 1 mm by 1 mm.
+TEST(MeasureMeshDeviationTest, AgreesWithTheAnalyticDistanceToASphere) {
+  const Grid grid = ObliqueGrid();
+  const Vec3 centre = GridCentre(grid);
+  const double radius = 8.0;
+  const Volume<float> field = SphereField(grid, centre, radius);
+  absl::StatusOr<Mesh> fine = ExtractSurface(field, {}, {});
+  SurfaceOptions options;
+  options.adaptivity = 0.5;
+  absl::StatusOr<Mesh> coarse = ExtractSurface(field, options, {});
+  ASSERT_TRUE(fine.ok() && coarse.ok());
+  const double resolution = 0.2;
+  absl::StatusOr<MeshDeviation> deviation =
+      MeasureMeshDeviation(*coarse, *fine, resolution, {});
+  ASSERT_TRUE(deviation.ok()) << deviation.status();
+  // The same samples (vertices, edge midpoints, centroids), measured to the
+  // exact sphere.
+  double analytic = 0;
+  auto distance = [&](double x, double y, double z) {
+    return std::abs(std::hypot(x - centre[0], y - centre[1], z - centre[2]) -
+                    radius);
+  };
+  for (const auto& t : coarse->triangles) {
+    const auto& a = coarse->vertices[t[0]];
+    const auto& b = coarse->vertices[t[1]];
+    const auto& c = coarse->vertices[t[2]];
+    analytic = std::max(
+        {analytic, distance(a[0], a[1], a[2]),
+         distance((a[0] + b[0]) / 2, (a[1] + b[1]) / 2, (a[2] + b[2]) / 2),
+         distance((a[0] + b[0] + c[0]) / 3, (a[1] + b[1] + c[1]) / 3,
+                  (a[2] + b[2] + c[2]) / 3)});
+  }
+  // The full mesh is itself within ~0.05 mm of the sphere (chords of 0.5 mm
+  // voxels), and the grid within half a voxel.
+  EXPECT_GT(analytic, 0.3);
+  EXPECT_NEAR(deviation->max_mm, analytic, resolution / 2 + 0.06);
+  EXPECT_GT(deviation->mean_mm, 0);
+  EXPECT_LT(deviation->mean_mm, deviation->max_mm);
+  EXPECT_EQ(deviation->samples,
+            static_cast<int64_t>(7 * coarse->triangles.size()));
+
+  absl::StatusOr<MeshDeviation> same =
+      MeasureMeshDeviation(*fine, *fine, resolution, {});
+  ASSERT_TRUE(same.ok());
+  EXPECT_LT(same->max_mm, resolution / 2);
+
+  Mesh shifted = *fine;
+  for (auto& v : shifted.vertices) v[0] += 1.0f;
+  absl::StatusOr<MeshDeviation> moved =
+      MeasureMeshDeviation(shifted, *fine, resolution, {});
+  ASSERT_TRUE(moved.ok());
+  EXPECT_NEAR(moved->max_mm, 1.0, resolution / 2 + 0.06);
+  EXPECT_EQ(moved->beyond_band, 0);
+  // Farther than the band (2 mm): counted, and max_mm is the band.
+  for (auto& v : shifted.vertices) v[0] += 9.0f;
+  moved = MeasureMeshDeviation(shifted, *fine, resolution, {});
+  ASSERT_TRUE(moved.ok());
+  EXPECT_GT(moved->beyond_band, 0);
+  EXPECT_DOUBLE_EQ(moved->max_mm, moved->band_mm);
+  EXPECT_NEAR(moved->band_mm, 2.0, 1e-9);  // 10 voxels
+
+  EXPECT_EQ(MeasureMeshDeviation(*coarse, *fine, 0, {}).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(MeasureMeshDeviation(*coarse, Mesh(), 0.1, {}).status().code(),
+            absl::StatusCode::kInvalidArgument);
 }
 
 // Regression: 2D distance maps are exactly 0 on pixels lying on the contour

@@ -202,6 +202,8 @@ class DicomServer {
     CommandResult list = RunCommand(Cat({kCli, "list", "--all"}, Client()), 60);
     std::vector<std::string> ids;
     for (absl::string_view line : absl::StrSplit(list.out, '\n')) {
+      // A job's own line; its details follow indented.
+      if (line.empty() || line[0] == ' ') continue;
       std::vector<std::string> words =
           absl::StrSplit(line, ' ', absl::SkipEmpty());
       if (!words.empty()) ids.push_back(words[0]);
@@ -489,6 +491,29 @@ TEST(DicomNodeTest, PhantomSentWithStorescuMakesTheRulesJob) {
   // The job records where it came from (JobStatus.origin).
   EXPECT_THAT(ReadFileOrEmpty(server.spool() + "/jobs/" + jobs[0] + "/job.pb"),
               HasSubstr("dicom:STORESCU->INTERSLICE rule ct-head"));
+  // `list` says where the job came from and which series it read, UIDs
+  // included (the server runs without authentication: one anonymous user,
+  // who may see every job).
+  CommandResult list =
+      RunCommand(Cat({kCli, "list", "--all"}, server.Client()), 60);
+  ASSERT_EQ(list.exit_code, 0) << list.err;
+  EXPECT_THAT(list.out,
+              HasSubstr("origin    DICOM from STORESCU to INTERSLICE, rule "
+                        "ct-head\n"));
+  EXPECT_THAT(list.out, HasSubstr("input     CT, 28 instance(s)\n"));
+  DcmFileFormat first;
+  ASSERT_TRUE(first.loadFile(OFFilename(files[0].c_str())).good());
+  OFString study, series;
+  first.getDataset()->findAndGetOFString(DCM_StudyInstanceUID, study);
+  first.getDataset()->findAndGetOFString(DCM_SeriesInstanceUID, series);
+  ASSERT_FALSE(study.empty());
+  EXPECT_THAT(list.out,
+              HasSubstr(absl::StrCat("study     ", study.c_str(), "\n")));
+  EXPECT_THAT(list.out,
+              HasSubstr(absl::StrCat("series    ", series.c_str(), "\n")));
+  EXPECT_THAT(list.out, ::testing::ContainsRegex(
+                            "times     created 20[0-9-]+ [0-9:]+Z, started "
+                            "20[0-9-]+ [0-9:]+Z, finished 20[0-9-]+ [0-9:]+Z"));
   // Nothing was left behind in the DICOM spool.
   EXPECT_EQ(server.PendingInstances(), 0);
   // No UID of the phantom reaches the log.
