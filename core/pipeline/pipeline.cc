@@ -611,7 +611,13 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
   Mesh dicom_mesh_storage;
   const Mesh* dicom_mesh = &mesh;
   if (wants_dicom_mesh) {
-    StageClock clock(report, context, "dicom-mesh");
+    // A stage only when it does something: another mesh, or its deviation
+    // (the default, 0 for both, stores the surface as extracted).
+    std::optional<StageClock> clock;
+    if (spec.dicom_mesh_adaptivity != spec.mesh_adaptivity ||
+        spec.dicom_mesh_adaptivity > 0) {
+      clock.emplace(report, context, "dicom-mesh");
+    }
     SurfaceOptions options;
     if (spec.dicom_mesh_adaptivity != spec.mesh_adaptivity) {
       options.adaptivity = spec.dicom_mesh_adaptivity;
