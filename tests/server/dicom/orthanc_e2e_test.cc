@@ -421,8 +421,8 @@ TEST_F(OrthancEndToEndTest, SeriesFromOrthancComesBackProcessed) {
   }
   EXPECT_EQ(by_description["interslice segmentation"], 1u)
       << series->dump();
-  EXPECT_EQ(by_description["interslice surface mesh (STL)"], 1u);
-  EXPECT_EQ(by_description["interslice resampled intensity"], 55u);
+  EXPECT_EQ(by_description["interslice mesh (STL)"], 1u);
+  EXPECT_EQ(by_description["interslice intensity"], 55u);
   EXPECT_EQ(by_description["interslice previews"], 4u);
   std::printf(
       "Orthanc -> interslice (C-STORE of 28 instances): %.2f s; to the "
