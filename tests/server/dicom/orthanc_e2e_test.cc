@@ -419,8 +419,7 @@ TEST_F(OrthancEndToEndTest, SeriesFromOrthancComesBackProcessed) {
     by_description[description.substr(0, description.find(','))] =
         one["Instances"].size();
   }
-  EXPECT_EQ(by_description["interslice segmentation"], 1u)
-      << series->dump();
+  EXPECT_EQ(by_description["interslice segmentation"], 1u) << series->dump();
   EXPECT_EQ(by_description["interslice mesh (STL)"], 1u);
   EXPECT_EQ(by_description["interslice intensity"], 55u);
   EXPECT_EQ(by_description["interslice previews"], 4u);
