@@ -31,8 +31,9 @@ packages=(
   # a user's tools reading our label maps back (tests/core/labels: nibabel)
   python3-nibabel
   # the OHIF viewer test (tests/viewer/ohif_test.mjs) drives Debian's chromium
-  # headless (puppeteer-core, no browser download)
-  chromium
+  # headless (puppeteer-core, no browser download); the status page test
+  # (tests/server/server_test.cc) renders in it and checks codes with curl
+  chromium curl
 )
 # Node.js for the viewer test (tests/viewer: a DICOM SEG loaded as OHIF v3
 # loads it): Debian's nodejs + npm unless node and npm are already there (a
@@ -60,7 +61,7 @@ viewer_npm() {
 if [ "${1:-}" = "--image" ]; then
   not_for_image=" libgtest-dev libgmock-dev libbenchmark-dev dicom3tools "
   not_for_image+=" git orthanc orthanc-dicomweb yamllint clang "
-  not_for_image+=" libclang-rt-14-dev nodejs npm python3-nibabel chromium "
+  not_for_image+=" libclang-rt-14-dev nodejs npm python3-nibabel chromium curl "
   kept=()
   for p in "${packages[@]}"; do
     [[ $not_for_image == *" $p "* ]] || kept+=("$p")
