@@ -32,6 +32,19 @@ std::vector<std::string> InterpolationSummary(const JobReport& report,
       "slices inserted per gap)",
       g.size[0], g.size[1], g.size[2], g.spacing[0], g.spacing[1], g.spacing[2],
       report.insertion_factor - 1));
+  if (report.roi.has_value()) {
+    const VoxelBox& v = *report.roi;
+    std::string line = absl::StrFormat(
+        "  region    voxels x %d..%d, y %d..%d, z %d..%d (half-open)",
+        v.begin[0], v.end[0], v.begin[1], v.end[1], v.begin[2], v.end[2]);
+    if (report.roi_mm.has_value()) {
+      const PhysicalBox& b = *report.roi_mm;
+      absl::StrAppendFormat(
+          &line, " from the box (%.6g, %.6g, %.6g)..(%.6g, %.6g, %.6g) LPS mm",
+          b.min[0], b.min[1], b.min[2], b.max[0], b.max[1], b.max[2]);
+    }
+    lines.push_back(line);
+  }
   if (report.gantry_tilt_degrees != 0) {
     lines.push_back(absl::StrFormat(
         "  tilt      gantry tilt of %.3g degrees corrected (slices resampled "
