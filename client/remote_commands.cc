@@ -22,6 +22,7 @@
 #include "grpc/health/v1/health.grpc.pb.h"
 #include "interslice/v1/interslice.grpc.pb.h"
 #include "job/errors.h"
+#include "job/job.h"
 #include "job/wire.h"
 #include "nlohmann/json.hpp"
 
@@ -224,6 +225,17 @@ bool IsCompleteArtifact(const std::string& path, const v1::ArtifactInfo& info) {
 }
 
 // The server's report with artifact paths turned into local ones.
+// The region of interest an interpolation job used, as the in-process
+// summary says it (a fill's report has none: nothing is printed).
+void PrintRegion(const std::string& report_json) {
+  if (report_json.empty()) return;
+  absl::StatusOr<JobReport> report = JobReportFromJson(report_json);
+  if (!report.ok()) return;
+  if (std::optional<std::string> line = job::RegionSummaryLine(*report)) {
+    std::printf("%s\n", line->c_str());
+  }
+}
+
 absl::Status WriteReport(const std::string& report_json,
                          const std::string& out_dir, const std::string& path) {
   nlohmann::ordered_json j =
@@ -386,6 +398,7 @@ int InterpolateCall(const Connection& connection,
                   (fs::path(out) / a.name()).string().c_str(),
                   static_cast<long long>(a.size_bytes()));
     }
+    PrintRegion(summary.report_json());
   }
   return 0;
 }
@@ -788,6 +801,7 @@ int RunFetch(const Connection& connection, const std::string& job_id,
     std::printf("interslice: fetched %d file(s) of job %s to %s%s\n",
                 status.artifacts_size() - skipped, job_id.c_str(), out.c_str(),
                 kept.c_str());
+    PrintRegion(status.report_json());
   }
   return 0;
 }

@@ -32,6 +32,9 @@ std::vector<std::string> InterpolationSummary(const JobReport& report,
       "slices inserted per gap)",
       g.size[0], g.size[1], g.size[2], g.spacing[0], g.spacing[1], g.spacing[2],
       report.insertion_factor - 1));
+  if (std::optional<std::string> region = RegionSummaryLine(report)) {
+    lines.push_back(*std::move(region));
+  }
   if (report.gantry_tilt_degrees != 0) {
     lines.push_back(absl::StrFormat(
         "  tilt      gantry tilt of %.3g degrees corrected (slices resampled "
@@ -242,6 +245,21 @@ class FillJob final : public JobKind {
 };
 
 }  // namespace
+
+std::optional<std::string> RegionSummaryLine(const JobReport& report) {
+  if (!report.roi.has_value()) return std::nullopt;
+  const VoxelBox& v = *report.roi;
+  std::string line = absl::StrFormat(
+      "  region    voxels x %d..%d, y %d..%d, z %d..%d (half-open)", v.begin[0],
+      v.end[0], v.begin[1], v.end[1], v.begin[2], v.end[2]);
+  if (report.roi_mm.has_value()) {
+    const PhysicalBox& b = *report.roi_mm;
+    absl::StrAppendFormat(
+        &line, " from the box (%.6g, %.6g, %.6g)..(%.6g, %.6g, %.6g) LPS mm",
+        b.min[0], b.min[1], b.min[2], b.max[0], b.max[1], b.max[2]);
+  }
+  return line;
+}
 
 std::unique_ptr<JobKind> MakeInterpolationJob(JobSpec spec) {
   return std::make_unique<InterpolationJob>(std::move(spec));

@@ -12,6 +12,7 @@
 
 #include <cstdint>
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -93,6 +94,13 @@ class JobKind {
   virtual absl::StatusOr<JobResult> Run(
       const ComputeContext& context) const = 0;
 };
+
+// The human summary's line for a job's region of interest: the voxel box
+// and, when it was given in mm, the box as given ("  region    voxels x
+// 234..323, y 49..138, z 0..4 (half-open) from the box (-10, 20, 690)..(30,
+// 60, 720) LPS mm"); nullopt for the whole series. Used by the in-process
+// summary and by the remote commands (from the report JSON).
+std::optional<std::string> RegionSummaryLine(const JobReport& report);
 
 // A job for the core spec as given (inputs and output folder included).
 std::unique_ptr<JobKind> MakeInterpolationJob(JobSpec spec);

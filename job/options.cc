@@ -43,6 +43,11 @@ constexpr OptionDef<IO> kInterpolationOptions[] = {
     {"roi", "spec.roi", ValueKind::kBox, &IO::roi,
      "Region of interest x0,y0,z0,x1,y1,z1: a half-open voxel box in the "
      "input's index space (z in sorted slice order)"},
+    {"roi_mm", "spec.roi_mm", ValueKind::kMmBox, &IO::roi_mm,
+     "Region of interest x0,y0,z0,x1,y1,z1 in patient coordinates (LPS mm, "
+     "two opposite corners in any order, as a viewer's ROI tool gives "
+     "them): the smallest voxel box covering every voxel centre inside, for "
+     "any orientation; excludes --roi"},
     {"method", "spec.method", ValueKind::kText, &IO::method,
      "direct (exact minimiser), cg (the paper's conjugate gradient), linear "
      "(no refinement) or morph (registration-based stacking along a smooth, "
@@ -321,6 +326,30 @@ absl::StatusOr<VoxelBox> ParseRoi(const std::string& text) {
   return VoxelBox{{v[0], v[1], v[2]}, {v[3], v[4], v[5]}};
 }
 
+// Two opposite corners in any order -> the box.
+absl::StatusOr<PhysicalBox> ParseRoiMm(const std::string& text) {
+  const std::vector<std::string> parts = absl::StrSplit(text, ',');
+  if (parts.size() != 6) {
+    return OptionError("roi_mm",
+                       "expected six numbers x0,y0,z0,x1,y1,z1 (two opposite "
+                       "corners in LPS mm)");
+  }
+  double v[6];
+  for (int n = 0; n < 6; ++n) {
+    if (!absl::SimpleAtod(absl::StripAsciiWhitespace(parts[n]), &v[n]) ||
+        !std::isfinite(v[n])) {
+      return OptionError(
+          "roi_mm", absl::StrCat("'", parts[n], "' is not a finite number"));
+    }
+  }
+  PhysicalBox box;
+  for (int a = 0; a < 3; ++a) {
+    box.min[a] = std::min(v[a], v[a + 3]);
+    box.max[a] = std::max(v[a], v[a + 3]);
+  }
+  return box;
+}
+
 absl::StatusOr<SolverMethod> ParseSolverMethod(const std::string& name,
                                                absl::string_view key,
                                                absl::string_view choices) {
@@ -503,6 +532,16 @@ absl::StatusOr<JobSpec> BuildJobSpec(const InterpolationOptions& o) {
     absl::StatusOr<VoxelBox> roi = ParseRoi(o.roi);
     if (!roi.ok()) return roi.status();
     spec.roi = *roi;
+  }
+  if (!o.roi_mm.empty()) {
+    if (!o.roi.empty()) {
+      return OptionError("roi_mm",
+                         "cannot be combined with roi: give the region of "
+                         "interest either in voxels (roi) or in mm (roi_mm)");
+    }
+    absl::StatusOr<PhysicalBox> roi_mm = ParseRoiMm(o.roi_mm);
+    if (!roi_mm.ok()) return roi_mm.status();
+    spec.roi_mm = *roi_mm;
   }
   absl::StatusOr<SolverMethod> method =
       ParseSolverMethod(o.method, "method", "direct, cg, linear, morph");

@@ -42,8 +42,8 @@ enum Door : unsigned {
 };
 
 // What an option's value looks like as a person writes it. A rules file may
-// write kList, kIntegerList and kBox values as YAML lists or as the command
-// line's comma-separated text.
+// write kList, kIntegerList, kBox and kMmBox values as YAML lists or as the
+// command line's comma-separated text.
 enum class ValueKind {
   kNumber,       // 300, -0.5
   kInteger,      // 15
@@ -51,6 +51,7 @@ enum class ValueKind {
   kList,         // stl,ply (names)
   kIntegerList,  // 1,3,7 (or slice ranges 0-40:5 where the option says so)
   kBox,          // x0,y0,z0,x1,y1,z1 (six integers)
+  kMmBox,        // x0,y0,z0,x1,y1,z1 (six numbers, mm)
   kFlag,         // true / false
 };
 
@@ -65,7 +66,8 @@ struct InterpolationOptions {
   std::string series_uid;
   std::optional<double> threshold;
   std::optional<double> upper;
-  std::string roi;  // "x0,y0,z0,x1,y1,z1"
+  std::string roi;     // "x0,y0,z0,x1,y1,z1"
+  std::string roi_mm;  // "x0,y0,z0,x1,y1,z1", LPS mm, corners in any order
   std::string method = "cg";
   std::optional<int64_t> iterations;
   std::optional<double> tolerance;

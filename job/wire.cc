@@ -3,6 +3,7 @@
 #include <utility>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
 #include "job/errors.h"
 
@@ -199,6 +200,15 @@ v1::JobSpec ToWire(const JobSpec& spec) {
     r->set_y1(spec.roi->end[1]);
     r->set_z1(spec.roi->end[2]);
   }
+  if (spec.roi_mm.has_value()) {
+    v1::PatientBox* r = p.mutable_roi_mm();
+    r->set_x0(spec.roi_mm->min[0]);
+    r->set_y0(spec.roi_mm->min[1]);
+    r->set_z0(spec.roi_mm->min[2]);
+    r->set_x1(spec.roi_mm->max[0]);
+    r->set_y1(spec.roi_mm->max[1]);
+    r->set_z1(spec.roi_mm->max[2]);
+  }
   p.set_method(WireMethod(spec.solver.method));
   p.set_strict_spacing(spec.strict_spacing);
   p.set_slab_deconvolution(spec.slab_deconvolution);
@@ -258,6 +268,12 @@ absl::StatusOr<InterpolationOptions> InterpolationOptionsFromWire(
     const v1::VoxelBox& r = p.roi();
     o.roi =
         absl::StrJoin({r.x0(), r.y0(), r.z0(), r.x1(), r.y1(), r.z1()}, ",");
+  }
+  if (p.has_roi_mm()) {
+    const v1::PatientBox& r = p.roi_mm();
+    // %.17g: the doubles as sent, back through the option's parser.
+    o.roi_mm = absl::StrFormat("%.17g,%.17g,%.17g,%.17g,%.17g,%.17g", r.x0(),
+                               r.y0(), r.z0(), r.x1(), r.y1(), r.z1());
   }
   absl::StatusOr<std::string> method = MethodName(p.method(), "cg");
   if (!method.ok()) return method.status();
@@ -332,6 +348,7 @@ absl::StatusOr<FillJobOptions> FillOptionsFromWire(const v1::JobSpec& p) {
   if (p.has_threshold()) return NotForFill("threshold");
   if (p.has_upper_threshold()) return NotForFill("upper_threshold");
   if (p.has_roi()) return NotForFill("roi");
+  if (p.has_roi_mm()) return NotForFill("roi_mm");
   if (p.strict_spacing()) return NotForFill("strict_spacing");
   if (p.slab_deconvolution()) return NotForFill("slab_deconvolution");
   if (!p.multiframe_volume().empty()) return NotForFill("multiframe_volume");

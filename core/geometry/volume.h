@@ -13,6 +13,7 @@
 
 #include <array>
 #include <cstdint>
+#include <span>
 #include <string>
 #include <vector>
 
@@ -73,11 +74,21 @@ struct PhysicalBox {
 // 0 <= begin < end <= grid.size on every axis.
 absl::Status ValidateVoxelBox(const VoxelBox& box, const Grid& grid);
 
-// The smallest voxel box (clamped to the grid) whose voxel centres cover
-// every voxel centre inside `box`. INVALID_ARGUMENT if no voxel centre lies
-// inside it.
-absl::StatusOr<VoxelBox> PhysicalBoxToVoxelBox(const PhysicalBox& box,
-                                               const Grid& grid);
+// The smallest voxel box (clipped to the grid) whose voxel centres cover
+// every voxel centre inside `box`, for any orientation of the grid: the box
+// is an axis-aligned box in LPS mm, which may cut the grid's index axes
+// obliquely; the result is exact (each row of voxel centres is intersected
+// with the box), not the bounding box of the box's corners.
+// slice_offsets_mm: where slice k lies along the grid's third axis, mm from
+// slice 0's plane (DicomSeries::slices[k].position_along_normal minus that
+// of slice 0: the truth for non-uniform or tilt-corrected series), one per
+// slice, increasing; empty = k * spacing[2].
+// INVALID_ARGUMENT if the box is not finite or min > max on some axis; if it
+// misses the series, naming the index axis and by how many mm; if it holds
+// no voxel centre although it overlaps the series' extent.
+absl::StatusOr<VoxelBox> PhysicalBoxToVoxelBox(
+    const PhysicalBox& box, const Grid& grid,
+    std::span<const double> slice_offsets_mm = {});
 
 // The geometry of the sub-grid `box` of `grid` (same spacing and direction,
 // origin moved to voxel box.begin). `box` must be valid for `grid`.

@@ -116,7 +116,9 @@ std::string ParameterSummary(const JobSpec& spec, const std::string& modality,
 // source instances and the UID root, it names the derived DICOM objects (see
 // DicomWriteOptions::derivation_key). Thread counts, output folders and file
 // formats do not change a voxel, so they are not part of it.
-std::string DerivationKey(const JobSpec& spec, const Grid& output_grid) {
+std::string DerivationKey(const JobSpec& spec,
+                          const std::optional<VoxelBox>& roi,
+                          const Grid& output_grid) {
   std::string key = absl::StrFormat(
       "lower=%.9g upper=%s band=%.9g method=%s units=%s iterations=%d "
       "tolerance=%.9g strict=%d volume=%s",
@@ -141,9 +143,11 @@ std::string DerivationKey(const JobSpec& spec, const Grid& output_grid) {
   if (!spec.segment_code.empty()) {
     absl::StrAppend(&key, " segment-code=", spec.segment_code);
   }
-  if (spec.roi.has_value()) {
-    absl::StrAppend(&key, " roi=", absl::StrJoin(spec.roi->begin, ","), ",",
-                    absl::StrJoin(spec.roi->end, ","));
+  // The voxel box, however it was given (a box in mm that maps to the same
+  // voxels makes the same objects).
+  if (roi.has_value()) {
+    absl::StrAppend(&key, " roi=", absl::StrJoin(roi->begin, ","), ",",
+                    absl::StrJoin(roi->end, ","));
   }
   absl::StrAppend(&key, " grid=", absl::StrJoin(output_grid.size, ","));
   for (double v : output_grid.spacing) {
@@ -344,6 +348,21 @@ absl::Status ValidateJobSpec(const JobSpec& spec) {
     return absl::InvalidArgumentError(
         "upper threshold must be finite and not below the threshold");
   }
+  if (spec.roi.has_value() && spec.roi_mm.has_value()) {
+    return absl::InvalidArgumentError(
+        "region of interest given twice: roi (voxels) and roi_mm (patient "
+        "mm) exclude each other; give one");
+  }
+  if (spec.roi_mm.has_value()) {
+    for (int a = 0; a < 3; ++a) {
+      if (!std::isfinite(spec.roi_mm->min[a]) ||
+          !std::isfinite(spec.roi_mm->max[a]) ||
+          spec.roi_mm->min[a] > spec.roi_mm->max[a]) {
+        return absl::InvalidArgumentError(
+            "roi_mm must be finite with min <= max on every axis");
+      }
+    }
+  }
   if (!spec.segment_label.empty()) {
     if (absl::Status s = ValidateSegmentLabel(spec.segment_label); !s.ok()) {
       return absl::InvalidArgumentError(
@@ -468,11 +487,26 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
     report.max_gap_mm = series.max_gap_mm;
     report.input_notes = series.notes;
     int64_t first_slice = 0;
-    if (spec.roi.has_value()) {
-      INTERSLICE_RETURN_IF_ERROR(
-          ValidateVoxelBox(*spec.roi, series.image.grid));
-      image = CropVolume(series.image, *spec.roi);
-      first_slice = spec.roi->begin[2];
+    report.roi = spec.roi;
+    report.roi_mm = spec.roi_mm;
+    if (spec.roi_mm.has_value()) {
+      // Mapped with the slices' true positions along the normal (non-uniform
+      // spacing, tilt-corrected slices), not the grid's median spacing.
+      std::vector<double> offsets;
+      offsets.reserve(series.slices.size());
+      for (const DicomSliceInfo& slice : series.slices) {
+        offsets.push_back(slice.position_along_normal -
+                          series.slices.front().position_along_normal);
+      }
+      INTERSLICE_ASSIGN_OR_RETURN(
+          report.roi,
+          PhysicalBoxToVoxelBox(*spec.roi_mm, series.image.grid, offsets));
+    }
+    if (report.roi.has_value()) {
+      const VoxelBox& roi = *report.roi;
+      INTERSLICE_RETURN_IF_ERROR(ValidateVoxelBox(roi, series.image.grid));
+      image = CropVolume(series.image, roi);
+      first_slice = roi.begin[2];
     } else {
       image = std::move(series.image);
     }
@@ -492,7 +526,7 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
     if (image.grid.size[2] < 2) {
       return absl::InvalidArgumentError(
           absl::StrCat("interpolation needs at least 2 slices; the ",
-                       spec.roi.has_value() ? "region of interest" : "series",
+                       report.roi.has_value() ? "region of interest" : "series",
                        " has ", image.grid.size[2]));
     }
   }
@@ -696,7 +730,7 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
     dicom_options.uid_root = spec.uid_root;
     dicom_options.random_uids = spec.random_uids;
     dicom_options.series_number_base = spec.series_number_base;
-    dicom_options.derivation_key = DerivationKey(spec, field.grid);
+    dicom_options.derivation_key = DerivationKey(spec, report.roi, field.grid);
     dicom_options.parameter_set = dicom_options.derivation_key;
     dicom_options.parameter_summary =
         ParameterSummary(spec, source.modality, field.grid);
@@ -933,6 +967,14 @@ std::string JobReportToJson(const JobReport& report) {
   j["input"]["min_gap_mm"] = report.min_gap_mm;
   j["input"]["max_gap_mm"] = report.max_gap_mm;
   j["input"]["notes"] = report.input_notes;
+  if (report.roi.has_value()) {
+    j["input"]["roi"] = {{"begin", report.roi->begin},
+                         {"end", report.roi->end}};
+  }
+  if (report.roi_mm.has_value()) {
+    j["input"]["roi_mm"] = {{"min", report.roi_mm->min},
+                            {"max", report.roi_mm->max}};
+  }
   if (report.slab_thickness_mm > 0) {
     j["input"]["slab_deconvolution"] = {
         {"slab_thickness_mm", report.slab_thickness_mm},
@@ -1032,6 +1074,14 @@ absl::StatusOr<JobReport> JobReportFromJson(const std::string& text) {
     // Absent in reports written before the reader had notes.
     if (input.contains("notes")) {
       report.input_notes = input.at("notes").get<std::vector<std::string>>();
+    }
+    if (input.contains("roi")) {
+      report.roi = VoxelBox{input.at("roi").at("begin").get<Index3>(),
+                            input.at("roi").at("end").get<Index3>()};
+    }
+    if (input.contains("roi_mm")) {
+      report.roi_mm = PhysicalBox{input.at("roi_mm").at("min").get<Vec3>(),
+                                  input.at("roi_mm").at("max").get<Vec3>()};
     }
     if (input.contains("slab_deconvolution")) {
       const json& slab = input.at("slab_deconvolution");

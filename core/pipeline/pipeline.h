@@ -35,6 +35,13 @@ struct JobSpec {
   // Half-open voxel box in the input series' index space (x = column,
   // y = row, z = slice in sorted order); unset = the whole series.
   std::optional<VoxelBox> roi;
+  // The same as a box in patient space (LPS mm, as a viewer's ROI tool gives
+  // it), mapped to the series' voxels once it is read: the smallest voxel
+  // box covering every voxel centre inside it, clipped to the series, for
+  // any orientation and gantry tilt (core/geometry PhysicalBoxToVoxelBox
+  // with the slices' true positions). INVALID_ARGUMENT when it misses the
+  // series (naming the axis and by how many mm) or when roi is also set.
+  std::optional<PhysicalBox> roi_mm;
   // Object = voxels with lower <= value (<= upper), in modality units (HU).
   float lower_threshold = 0;
   std::optional<float> upper_threshold;
@@ -189,6 +196,11 @@ struct JobReport {
   EnergyUnits energy_units = EnergyUnits::kVoxel;
   Grid input_grid;   // the series as read (before the ROI)
   Grid output_grid;  // the refined grid written out
+  // The region of interest: as given in mm (JobSpec::roi_mm, unset without
+  // one) and the voxel box of the input it became (JobSpec::roi or the
+  // mapped roi_mm; unset for the whole series).
+  std::optional<PhysicalBox> roi_mm;
+  std::optional<VoxelBox> roi;
   int insertion_factor = 1;
   // Largest distance between an original slice's true position and the
   // output node it was placed on, mm (<= half the output z spacing; 0 for a
@@ -258,7 +270,8 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
 // "iterations", "relative_residual", "energy", "initial_energy",
 // "energy_units", "converged"}, "grid": {"size": [x,y,z], "spacing": [...],
 // "origin": [...], "direction": [...], "insertion_factor": n, "max_snap_mm":
-// mm}, "input": {..., "notes": [...]}, "mesh": {...},
+// mm}, "input": {..., "notes": [...], "roi": {"begin": [i,j,k], "end":
+// [...]} and "roi_mm": {"min": [x,y,z], "max": [...]} when set}, "mesh": {...},
 // "previews": {"notes": [...]} (with JobSpec::preview_formats only),
 // "artifacts": [...], "peak_rss_bytes": n}.
 std::string JobReportToJson(const JobReport& report);

@@ -367,6 +367,26 @@ absl::Status ReadOptions(const YAML::Node& node, const Context& ctx,
         text = absl::StrJoin(parts, ",");
         break;
       }
+      case job::ValueKind::kMmBox: {
+        if (value.IsScalar()) {
+          text = value.Scalar();
+          break;
+        }
+        if (!value.IsSequence()) {
+          return ctx.Error(field, absl::StrCat("expected a list of numbers, "
+                                               "got ",
+                                               KindName(value)));
+        }
+        std::vector<std::string> parts;
+        for (size_t i = 0; i < value.size(); ++i) {
+          absl::StatusOr<double> v =
+              GetNumber(value[i], ctx, absl::StrCat(field, "[", i, "]"));
+          if (!v.ok()) return v.status();
+          parts.push_back(value[i].Scalar());
+        }
+        text = absl::StrJoin(parts, ",");
+        break;
+      }
     }
     if (absl::Status s = job::SetOption(options, key, text); !s.ok()) {
       return ctx.Error(field, job::ErrorMessageWithoutKey(s));

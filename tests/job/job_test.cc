@@ -16,6 +16,8 @@ namespace interslice::job {
 namespace {
 
 namespace fs = std::filesystem;
+using ::testing::AllOf;
+using ::testing::Contains;
 using ::testing::HasSubstr;
 
 const std::string kSeries = std::string(INTERSLICE_TEST_DATA_DIR) + "/ct-thick";
@@ -105,6 +107,39 @@ TEST(JobKindTest, FillInSpoolNeedsItsSegmentationAndSeries) {
   EXPECT_TRUE(named->UseSpool(upload.string(), "out", 0).ok());
 }
 
+// The human summary gives a box in mm as given and the voxel box it became.
+TEST(JobKindTest, RoiMmSummaryGivesBothForms) {
+  InterpolationOptions o;
+  o.inputs = {kSeries};
+  o.threshold = 300;
+  // Corners in the reverse order. The thick phantom's slices are axial:
+  // IPP (-115.5, -1.85, 696.21 + 5k), 0.451171875 mm pixels, so x in
+  // [-10, 30] holds the centres of columns 234..322, y in [20, 60] rows
+  // 49..137, z in [690, 720] all four slices.
+  o.roi_mm = "30,20,720,-10,60,690";
+  o.method = "linear";
+  o.volume = "nrrd";
+  o.mesh = "none";
+  o.previews = "none";
+  o.out = FreshDir("roi-mm").string();
+  absl::StatusOr<JobSpec> spec = BuildJobSpec(o);
+  ASSERT_TRUE(spec.ok()) << spec.status();
+  ComputeContext context;
+  context.threads = 1;
+  absl::StatusOr<JobResult> result = MakeInterpolationJob(*spec)->Run(context);
+  ASSERT_TRUE(result.ok()) << result.status();
+  EXPECT_THAT(
+      result->summary,
+      Contains(AllOf(HasSubstr("region    voxels x 234..323, y 49..138, z "
+                               "0..4 (half-open)"),
+                     HasSubstr("from the box (-10, 20, 690)..(30, 60, 720) "
+                               "LPS mm"))));
+  const nlohmann::json report = nlohmann::json::parse(result->report_json);
+  EXPECT_EQ(report["input"]["roi_mm"]["min"], nlohmann::json({-10, 20, 690}));
+  EXPECT_EQ(report["input"]["roi"]["begin"], nlohmann::json({234, 49, 0}));
+  EXPECT_EQ(report["input"]["roi"]["end"], nlohmann::json({323, 138, 4}));
+}
+
 // One run through the interface, in place and in a spool: the same files,
 // stages and artifacts as the core's RunJob reports, the report's paths
 // relative to the output folder only in the spool.
@@ -139,6 +174,9 @@ TEST(JobKindTest, InterpolationRunsAndReportsInOneShape) {
   }
   EXPECT_GT(in_place->peak_rss_bytes, 0);
   EXPECT_THAT(in_place->summary.front(), HasSubstr("wrote 5 file(s)"));
+  EXPECT_THAT(in_place->summary,
+              Contains(HasSubstr("region    voxels x 200..296, y 40..136, "
+                                 "z 0..4 (half-open)")));
   nlohmann::json report = nlohmann::json::parse(in_place->report_json);
   EXPECT_EQ(report["artifacts"][0]["path"], in_place->artifacts[0].path);
 

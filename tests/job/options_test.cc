@@ -119,6 +119,36 @@ TEST(OptionTableTest, SetOptionByKeyGivesTheSameSpecAsTypedValues) {
             std::vector<std::string>{"png"});
 }
 
+// roi_mm: the rules file's and the wire's text form reaches the spec as a
+// box whatever the corners' order; it excludes roi and refuses malformed
+// text, each error naming the option.
+TEST(OptionTableTest, RoiMmByKeyBuildsTheBoxAndExcludesRoi) {
+  InterpolationOptions o = Minimal();
+  ASSERT_TRUE(SetOption(o, "roi_mm", " 10.5,-20,30, -4,7.25,-1e1 ").ok());
+  absl::StatusOr<JobSpec> spec = BuildJobSpec(o);
+  ASSERT_TRUE(spec.ok()) << spec.status();
+  ASSERT_TRUE(spec->roi_mm.has_value());
+  EXPECT_EQ(spec->roi_mm->min, (Vec3{-4, -20, -10}));
+  EXPECT_EQ(spec->roi_mm->max, (Vec3{10.5, 7.25, 30}));
+  EXPECT_FALSE(spec->roi.has_value());
+  EXPECT_FALSE(BuildJobSpec(Minimal())->roi_mm.has_value());
+
+  o.roi = "0,0,0,10,10,2";
+  absl::Status both = BuildJobSpec(o).status();
+  EXPECT_EQ(both.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(ErrorOptionKey(both), "roi_mm");
+  EXPECT_THAT(ErrorMessageWithoutKey(both), HasSubstr("combined with roi"));
+
+  for (const char* bad :
+       {"1,2,3,4,5", "1,2,3,4,5,x", "1,2,3,4,5,inf", "1,2,3,4,5,6,7"}) {
+    InterpolationOptions b = Minimal();
+    b.roi_mm = bad;
+    absl::Status s = BuildJobSpec(b).status();
+    EXPECT_EQ(s.code(), absl::StatusCode::kInvalidArgument) << bad;
+    EXPECT_EQ(ErrorOptionKey(s), "roi_mm") << bad;
+  }
+}
+
 TEST(OptionTableTest, SetOptionRefusesWrongTypesAndUnknownKeys) {
   InterpolationOptions o = Minimal();
   absl::Status s = SetOption(o, "threshold", "high");

@@ -171,6 +171,8 @@ TEST(WireTest, InterpolationSpecsRoundTrip) {
   cases[2].series_uid = "1.2.3";
   cases[2].multiframe_volume = "stack 1";
   cases[2].strict_spacing = true;
+  // A box in mm with fractions and negative coordinates, corners reversed.
+  cases[2].roi_mm = "120.25,-30.5,-71.125,-80.75,44.1,12.3";
   cases[3].method = "linear";
   cases[3].iterations = 0;
   cases[3].mesh = "none";
@@ -200,9 +202,38 @@ TEST(WireTest, InterpolationSpecsRoundTrip) {
     EXPECT_EQ(back->series_instance_uid, spec->series_instance_uid);
     EXPECT_EQ(back->segment_label, spec->segment_label);
     EXPECT_EQ(back->segment_code, spec->segment_code);
+    EXPECT_EQ(back->roi_mm.has_value(), spec->roi_mm.has_value()) << n;
+    if (spec->roi_mm.has_value()) {
+      EXPECT_EQ(back->roi_mm->min, spec->roi_mm->min);
+      EXPECT_EQ(back->roi_mm->max, spec->roi_mm->max);
+    }
     EXPECT_TRUE(back->inputs.empty());
     EXPECT_TRUE(back->output_dir.empty());
   }
+}
+
+TEST(WireTest, RoiMmReachesTheSpecAndIsRefusedForFills) {
+  InterpolationOptions o;
+  o.inputs = {"in"};
+  o.out = "out";
+  o.threshold = 300;
+  o.roi_mm = "120.25,-30.5,-71.125,-80.75,44.1,12.3";
+  absl::StatusOr<JobSpec> spec = BuildJobSpec(o);
+  ASSERT_TRUE(spec.ok()) << spec.status();
+  const v1::JobSpec wire = ToWire(*spec);
+  ASSERT_TRUE(wire.has_roi_mm());
+  EXPECT_FALSE(wire.has_roi());
+  EXPECT_DOUBLE_EQ(wire.roi_mm().x0(), -80.75);
+  EXPECT_DOUBLE_EQ(wire.roi_mm().x1(), 120.25);
+  EXPECT_DOUBLE_EQ(wire.roi_mm().z0(), -71.125);
+  EXPECT_DOUBLE_EQ(wire.roi_mm().z1(), 12.3);
+  v1::JobSpec fill;
+  fill.mutable_fill()->set_segmentation_file("labels.nrrd");
+  *fill.mutable_roi_mm() = wire.roi_mm();
+  absl::StatusOr<FillJobOptions> refused = FillOptionsFromWire(fill);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(std::string(refused.status().message()),
+              ::testing::HasSubstr("spec.roi_mm"));
 }
 
 TEST(WireTest, FillSpecsRoundTripAndRefuseInterpolationFields) {

@@ -232,6 +232,31 @@ TEST(ServerTest, SlabDeconvolutionRunsOnTheServerAsInProcess) {
               HasSubstr("\"slab_thickness_mm\""));
 }
 
+// --roi-mm reaches the server and selects the voxels of the same box in
+// voxels: a box in mm around the centres of kSmallJob's ROI (the thick
+// phantom is axial: IPP (-115.5, -1.85, 696.21 + 5k), 0.451171875 mm
+// pixels, so x in [-36.2, 35.7] holds columns 176..335 and y in [77.5,
+// 149.4] rows 176..335) gives the files `run` writes for the voxel ROI, and
+// the summary gives both forms.
+TEST(ServerTest, RoiMmOnTheServerSelectsTheVoxelsOfTheVoxelRoi) {
+  TempDir dir;
+  const std::string local = RunLocally(dir, kSmallJob, "local");
+  ServerProcess server({.spool = dir / "spool", .log = dir / "server.log"});
+  ASSERT_TRUE(server.Start());
+  CommandResult r =
+      Cli(Cat({"interpolate", kSeries, "--threshold", "300", "--roi-mm",
+               "35.7,149.4,720,-36.2,77.5,690"},
+              Cat(server.ServerFlag(),
+                  {"--out", dir / "remote", "--volume", "nii,nrrd", "--mesh",
+                   "stl,ply,obj", "--report", dir / "report.json"})));
+  ASSERT_EQ(r.exit_code, 0) << r.err << server.Log();
+  ExpectSameFiles(local, dir / "remote");
+  EXPECT_THAT(r.out, HasSubstr("region    voxels x 176..336, y 176..336, z "
+                               "0..4 (half-open) from the box (-36.2, 77.5, "
+                               "690)..(35.7, 149.4, 720) LPS mm"));
+  EXPECT_THAT(ReadFileOrEmpty(dir / "report.json"), HasSubstr("\"roi_mm\""));
+}
+
 // DICOM outputs through the daemon are the objects `run` writes: the same
 // pixel data, geometry and (derived, not random) UIDs; only creation dates
 // and times may differ.

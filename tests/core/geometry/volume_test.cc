@@ -1,7 +1,10 @@
 #include "core/geometry/volume.h"
 
+#include <algorithm>
 #include <cmath>
+#include <vector>
 
+#include "gmock/gmock.h"
 #include "gtest/gtest.h"
 
 namespace interslice {
@@ -93,6 +96,58 @@ TEST(PhysicalBoxTest, MapsToCoveringVoxelBox) {
   EXPECT_EQ(box->end, (Index3{5, 10, 5}));
   EXPECT_FALSE(
       PhysicalBoxToVoxelBox({{100, 100, 100}, {101, 101, 101}}, g).ok());
+}
+
+// An oblique grid (rotated 30 degrees about LPS x, as a gantry tilt is) with
+// non-uniform slice positions: the box is exactly the index bounding box of
+// the voxel centres inside the LPS box, found by brute force.
+TEST(PhysicalBoxTest, ObliqueGridWithUnevenSlicesMatchesBruteForce) {
+  Grid g;
+  g.size = {20, 24, 6};
+  g.spacing = {0.8, 0.9, 2.0};
+  g.origin = {-5, 3, 7};
+  const double c = std::cos(M_PI / 6), s = std::sin(M_PI / 6);
+  g.direction = {1, 0, 0, 0, c, -s, 0, s, c};
+  const std::vector<double> offsets = {0, 1.5, 4, 6.5, 7, 11};
+  const PhysicalBox box{{-1.1, 5.2, 6.0}, {6.3, 14.7, 15.5}};
+  const auto got = PhysicalBoxToVoxelBox(box, g, offsets);
+  ASSERT_TRUE(got.ok()) << got.status();
+  VoxelBox expected{{100, 100, 100}, {-1, -1, -1}};
+  for (int64_t k = 0; k < g.size[2]; ++k) {
+    for (int64_t j = 0; j < g.size[1]; ++j) {
+      for (int64_t i = 0; i < g.size[0]; ++i) {
+        const Vec3 p =
+            g.IndexToPhysical({static_cast<double>(i), static_cast<double>(j),
+                               offsets[k] / g.spacing[2]});
+        bool inside = true;
+        for (int a = 0; a < 3; ++a) {
+          inside &= p[a] >= box.min[a] && p[a] <= box.max[a];
+        }
+        if (!inside) continue;
+        const Index3 v = {i, j, k};
+        for (int a = 0; a < 3; ++a) {
+          expected.begin[a] = std::min(expected.begin[a], v[a]);
+          expected.end[a] = std::max(expected.end[a], v[a] + 1);
+        }
+      }
+    }
+  }
+  ASSERT_LT(expected.begin[0], expected.end[0]) << "the case must hit voxels";
+  EXPECT_EQ(got->begin, expected.begin);
+  EXPECT_EQ(got->end, expected.end);
+}
+
+TEST(PhysicalBoxTest, MissesNameTheAxisAndDistance) {
+  Grid g;
+  g.size = {10, 10, 10};
+  const auto beyond = PhysicalBoxToVoxelBox({{0, 0, 20}, {5, 5, 30}}, g);
+  EXPECT_EQ(beyond.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(std::string(beyond.status().message()),
+              ::testing::HasSubstr("z (slices) it starts 11.00 mm beyond"));
+  const auto before = PhysicalBoxToVoxelBox({{-8, 0, 0}, {-3, 5, 5}}, g);
+  EXPECT_THAT(std::string(before.status().message()),
+              ::testing::HasSubstr("x (columns) it ends 3.00 mm before"));
+  EXPECT_FALSE(PhysicalBoxToVoxelBox({{0, 0, 0}, {NAN, 5, 5}}, g).ok());
 }
 
 }  // namespace

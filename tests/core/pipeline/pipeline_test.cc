@@ -1,5 +1,7 @@
 #include "core/pipeline/pipeline.h"
 
+#include <algorithm>
+#include <cmath>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
@@ -712,6 +714,232 @@ TEST_F(PipelinePreviewTest, UnknownFormatIsRefused) {
   spec.series_number_base = 2147483647 - 5;
   EXPECT_EQ(RunJob(spec, {}).status().code(),
             absl::StatusCode::kInvalidArgument);
+}
+
+// --- roi_mm (issue 26: a region of interest as a viewer gives it) ---
+
+// A series' voxel centres computed from its headers alone (DCMTK), without
+// the reader: slices sorted along n = row x column direction, voxel (i, j, k)
+// of the reader's grid at IPP(first) + r i sx + c j sy + n (position(k) -
+// position(first)) (series_reader.h: tilted slices are resampled onto the
+// first slice's in-plane grid).
+struct HeaderGeometry {
+  Vec3 first = {0, 0, 0}, r = {0, 0, 0}, c = {0, 0, 0}, n = {0, 0, 0};
+  double sx = 0, sy = 0;
+  int64_t columns = 0, rows = 0;
+  std::vector<double> offsets;  // along n from the first slice, sorted
+  Vec3 Centre(int64_t i, int64_t j, int64_t k) const {
+    Vec3 p;
+    for (int a = 0; a < 3; ++a) {
+      p[a] = first[a] + r[a] * i * sx + c[a] * j * sy + n[a] * offsets[k];
+    }
+    return p;
+  }
+};
+
+HeaderGeometry ReadHeaderGeometry(const std::string& folder) {
+  HeaderGeometry g;
+  std::vector<Vec3> positions;
+  for (const auto& entry : fs::directory_iterator(folder)) {
+    if (entry.path().extension() != ".dcm") continue;
+    DcmFileFormat file;
+    EXPECT_TRUE(file.loadFile(entry.path().c_str()).good());
+    DcmDataset* d = file.getDataset();
+    Vec3 ipp;
+    for (int a = 0; a < 3; ++a) {
+      EXPECT_TRUE(
+          d->findAndGetFloat64(DCM_ImagePositionPatient, ipp[a], a).good());
+    }
+    positions.push_back(ipp);
+    if (positions.size() > 1) continue;
+    for (int a = 0; a < 3; ++a) {
+      d->findAndGetFloat64(DCM_ImageOrientationPatient, g.r[a], a);
+      d->findAndGetFloat64(DCM_ImageOrientationPatient, g.c[a], a + 3);
+    }
+    // PixelSpacing = row spacing (along c), column spacing (along r).
+    d->findAndGetFloat64(DCM_PixelSpacing, g.sy, 0);
+    d->findAndGetFloat64(DCM_PixelSpacing, g.sx, 1);
+    Uint16 columns = 0, rows = 0;
+    d->findAndGetUint16(DCM_Columns, columns);
+    d->findAndGetUint16(DCM_Rows, rows);
+    g.columns = columns;
+    g.rows = rows;
+  }
+  g.n = {g.r[1] * g.c[2] - g.r[2] * g.c[1], g.r[2] * g.c[0] - g.r[0] * g.c[2],
+         g.r[0] * g.c[1] - g.r[1] * g.c[0]};
+  auto along = [&](const Vec3& p) {
+    return p[0] * g.n[0] + p[1] * g.n[1] + p[2] * g.n[2];
+  };
+  std::sort(positions.begin(), positions.end(),
+            [&](const Vec3& a, const Vec3& b) { return along(a) < along(b); });
+  g.first = positions.front();
+  for (const Vec3& p : positions) {
+    g.offsets.push_back(along(p) - along(g.first));
+  }
+  return g;
+}
+
+// The brute-force answer: the index bounding box of every voxel centre
+// inside the LPS box (none: begin > end).
+VoxelBox BruteForceVoxelBox(const HeaderGeometry& g, const PhysicalBox& box) {
+  VoxelBox out{{INT64_MAX, INT64_MAX, INT64_MAX}, {0, 0, 0}};
+  for (int64_t k = 0; k < static_cast<int64_t>(g.offsets.size()); ++k) {
+    for (int64_t j = 0; j < g.rows; ++j) {
+      for (int64_t i = 0; i < g.columns; ++i) {
+        const Vec3 p = g.Centre(i, j, k);
+        bool inside = true;
+        for (int a = 0; a < 3; ++a) {
+          inside &= p[a] >= box.min[a] - 1e-6 && p[a] <= box.max[a] + 1e-6;
+        }
+        if (!inside) continue;
+        const Index3 v = {i, j, k};
+        for (int a = 0; a < 3; ++a) {
+          out.begin[a] = std::min(out.begin[a], v[a]);
+          out.end[a] = std::max(out.end[a], v[a] + 1);
+        }
+      }
+    }
+  }
+  return out;
+}
+
+// The LPS bounding box of the centres of voxel box `v`, widened by `margin`
+// mm on every side.
+PhysicalBox CentresBox(const HeaderGeometry& g, const VoxelBox& v,
+                       double margin) {
+  PhysicalBox box{{INFINITY, INFINITY, INFINITY},
+                  {-INFINITY, -INFINITY, -INFINITY}};
+  for (int corner = 0; corner < 8; ++corner) {
+    const Vec3 p = g.Centre((corner & 1) ? v.end[0] - 1 : v.begin[0],
+                            (corner & 2) ? v.end[1] - 1 : v.begin[1],
+                            (corner & 4) ? v.end[2] - 1 : v.begin[2]);
+    for (int a = 0; a < 3; ++a) {
+      box.min[a] = std::min(box.min[a], p[a] - margin);
+      box.max[a] = std::max(box.max[a], p[a] + margin);
+    }
+  }
+  return box;
+}
+
+// On the axial thick series, the mm box around the centres of SmallJob's
+// voxel ROI (widened by less than half a voxel) is that ROI: the same voxel
+// box, the same output grid, both forms in the report.
+TEST_F(PipelineTest, RoiMmOnAnAxialSeriesIsTheVoxelBoxItCovers) {
+  const HeaderGeometry g = ReadHeaderGeometry(kSeries);
+  ASSERT_EQ(g.offsets.size(), 4u);
+  const VoxelBox voxels = *SmallJob().roi;
+  const PhysicalBox mm = CentresBox(g, voxels, 0.1);
+  JobSpec spec = SmallJob();
+  spec.roi.reset();
+  spec.roi_mm = mm;
+  spec.mesh_formats.clear();
+  const auto report = RunJob(spec, {});
+  ASSERT_TRUE(report.ok()) << report.status();
+  ASSERT_TRUE(report->roi.has_value());
+  EXPECT_EQ(report->roi->begin, voxels.begin);
+  EXPECT_EQ(report->roi->end, voxels.end);
+  ASSERT_TRUE(report->roi_mm.has_value());
+  EXPECT_EQ(report->roi_mm->min, mm.min);
+  EXPECT_EQ(report->roi_mm->max, mm.max);
+  EXPECT_EQ(report->output_grid.size, (Index3{80, 80, 13}));
+  // The output's origin is the centre of the ROI's first voxel.
+  const Vec3 origin = g.Centre(voxels.begin[0], voxels.begin[1], 0);
+  for (int a = 0; a < 3; ++a) {
+    EXPECT_NEAR(report->output_grid.origin[a], origin[a], 1e-3) << a;
+  }
+  // Both forms in the JSON report, and back.
+  const nlohmann::json j = nlohmann::json::parse(JobReportToJson(*report));
+  EXPECT_EQ(j["input"]["roi"]["begin"], nlohmann::json(voxels.begin));
+  EXPECT_EQ(j["input"]["roi_mm"]["max"], nlohmann::json(mm.max));
+  const auto back = JobReportFromJson(JobReportToJson(*report));
+  ASSERT_TRUE(back.ok()) << back.status();
+  ASSERT_TRUE(back->roi.has_value() && back->roi_mm.has_value());
+  EXPECT_EQ(back->roi->begin, voxels.begin);
+  EXPECT_EQ(back->roi->end, voxels.end);
+  EXPECT_EQ(back->roi_mm->min, mm.min);
+  EXPECT_EQ(back->roi_mm->max, mm.max);
+
+  // Half a voxel narrower in-plane than the ROI's centres: one voxel less
+  // on each side (the axial series' rows and columns run along LPS x, y).
+  PhysicalBox smaller = mm;
+  for (int a = 0; a < 2; ++a) {
+    const double spacing = a == 0 ? g.sx : g.sy;
+    smaller.min[a] += 0.1 + 0.5 * spacing;
+    smaller.max[a] -= 0.1 + 0.5 * spacing;
+  }
+  spec.roi_mm = smaller;
+  const auto shrunk = RunJob(spec, {});
+  ASSERT_TRUE(shrunk.ok()) << shrunk.status();
+  EXPECT_EQ(shrunk->roi->begin, (Index3{voxels.begin[0] + 1,
+                                        voxels.begin[1] + 1, voxels.begin[2]}));
+  EXPECT_EQ(shrunk->roi->end,
+            (Index3{voxels.end[0] - 1, voxels.end[1] - 1, voxels.end[2]}));
+}
+
+// On the tilted series (gantry tilt, the slice plane oblique to the patient
+// axes) a mm box around a known voxel region maps to a voxel box that
+// contains the region, is exactly the brute-force box of the voxel centres
+// inside, and not much more.
+TEST_F(PipelineTest, RoiMmOnATiltedSeriesCoversTheRegionAndLittleMore) {
+  const std::string tilted = std::string(INTERSLICE_TEST_DATA_DIR) + "/ct-tilt";
+  const HeaderGeometry g = ReadHeaderGeometry(tilted);
+  ASSERT_EQ(g.offsets.size(), 3u);
+  const VoxelBox region{{200, 200, 0}, {280, 280, 3}};
+  const PhysicalBox mm = CentresBox(g, region, 0.01);
+  JobSpec spec = SmallJob();
+  spec.inputs = {tilted};
+  spec.roi.reset();
+  spec.roi_mm = mm;
+  spec.mesh_formats.clear();
+  const auto report = RunJob(spec, {});
+  ASSERT_TRUE(report.ok()) << report.status();
+  ASSERT_NE(report->gantry_tilt_degrees, 0);
+  ASSERT_TRUE(report->roi.has_value());
+  const VoxelBox& got = *report->roi;
+  const VoxelBox expected = BruteForceVoxelBox(g, mm);
+  EXPECT_EQ(got.begin, expected.begin);
+  EXPECT_EQ(got.end, expected.end);
+  for (int a = 0; a < 3; ++a) {
+    EXPECT_LE(got.begin[a], region.begin[a]) << a;
+    EXPECT_GE(got.end[a], region.end[a]) << a;
+    // The region's LPS box is oblique to the slices: it holds a row more
+    // on each side (what the brute force finds), not a bounding box of
+    // the whole slice.
+    EXPECT_LE(got.Size()[a], region.Size()[a] + 2) << a;
+  }
+  EXPECT_EQ(report->input_slices, 3);
+}
+
+TEST_F(PipelineTest, RoiMmOutsideTheSeriesOrWithRoiIsAClearError) {
+  const HeaderGeometry g = ReadHeaderGeometry(kSeries);
+  JobSpec spec = SmallJob();
+  spec.roi.reset();
+  // 1 m above the series along the slice axis.
+  PhysicalBox above = CentresBox(g, *SmallJob().roi, 0.1);
+  above.min[2] += 1000;
+  above.max[2] += 1000;
+  spec.roi_mm = above;
+  auto r = RunJob(spec, {});
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(r.status().message(), ::testing::HasSubstr("misses the series"));
+  EXPECT_THAT(r.status().message(), ::testing::HasSubstr("z (slices)"));
+  EXPECT_FALSE(fs::exists(dir_ / "distance.nrrd"));
+  // Between two voxel centres along x: overlaps, holds no centre.
+  PhysicalBox thin = CentresBox(g, *SmallJob().roi, 0.1);
+  thin.min[0] = g.first[0] + g.r[0] * 100.3 * g.sx;
+  thin.max[0] = g.first[0] + g.r[0] * 100.6 * g.sx;
+  if (thin.min[0] > thin.max[0]) std::swap(thin.min[0], thin.max[0]);
+  spec.roi_mm = thin;
+  r = RunJob(spec, {});
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(r.status().message(), ::testing::HasSubstr("no voxel centre"));
+  // Both forms at once.
+  spec = SmallJob();
+  spec.roi_mm = CentresBox(g, *SmallJob().roi, 0.1);
+  r = RunJob(spec, {});
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(r.status().message(), ::testing::HasSubstr("roi (voxels)"));
+  EXPECT_THAT(r.status().message(), ::testing::HasSubstr("roi_mm"));
 }
 
 }  // namespace

@@ -213,7 +213,8 @@ TEST_F(ConfigTest, FullRulesFile) {
             "    complete_on_release: true\n"
             "  - match: {modality: MR}\n"
             "    job: {threshold: 100, method: cg, iterations: 20,\n"
-            "          tolerance: 0.001, factor: 3, mesh: 'stl,obj'}\n"),
+            "          tolerance: 0.001, factor: 3, mesh: 'stl,obj',\n"
+            "          roi_mm: [-80.5, 20, -3e1, 60, -40.25, 10]}\n"),
       Peers());
   ASSERT_TRUE(set.ok()) << set.status();
   EXPECT_DOUBLE_EQ(set->stable_seconds, 1.5);
@@ -246,6 +247,14 @@ TEST_F(ConfigTest, FullRulesFile) {
   EXPECT_EQ(mr.job.max_iterations(), 20);
   EXPECT_DOUBLE_EQ(mr.job.tolerance(), 0.001);
   EXPECT_EQ(mr.job.insertion_factor(), 3);
+  // roi_mm as a YAML list of numbers (corners in any order), and as text.
+  EXPECT_FALSE(job.has_roi_mm());
+  ASSERT_TRUE(mr.job.has_roi_mm());
+  EXPECT_DOUBLE_EQ(mr.job.roi_mm().x0(), -80.5);
+  EXPECT_DOUBLE_EQ(mr.job.roi_mm().x1(), 60);
+  EXPECT_DOUBLE_EQ(mr.job.roi_mm().y0(), -40.25);
+  EXPECT_DOUBLE_EQ(mr.job.roi_mm().z0(), -30);
+  EXPECT_DOUBLE_EQ(mr.job.roi_mm().z1(), 10);
   EXPECT_THAT(mr.job.outputs().mesh_formats(),
               ElementsAre(v1::MESH_FORMAT_STL, v1::MESH_FORMAT_OBJ));
   // The command line's default: NIfTI unless `volume` says otherwise.
@@ -430,6 +439,15 @@ TEST_F(ConfigTest, JobValuesCheckedAsTheCommandLineChecksThem) {
               HasSubstr("job.factor: factor and spacing are alternatives"));
   EXPECT_THAT(RuleError("  - {name: a, job: {threshold: 1, roi: [1, 2, 3]}}\n"),
               HasSubstr("job.roi: expected six integers"));
+  EXPECT_THAT(
+      RuleError("  - {name: a, job: {threshold: 1, roi_mm: [1, 2, x]}}\n"),
+      HasSubstr("job.roi_mm[2]"));
+  EXPECT_THAT(
+      RuleError("  - {name: a, job: {threshold: 1, roi_mm: '1,2,3'}}\n"),
+      HasSubstr("job.roi_mm: expected six numbers"));
+  EXPECT_THAT(RuleError("  - {name: a, job: {threshold: 1, roi: [0, 0, 0, 9, "
+                        "9, 2], roi_mm: [0, 0, 0, 9, 9, 9]}}\n"),
+              HasSubstr("job.roi_mm: cannot be combined with roi"));
   EXPECT_THAT(RuleError("  - {name: a}\n"),
               HasSubstr("rule 'a' (#1): job: missing"));
 }
