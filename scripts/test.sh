@@ -7,15 +7,14 @@
 #   3. plain tests    ctest -L plain in build/
 #   3b. viewer        ctest -L ohif in build/: the OHIF viewer test (prebuilt
 #                     OHIF, Orthanc with DICOMweb, headless chromium), on
-#                     its own budget (each case takes both cores ~1.5 min).
-#                     NOT run by CI for now (INTERSLICE_OHIF=1 runs it): in
-#                     5 runs of its 4 cases on 2026-11-26, 4 runs had one
-#                     failure that passes on a rerun (no LOAD badge after
-#                     the SEG thumbnail's double click on the tilted CT; the
-#                     mouse wheel not reaching a slice; an image match of
-#                     0.898 against 0.9 on one phantom slice). A flaky gate
-#                     would stop every change from landing; issue 26 tracks
-#                     making it deterministic.
+#                     its own budget (each case takes both cores 0.5-1.5
+#                     min). A case that fails is run once more (ctest
+#                     --repeat until-pass:2, and the log says so): the
+#                     viewer's own timing under load is not what is tested
+#                     (our geometry is deterministic), and a planted-defect
+#                     variant passes only by failing for its own reason, so
+#                     a rerun cannot make it pass by accident.
+#                     INTERSLICE_OHIF=0 leaves the stage out.
 #   4. deployment     scripts/test-deploy.sh: the server image packed from
 #                     build/'s binaries (deploy/Dockerfile.prebuilt), the
 #                     compose stack with Orthanc and the phantom through it,
@@ -136,7 +135,7 @@ plain_tests() {
 }
 viewer_tests() {
   ctest --test-dir build --output-on-failure -j"$jobs" -L '^ohif$' \
-    --stop-time "$STAGE_STOP_TIME"
+    --repeat until-pass:2 --stop-time "$STAGE_STOP_TIME"
 }
 
 export jobs
@@ -144,8 +143,8 @@ export -f plain_build plain_tests viewer_tests
 stage deps 900 bash scripts/install-deps.sh
 stage "plain build" 1500 bash -c plain_build
 stage "plain tests" 900 bash -c plain_tests
-if [[ ${INTERSLICE_OHIF:-0} == 1 ]]; then
-  stage viewer 600 bash -c viewer_tests
+if [[ ${INTERSLICE_OHIF:-1} == 1 ]]; then
+  stage viewer 900 bash -c viewer_tests
 fi
 if [[ ${INTERSLICE_QUICK:-0} == 1 ]]; then
   summary
