@@ -191,7 +191,10 @@ absl::StatusOr<dicom::StoreResult> StowRequest(
   const nlohmann::json* referenced = DicomJsonValue(json, "00081199");
   const nlohmann::json* failed = DicomJsonValue(json, "00081198");
   if (!json.is_object() || !IsDicomJson(request.content_type()) ||
-      (referenced == nullptr && failed == nullptr && *http != 409)) {
+      // Either sequence present, empty or not (an all-refused request may
+      // carry an empty Referenced SOP Sequence and nothing else).
+      (!json.contains("00081199") && !json.contains("00081198") &&
+       *http != 409)) {
     return absl::FailedPreconditionError(
         absl::StrCat(what, ": HTTP ", *http,
                      " without a DICOM JSON store response (Content-Type '",
@@ -275,7 +278,15 @@ absl::StatusOr<dicom::StoreResult> StowFiles(
     int64_t bytes = 0;
   };
   std::vector<Batch> batches;
-  const int max_instances = std::max(1, options.stow_max_instances);
+  // Requests small enough that every lane gets some (two each, so that a
+  // lane that finishes early takes another), within the configured bound:
+  // a PACS parses one request's instances one after another, so 56 files
+  // in requests of 50 and 6 kept one lane busy and the other idle.
+  const int lanes_wanted = std::max(1, peer.max_associations);
+  const int balanced = static_cast<int>((files.size() + 2 * lanes_wanted - 1) /
+                                        (2 * lanes_wanted));
+  const int max_instances =
+      std::clamp(balanced, 1, std::max(1, options.stow_max_instances));
   for (size_t i = 0; i < files.size(); ++i) {
     if (batches.empty() ||
         static_cast<int>(batches.back().files.size()) >= max_instances ||
