@@ -194,7 +194,7 @@ absl::Status HttpStatusError(const dicom::DicomPeer& peer,
   }
   if (http_status >= 500 || http_status == 429 || http_status == 408) {
     return absl::UnavailableError(
-        absl::StrCat(head, ": the peer is failing or busy; retried"));
+        absl::StrCat(head, ": the peer is failing or busy"));
   }
   return absl::FailedPreconditionError(absl::StrCat(
       head, http_status == 404 ? ": not found (is url the DICOMweb base URL?)"
