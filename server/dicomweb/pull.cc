@@ -30,6 +30,9 @@ namespace {
 // hundred bytes to a few KiB. Bounded per match, and absolutely.
 constexpr size_t kQidoBytesPerMatch = 16384;
 constexpr size_t kMaxQidoBytes = size_t{64} << 20;
+// An answer that is not multipart (an error page) is read this far, then
+// refused; its bytes are never kept.
+constexpr size_t kMaxOtherAnswerBytes = size_t{1} << 20;
 // Multipart headers of one part: a few lines.
 constexpr int64_t kPartOverheadBytes = 16384;
 
@@ -249,8 +252,8 @@ absl::StatusOr<dicom::RetrieveResult> RetrieveSeriesWeb(
   };
   callbacks.on_part_end = [&] { return writer.End(); };
   std::optional<MultipartParser> parser;
-  // Not multipart (an error page, HTML): a little is kept for nothing and
-  // the rest refused.
+  // Not multipart (an error page, HTML): counted and dropped (never kept),
+  // up to a bound past which the answer is refused.
   bool not_multipart = false;
   size_t other_bytes = 0;
   request.SetSink([&](const char* data, size_t n) {
@@ -265,7 +268,13 @@ absl::StatusOr<dicom::RetrieveResult> RetrieveSeriesWeb(
     }
     if (not_multipart) {
       other_bytes += n;
-      return other_bytes <= 65536;
+      if (other_bytes > kMaxOtherAnswerBytes) {
+        request.SetAbortStatus(absl::FailedPreconditionError(absl::StrCat(
+            what, ": the answer is not multipart/related (Content-Type '",
+            request.content_type().substr(0, 64), "')")));
+        return false;
+      }
+      return true;
     }
     absl::Status s = parser->Feed(absl::string_view(data, n));
     if (!s.ok()) {

@@ -353,6 +353,10 @@ TEST(DicomWebPullTest, LyingOrBrokenAnswersFailCleanly) {
       {"HTML instead of multipart", 1,
        CannedHttp::Response(200, "text/html", "<html>hello</html>"), defaults,
        absl::StatusCode::kFailedPrecondition, "not multipart/related"},
+      {"an HTML page of 2 MiB", 1,
+       CannedHttp::Response(200, "text/html", std::string(2 << 20, 'h')),
+       defaults, absl::StatusCode::kFailedPrecondition,
+       "not multipart/related"},
       {"server error", 1, CannedHttp::Response(500, "text/plain", "oops"),
        defaults, absl::StatusCode::kUnavailable, "HTTP 500"},
   };
