@@ -5,7 +5,9 @@
 // Nagle's algorithm on (TCP_NODELAY unset: what the server did before issue
 // 25); otherwise the server's start-up setting
 // (DisableNagleOnOutgoingAssociations) is applied, as interslice-server's
-// main() does.
+// main() does. --url sends by STOW-RS to that DICOMweb base URL instead
+// (the same StoreFiles, a peer of type dicomweb; --associations is then the
+// requests in flight).
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
@@ -19,13 +21,15 @@
 
 int main(int argc, char** argv) {
   namespace dicom = interslice::server::dicom;
-  std::string dir, host = "127.0.0.1", ae = "STORESCP";
+  std::string dir, host = "127.0.0.1", ae = "STORESCP", url;
   int port = 0, associations = 1, repeat = 1, copies = 1;
   bool nagle_on = false;
   CLI::App app{"C-STORE every DICOM file of a folder to a peer, timed"};
   app.add_option("dir", dir, "Folder of DICOM files")->required();
   app.add_option("--host", host);
-  app.add_option("--port", port)->required();
+  app.add_option("--port", port);
+  app.add_option("--url", url,
+                 "A DICOMweb base URL: send by STOW-RS instead of C-STORE");
   app.add_option("--ae", ae, "The peer's AE title");
   app.add_option("--associations", associations, "max_associations");
   app.add_option("--repeat", repeat);
@@ -50,6 +54,16 @@ int main(int argc, char** argv) {
   peer.host = host;
   peer.port = port;
   peer.max_associations = associations;
+  if (!url.empty()) {
+    peer = {};
+    peer.name = "bench";
+    peer.type = dicom::PeerType::kDicomWeb;
+    peer.web.url = url;
+    peer.max_associations = associations;
+  } else if (port <= 0) {
+    std::fprintf(stderr, "--port or --url is required\n");
+    return 1;
+  }
   dicom::DeliveryOptions options;
   options.calling_ae_title = "INTERSLICE";
   const std::vector<std::string> one = dicom::ListDicomFiles(dir);
@@ -72,10 +86,11 @@ int main(int argc, char** argv) {
       return 1;
     }
     std::printf(
-        "%zu instances over %d association(s), Nagle %s: %.3f s, %.1f "
+        "%zu instances over %d %s, Nagle %s: %.3f s, %.1f "
         "instances/s\n",
-        files.size(), associations, nagle_on ? "on" : "off", s,
-        files.size() / s);
+        files.size(), associations,
+        url.empty() ? "association(s)" : "STOW-RS request(s) at once",
+        nagle_on ? "on" : "off", s, files.size() / s);
   }
   return 0;
 }

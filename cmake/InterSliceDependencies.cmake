@@ -10,6 +10,8 @@ find_package(ZLIB REQUIRED)
 # config warns about command-line tools that are not installed; harmless.
 find_package(GDCM CONFIG REQUIRED)
 find_package(nlohmann_json CONFIG REQUIRED)
+# libcurl: the DICOMweb client (server/dicomweb/) and the test fixtures.
+find_package(CURL REQUIRED)
 find_package(CLI11 CONFIG REQUIRED)
 find_package(spdlog CONFIG REQUIRED)
 # SHA-1 for name-based UIDs (core/dicom_out); SHA-256 of uploads (server).

@@ -17,7 +17,7 @@
 #
 # Environment: INTERSLICE_FUZZ_JOBS (compile jobs, default nproc),
 # INTERSLICE_FUZZ_TARGETS (default "dicom_ingest_fuzzer job_spec_fuzzer
-# upload_stream_fuzzer dicom_listener_fuzzer"),
+# upload_stream_fuzzer dicom_listener_fuzzer multipart_fuzzer"),
 # INTERSLICE_FUZZ_ARGS (more libFuzzer flags for every target, e.g.
 # "-max_len=65536": about twice the executions per second for
 # dicom_ingest_fuzzer, at the price of truncating the 512 x 512 seeds).
@@ -31,7 +31,7 @@ if ! [[ "$seconds" =~ ^[0-9]+$ ]] || [ "$seconds" -lt 1 ]; then
   exit 2
 fi
 jobs="${INTERSLICE_FUZZ_JOBS:-$(nproc)}"
-targets=(${INTERSLICE_FUZZ_TARGETS:-dicom_ingest_fuzzer job_spec_fuzzer upload_stream_fuzzer dicom_listener_fuzzer})
+targets=(${INTERSLICE_FUZZ_TARGETS:-dicom_ingest_fuzzer job_spec_fuzzer upload_stream_fuzzer dicom_listener_fuzzer multipart_fuzzer})
 build="${INTERSLICE_INSTRUMENTED_BUILD_DIR:-$root/build-instrumented}"
 work="$build/fuzz"
 probe="$(mktemp -d)"
@@ -118,6 +118,15 @@ seeds_upload_stream() {
   } >"$dir/split-file"
 }
 
+seeds_multipart() {
+  # A mode byte (1: tiny limits), a chunk-size byte, then a body with the
+  # boundary "frontier".
+  local dir="$1"
+  mkdir -p "$dir"
+  printf '\x00\x07preamble\r\n--frontier\r\nContent-Type: application/dicom\r\n\r\nfirst part\r\n--frontier  \r\nContent-Length: 6\r\n\r\nsecond\r\n--frontier--\r\nepilogue' >"$dir/two-parts"
+  printf '\x01\x00--frontier\r\n\r\n\r\n--frontie\r\n--frontier\r\nContent-Length: 99\r\n\r\nshort\r\n--frontier--' >"$dir/lying-length"
+}
+
 status=0
 summary=()
 for target in "${targets[@]}"; do
@@ -129,6 +138,7 @@ for target in "${targets[@]}"; do
     job_spec_fuzzer) seeds_job_spec "$dir/seeds" ;;
     upload_stream_fuzzer) seeds_upload_stream "$dir/seeds" ;;
     dicom_listener_fuzzer) python3 tests/fuzz/dicom_listener_seeds.py "$dir/seeds" ;;
+    multipart_fuzzer) seeds_multipart "$dir/seeds" ;;
   esac
   log="$dir/last-run.log"
   echo "fuzz: $target for $seconds s (log: ${log#$root/})"

@@ -16,6 +16,7 @@
 #include <stop_token>
 #include <thread>
 
+#include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
@@ -570,14 +571,17 @@ int RunServer(ServerOptions options) {
             absl::Status echo =
                 dicom::EchoPeer(peer, calling, tls, kEchoTimeoutSeconds);
             metrics.DicomPeerReachable(peer.name, echo.ok());
+            const char* probe = peer.type == dicom::PeerType::kDicomWeb
+                                    ? "a QIDO-RS probe"
+                                    : "a C-ECHO";
             if (echo.ok()) {
-              spdlog::info("dicom: {} answered a C-ECHO",
-                           LogSafe(dicom::PeerLabel(peer)));
+              spdlog::info("dicom: {} answered {}",
+                           LogSafe(dicom::PeerLabel(peer)), probe);
             } else {
               spdlog::warn(
-                  "dicom: {} did not answer a C-ECHO at start-up ({}); "
+                  "dicom: {} did not answer {} at start-up ({}); "
                   "deliveries to it will be retried",
-                  LogSafe(dicom::PeerLabel(peer)),
+                  LogSafe(dicom::PeerLabel(peer)), probe,
                   LogSafe(std::string(echo.message())));
             }
           }
@@ -683,10 +687,15 @@ int RunServer(ServerOptions options) {
       s.spool_used_bytes = (*spool)->used_bytes();
       s.spool_quota_bytes = (*spool)->quota_bytes();
       for (const dicom::DicomPeer& p : options.dicom_peers) {
-        s.peers.push_back({.name = p.name,
-                           .ae_title = p.ae_title,
-                           .address = absl::StrCat(p.host, ":", p.port),
-                           .tls = p.tls});
+        const bool web = p.type == dicom::PeerType::kDicomWeb;
+        // A DICOMweb peer's URL never holds credentials (the peers file
+        // refuses them).
+        s.peers.push_back(
+            {.name = p.name,
+             .ae_title = web ? "(DICOMweb)" : p.ae_title,
+             .address = web ? p.web.url : absl::StrCat(p.host, ":", p.port),
+             .tls = web ? absl::StartsWithIgnoreCase(p.web.url, "https://")
+                        : p.tls});
       }
       if (assembler != nullptr) {
         // The generation live now (SIGHUP may replace it).
@@ -855,8 +864,12 @@ int CheckConfig(const ServerOptions& options) {
     absl::Status echo =
         dicom::EchoPeer(peer, calling, DicomTls(options), kEchoTimeoutSeconds);
     if (echo.ok()) {
-      std::printf("  %s: C-ECHO answered (calling as %s)\n",
-                  dicom::PeerLabel(peer).c_str(), calling.c_str());
+      if (peer.type == dicom::PeerType::kDicomWeb) {
+        std::printf("  %s: QIDO-RS answered\n", dicom::PeerLabel(peer).c_str());
+      } else {
+        std::printf("  %s: C-ECHO answered (calling as %s)\n",
+                    dicom::PeerLabel(peer).c_str(), calling.c_str());
+      }
     } else {
       problem(std::string(echo.message()));
     }

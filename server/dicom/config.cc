@@ -6,6 +6,8 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <filesystem>
+#include <fstream>
 #include <limits>
 #include <optional>
 #include <set>
@@ -218,6 +220,146 @@ absl::StatusOr<ValueRange> GetRange(const YAML::Node& node, const Context& ctx,
 bool SameText(const std::string& a, const std::string& b) {
   return absl::EqualsIgnoreCase(absl::StripAsciiWhitespace(a),
                                 absl::StripAsciiWhitespace(b));
+}
+
+absl::Status ReadMaxAssociations(const YAML::Node& p, const Context& ctx,
+                                 DicomPeer& peer) {
+  if (!p["max_associations"]) return absl::OkStatus();
+  absl::StatusOr<int64_t> n =
+      GetInteger(p["max_associations"], ctx, "max_associations");
+  if (!n.ok()) return n.status();
+  if (*n < 1 || *n > kMaxAssociationsPerPeer) {
+    return ctx.Error(
+        "max_associations",
+        absl::StrCat("expected 1-", kMaxAssociationsPerPeer,
+                     peer.type == PeerType::kDicomWeb
+                         ? " (requests in parallel when sending to this peer)"
+                         : " (associations in parallel when sending to this "
+                           "peer)"));
+  }
+  peer.max_associations = static_cast<int>(*n);
+  return absl::OkStatus();
+}
+
+// A file the node reads later (a secret, a certificate): it must exist and
+// be readable now, so that a typo shows at start-up. Only the path appears
+// in messages, never the contents. `must_have_text`: empty (or all-space)
+// files are errors too (a token or password file).
+absl::StatusOr<std::string> ReadablePath(const YAML::Node& p,
+                                         const Context& ctx, const char* key,
+                                         bool must_have_text) {
+  absl::StatusOr<std::string> path = GetString(p[key], ctx, key);
+  if (!path.ok()) return path.status();
+  const std::string trimmed(absl::StripAsciiWhitespace(*path));
+  if (trimmed.empty()) return ctx.Error(key, "empty");
+  std::error_code ec;
+  if (!std::filesystem::is_regular_file(trimmed, ec)) {
+    return ctx.Error(key, absl::StrCat("'", trimmed, "' is not a file"));
+  }
+  std::ifstream in(trimmed, std::ios::binary);
+  char first = 0;
+  if (!in.is_open()) {
+    return ctx.Error(key, absl::StrCat("cannot read '", trimmed, "'"));
+  }
+  if (must_have_text) {
+    bool any = false;
+    while (!any && in.get(first)) {
+      any = !absl::ascii_isspace(static_cast<unsigned char>(first));
+    }
+    if (!any) {
+      return ctx.Error(key, absl::StrCat("'", trimmed, "' is empty"));
+    }
+  }
+  return trimmed;
+}
+
+// The DICOMweb keys of a peer: url (http or https, no credentials, query
+// or fragment in it), one way to authenticate at most, TLS files for https.
+absl::StatusOr<DicomWebEndpoint> ParseDicomWebEndpoint(const YAML::Node& p,
+                                                       const Context& ctx) {
+  DicomWebEndpoint web;
+  if (!p["url"]) {
+    return ctx.Error("url",
+                     "missing (a DICOMweb peer needs its base URL, e.g. "
+                     "http://pacs:8042/dicom-web)");
+  }
+  absl::StatusOr<std::string> url = GetString(p["url"], ctx, "url");
+  if (!url.ok()) return url.status();
+  std::string text(absl::StripAsciiWhitespace(*url));
+  const std::string lower = absl::AsciiStrToLower(text);
+  const bool https = absl::StartsWith(lower, "https://");
+  if (!https && !absl::StartsWith(lower, "http://")) {
+    return ctx.Error("url", "expected an http:// or https:// URL");
+  }
+  const size_t authority_start = text.find("://") + 3;
+  const size_t authority_end = text.find('/', authority_start);
+  const std::string authority =
+      text.substr(authority_start, authority_end == std::string::npos
+                                       ? std::string::npos
+                                       : authority_end - authority_start);
+  // Credentials in the URL would show on the status page and in logs.
+  if (authority.find('@') != std::string::npos) {
+    return ctx.Error("url",
+                     "has credentials in it: use basic_user and "
+                     "basic_password_file (or bearer_token_file)");
+  }
+  if (authority.empty()) return ctx.Error("url", "has no host");
+  if (text.find_first_of("?# \t") != std::string::npos) {
+    return ctx.Error("url",
+                     "expected a base URL without query, fragment or spaces");
+  }
+  while (absl::EndsWith(text, "/")) text.pop_back();
+  web.url = text;
+  struct FileKey {
+    const char* key;
+    std::string* out;
+    bool secret;
+  };
+  for (const FileKey& f :
+       {FileKey{"bearer_token_file", &web.bearer_token_file, true},
+        FileKey{"basic_password_file", &web.basic_password_file, true},
+        FileKey{"client_certificate", &web.client_certificate, false},
+        FileKey{"client_key", &web.client_key, false},
+        FileKey{"ca_certificates", &web.ca_certificates, false}}) {
+    if (!p[f.key]) continue;
+    absl::StatusOr<std::string> path = ReadablePath(p, ctx, f.key, f.secret);
+    if (!path.ok()) return path.status();
+    *f.out = *path;
+  }
+  if (p["basic_user"]) {
+    absl::StatusOr<std::string> user =
+        GetString(p["basic_user"], ctx, "basic_user");
+    if (!user.ok()) return user.status();
+    web.basic_user = std::string(absl::StripAsciiWhitespace(*user));
+    if (web.basic_user.empty()) return ctx.Error("basic_user", "empty");
+    if (web.basic_user.find(':') != std::string::npos) {
+      return ctx.Error("basic_user", "has a ':' (RFC 7617 forbids it)");
+    }
+  }
+  if (web.basic_user.empty() != web.basic_password_file.empty()) {
+    return ctx.Error(
+        web.basic_user.empty() ? "basic_user" : "basic_password_file",
+        "missing (HTTP basic needs basic_user and "
+        "basic_password_file)");
+  }
+  if (!web.bearer_token_file.empty() && !web.basic_user.empty()) {
+    return ctx.Error("bearer_token_file",
+                     "give either a bearer token or basic_user, not both");
+  }
+  if (web.client_certificate.empty() != web.client_key.empty()) {
+    return ctx.Error(
+        web.client_certificate.empty() ? "client_certificate" : "client_key",
+        "missing (mutual TLS needs client_certificate and client_key)");
+  }
+  if (!https) {
+    for (const char* key :
+         {"client_certificate", "client_key", "ca_certificates"}) {
+      if (p[key]) {
+        return ctx.Error(key, "only for an https:// url");
+      }
+    }
+  }
+  return web;
 }
 
 absl::StatusOr<RuleMatch> ParseMatch(const YAML::Node& node,
@@ -649,20 +791,63 @@ absl::StatusOr<PeersConfig> LoadPeersConfig(const std::string& path) {
       return ctx.Error("",
                        absl::StrCat("expected a mapping, got ", KindName(p)));
     }
-    keys = CheckKeys(p, ctx, "",
-                     {"name", "ae_title", "host", "port", "tls",
-                      "max_associations", "allowed_sources"});
-    if (!keys.ok()) return keys;
     DicomPeer peer;
-    for (const char* required : {"name", "ae_title", "host"}) {
-      if (!p[required]) return ctx.Error(required, "missing");
+    if (p["type"]) {
+      absl::StatusOr<std::string> type = GetString(p["type"], ctx, "type");
+      if (!type.ok()) return type.status();
+      const std::string lower =
+          absl::AsciiStrToLower(absl::StripAsciiWhitespace(*type));
+      if (lower == "dicomweb") {
+        peer.type = PeerType::kDicomWeb;
+      } else if (lower != "dimse") {
+        return ctx.Error("type", absl::StrCat("'", *type,
+                                              "': expected dimse (the "
+                                              "default) or dicomweb"));
+      }
     }
+    const bool web = peer.type == PeerType::kDicomWeb;
+    // Keys of the other kind of peer are errors that say so (a DICOMweb
+    // peer with an ae_title was most likely meant as a DIMSE one).
+    const std::vector<std::string> dimse_only = {"ae_title", "host", "port",
+                                                 "tls", "allowed_sources"};
+    const std::vector<std::string> web_only = {"url",
+                                               "bearer_token_file",
+                                               "basic_user",
+                                               "basic_password_file",
+                                               "client_certificate",
+                                               "client_key",
+                                               "ca_certificates"};
+    for (const std::string& key : web ? dimse_only : web_only) {
+      if (p[key]) {
+        return ctx.Error(key, web ? "not for a DICOMweb peer (type: "
+                                    "dicomweb talks HTTP to its url)"
+                                  : "only for a DICOMweb peer (add type: "
+                                    "dicomweb)");
+      }
+    }
+    std::vector<std::string> known = {"name", "type", "max_associations"};
+    known.insert(known.end(), (web ? web_only : dimse_only).begin(),
+                 (web ? web_only : dimse_only).end());
+    keys = CheckKeys(p, ctx, "", known);
+    if (!keys.ok()) return keys;
+    if (!p["name"]) return ctx.Error("name", "missing");
     absl::StatusOr<std::string> name = GetString(p["name"], ctx, "name");
     if (!name.ok()) return name.status();
     peer.name = std::string(absl::StripAsciiWhitespace(*name));
     if (peer.name.empty()) return ctx.Error("name", "empty");
     if (!names.insert(peer.name).second) {
       return ctx.Error("name", "another peer has this name");
+    }
+    if (absl::Status s = ReadMaxAssociations(p, ctx, peer); !s.ok()) return s;
+    if (web) {
+      absl::StatusOr<DicomWebEndpoint> endpoint = ParseDicomWebEndpoint(p, ctx);
+      if (!endpoint.ok()) return endpoint.status();
+      peer.web = *std::move(endpoint);
+      config.peers.push_back(std::move(peer));
+      continue;
+    }
+    for (const char* required : {"ae_title", "host"}) {
+      if (!p[required]) return ctx.Error(required, "missing");
     }
     absl::StatusOr<std::string> ae = GetString(p["ae_title"], ctx, "ae_title");
     if (!ae.ok()) return ae.status();
@@ -685,18 +870,6 @@ absl::StatusOr<PeersConfig> LoadPeersConfig(const std::string& path) {
       absl::StatusOr<bool> tls = GetBool(p["tls"], ctx, "tls");
       if (!tls.ok()) return tls.status();
       peer.tls = *tls;
-    }
-    if (p["max_associations"]) {
-      absl::StatusOr<int64_t> n =
-          GetInteger(p["max_associations"], ctx, "max_associations");
-      if (!n.ok()) return n.status();
-      if (*n < 1 || *n > kMaxAssociationsPerPeer) {
-        return ctx.Error("max_associations",
-                         absl::StrCat("expected 1-", kMaxAssociationsPerPeer,
-                                      " (associations in parallel when "
-                                      "sending to this peer)"));
-      }
-      peer.max_associations = static_cast<int>(*n);
     }
     if (const YAML::Node sources = p["allowed_sources"]; sources) {
       if (!sources.IsSequence() || sources.size() == 0) {

@@ -14,6 +14,17 @@
 //                                     # optional: the addresses or networks
 //                                     # associations calling as this AE
 //                                     # title may come from
+//     - {name: cloud, type: dicomweb,  # type: dimse (default) | dicomweb
+//        url: https://pacs.example/dicom-web,   # base URL (http or https)
+//        bearer_token_file: /etc/interslice/cloud.token,  # or:
+//        # basic_user: interslice, basic_password_file: /etc/.../pw,
+//        client_certificate: c.pem, client_key: k.pem,  # mutual TLS
+//        ca_certificates: ca.pem,     # https: CAs of the server
+//        max_associations: 4}         # STOW-RS requests in parallel
+//   A DICOMweb peer has no ae_title, host, port, tls or allowed_sources
+//   (errors if given); a DIMSE peer none of the DICOMweb keys. The files
+//   must exist and be readable at load time (token and password files not
+//   empty); only their paths appear in messages, never their contents.
 //
 // Rules file:
 //   stable_seconds: 30                # optional, > 0 (fractions allowed)

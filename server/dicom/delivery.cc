@@ -18,6 +18,7 @@
 #include "core/dicom/series_reader.h"
 #include "server/dicom/scu.h"
 #include "server/dicom/tls.h"
+#include "server/dicomweb/client.h"
 #include "spdlog/spdlog.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
@@ -188,6 +189,9 @@ absl::StatusOr<StoreResult> StoreFiles(const DicomPeer& peer,
   // together with the uncompressed syntaxes, and decompresses it for a peer
   // that accepts only those; without them it proposes RLE alone. Once,
   // before any sending thread starts (it changes DCMTK's global codec list).
+  if (peer.type == PeerType::kDicomWeb) {
+    return dicomweb::StowFiles(peer, files, options);
+  }
   RegisterDicomDecoders();
   const size_t lanes = std::min<size_t>(
       files.size(), static_cast<size_t>(std::max(1, peer.max_associations)));

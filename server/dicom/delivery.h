@@ -2,7 +2,10 @@
 // DcmStorageSCU), persistently: the outbox.
 //
 // Contract:
-// - StoreFiles sends DICOM files to one peer. The files are dealt
+// - StoreFiles sends DICOM files to one peer: a DICOMweb peer by STOW-RS
+//   (server/dicomweb/client.h, StowFiles: requests instead of
+//   associations, the same counts and error codes); a DIMSE peer as
+//   follows. The files are dealt
 //   round-robin into min(peer.max_associations, files) shares sent at once,
 //   each by a DcmStorageSCU of its own over as many associations as it
 //   needs (it proposes each file's SOP class with its own transfer syntax,
@@ -64,6 +67,12 @@ struct DeliveryOptions {
   uint32_t max_pdu_bytes = 65536;
   // Our certificate, key and CA for peers with tls: true.
   DicomTlsFiles tls;
+  // DICOMweb peers: one STOW-RS request carries at most this many instances
+  // and bytes (a larger file goes alone), so that a proxy's body limit or a
+  // peer's per-request memory is not exceeded and parallel requests share
+  // the work (server/dicomweb/client.h).
+  int stow_max_instances = 50;
+  int64_t stow_max_bytes = int64_t{64} << 20;
 };
 
 struct StoreResult {

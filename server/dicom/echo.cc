@@ -7,6 +7,7 @@
 #include "dcmtk/dcmtls/tlslayer.h"
 #include "server/dicom/scu.h"
 #include "server/dicom/tls.h"
+#include "server/dicomweb/client.h"
 
 namespace interslice::server::dicom {
 namespace {
@@ -22,6 +23,9 @@ class EchoScu : public DcmSCU {
 absl::Status EchoPeer(const DicomPeer& peer,
                       const std::string& calling_ae_title,
                       const DicomTlsFiles& tls_files, int timeout_seconds) {
+  if (peer.type == PeerType::kDicomWeb) {
+    return dicomweb::ProbeDicomWebPeer(peer, timeout_seconds);
+  }
   EchoScu scu;
   ConfigureScu(scu, peer, calling_ae_title, /*max_pdu_bytes=*/16384,
                timeout_seconds);

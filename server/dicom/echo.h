@@ -18,7 +18,9 @@ namespace interslice::server::dicom {
 // answered status 0x0000; otherwise UNAVAILABLE (connection refused or
 // timed out, association rejected or aborted), FAILED_PRECONDITION (TLS
 // needed but the files cannot make a layer) or INTERNAL, with one line
-// naming the peer (PeerLabel) and what failed.
+// naming the peer (PeerLabel) and what failed. A DICOMweb peer is probed
+// with a QIDO-RS search instead (dicomweb::ProbeDicomWebPeer: the same
+// codes, PERMISSION_DENIED for refused credentials).
 absl::Status EchoPeer(const DicomPeer& peer,
                       const std::string& calling_ae_title,
                       const DicomTlsFiles& tls, int timeout_seconds);

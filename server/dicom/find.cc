@@ -11,6 +11,7 @@
 #include "absl/strings/str_format.h"
 #include "server/dicom/scu.h"
 #include "server/dicom/tls.h"
+#include "server/dicomweb/pull.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
@@ -176,6 +177,9 @@ absl::Status CheckFindQuery(const FindQuery& query) {
 absl::StatusOr<FindResult> FindStudiesAndSeries(const DicomPeer& peer,
                                                 const FindQuery& query,
                                                 const FindOptions& options) {
+  if (peer.type == PeerType::kDicomWeb) {
+    return dicomweb::FindStudiesAndSeriesWeb(peer, query, options);
+  }
   if (absl::Status s = CheckFindQuery(query); !s.ok()) return s;
   FindScu scu;
   ConfigureScu(scu, peer, options.calling_ae_title, options.max_pdu_bytes,

@@ -1,4 +1,6 @@
-// Listing what a DICOM peer holds (Query/Retrieve C-FIND SCU, DCMTK DcmSCU,
+// Listing what a DICOM peer holds (a DICOMweb peer: QIDO-RS instead,
+// server/dicomweb/pull.h, same fields, caps and codes) (Query/Retrieve C-FIND
+// SCU, DCMTK DcmSCU,
 // Study Root model), so that a series can then be pulled by its UIDs
 // (retrieve.h): a STUDY-level query with the caller's keys, then a
 // SERIES-level query within each study found.

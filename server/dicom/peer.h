@@ -31,15 +31,44 @@ struct SourceNetwork {
   std::string text;  // as written, for messages
 };
 
+// How we talk to a peer: DIMSE associations (C-STORE, C-GET, C-FIND,
+// C-ECHO), or DICOMweb over HTTP(S) (STOW-RS, QIDO-RS, WADO-RS; PS3.18).
+enum class PeerType { kDimse, kDicomWeb };
+
+// A DICOMweb peer's address and credentials. Paths, never secrets: the
+// secret files are read when a request is made (so a rotated token is
+// picked up without a restart), and their contents are never logged.
+struct DicomWebEndpoint {
+  // The service's base URL, http:// or https://, without credentials,
+  // query or trailing slash ("http://pacs:8042/dicom-web"); requests go to
+  // {url}/studies... (PS3.18 8.2 resource paths).
+  std::string url;
+  // At most one of: a bearer token (the file's text, trimmed, RFC 6750),
+  // HTTP basic (user and the password file's text, trimmed, RFC 7617).
+  std::string bearer_token_file;
+  std::string basic_user;
+  std::string basic_password_file;
+  // Mutual TLS: our certificate and its unencrypted key (PEM), https only.
+  std::string client_certificate;
+  std::string client_key;
+  // PEM CAs that sign the server's certificate (https; empty: the system's).
+  std::string ca_certificates;
+};
+
 struct DicomPeer {
-  std::string name;      // how rules and clients refer to it ("orthanc")
+  std::string name;  // how rules and clients refer to it ("orthanc")
+  PeerType type = PeerType::kDimse;
+  // DICOMweb peers (type kDicomWeb) only; the DIMSE fields below (AE title,
+  // host, port, tls, allowed_sources) are empty/default for them.
+  DicomWebEndpoint web;
   std::string ae_title;  // 1-16 characters, no backslash
   std::string host;
   int port = 104;
   bool tls = false;  // associations with this peer use TLS
   // Deliveries to this peer send over up to this many associations at once
   // (1-16; 1: one after another). DIMSE waits for each C-STORE response, so
-  // parallel associations keep a PACS's storage busy while we wait.
+  // parallel associations keep a PACS's storage busy while we wait. For a
+  // DICOMweb peer: STOW-RS requests in flight at once.
   int max_associations = 4;
   // Associations calling as this peer's AE title are accepted only from
   // these addresses (empty: from anywhere).

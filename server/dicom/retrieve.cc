@@ -16,6 +16,7 @@
 #include "server/dicom/dataset_scan.h"
 #include "server/dicom/scu.h"
 #include "server/dicom/tls.h"
+#include "server/dicomweb/pull.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
@@ -131,6 +132,10 @@ absl::StatusOr<RetrieveResult> RetrieveSeries(
     const DicomPeer& peer, const std::string& study_instance_uid,
     const std::string& series_instance_uid, const std::string& dest_dir,
     const RetrieveOptions& options) {
+  if (peer.type == PeerType::kDicomWeb) {
+    return dicomweb::RetrieveSeriesWeb(peer, study_instance_uid,
+                                       series_instance_uid, dest_dir, options);
+  }
   if (study_instance_uid.empty() || series_instance_uid.empty()) {
     return absl::InvalidArgumentError(
         "pacs_source needs study_instance_uid and series_instance_uid");

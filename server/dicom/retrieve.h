@@ -1,4 +1,6 @@
-// Pulling a series that is already on a DICOM peer (JobSpec.pacs_source):
+// Pulling a series that is already on a DICOM peer (JobSpec.pacs_source);
+// from a DICOMweb peer by QIDO-RS + WADO-RS instead (server/dicomweb/pull.h,
+// the same limits and error codes). For a DIMSE peer:
 // C-GET (DCMTK DcmSCU::sendCGETRequest) at SERIES level of the Study Root
 // model, with the storage sub-operations received on the same association
 // into a job's upload folder.

@@ -15,6 +15,10 @@ void DisableNagleOnOutgoingAssociations() {
 }
 
 std::string PeerLabel(const DicomPeer& peer) {
+  if (peer.type == PeerType::kDicomWeb) {
+    // The URL holds no credentials (the peers file refuses them).
+    return absl::StrCat("peer ", peer.name, " (", peer.web.url, ")");
+  }
   return absl::StrCat("peer ", peer.name, " (", peer.ae_title, "@", peer.host,
                       ":", peer.port, ")");
 }

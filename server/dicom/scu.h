@@ -29,7 +29,8 @@ namespace interslice::server::dicom {
 // loop's, which sets the option itself: connection_gate.cc.)
 void DisableNagleOnOutgoingAssociations();
 
-// "peer NAME (AE@HOST:PORT)", for errors and logs (no patient data).
+// "peer NAME (AE@HOST:PORT)", or "peer NAME (URL)" for a DICOMweb peer, for
+// errors and logs (no patient data, no credentials).
 std::string PeerLabel(const DicomPeer& peer);
 
 // Points `scu` at `peer`, calling as `calling_ae_title`: the largest PDU

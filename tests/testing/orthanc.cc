@@ -34,7 +34,7 @@ bool IsPart10(const fs::path& path) {
 
 absl::StatusOr<std::unique_ptr<Orthanc>> Orthanc::Start(
     const std::string& dir, std::vector<OrthancModality> modalities,
-    const std::string& ae_title) {
+    const std::string& ae_title, OrthancExtras extras) {
   static std::once_flag curl_once;
   std::call_once(curl_once, [] { curl_global_init(CURL_GLOBAL_DEFAULT); });
   const std::string binary = FindTool("Orthanc", {"/usr/sbin"});
@@ -82,6 +82,29 @@ absl::StatusOr<std::unique_ptr<Orthanc>> Orthanc::Start(
                         {"AllowGet", true},         {"AllowMove", true}};
   }
   config["DicomModalities"] = m;
+  if (extras.dicomweb) {
+    const char* plugin = "/usr/share/orthanc/plugins/libOrthancDicomWeb.so";
+    if (!fs::exists(plugin)) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("Orthanc's DICOMweb plugin is not installed (", plugin,
+                       "; scripts/install-deps.sh installs orthanc-dicomweb)"));
+    }
+    config["Plugins"] = nlohmann::json::array({plugin});
+    config["DicomWeb"] = {{"Enable", true}, {"Root", "/dicom-web/"}};
+  }
+  if (!extras.users.empty()) {
+    config["AuthenticationEnabled"] = true;
+    nlohmann::json users = nlohmann::json::object();
+    for (const auto& [name, password] : extras.users) users[name] = password;
+    config["RegisteredUsers"] = users;
+    o->user_ = extras.users.front().first;
+    o->password_ = extras.users.front().second;
+  }
+  if (!extras.lua_script.empty()) {
+    const std::string lua = (fs::path(dir) / "script.lua").string();
+    std::ofstream(lua) << extras.lua_script;
+    config["LuaScripts"] = nlohmann::json::array({lua});
+  }
   o->config_path_ = (fs::path(dir) / "orthanc.json").string();
   std::ofstream(o->config_path_) << config.dump(2);
   if (absl::Status s = o->Launch(); !s.ok()) return s;
@@ -117,6 +140,10 @@ absl::Status Orthanc::Launch() {
 
 Orthanc::~Orthanc() { Stop(); }
 
+std::string Orthanc::dicomweb_url() const {
+  return absl::StrCat("http://127.0.0.1:", http_port_, "/dicom-web");
+}
+
 void Orthanc::Stop() {
   if (pid_ <= 0) return;
   StopProcess(pid_, 30);
@@ -145,6 +172,11 @@ absl::StatusOr<std::string> Orthanc::Request(const std::string& method,
   curl_easy_setopt(curl, CURLOPT_TIMEOUT, 60L);
   curl_easy_setopt(curl, CURLOPT_NOSIGNAL, 1L);
   curl_easy_setopt(curl, CURLOPT_NOPROXY, "*");
+  if (!user_.empty()) {
+    curl_easy_setopt(curl, CURLOPT_HTTPAUTH, CURLAUTH_BASIC);
+    curl_easy_setopt(curl, CURLOPT_USERNAME, user_.c_str());
+    curl_easy_setopt(curl, CURLOPT_PASSWORD, password_.c_str());
+  }
   if (method == "POST") {
     curl_easy_setopt(curl, CURLOPT_POST, 1L);
     curl_easy_setopt(curl, CURLOPT_POSTFIELDS, body.data());

@@ -19,6 +19,7 @@
 
 #include <memory>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "absl/status/status.h"
@@ -34,6 +35,19 @@ struct OrthancModality {
   int port = 0;
 };
 
+// What a test may add to the PACS.
+struct OrthancExtras {
+  // Loads Debian's DICOMweb plugin (orthanc-dicomweb), served at
+  // dicomweb_url() (http://127.0.0.1:PORT/dicom-web).
+  bool dicomweb = false;
+  // HTTP basic users (name, password): with any, authentication is on for
+  // the REST API and DICOMweb alike (the fixture's own REST calls use the
+  // first user).
+  std::vector<std::pair<std::string, std::string>> users;
+  // A Lua script (text) Orthanc runs, e.g. a ReceivedInstanceFilter.
+  std::string lua_script;
+};
+
 class Orthanc {
  public:
   // Writes <dir>/orthanc.json and starts Orthanc with storage in
@@ -43,7 +57,7 @@ class Orthanc {
   // Modalities may C-STORE, C-GET, C-FIND and C-MOVE with it.
   static absl::StatusOr<std::unique_ptr<Orthanc>> Start(
       const std::string& dir, std::vector<OrthancModality> modalities,
-      const std::string& ae_title = "ORTHANC");
+      const std::string& ae_title = "ORTHANC", OrthancExtras extras = {});
   ~Orthanc();  // Stop()
 
   // SIGTERM, wait (SIGKILL after 30 s). Storage stays: Restart() brings the
@@ -57,6 +71,8 @@ class Orthanc {
   const std::string& ae_title() const { return ae_title_; }
   int dicom_port() const { return dicom_port_; }
   int http_port() const { return http_port_; }
+  // The DICOMweb base URL (with OrthancExtras::dicomweb).
+  std::string dicomweb_url() const;
   std::string log() const;
 
   // REST. Errors for transport failures and HTTP status >= 400.
@@ -83,6 +99,7 @@ class Orthanc {
   std::string dir_;
   std::string config_path_;
   std::string ae_title_;
+  std::string user_, password_;  // REST credentials (none: empty)
   int http_port_ = 0;
   int dicom_port_ = 0;
   pid_t pid_ = -1;

@@ -193,6 +193,113 @@ TEST_F(ConfigTest, PeerAllowedSources) {
               HasSubstr("allowed_sources: expected a non-empty list"));
 }
 
+// Issue 27: DICOMweb peers (type: dicomweb) with their URL and credentials.
+TEST_F(ConfigTest, DicomWebPeers) {
+  const std::string token = Write("token", "s3cret-token\n");
+  const std::string password = Write("pw", "hunter2\n");
+  const std::string cert = Write("c.pem", "-----BEGIN CERTIFICATE-----\n");
+  const std::string key = Write("k.pem", "-----BEGIN PRIVATE KEY-----\n");
+  absl::StatusOr<PeersConfig> config = LoadPeersConfig(Write(
+      "p.yaml",
+      absl::StrCat(
+          "peers:\n"
+          "  - {name: pacs, ae_title: PACS, host: h}\n"
+          "  - {name: web, type: dicomweb, url: 'http://127.0.0.1:8042/"
+          "dicom-web/', bearer_token_file: ",
+          token,
+          ", max_associations: 2}\n"
+          "  - {name: basic, type: DICOMweb, url: 'https://pacs.example/dw',\n"
+          "     basic_user: interslice, basic_password_file: ",
+          password, ",\n     client_certificate: ", cert, ", client_key: ", key,
+          ", ca_certificates: ", cert, "}\n")));
+  ASSERT_TRUE(config.ok()) << config.status();
+  ASSERT_EQ(config->peers.size(), 3u);
+  EXPECT_EQ(config->peers[0].type, PeerType::kDimse);
+  const DicomPeer& web = config->peers[1];
+  EXPECT_EQ(web.type, PeerType::kDicomWeb);
+  EXPECT_EQ(web.web.url, "http://127.0.0.1:8042/dicom-web");  // no final /
+  EXPECT_EQ(web.web.bearer_token_file, token);
+  EXPECT_EQ(web.max_associations, 2);
+  EXPECT_TRUE(web.ae_title.empty());
+  const DicomPeer& basic = config->peers[2];
+  EXPECT_EQ(basic.type, PeerType::kDicomWeb);
+  EXPECT_EQ(basic.web.basic_user, "interslice");
+  EXPECT_EQ(basic.web.basic_password_file, password);
+  EXPECT_EQ(basic.web.client_certificate, cert);
+  EXPECT_EQ(basic.web.client_key, key);
+  EXPECT_EQ(basic.web.ca_certificates, cert);
+}
+
+TEST_F(ConfigTest, DicomWebPeerErrorsNameThePeerAndKey) {
+  const std::string token = Write("token", "s3cret-token\n");
+  const std::string empty = Write("empty", "  \n");
+  const std::string head = "peers:\n  - {name: w, type: dicomweb, ";
+  EXPECT_THAT(PeersError(head + "}\n"), HasSubstr("peer 'w' (#1): url: "
+                                                  "missing"));
+  EXPECT_THAT(PeersError(head + "url: 'http://h/dw', ae_title: W}\n"),
+              HasSubstr("peer 'w' (#1): ae_title: not for a DICOMweb peer"));
+  EXPECT_THAT(PeersError(head + "url: 'http://h/dw', port: 80}\n"),
+              HasSubstr("port: not for a DICOMweb peer"));
+  EXPECT_THAT(PeersError(head + "url: 'http://h/dw', tls: true}\n"),
+              HasSubstr("tls: not for a DICOMweb peer"));
+  EXPECT_THAT(PeersError("peers:\n  - {name: d, ae_title: D, host: h, "
+                         "url: 'http://h/dw'}\n"),
+              HasSubstr("peer 'd' (#1): url: only for a DICOMweb peer"));
+  EXPECT_THAT(PeersError("peers:\n  - {name: d, type: dicom, ae_title: D, "
+                         "host: h}\n"),
+              HasSubstr("type: 'dicom': expected dimse"));
+  EXPECT_THAT(PeersError(head + "url: 'ftp://h/dw'}\n"),
+              HasSubstr("url: expected an http:// or https:// URL"));
+  EXPECT_THAT(PeersError(head + "url: 'http:///dw'}\n"),
+              HasSubstr("url: has no host"));
+  EXPECT_THAT(PeersError(head + "url: 'http://h/dw?x=1'}\n"),
+              HasSubstr("url: expected a base URL without query"));
+  // Credentials in the URL would be shown wherever the URL is.
+  const std::string with_user =
+      PeersError(head + "url: 'http://me:pw@h/dw'}\n");
+  EXPECT_THAT(with_user, HasSubstr("url: has credentials in it"));
+  EXPECT_THAT(with_user, Not(HasSubstr("me:pw")));
+  EXPECT_THAT(PeersError(head + "url: 'http://h/dw', bearer_token_file: " +
+                         (dir_ / "nope").string() + "}\n"),
+              HasSubstr("bearer_token_file: '" + (dir_ / "nope").string() +
+                        "' is not a file"));
+  EXPECT_THAT(PeersError(head + "url: 'http://h/dw', bearer_token_file: " +
+                         empty + "}\n"),
+              HasSubstr("bearer_token_file: '" + empty + "' is empty"));
+  EXPECT_THAT(PeersError(head + "url: 'http://h/dw', basic_user: u}\n"),
+              HasSubstr("basic_password_file: missing"));
+  EXPECT_THAT(PeersError(head + "url: 'http://h/dw', basic_password_file: " +
+                         token + "}\n"),
+              HasSubstr("basic_user: missing"));
+  EXPECT_THAT(PeersError(head +
+                         "url: 'http://h/dw', basic_user: 'a:b', "
+                         "basic_password_file: " +
+                         token + "}\n"),
+              HasSubstr("basic_user: has a ':'"));
+  EXPECT_THAT(PeersError(head +
+                         "url: 'http://h/dw', basic_user: u, "
+                         "basic_password_file: " +
+                         token + ", bearer_token_file: " + token + "}\n"),
+              HasSubstr("bearer_token_file: give either"));
+  EXPECT_THAT(PeersError(head + "url: 'https://h/dw', client_certificate: " +
+                         token + "}\n"),
+              HasSubstr("client_key: missing"));
+  EXPECT_THAT(PeersError(head + "url: 'http://h/dw', ca_certificates: " +
+                         token + "}\n"),
+              HasSubstr("ca_certificates: only for an https:// url"));
+  // The secret's contents never appear in a message.
+  EXPECT_THAT(PeersError(head + "url: 'http://h/dw', bearer_token_file: " +
+                         token + ", host: x}\n"),
+              Not(HasSubstr("s3cret")));
+  if (::geteuid() != 0) {  // root reads any file
+    const std::string locked = Write("locked", "x\n");
+    fs::permissions(locked, fs::perms::none);
+    EXPECT_THAT(PeersError(head + "url: 'http://h/dw', bearer_token_file: " +
+                           locked + "}\n"),
+                HasSubstr("cannot read"));
+  }
+}
+
 TEST_F(ConfigTest, FullRulesFile) {
   absl::StatusOr<RuleSet> set = LoadRulesFile(
       Write("rules.yaml",

@@ -50,7 +50,8 @@ class FindTest : public ::testing::Test {
   void SetUp() override {
     auto orthanc = Orthanc::Start(
         (dir_.path() / "orthanc").string(),
-        {{"interslice", "INTERSLICE", "127.0.0.1", FreeTcpPort()}});
+        {{"interslice", "INTERSLICE", "127.0.0.1", FreeTcpPort()}}, "ORTHANC",
+        {.dicomweb = true});
     ASSERT_TRUE(orthanc.ok()) << orthanc.status();
     orthanc_ = *std::move(orthanc);
     absl::StatusOr<int> ct = orthanc_->UploadFolder(kThick.string());
@@ -87,7 +88,9 @@ class FindTest : public ::testing::Test {
                          << orthanc_->dicom_port()
                          << "}\n  - {name: down, ae_title: DOWN, host: "
                             "127.0.0.1, port: "
-                         << FreeTcpPort() << "}\n";
+                         << FreeTcpPort()
+                         << "}\n  - {name: web, type: dicomweb, url: '"
+                         << orthanc_->dicomweb_url() << "'}\n";
     std::ofstream(dir_ / "tokens") << "admin:admin-token\nuser:user-token\n";
     std::ofstream(dir_ / "admin.token") << "admin-token\n";
     std::ofstream(dir_ / "user.token") << "user-token\n";
@@ -147,6 +150,25 @@ TEST_F(FindTest, ListsStudiesAndSeriesWithTheirUidsAndFiltersByKeys) {
   for (const std::string& uid : all_series_) {
     EXPECT_THAT(log, Not(HasSubstr(uid)));
   }
+}
+
+// Issue 27: on a DICOMweb peer `interslice find` asks QIDO-RS, and lists
+// exactly what C-FIND lists on the same Orthanc, line for line.
+TEST_F(FindTest, DicomWebPeerListsWhatCFindLists) {
+  for (const std::vector<std::string>& keys :
+       {std::vector<std::string>{},
+        {"--modality", "MR"},
+        {"--patient-id", "NO-SUCH-PATIENT*"}}) {
+    const CommandResult dimse = Find(Cat({"--pacs", "orthanc"}, keys));
+    const CommandResult web = Find(Cat({"--pacs", "web"}, keys));
+    ASSERT_EQ(dimse.exit_code, 0) << dimse.err;
+    ASSERT_EQ(web.exit_code, 0) << web.err << server_->Log();
+    EXPECT_EQ(web.out, dimse.out);
+  }
+  const CommandResult all = Find({"--pacs", "web"});
+  EXPECT_EQ(Listed(all.out, "study"), all_studies_) << all.out;
+  EXPECT_EQ(Listed(all.out, "series"), all_series_) << all.out;
+  EXPECT_THAT(all.out, HasSubstr("4 instance(s)"));
 }
 
 TEST_F(FindTest, MoreMatchesThanTheCapAreCutAndSaidSo) {

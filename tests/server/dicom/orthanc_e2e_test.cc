@@ -7,7 +7,9 @@
 //  - a destination that is down gets the results after it comes back, also
 //    across a server restart;
 //  - a job can read its series from Orthanc (C-GET) instead of uploads, and
-//    gives the same results.
+//    gives the same results;
+//  - results sent by STOW-RS (a DICOMweb peer) are the instances C-STORE
+//    sends.
 #include <signal.h>
 #include <sys/wait.h>
 
@@ -271,6 +273,59 @@ TEST_F(OrthancEndToEndTest, ResultsLandInTheStudyAndEqualALocalRun) {
       Cli(Cat({"watch", again, "--wait-deliveries"}, server->ServerFlag()));
   ASSERT_EQ(watch2.exit_code, 0) << watch2.err;
   EXPECT_EQ(OrthancInstances().size(), remote.size());
+}
+
+// Issue 27: the same job's results sent by C-STORE to one Orthanc and by
+// STOW-RS to another (through its DICOMweb plugin) are the same SOP
+// instances, each with the payload of a local run.
+TEST_F(OrthancEndToEndTest, ResultsByStowEqualThoseByCStore) {
+  auto web = Orthanc::Start((dir_.path() / "orthanc-web").string(), {}, "WEB",
+                            {.dicomweb = true});
+  ASSERT_TRUE(web.ok()) << web.status();
+  std::ofstream(peers_, std::ios::app)
+      << "  - {name: web, type: dicomweb, url: '" << (*web)->dicomweb_url()
+      << "'}\n";
+  auto server = StartServer();
+  ASSERT_TRUE(server->running());
+  const std::string job =
+      Submit(*server, {kPhantom.string(), "--send-to", "orthanc,web"});
+  const CommandResult watch =
+      Cli(Cat({"watch", job, "--wait-deliveries"}, server->ServerFlag()));
+  ASSERT_EQ(watch.exit_code, 0) << watch.err << watch.out << server->Log();
+  EXPECT_THAT(watch.out, HasSubstr("to orthanc: delivered"));
+  EXPECT_THAT(watch.out, HasSubstr("to web: delivered"));
+  {
+    std::istringstream log(server->Log());
+    for (std::string line; std::getline(log, line);) {
+      if (line.find("delivered to peer") != std::string::npos) {
+        std::printf("%s\n", line.c_str());
+      }
+    }
+  }
+  std::map<std::string, std::string> by_stow;
+  auto ids = (*web)->GetJson("/instances?expand");
+  ASSERT_TRUE(ids.ok()) << ids.status();
+  for (const auto& i : *ids) {
+    by_stow[i["MainDicomTags"]["SOPInstanceUID"].get<std::string>()] =
+        i["ID"].get<std::string>();
+  }
+  const std::map<std::string, std::string> by_cstore = OrthancInstances();
+  ASSERT_GT(by_stow.size(), 30u);
+  std::vector<std::string> stow_uids, cstore_uids;
+  for (const auto& [uid, id] : by_stow) stow_uids.push_back(uid);
+  for (const auto& [uid, id] : by_cstore) cstore_uids.push_back(uid);
+  EXPECT_EQ(stow_uids, cstore_uids);
+  const std::map<std::string, std::string> local = LocalPayloads(LocalRun());
+  EXPECT_EQ(by_stow.size(), local.size());
+  for (const auto& [uid, id] : by_stow) {
+    ASSERT_EQ(local.count(uid), 1u) << "not in the local run: " << uid;
+    absl::StatusOr<std::string> bytes = (*web)->InstanceFile(id);
+    ASSERT_TRUE(bytes.ok()) << bytes.status();
+    auto file = LoadBytes(*bytes);
+    EXPECT_EQ(Tag(*file->getDataset(), DCM_StudyInstanceUID), study_);
+    EXPECT_TRUE(Payload(*file->getDataset()) == local.at(uid))
+        << "payload differs: " << uid;
+  }
 }
 
 TEST_F(OrthancEndToEndTest, UnknownPeerIsRefusedAtAdmission) {
