@@ -184,14 +184,15 @@ absl::StatusOr<StoreResult> StoreFilesSequentially(
 absl::StatusOr<StoreResult> StoreFiles(const DicomPeer& peer,
                                        const std::vector<std::string>& files,
                                        const DeliveryOptions& options) {
+  // A DICOMweb peer takes the files by STOW-RS (server/dicomweb/client.h).
+  if (peer.type == PeerType::kDicomWeb) {
+    return dicomweb::StowFiles(peer, files, options);
+  }
   // With DCMTK's decoders registered, DcmStorageSCU proposes a lossless
   // encapsulated file (an RLE intensity series, --dicom-compression rle)
   // together with the uncompressed syntaxes, and decompresses it for a peer
   // that accepts only those; without them it proposes RLE alone. Once,
   // before any sending thread starts (it changes DCMTK's global codec list).
-  if (peer.type == PeerType::kDicomWeb) {
-    return dicomweb::StowFiles(peer, files, options);
-  }
   RegisterDicomDecoders();
   const size_t lanes = std::min<size_t>(
       files.size(), static_cast<size_t>(std::max(1, peer.max_associations)));
