@@ -17,6 +17,7 @@
 #include "nlohmann/json.hpp"
 #include "server/audit.h"
 #include "server/auth.h"
+#include "server/dicomweb/stow.h"
 #include "server/log_safe.h"
 #include "spdlog/spdlog.h"
 
@@ -259,6 +260,8 @@ struct StatusServer::Impl {
   std::function<StatusSnapshot()> snapshot;
   const Authenticator* auth = nullptr;
   AuditLog* audit = nullptr;
+  const dicomweb::StowReceiver* stow = nullptr;
+  bool stow_token_required = false;
   mg_context* context = nullptr;
 };
 
@@ -301,6 +304,103 @@ std::optional<std::string> Identify(const Authenticator& auth,
   return auth.MatchBearer(value);
 }
 
+const char* ReasonPhrase(int code) {
+  switch (code) {
+    case 200:
+      return "OK";
+    case 202:
+      return "Accepted";
+    case 400:
+      return "Bad Request";
+    case 401:
+      return "Unauthorized";
+    case 403:
+      return "Forbidden";
+    case 404:
+      return "Not Found";
+    case 405:
+      return "Method Not Allowed";
+    case 409:
+      return "Conflict";
+    case 413:
+      return "Payload Too Large";
+    case 415:
+      return "Unsupported Media Type";
+    case 507:
+      return "Insufficient Storage";
+    default:
+      return "Internal Server Error";
+  }
+}
+
+// POST /dicomweb/studies[/{study}] (STOW-RS, server/dicomweb/stow.h).
+int HandleDicomweb(StatusServer::Impl& impl, mg_connection* connection,
+                   const std::string& method, const std::string& uri,
+                   const std::string& source) {
+  constexpr std::string_view kStudies = "/dicomweb/studies";
+  std::string study;
+  bool found = false;
+  if (uri == kStudies) {
+    found = true;
+  } else if (uri.size() > kStudies.size() + 1 &&
+             uri.compare(0, kStudies.size() + 1, "/dicomweb/studies/") == 0) {
+    study = uri.substr(kStudies.size() + 1);
+    found = dicomweb::IsUidPathSegment(study);
+  }
+  if (!found || impl.stow == nullptr) {
+    Reply(connection, 404, "Not Found", "text/plain",
+          impl.stow == nullptr
+              ? "not found: STOW-RS is served with the DICOM node "
+                "(--dicom-listen)\n"
+              : "not found: STOW-RS is POST /dicomweb/studies or "
+                "/dicomweb/studies/{StudyInstanceUID}\n",
+          method == "HEAD");
+    return 404;
+  }
+  if (method != "POST") {
+    Reply(connection, 405, "Method Not Allowed", "text/plain",
+          "STOW-RS takes POST only\n", method == "HEAD", "Allow: POST\r\n");
+    return 405;
+  }
+  const std::optional<std::string> identity = Identify(*impl.auth, connection);
+  if (!identity.has_value()) {
+    Reply(connection, 401, "Unauthorized", "text/plain",
+          "a token is needed: Authorization: Bearer TOKEN, or HTTP Basic "
+          "with the token as password\n",
+          false, "WWW-Authenticate: Basic realm=\"interslice\"\r\n");
+    if (impl.audit != nullptr) {
+      impl.audit->Record({.event = "auth.refused",
+                          .outcome = AuditOutcome::kMinorFailure,
+                          .source = source,
+                          .detail = "STOW-RS: missing or wrong token"});
+    }
+    return 401;
+  }
+  if (identity->empty() && impl.stow_token_required) {
+    Reply(connection, 403, "Forbidden", "text/plain",
+          "this server authenticates by client certificate, which its HTTP "
+          "listener does not check: STOW-RS needs a token "
+          "(--auth-token-file)\n",
+          false);
+    return 403;
+  }
+  const mg_request_info* request = mg_get_request_info(connection);
+  const char* content_type = mg_get_header(connection, "Content-Type");
+  dicomweb::StowRequest stow_request{
+      .identity = *identity,
+      .source = source,
+      .content_type = content_type != nullptr ? content_type : "",
+      .study_uid = study,
+      .content_length = request->content_length,
+      .read = [connection](char* buffer, size_t size) -> int64_t {
+        return mg_read(connection, buffer, size);
+      }};
+  const dicomweb::StowResponse response = impl.stow->Handle(stow_request);
+  Reply(connection, response.status, ReasonPhrase(response.status),
+        response.content_type.c_str(), response.body, false);
+  return response.status;
+}
+
 int HandleRequest(mg_connection* connection, void* data) {
   auto* impl = static_cast<StatusServer::Impl*>(data);
   const mg_request_info* request = mg_get_request_info(connection);
@@ -310,17 +410,20 @@ int HandleRequest(mg_connection* connection, void* data) {
       request->local_uri != nullptr ? request->local_uri : "";
   const std::string source =
       absl::StrCat(request->remote_addr, ":", request->remote_port);
-  const bool head = method == "HEAD";
-  if (method != "GET" && !head) {
-    Reply(connection, 405, "Method Not Allowed", "text/plain",
-          "only GET and HEAD\n", false, "Allow: GET, HEAD\r\n");
-    return 405;
+  if (uri == "/dicomweb" || uri.rfind("/dicomweb/", 0) == 0) {
+    return HandleDicomweb(*impl, connection, method, uri, source);
   }
+  const bool head = method == "HEAD";
   const bool json = uri == "/status.json";
   if (uri != "/" && uri != "/status" && !json) {
     Reply(connection, 404, "Not Found", "text/plain",
           "not found: the status page is /status\n", head);
     return 404;
+  }
+  if (method != "GET" && !head) {
+    Reply(connection, 405, "Method Not Allowed", "text/plain",
+          "only GET and HEAD\n", false, "Allow: GET, HEAD\r\n");
+    return 405;
   }
   const std::optional<std::string> identity = Identify(*impl->auth, connection);
   if (!identity.has_value()) {
@@ -370,7 +473,7 @@ int LogMessage(const mg_connection*, const char* message) {
 absl::StatusOr<std::unique_ptr<StatusServer>> StatusServer::Start(
     const StatusServerOptions& options,
     std::function<StatusSnapshot()> snapshot, const Authenticator* auth,
-    AuditLog* audit) {
+    AuditLog* audit, const dicomweb::StowReceiver* stow) {
   if (options.listen.empty() || options.listen.find(':') == std::string::npos) {
     return absl::InvalidArgumentError(
         absl::StrCat("--status-listen: expected HOST:PORT, got '",
@@ -387,6 +490,8 @@ absl::StatusOr<std::unique_ptr<StatusServer>> StatusServer::Start(
   impl.snapshot = std::move(snapshot);
   impl.auth = auth;
   impl.audit = audit;
+  impl.stow = stow;
+  impl.stow_token_required = options.stow_token_required;
   const std::string threads = std::to_string(options.max_connections);
   const std::string timeout_ms = std::to_string(
       static_cast<int64_t>(options.request_timeout_seconds * 1000));
