@@ -103,6 +103,10 @@ int main(int argc, char** argv) {
                  "Seconds an HTTP client may send nothing before it is cut "
                  "off")
       ->capture_default_str();
+  app.add_option("--http-tls-cert", o.http_tls_cert,
+                 "HTTPS for --http-listen: certificate chain (PEM)");
+  app.add_option("--http-tls-key", o.http_tls_key,
+                 "HTTPS for --http-listen: its private key (PEM)");
   app.add_option("--stow-max-body-bytes", o.stow_max_body_bytes,
                  "Largest STOW-RS request body (0: --dicom-max-series-bytes)")
       ->capture_default_str();

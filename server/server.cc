@@ -714,15 +714,17 @@ int RunServer(ServerOptions options) {
          .max_connections = options.http_max_connections,
          .request_timeout_seconds = options.http_request_timeout_seconds,
          .stow_token_required =
-             !page_auth.tokens_required() && !options.tls_client_ca.empty()},
+             !page_auth.tokens_required() && !options.tls_client_ca.empty(),
+         .tls_certificate = options.http_tls_cert,
+         .tls_private_key = options.http_tls_key},
         snapshot, &page_auth, audit.get(), stow.get());
     if (!started.ok()) {
       manager.Shutdown(std::chrono::milliseconds(0));
       return fail(started.status());
     }
     status_page = *std::move(started);
-    spdlog::info("status page on {} (port {}){}{}", options.status_listen,
-                 status_page->port(),
+    spdlog::info("status page on {} (port {}, {}){}{}", options.status_listen,
+                 status_page->port(), status_page->tls() ? "HTTPS" : "HTTP",
                  page_auth.tokens_required()
                      ? ": admin identities only"
                      : ": open to anyone who reaches it (no tokens)",

@@ -81,6 +81,8 @@ struct ServerOptions {
   // STOW-RS on it (server/dicomweb/stow.h; with a DICOM listener only): the
   // largest request body, 0 = dicom_max_series_bytes.
   int64_t stow_max_body_bytes = 0;
+  // HTTPS for that listener (PEM files): both or neither.
+  std::string http_tls_cert, http_tls_key;
   int64_t audit_max_bytes = int64_t{64} << 20;
   int audit_keep = 10;
 

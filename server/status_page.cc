@@ -1,5 +1,7 @@
 #include "server/status_page.h"
 
+#include <dlfcn.h>
+
 #include <algorithm>
 #include <cstring>
 #include <ctime>
@@ -15,6 +17,8 @@
 #include "absl/strings/str_join.h"
 #include "civetweb.h"
 #include "nlohmann/json.hpp"
+#include "openssl/err.h"
+#include "openssl/ssl.h"
 #include "server/audit.h"
 #include "server/auth.h"
 #include "server/dicomweb/stow.h"
@@ -262,6 +266,8 @@ struct StatusServer::Impl {
   AuditLog* audit = nullptr;
   const dicomweb::StowReceiver* stow = nullptr;
   bool stow_token_required = false;
+  std::string tls_certificate, tls_private_key;
+  std::string tls_error;  // why init_ssl failed
   mg_context* context = nullptr;
 };
 
@@ -463,12 +469,72 @@ int HandleRequest(mg_connection* connection, void* data) {
   return 200;
 }
 
+// civetweb's init_ssl callback: the certificate (chain) and the key from
+// their own PEM files (civetweb's ssl_certificate option wants both in one
+// file), TLS 1.2 or newer.
+int InitTls(void* ssl_context, void* user_data) {
+  auto* impl = static_cast<StatusServer::Impl*>(user_data);
+  auto* context = static_cast<SSL_CTX*>(ssl_context);
+  auto fail = [&](const char* what) {
+    const unsigned long code = ERR_peek_last_error();
+    const char* reason = code != 0 ? ERR_reason_error_string(code) : nullptr;
+    impl->tls_error = absl::StrCat(
+        what, reason != nullptr ? absl::StrCat(" (", reason, ")") : "");
+    ERR_clear_error();
+    return -1;
+  };
+  if (SSL_CTX_set_min_proto_version(context, TLS1_2_VERSION) != 1) {
+    return fail("cannot require TLS 1.2");
+  }
+  if (SSL_CTX_use_certificate_chain_file(context,
+                                         impl->tls_certificate.c_str()) != 1) {
+    return fail("--http-tls-cert: cannot load the certificate");
+  }
+  if (SSL_CTX_use_PrivateKey_file(context, impl->tls_private_key.c_str(),
+                                  SSL_FILETYPE_PEM) != 1) {
+    return fail("--http-tls-key: cannot load the private key");
+  }
+  if (SSL_CTX_check_private_key(context) != 1) {
+    return fail("--http-tls-key does not match --http-tls-cert");
+  }
+  return 1;  // set up here: civetweb loads nothing itself
+}
+
 int LogMessage(const mg_connection*, const char* message) {
   spdlog::debug("status page: {}", LogSafe(message));
   return 1;  // handled: civetweb prints nothing
 }
 
 }  // namespace
+
+absl::Status HttpTlsAvailable() {
+  if (mg_check_feature(MG_FEATURES_SSL) == 0) {
+    return absl::UnimplementedError(
+        "this civetweb library is built without TLS: no HTTPS");
+  }
+  // civetweb loads OpenSSL at run time by these names (its default
+  // SSL_LIB), and takes every function by name.
+  void* ssl = ::dlopen("libssl.so", RTLD_NOW | RTLD_LOCAL);
+  if (ssl == nullptr) {
+    return absl::UnimplementedError(
+        "civetweb loads TLS from libssl.so, which is not installed (Debian: "
+        "libssl-dev): no HTTPS");
+  }
+  // Debian bookworm's civetweb 1.15 calls SSL_get_peer_certificate after
+  // every TLS handshake; OpenSSL 3 exports it only as
+  // SSL_get1_peer_certificate, so the call goes to a null pointer and the
+  // process dies at the first HTTPS client.
+  const bool usable = ::dlsym(ssl, "SSL_get_peer_certificate") != nullptr;
+  ::dlclose(ssl);
+  if (!usable) {
+    return absl::UnimplementedError(
+        "this civetweb cannot serve TLS with this OpenSSL (it needs "
+        "SSL_get_peer_certificate, which OpenSSL 3 no longer exports; "
+        "Debian bookworm's civetweb 1.15 crashes at the first handshake): "
+        "serve HTTPS through a TLS-terminating proxy instead");
+  }
+  return absl::OkStatus();
+}
 
 absl::StatusOr<std::unique_ptr<StatusServer>> StatusServer::Start(
     const StatusServerOptions& options,
@@ -492,13 +558,28 @@ absl::StatusOr<std::unique_ptr<StatusServer>> StatusServer::Start(
   impl.audit = audit;
   impl.stow = stow;
   impl.stow_token_required = options.stow_token_required;
+  const bool tls = !options.tls_certificate.empty();
+  if (tls != !options.tls_private_key.empty()) {
+    return absl::InvalidArgumentError(
+        "HTTPS needs both --http-tls-cert and --http-tls-key");
+  }
+  if (tls) {
+    if (absl::Status usable = HttpTlsAvailable(); !usable.ok()) {
+      return usable;
+    }
+  }
+  impl.tls_certificate = options.tls_certificate;
+  impl.tls_private_key = options.tls_private_key;
+  // civetweb marks a TLS port with a trailing "s".
+  const std::string listening_ports =
+      tls ? options.listen + "s" : options.listen;
   const std::string threads = std::to_string(options.max_connections);
   const std::string timeout_ms = std::to_string(
       static_cast<int64_t>(options.request_timeout_seconds * 1000));
   // A slow client holds one of max_connections threads for at most the
   // request timeout; nothing is served from disk (no document_root).
   const char* config[] = {"listening_ports",
-                          options.listen.c_str(),
+                          listening_ports.c_str(),
                           "num_threads",
                           threads.c_str(),
                           "request_timeout_ms",
@@ -508,7 +589,11 @@ absl::StatusOr<std::unique_ptr<StatusServer>> StatusServer::Start(
                           nullptr};
   mg_callbacks callbacks{};
   callbacks.log_message = LogMessage;
-  impl.context = mg_start(&callbacks, nullptr, config);
+  if (tls) callbacks.init_ssl = InitTls;
+  impl.context = mg_start(&callbacks, &impl, config);
+  if (impl.context == nullptr && !impl.tls_error.empty()) {
+    return absl::InvalidArgumentError(impl.tls_error);
+  }
   if (impl.context == nullptr) {
     return absl::UnavailableError(absl::StrCat(
         "cannot listen on ", LogSafe(options.listen), " for the status page"));
@@ -517,6 +602,7 @@ absl::StatusOr<std::unique_ptr<StatusServer>> StatusServer::Start(
   mg_server_port ports[4] = {};
   const int n = mg_get_server_ports(impl.context, 4, ports);
   server->port_ = n > 0 ? ports[0].port : 0;
+  server->tls_ = tls;
   return server;
 }
 

@@ -30,8 +30,11 @@
 //   gRPC callers by client certificate only answers 403, since the HTTP
 //   listener checks no client certificates). Other paths under /dicomweb:
 //   404; other methods: 405. Without a receiver, /dicomweb is 404.
-// - HTTPS when tls_certificate and tls_private_key (PEM files) are given
-//   (civetweb with OpenSSL; TLS 1.2 or newer).
+// - HTTPS when tls_certificate (PEM, the chain) and tls_private_key (PEM)
+//   are given: civetweb with OpenSSL, TLS 1.2 or newer; the same port then
+//   speaks TLS only. INVALID_ARGUMENT names a file that cannot be loaded or
+//   a key that does not match; UNIMPLEMENTED when HttpTlsAvailable() is
+//   not OK (on Debian bookworm it is not: see there).
 #ifndef INTERSLICE_SERVER_STATUS_PAGE_H_
 #define INTERSLICE_SERVER_STATUS_PAGE_H_
 
@@ -82,6 +85,13 @@ std::string RenderStatusJson(const StatusSnapshot& snapshot);
 namespace dicomweb {
 class StowReceiver;
 }
+
+// Whether the civetweb and OpenSSL libraries found at run time can serve
+// HTTPS: civetweb built with TLS, libssl.so loadable, and every function
+// civetweb takes from it by name present. UNIMPLEMENTED with the reason
+// otherwise (Debian bookworm: civetweb 1.15 wants SSL_get_peer_certificate,
+// which OpenSSL 3 does not export, and would crash at the first handshake).
+absl::Status HttpTlsAvailable();
 
 struct StatusServerOptions {
   std::string listen;  // HOST:PORT; port 0 picks one

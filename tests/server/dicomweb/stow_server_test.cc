@@ -19,6 +19,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "nlohmann/json.hpp"
+#include "server/status_page.h"
 #include "tests/testing/process.h"
 #include "tests/testing/server_process.h"
 #include "tests/testing/temp_dir.h"
@@ -300,6 +301,50 @@ TEST_F(StowServerTest, SlowClientIsCutOffAndOthersServed) {
   EXPECT_LT(sent, headers.size());
   ::close(fd);
   EXPECT_EQ(Curl({"-u", "x:tok-ops", base_ + "/status.json"}).first, 200);
+}
+
+// HTTPS (--http-tls-cert/--http-tls-key): served with a certificate curl
+// checks, when the civetweb and OpenSSL found at run time can; otherwise
+// (Debian bookworm: server::HttpTlsAvailable) the server refuses to start
+// with the reason instead of crashing at the first handshake.
+TEST(StowHttpsTest, HttpsIsServedOrRefusedWithItsReason) {
+  TempDir dir;
+  const std::string script = absl::StrCat(
+      "set -e; cd ", dir.str(), "; exec >openssl.log 2>&1\n",
+      "openssl req -x509 -newkey rsa:2048 -nodes -days 2 -subj /CN=localhost "
+      "-addext subjectAltName=DNS:localhost,IP:127.0.0.1 -keyout http.key "
+      "-out http.pem\n");
+  ASSERT_EQ(RunCommand({"/bin/sh", "-c", script}).exit_code, 0)
+      << ReadFileOrEmpty(dir / "openssl.log");
+  std::ofstream(dir / "rules.yaml") << "stable_seconds: 600\nrules: []\n";
+  const int port = FreeTcpPort();
+  ServerProcess server(ServerOptions{
+      .spool = dir / "spool",
+      .log = dir / "server.log",
+      .extra = {"--dicom-listen", "127.0.0.1:0", "--rules", dir / "rules.yaml",
+                "--http-listen", absl::StrCat("127.0.0.1:", port),
+                "--http-tls-cert", dir / "http.pem", "--http-tls-key",
+                dir / "http.key"}});
+  const absl::Status available = server::HttpTlsAvailable();
+  if (!available.ok()) {
+    EXPECT_FALSE(server.Start());
+    EXPECT_EQ(server.exit_code(), 1);
+    EXPECT_THAT(server.Log(),
+                HasSubstr(absl::StrCat("interslice-server: error: ",
+                                       available.message())));
+    GTEST_SKIP() << "no HTTPS here: " << available.message();
+  }
+  ASSERT_TRUE(server.Start());
+  WriteBody(dir / "small.body", DicomFiles(kSmallSeries));
+  const std::string url =
+      absl::StrCat("https://127.0.0.1:", port, "/dicomweb/studies");
+  auto [code, body] = Curl({"--cacert", dir / "http.pem", "-H", kType,
+                            "--data-binary", "@" + (dir / "small.body"), url});
+  EXPECT_EQ(code, 200) << body;
+  // Without the CA curl does not trust it; plain HTTP is not served there.
+  EXPECT_EQ(Curl({url}).first, 0);
+  EXPECT_NE(Curl({absl::StrCat("http://127.0.0.1:", port, "/status")}).first,
+            200);
 }
 
 }  // namespace
