@@ -679,6 +679,12 @@ int RunServer(ServerOptions options) {
         assembler.get(), spool->get(), audit.get());
   }
   std::unique_ptr<StatusServer> status_page;
+  if (options.status_listen.empty() &&
+      (!options.http_tls_cert.empty() || !options.http_tls_key.empty())) {
+    manager.Shutdown(std::chrono::milliseconds(0));
+    return fail(absl::InvalidArgumentError(
+        "--http-tls-cert and --http-tls-key need --http-listen"));
+  }
   if (!options.status_listen.empty()) {
     auto snapshot = [&]() {
       StatusSnapshot s;

@@ -303,6 +303,48 @@ TEST_F(StowServerTest, SlowClientIsCutOffAndOthersServed) {
   EXPECT_EQ(Curl({"-u", "x:tok-ops", base_ + "/status.json"}).first, 200);
 }
 
+// A server that authenticates gRPC callers by client certificate only (no
+// tokens) answers STOW-RS with 403: its HTTP listener checks no client
+// certificate, so it must not take anonymous instances.
+TEST(StowAuthTest, ClientCertificateOnlyServerRefusesStowWith403) {
+  TempDir dir;
+  const std::string script = absl::StrCat(
+      "set -e; cd ", dir.str(), "; exec >openssl.log 2>&1\n",
+      "openssl req -x509 -newkey rsa:2048 -nodes -days 2 -subj /CN=test-ca "
+      "-keyout ca.key -out ca.pem\n",
+      "openssl req -newkey rsa:2048 -nodes -subj /CN=localhost "
+      "-keyout server.key -out server.csr\n",
+      "printf 'subjectAltName=IP:127.0.0.1,DNS:localhost\\n' > san.ext\n",
+      "openssl x509 -req -in server.csr -CA ca.pem -CAkey ca.key "
+      "-CAcreateserial -days 2 -extfile san.ext -out server.pem\n",
+      "openssl req -newkey rsa:2048 -nodes -subj /CN=client "
+      "-keyout client.key -out client.csr\n",
+      "openssl x509 -req -in client.csr -CA ca.pem -CAkey ca.key "
+      "-CAcreateserial -days 2 -out client.pem\n");
+  ASSERT_EQ(RunCommand({"/bin/sh", "-c", script}).exit_code, 0)
+      << ReadFileOrEmpty(dir / "openssl.log");
+  std::ofstream(dir / "rules.yaml") << "stable_seconds: 600\nrules: []\n";
+  const int port = FreeTcpPort();
+  ServerProcess server(ServerOptions{
+      .spool = dir / "spool",
+      .log = dir / "server.log",
+      .extra = {"--tls-cert", dir / "server.pem", "--tls-key",
+                dir / "server.key", "--tls-client-ca", dir / "ca.pem",
+                "--dicom-listen", "127.0.0.1:0", "--rules", dir / "rules.yaml",
+                "--http-listen", absl::StrCat("127.0.0.1:", port)},
+      .tls_ca_file = dir / "ca.pem",
+      .tls_client_cert_file = dir / "client.pem",
+      .tls_client_key_file = dir / "client.key"});
+  ASSERT_TRUE(server.Start());
+  WriteBody(dir / "small.body", DicomFiles(kSmallSeries));
+  auto [code, body] =
+      Curl({"-H", kType, "--data-binary", "@" + (dir / "small.body"),
+            absl::StrCat("http://127.0.0.1:", port, "/dicomweb/studies")});
+  EXPECT_EQ(code, 403) << body;
+  EXPECT_THAT(body, HasSubstr("client certificate"));
+  EXPECT_THAT(server.Log(), ::testing::Not(HasSubstr("dicomweb: STOW")));
+}
+
 // HTTPS (--http-tls-cert/--http-tls-key): served with a certificate curl
 // checks, when the civetweb and OpenSSL found at run time can; otherwise
 // (Debian bookworm: server::HttpTlsAvailable) the server refuses to start
