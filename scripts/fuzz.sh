@@ -17,7 +17,8 @@
 #
 # Environment: INTERSLICE_FUZZ_JOBS (compile jobs, default nproc),
 # INTERSLICE_FUZZ_TARGETS (default "dicom_ingest_fuzzer job_spec_fuzzer
-# upload_stream_fuzzer dicom_listener_fuzzer multipart_fuzzer"),
+# upload_stream_fuzzer dicom_listener_fuzzer multipart_fuzzer
+# stow_body_fuzzer"),
 # INTERSLICE_FUZZ_ARGS (more libFuzzer flags for every target, e.g.
 # "-max_len=65536": about twice the executions per second for
 # dicom_ingest_fuzzer, at the price of truncating the 512 x 512 seeds).
@@ -31,7 +32,7 @@ if ! [[ "$seconds" =~ ^[0-9]+$ ]] || [ "$seconds" -lt 1 ]; then
   exit 2
 fi
 jobs="${INTERSLICE_FUZZ_JOBS:-$(nproc)}"
-targets=(${INTERSLICE_FUZZ_TARGETS:-dicom_ingest_fuzzer job_spec_fuzzer upload_stream_fuzzer dicom_listener_fuzzer multipart_fuzzer})
+targets=(${INTERSLICE_FUZZ_TARGETS:-dicom_ingest_fuzzer job_spec_fuzzer upload_stream_fuzzer dicom_listener_fuzzer multipart_fuzzer stow_body_fuzzer})
 build="${INTERSLICE_INSTRUMENTED_BUILD_DIR:-$root/build-instrumented}"
 work="$build/fuzz"
 probe="$(mktemp -d)"
@@ -127,6 +128,21 @@ seeds_multipart() {
   printf '\x01\x00--frontier\r\n\r\n\r\n--frontie\r\n--frontier\r\nContent-Length: 99\r\n\r\nshort\r\n--frontier--' >"$dir/lying-length"
 }
 
+seeds_stow_body() {
+  # A first byte choosing a 5-character boundary (taken from the next 5
+  # bytes: "abcde"), a second the read size, then STOW-RS bodies: CRLF and
+  # LF, preamble and epilogue, a DICOM file of tests/data as a part.
+  local dir="$1" nl
+  mkdir -p "$dir"
+  for nl in $'\r\n' $'\n'; do
+    { printf '\x04\x07abcde'
+      printf 'preamble%s--abcde%sContent-Type: application/dicom%s%s' "$nl" "$nl" "$nl" "$nl"
+      head -c 2048 tests/data/ct-thick/I10.dcm
+      printf '%s--abcde  %s%sx%s--abcde--%sepilogue' "$nl" "$nl" "$nl" "$nl" "$nl"
+    } >"$dir/body-${#nl}"
+  done
+}
+
 status=0
 summary=()
 for target in "${targets[@]}"; do
@@ -139,6 +155,7 @@ for target in "${targets[@]}"; do
     upload_stream_fuzzer) seeds_upload_stream "$dir/seeds" ;;
     dicom_listener_fuzzer) python3 tests/fuzz/dicom_listener_seeds.py "$dir/seeds" ;;
     multipart_fuzzer) seeds_multipart "$dir/seeds" ;;
+    stow_body_fuzzer) seeds_stow_body "$dir/seeds" ;;
   esac
   log="$dir/last-run.log"
   echo "fuzz: $target for $seconds s (log: ${log#$root/})"

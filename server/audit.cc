@@ -89,6 +89,7 @@ const char* AtnaEventFor(const std::string& event) {
       {"association.accepted", "110102 Begin Transferring DICOM Instances"},
       {"association.ended", "110104 DICOM Instances Transferred"},
       {"association.refused", "110113 Security Alert"},
+      {"stow.received", "110104 DICOM Instances Transferred"},
       {"audit.dropped", "110101 Audit Log Used"},
   };
   for (const auto& [name, atna] : kTable) {

@@ -91,10 +91,25 @@ int main(int argc, char** argv) {
                  "repeatable");
   app.add_option("--metrics-listen", o.metrics_listen,
                  "HOST:PORT for Prometheus /metrics (off when empty)");
-  app.add_option("--status-listen", o.status_listen,
-                 "HOST:PORT for the status page (/status: jobs, peers, "
-                 "rules, spool; admin identities only when tokens are "
-                 "used); off when empty");
+  app.add_option("--status-listen,--http-listen", o.status_listen,
+                 "HOST:PORT of the HTTP server: the status page (/status: "
+                 "jobs, peers, rules, spool; admin identities only when "
+                 "tokens are used) and, with --dicom-listen, STOW-RS (POST "
+                 "/dicomweb/studies); off when empty");
+  app.add_option("--http-max-connections", o.http_max_connections,
+                 "HTTP requests served at once (1-64)")
+      ->capture_default_str();
+  app.add_option("--http-request-timeout", o.http_request_timeout_seconds,
+                 "Seconds an HTTP client may send nothing before it is cut "
+                 "off")
+      ->capture_default_str();
+  app.add_option("--http-tls-cert", o.http_tls_cert,
+                 "HTTPS for --http-listen: certificate chain (PEM)");
+  app.add_option("--http-tls-key", o.http_tls_key,
+                 "HTTPS for --http-listen: its private key (PEM)");
+  app.add_option("--stow-max-body-bytes", o.stow_max_body_bytes,
+                 "Largest STOW-RS request body (0: --dicom-max-series-bytes)")
+      ->capture_default_str();
   app.add_option("--audit-log", o.audit_log,
                  "Append an audit trail here: JSON lines of job, delivery, "
                  "DICOM association and authentication events, no patient "

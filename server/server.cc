@@ -31,6 +31,7 @@
 #include "server/dicom/scu.h"
 #include "server/dicom/series_assembler.h"
 #include "server/dicom/storage_scp.h"
+#include "server/dicomweb/stow.h"
 #include "server/executor.h"
 #include "server/forwarding.h"
 #include "server/job_manager.h"
@@ -672,8 +673,22 @@ int RunServer(ServerOptions options) {
     spdlog::info("metrics on {} (port {})", options.metrics_listen,
                  metrics.port());
   }
-  // The status page (docs/status-page.md): stopped before what it reads.
+  // The status page (docs/status-page.md) and STOW-RS (docs/dicomweb.md):
+  // stopped before what they read.
+  std::unique_ptr<dicomweb::StowReceiver> stow;
+  if (assembler != nullptr && !options.status_listen.empty()) {
+    stow = std::make_unique<dicomweb::StowReceiver>(
+        dicomweb::StowOptions{.called_ae = CallingAeTitle(options),
+                              .max_body_bytes = options.stow_max_body_bytes},
+        assembler.get(), spool->get(), audit.get());
+  }
   std::unique_ptr<StatusServer> status_page;
+  if (options.status_listen.empty() &&
+      (!options.http_tls_cert.empty() || !options.http_tls_key.empty())) {
+    manager.Shutdown(std::chrono::milliseconds(0));
+    return fail(absl::InvalidArgumentError(
+        "--http-tls-cert and --http-tls-key need --http-listen"));
+  }
   if (!options.status_listen.empty()) {
     auto snapshot = [&]() {
       StatusSnapshot s;
@@ -710,17 +725,29 @@ int RunServer(ServerOptions options) {
       return s;
     };
     absl::StatusOr<std::unique_ptr<StatusServer>> started = StatusServer::Start(
-        {.listen = options.status_listen}, snapshot, &page_auth, audit.get());
+        {.listen = options.status_listen,
+         .max_connections = options.http_max_connections,
+         .request_timeout_seconds = options.http_request_timeout_seconds,
+         .stow_token_required =
+             !page_auth.tokens_required() && !options.tls_client_ca.empty(),
+         .tls_certificate = options.http_tls_cert,
+         .tls_private_key = options.http_tls_key},
+        snapshot, &page_auth, audit.get(), stow.get());
     if (!started.ok()) {
       manager.Shutdown(std::chrono::milliseconds(0));
       return fail(started.status());
     }
     status_page = *std::move(started);
-    spdlog::info("status page on {} (port {}){}", options.status_listen,
-                 status_page->port(),
+    spdlog::info("status page on {} (port {}, {}){}{}", options.status_listen,
+                 status_page->port(), status_page->tls() ? "HTTPS" : "HTTP",
                  page_auth.tokens_required()
                      ? ": admin identities only"
-                     : ": open to anyone who reaches it (no tokens)");
+                     : ": open to anyone who reaches it (no tokens)",
+                 stow != nullptr
+                     ? absl::StrCat("; STOW-RS at /dicomweb/studies as ",
+                                    CallingAeTitle(options), ", bodies up to ",
+                                    stow->max_body_bytes(), " bytes")
+                     : "");
   }
   if (audit != nullptr) {
     audit->Record({.event = "server.started",

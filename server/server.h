@@ -74,6 +74,15 @@ struct ServerOptions {
   // (written to the port file after the DICOM port, 0 when there is no DICOM
   // listener); empty = none.
   std::string status_listen;
+  // That HTTP listener (--http-listen is the same flag): requests served at
+  // once, and the timeout that cuts off a client sending nothing.
+  int http_max_connections = 4;
+  double http_request_timeout_seconds = 10;
+  // STOW-RS on it (server/dicomweb/stow.h; with a DICOM listener only): the
+  // largest request body, 0 = dicom_max_series_bytes.
+  int64_t stow_max_body_bytes = 0;
+  // HTTPS for that listener (PEM files): both or neither.
+  std::string http_tls_cert, http_tls_key;
   int64_t audit_max_bytes = int64_t{64} << 20;
   int audit_keep = 10;
 

@@ -1,5 +1,7 @@
 #include "server/status_page.h"
 
+#include <dlfcn.h>
+
 #include <algorithm>
 #include <cstring>
 #include <ctime>
@@ -15,8 +17,11 @@
 #include "absl/strings/str_join.h"
 #include "civetweb.h"
 #include "nlohmann/json.hpp"
+#include "openssl/err.h"
+#include "openssl/ssl.h"
 #include "server/audit.h"
 #include "server/auth.h"
+#include "server/dicomweb/stow.h"
 #include "server/log_safe.h"
 #include "spdlog/spdlog.h"
 
@@ -259,6 +264,10 @@ struct StatusServer::Impl {
   std::function<StatusSnapshot()> snapshot;
   const Authenticator* auth = nullptr;
   AuditLog* audit = nullptr;
+  const dicomweb::StowReceiver* stow = nullptr;
+  bool stow_token_required = false;
+  std::string tls_certificate, tls_private_key;
+  std::string tls_error;  // why init_ssl failed
   mg_context* context = nullptr;
 };
 
@@ -301,6 +310,103 @@ std::optional<std::string> Identify(const Authenticator& auth,
   return auth.MatchBearer(value);
 }
 
+const char* ReasonPhrase(int code) {
+  switch (code) {
+    case 200:
+      return "OK";
+    case 202:
+      return "Accepted";
+    case 400:
+      return "Bad Request";
+    case 401:
+      return "Unauthorized";
+    case 403:
+      return "Forbidden";
+    case 404:
+      return "Not Found";
+    case 405:
+      return "Method Not Allowed";
+    case 409:
+      return "Conflict";
+    case 413:
+      return "Payload Too Large";
+    case 415:
+      return "Unsupported Media Type";
+    case 507:
+      return "Insufficient Storage";
+    default:
+      return "Internal Server Error";
+  }
+}
+
+// POST /dicomweb/studies[/{study}] (STOW-RS, server/dicomweb/stow.h).
+int HandleDicomweb(StatusServer::Impl& impl, mg_connection* connection,
+                   const std::string& method, const std::string& uri,
+                   const std::string& source) {
+  constexpr std::string_view kStudies = "/dicomweb/studies";
+  std::string study;
+  bool found = false;
+  if (uri == kStudies) {
+    found = true;
+  } else if (uri.size() > kStudies.size() + 1 &&
+             uri.compare(0, kStudies.size() + 1, "/dicomweb/studies/") == 0) {
+    study = uri.substr(kStudies.size() + 1);
+    found = dicomweb::IsUidPathSegment(study);
+  }
+  if (!found || impl.stow == nullptr) {
+    Reply(connection, 404, "Not Found", "text/plain",
+          impl.stow == nullptr
+              ? "not found: STOW-RS is served with the DICOM node "
+                "(--dicom-listen)\n"
+              : "not found: STOW-RS is POST /dicomweb/studies or "
+                "/dicomweb/studies/{StudyInstanceUID}\n",
+          method == "HEAD");
+    return 404;
+  }
+  if (method != "POST") {
+    Reply(connection, 405, "Method Not Allowed", "text/plain",
+          "STOW-RS takes POST only\n", method == "HEAD", "Allow: POST\r\n");
+    return 405;
+  }
+  const std::optional<std::string> identity = Identify(*impl.auth, connection);
+  if (!identity.has_value()) {
+    Reply(connection, 401, "Unauthorized", "text/plain",
+          "a token is needed: Authorization: Bearer TOKEN, or HTTP Basic "
+          "with the token as password\n",
+          false, "WWW-Authenticate: Basic realm=\"interslice\"\r\n");
+    if (impl.audit != nullptr) {
+      impl.audit->Record({.event = "auth.refused",
+                          .outcome = AuditOutcome::kMinorFailure,
+                          .source = source,
+                          .detail = "STOW-RS: missing or wrong token"});
+    }
+    return 401;
+  }
+  if (identity->empty() && impl.stow_token_required) {
+    Reply(connection, 403, "Forbidden", "text/plain",
+          "this server authenticates by client certificate, which its HTTP "
+          "listener does not check: STOW-RS needs a token "
+          "(--auth-token-file)\n",
+          false);
+    return 403;
+  }
+  const mg_request_info* request = mg_get_request_info(connection);
+  const char* content_type = mg_get_header(connection, "Content-Type");
+  dicomweb::StowRequest stow_request{
+      .identity = *identity,
+      .source = source,
+      .content_type = content_type != nullptr ? content_type : "",
+      .study_uid = study,
+      .content_length = request->content_length,
+      .read = [connection](char* buffer, size_t size) -> int64_t {
+        return mg_read(connection, buffer, size);
+      }};
+  const dicomweb::StowResponse response = impl.stow->Handle(stow_request);
+  Reply(connection, response.status, ReasonPhrase(response.status),
+        response.content_type.c_str(), response.body, false);
+  return response.status;
+}
+
 int HandleRequest(mg_connection* connection, void* data) {
   auto* impl = static_cast<StatusServer::Impl*>(data);
   const mg_request_info* request = mg_get_request_info(connection);
@@ -310,17 +416,20 @@ int HandleRequest(mg_connection* connection, void* data) {
       request->local_uri != nullptr ? request->local_uri : "";
   const std::string source =
       absl::StrCat(request->remote_addr, ":", request->remote_port);
-  const bool head = method == "HEAD";
-  if (method != "GET" && !head) {
-    Reply(connection, 405, "Method Not Allowed", "text/plain",
-          "only GET and HEAD\n", false, "Allow: GET, HEAD\r\n");
-    return 405;
+  if (uri == "/dicomweb" || uri.rfind("/dicomweb/", 0) == 0) {
+    return HandleDicomweb(*impl, connection, method, uri, source);
   }
+  const bool head = method == "HEAD";
   const bool json = uri == "/status.json";
   if (uri != "/" && uri != "/status" && !json) {
     Reply(connection, 404, "Not Found", "text/plain",
           "not found: the status page is /status\n", head);
     return 404;
+  }
+  if (method != "GET" && !head) {
+    Reply(connection, 405, "Method Not Allowed", "text/plain",
+          "only GET and HEAD\n", false, "Allow: GET, HEAD\r\n");
+    return 405;
   }
   const std::optional<std::string> identity = Identify(*impl->auth, connection);
   if (!identity.has_value()) {
@@ -360,6 +469,37 @@ int HandleRequest(mg_connection* connection, void* data) {
   return 200;
 }
 
+// civetweb's init_ssl callback: the certificate (chain) and the key from
+// their own PEM files (civetweb's ssl_certificate option wants both in one
+// file), TLS 1.2 or newer.
+int InitTls(void* ssl_context, void* user_data) {
+  auto* impl = static_cast<StatusServer::Impl*>(user_data);
+  auto* context = static_cast<SSL_CTX*>(ssl_context);
+  auto fail = [&](const char* what) {
+    const unsigned long code = ERR_peek_last_error();
+    const char* reason = code != 0 ? ERR_reason_error_string(code) : nullptr;
+    impl->tls_error = absl::StrCat(
+        what, reason != nullptr ? absl::StrCat(" (", reason, ")") : "");
+    ERR_clear_error();
+    return -1;
+  };
+  if (SSL_CTX_set_min_proto_version(context, TLS1_2_VERSION) != 1) {
+    return fail("cannot require TLS 1.2");
+  }
+  if (SSL_CTX_use_certificate_chain_file(context,
+                                         impl->tls_certificate.c_str()) != 1) {
+    return fail("--http-tls-cert: cannot load the certificate");
+  }
+  if (SSL_CTX_use_PrivateKey_file(context, impl->tls_private_key.c_str(),
+                                  SSL_FILETYPE_PEM) != 1) {
+    return fail("--http-tls-key: cannot load the private key");
+  }
+  if (SSL_CTX_check_private_key(context) != 1) {
+    return fail("--http-tls-key does not match --http-tls-cert");
+  }
+  return 1;  // set up here: civetweb loads nothing itself
+}
+
 int LogMessage(const mg_connection*, const char* message) {
   spdlog::debug("status page: {}", LogSafe(message));
   return 1;  // handled: civetweb prints nothing
@@ -367,10 +507,39 @@ int LogMessage(const mg_connection*, const char* message) {
 
 }  // namespace
 
+absl::Status HttpTlsAvailable() {
+  if (mg_check_feature(MG_FEATURES_SSL) == 0) {
+    return absl::UnimplementedError(
+        "this civetweb library is built without TLS: no HTTPS");
+  }
+  // civetweb loads OpenSSL at run time by these names (its default
+  // SSL_LIB), and takes every function by name.
+  void* ssl = ::dlopen("libssl.so", RTLD_NOW | RTLD_LOCAL);
+  if (ssl == nullptr) {
+    return absl::UnimplementedError(
+        "civetweb loads TLS from libssl.so, which is not installed (Debian: "
+        "libssl-dev): no HTTPS");
+  }
+  // Debian bookworm's civetweb 1.15 calls SSL_get_peer_certificate after
+  // every TLS handshake; OpenSSL 3 exports it only as
+  // SSL_get1_peer_certificate, so the call goes to a null pointer and the
+  // process dies at the first HTTPS client.
+  const bool usable = ::dlsym(ssl, "SSL_get_peer_certificate") != nullptr;
+  ::dlclose(ssl);
+  if (!usable) {
+    return absl::UnimplementedError(
+        "this civetweb cannot serve TLS with this OpenSSL (it needs "
+        "SSL_get_peer_certificate, which OpenSSL 3 no longer exports; "
+        "Debian bookworm's civetweb 1.15 crashes at the first handshake): "
+        "serve HTTPS through a TLS-terminating proxy instead");
+  }
+  return absl::OkStatus();
+}
+
 absl::StatusOr<std::unique_ptr<StatusServer>> StatusServer::Start(
     const StatusServerOptions& options,
     std::function<StatusSnapshot()> snapshot, const Authenticator* auth,
-    AuditLog* audit) {
+    AuditLog* audit, const dicomweb::StowReceiver* stow) {
   if (options.listen.empty() || options.listen.find(':') == std::string::npos) {
     return absl::InvalidArgumentError(
         absl::StrCat("--status-listen: expected HOST:PORT, got '",
@@ -387,13 +556,30 @@ absl::StatusOr<std::unique_ptr<StatusServer>> StatusServer::Start(
   impl.snapshot = std::move(snapshot);
   impl.auth = auth;
   impl.audit = audit;
+  impl.stow = stow;
+  impl.stow_token_required = options.stow_token_required;
+  const bool tls = !options.tls_certificate.empty();
+  if (tls != !options.tls_private_key.empty()) {
+    return absl::InvalidArgumentError(
+        "HTTPS needs both --http-tls-cert and --http-tls-key");
+  }
+  if (tls) {
+    if (absl::Status usable = HttpTlsAvailable(); !usable.ok()) {
+      return usable;
+    }
+  }
+  impl.tls_certificate = options.tls_certificate;
+  impl.tls_private_key = options.tls_private_key;
+  // civetweb marks a TLS port with a trailing "s".
+  const std::string listening_ports =
+      tls ? options.listen + "s" : options.listen;
   const std::string threads = std::to_string(options.max_connections);
   const std::string timeout_ms = std::to_string(
       static_cast<int64_t>(options.request_timeout_seconds * 1000));
   // A slow client holds one of max_connections threads for at most the
   // request timeout; nothing is served from disk (no document_root).
   const char* config[] = {"listening_ports",
-                          options.listen.c_str(),
+                          listening_ports.c_str(),
                           "num_threads",
                           threads.c_str(),
                           "request_timeout_ms",
@@ -403,7 +589,11 @@ absl::StatusOr<std::unique_ptr<StatusServer>> StatusServer::Start(
                           nullptr};
   mg_callbacks callbacks{};
   callbacks.log_message = LogMessage;
-  impl.context = mg_start(&callbacks, nullptr, config);
+  if (tls) callbacks.init_ssl = InitTls;
+  impl.context = mg_start(&callbacks, &impl, config);
+  if (impl.context == nullptr && !impl.tls_error.empty()) {
+    return absl::InvalidArgumentError(impl.tls_error);
+  }
   if (impl.context == nullptr) {
     return absl::UnavailableError(absl::StrCat(
         "cannot listen on ", LogSafe(options.listen), " for the status page"));
@@ -412,6 +602,7 @@ absl::StatusOr<std::unique_ptr<StatusServer>> StatusServer::Start(
   mg_server_port ports[4] = {};
   const int n = mg_get_server_ports(impl.context, 4, ports);
   server->port_ = n > 0 ? ports[0].port : 0;
+  server->tls_ = tls;
   return server;
 }
 

@@ -22,6 +22,19 @@
 // - Bounded: at most kMaxJobsShown jobs (the newest), each string escaped;
 //   requests time out after request_timeout_seconds; at most
 //   max_connections requests are served at once.
+// - The same listener serves STOW-RS (server/dicomweb/stow.h,
+//   docs/dicomweb.md) when Start() is given a receiver: POST
+//   /dicomweb/studies and /dicomweb/studies/{study}. Any identity that may
+//   submit jobs may store (every token's; the anonymous user of a server
+//   without tokens, unless stow_token_required: a server that authenticates
+//   gRPC callers by client certificate only answers 403, since the HTTP
+//   listener checks no client certificates). Other paths under /dicomweb:
+//   404; other methods: 405. Without a receiver, /dicomweb is 404.
+// - HTTPS when tls_certificate (PEM, the chain) and tls_private_key (PEM)
+//   are given: civetweb with OpenSSL, TLS 1.2 or newer; the same port then
+//   speaks TLS only. INVALID_ARGUMENT names a file that cannot be loaded or
+//   a key that does not match; UNIMPLEMENTED when HttpTlsAvailable() is
+//   not OK (on Debian bookworm it is not: see there).
 #ifndef INTERSLICE_SERVER_STATUS_PAGE_H_
 #define INTERSLICE_SERVER_STATUS_PAGE_H_
 
@@ -69,10 +82,31 @@ struct StatusSnapshot {
 std::string RenderStatusHtml(const StatusSnapshot& snapshot);
 std::string RenderStatusJson(const StatusSnapshot& snapshot);
 
+namespace dicomweb {
+class StowReceiver;
+}
+
+// Whether the civetweb and OpenSSL libraries found at run time can serve
+// HTTPS: civetweb built with TLS, libssl.so loadable, and every function
+// civetweb takes from it by name present. UNIMPLEMENTED with the reason
+// otherwise (Debian bookworm: civetweb 1.15 wants SSL_get_peer_certificate,
+// which OpenSSL 3 does not export, and would crash at the first handshake).
+absl::Status HttpTlsAvailable();
+
 struct StatusServerOptions {
   std::string listen;  // HOST:PORT; port 0 picks one
   int max_connections = 4;
+  // Headers that take longer than this in all, or a body that sends
+  // nothing for this long, are cut off (civetweb's request_timeout_ms: the
+  // slow-loris bound for headers, which arrive before any authentication).
+  // A body that trickles (a byte within every timeout) is not cut by
+  // civetweb's blocking reads: only an authenticated STOW-RS client can
+  // hold a connection that way, and at most max_connections are served.
   double request_timeout_seconds = 10;
+  // See above (STOW-RS).
+  bool stow_token_required = false;
+  // HTTPS: both, or neither.
+  std::string tls_certificate, tls_private_key;
 };
 
 class StatusServer {
@@ -85,12 +119,13 @@ class StatusServer {
   static absl::StatusOr<std::unique_ptr<StatusServer>> Start(
       const StatusServerOptions& options,
       std::function<StatusSnapshot()> snapshot, const Authenticator* auth,
-      AuditLog* audit);
+      AuditLog* audit, const dicomweb::StowReceiver* stow = nullptr);
   ~StatusServer();
   StatusServer(const StatusServer&) = delete;
   StatusServer& operator=(const StatusServer&) = delete;
 
   int port() const { return port_; }
+  bool tls() const { return tls_; }
 
   struct Impl;  // the request handler's state (status_page.cc)
 
@@ -98,6 +133,7 @@ class StatusServer {
   StatusServer() = default;
   std::unique_ptr<Impl> impl_;
   int port_ = 0;
+  bool tls_ = false;
 };
 
 }  // namespace interslice::server
