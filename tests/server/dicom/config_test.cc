@@ -427,6 +427,29 @@ TEST_F(ConfigTest, RuleDicomLayoutReachesTheJobSpec) {
       HasSubstr("dicom_layout"));
 }
 
+// Regression (issue 25): a rule for MR with the enhanced layout loaded, and
+// every series it matched made a job that failed FAILED_PRECONDITION. It is
+// now refused when the file is loaded (at start, --check-config, SIGHUP).
+TEST_F(ConfigTest, EnhancedLayoutOnANonCtRuleIsRefusedAtLoad) {
+  const std::string error = RuleError(
+      "  - {name: mr, match: {modality: MR},\n"
+      "     job: {threshold: 100, output_series: [intensity],\n"
+      "           dicom_layout: enhanced}}\n");
+  EXPECT_THAT(error, HasSubstr("rule 'mr'"));
+  EXPECT_THAT(error, HasSubstr("dicom_layout enhanced is written for CT only"));
+  EXPECT_THAT(error, HasSubstr("'MR'"));
+  // CT (any case) and rules without a modality criterion still load.
+  absl::StatusOr<RuleSet> set = LoadRulesFile(
+      Write("rules-ct.yaml",
+            "rules:\n"
+            "  - {name: ct, match: {modality: ct},\n"
+            "     job: {threshold: 300, dicom_layout: enhanced}}\n"
+            "  - {name: any, job: {threshold: 300, dicom_layout: enhanced}}\n"),
+      Peers());
+  ASSERT_TRUE(set.ok()) << set.status();
+  EXPECT_EQ(set->rules.size(), 2u);
+}
+
 TEST_F(ConfigTest, RulesFileAsJson) {
   absl::StatusOr<RuleSet> set =
       LoadRulesFile(Write("rules.json",
