@@ -536,7 +536,9 @@ absl::Status HttpTlsAvailable() {
         "this civetweb cannot serve TLS with this OpenSSL (it needs "
         "SSL_get_peer_certificate, which OpenSSL 3 no longer exports; "
         "Debian bookworm's civetweb 1.15 crashes at the first handshake): "
-        "serve HTTPS through a TLS-terminating proxy instead");
+        "serve HTTPS through a TLS-terminating proxy in front of "
+        "--http-listen on loopback instead (docs/dicomweb.md, \"HTTPS\"; "
+        "example: docs/examples/stunnel-https.conf)");
   }
   return absl::OkStatus();
 }
