@@ -34,6 +34,10 @@ packages=(
   # headless (puppeteer-core, no browser download); the status page test
   # (tests/server/server_test.cc) renders in it and checks codes with curl
   chromium curl
+  # the HTTPS deployment test (tests/server/dicomweb/https_proxy_test.sh):
+  # stunnel terminates TLS in front of the loopback HTTP listener
+  # (docs/dicomweb.md, "HTTPS"); operators install their own proxy
+  stunnel4
 )
 # Node.js for the viewer test (tests/viewer: a DICOM SEG loaded as OHIF v3
 # loads it): Debian's nodejs + npm unless node and npm are already there (a
@@ -62,6 +66,7 @@ if [ "${1:-}" = "--image" ]; then
   not_for_image=" libgtest-dev libgmock-dev libbenchmark-dev dicom3tools "
   not_for_image+=" git orthanc orthanc-dicomweb yamllint clang "
   not_for_image+=" libclang-rt-14-dev nodejs npm python3-nibabel chromium curl "
+  not_for_image+=" stunnel4 "
   kept=()
   for p in "${packages[@]}"; do
     [[ $not_for_image == *" $p "* ]] || kept+=("$p")

@@ -523,7 +523,12 @@ absl::Status HttpTlsAvailable() {
   // Debian bookworm's civetweb 1.15 calls SSL_get_peer_certificate after
   // every TLS handshake; OpenSSL 3 exports it only as
   // SSL_get1_peer_certificate, so the call goes to a null pointer and the
-  // process dies at the first HTTPS client.
+  // process dies at the first HTTPS client. No civetweb option avoids it:
+  // the call is in the accept path whatever the configuration, and it
+  // crashes the same with an SSL_CTX the application makes itself (the
+  // external_ssl_ctx callback), with mg_init_library(MG_FEATURES_TLS), and
+  // with the ssl_protocol_version/ssl_cipher_list options (checked with a
+  // plain civetweb program; the API level is fixed when civetweb is built).
   const bool usable = ::dlsym(ssl, "SSL_get_peer_certificate") != nullptr;
   ::dlclose(ssl);
   if (!usable) {
@@ -531,7 +536,9 @@ absl::Status HttpTlsAvailable() {
         "this civetweb cannot serve TLS with this OpenSSL (it needs "
         "SSL_get_peer_certificate, which OpenSSL 3 no longer exports; "
         "Debian bookworm's civetweb 1.15 crashes at the first handshake): "
-        "serve HTTPS through a TLS-terminating proxy instead");
+        "serve HTTPS through a TLS-terminating proxy in front of "
+        "--http-listen on loopback instead (docs/dicomweb.md, \"HTTPS\"; "
+        "example: docs/examples/stunnel-https.conf)");
   }
   return absl::OkStatus();
 }

@@ -374,6 +374,12 @@ TEST(StowHttpsTest, HttpsIsServedOrRefusedWithItsReason) {
     EXPECT_THAT(server.Log(),
                 HasSubstr(absl::StrCat("interslice-server: error: ",
                                        available.message())));
+    // The refusal points at the proxy deployment, whose example exists.
+    EXPECT_THAT(available.message(), HasSubstr("docs/dicomweb.md, \"HTTPS\""));
+    EXPECT_THAT(available.message(),
+                HasSubstr("docs/examples/stunnel-https.conf"));
+    EXPECT_TRUE(fs::is_regular_file(std::string(INTERSLICE_SOURCE_DIR) +
+                                    "/docs/examples/stunnel-https.conf"));
     GTEST_SKIP() << "no HTTPS here: " << available.message();
   }
   ASSERT_TRUE(server.Start());
