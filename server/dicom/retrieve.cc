@@ -367,8 +367,8 @@ absl::StatusOr<RetrieveResult> RetrieveSeries(
     scu.releaseAssociation();
     return absl::FailedPreconditionError(
         absl::StrCat(PeerLabel(peer),
-                     " does not offer C-GET (Study Root); the server "
-                     "retrieves with C-GET only"));
+                     " does not offer C-GET (Study Root); if it offers "
+                     "C-MOVE, set retrieve: move for it in the peers file"));
   }
   DcmDataset query;
   query.putAndInsertString(DCM_QueryRetrieveLevel, "SERIES");
