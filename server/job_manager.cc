@@ -1169,6 +1169,8 @@ absl::Status JobManager::RetrieveFromPeer(const std::shared_ptr<Job>& job,
   dicom::RetrieveOptions options;
   options.calling_ae_title = deliveries_->options().calling_ae_title;
   options.tls = deliveries_->options().tls;
+  options.pending_moves = pending_moves_;
+  options.move_destination_ae = move_destination_ae_;
   options.max_bytes =
       std::min(options_.max_upload_bytes, spool_->quota_bytes());
   const auto started = std::chrono::steady_clock::now();

@@ -41,7 +41,8 @@ namespace interslice::server {
 class AuditLog;
 namespace dicom {
 class DeliveryQueue;
-}
+class PendingMoves;
+}  // namespace dicom
 
 struct ManagerOptions {
   // Run each job's compute in a supervised worker process (see
@@ -136,6 +137,13 @@ class JobManager {
   // send_to hands it one delivery per peer, and results are kept past
   // retention while a delivery is PENDING.
   void SetDeliveryQueue(dicom::DeliveryQueue* queue) { deliveries_ = queue; }
+  // The DICOM listener's registry of C-MOVEs in progress and the AE title
+  // it is called as (the move destination): pulls from peers with
+  // `retrieve: move` need them (unset: such pulls fail, naming why).
+  void SetMoveDestination(dicom::PendingMoves* moves, std::string ae_title) {
+    pending_moves_ = moves;
+    move_destination_ae_ = std::move(ae_title);
+  }
   // The outbox (its peers and options: the Find RPC uses them); may be null.
   dicom::DeliveryQueue* deliveries() const { return deliveries_; }
   // Blocking. The outbox reports a delivery's new state: stored in the
@@ -241,6 +249,8 @@ class JobManager {
 
   const ManagerOptions options_;
   dicom::DeliveryQueue* deliveries_ = nullptr;
+  dicom::PendingMoves* pending_moves_ = nullptr;
+  std::string move_destination_ae_;
   Spool* const spool_;
   Metrics* const metrics_;
 

@@ -60,14 +60,16 @@ Metrics::Metrics() : registry_(std::make_shared<prometheus::Registry>()) {
                 .Name("interslice_dicom_events_total")
                 .Help(
                     "DICOM listener events: associations (accepted, "
-                    "rejected), instances (received, refused), series "
+                    "rejected), instances (received, refused, moved: "
+                    "received for a C-MOVE of ours), series "
                     "completed, jobs created")
                 .Register(*registry_);
   for (const char* event :
        {"associations", "associations_rejected", "instances_received",
         "instances_refused", "series_completed", "jobs_created",
         "series_incomplete", "series_incomplete_dropped",
-        "presentation_contexts_refused", "config_reload_refused"}) {
+        "presentation_contexts_refused", "config_reload_refused",
+        "instances_moved"}) {
     dicom_->Add({{"event", event}});
   }
   dicom_refused_ =

@@ -28,6 +28,7 @@
 #include "server/dicom/config.h"
 #include "server/dicom/delivery.h"
 #include "server/dicom/echo.h"
+#include "server/dicom/pending_moves.h"
 #include "server/dicom/scu.h"
 #include "server/dicom/series_assembler.h"
 #include "server/dicom/storage_scp.h"
@@ -247,9 +248,10 @@ absl::StatusOr<std::unique_ptr<dicom::SeriesAssembler>> StartDicomAssembler(
 
 absl::StatusOr<std::unique_ptr<dicom::StorageScp>> StartDicomListener(
     const ServerOptions& options, dicom::SeriesAssembler* assembler,
-    Metrics* metrics, AuditLog* audit) {
+    Metrics* metrics, AuditLog* audit, dicom::PendingMoves* pending_moves) {
   dicom::StorageScpOptions o;
   o.audit = audit;
+  o.pending_moves = pending_moves;
   const size_t colon = options.dicom_listen.rfind(':');
   int port = -1;
   if (colon == std::string::npos ||
@@ -288,6 +290,22 @@ absl::StatusOr<std::unique_ptr<dicom::StorageScp>> StartDicomListener(
   o.tls.private_key = options.dicom_tls_key;
   o.tls.ca_certificates = options.dicom_tls_ca;
   return dicom::StorageScp::Start(o, assembler, metrics);
+}
+
+// A peer pulled from by C-MOVE sends to our listener: without one, no pull
+// from it could ever succeed, so the start fails saying so.
+absl::Status CheckMoveDestination(const ServerOptions& options) {
+  if (!options.dicom_listen.empty()) return absl::OkStatus();
+  for (const dicom::DicomPeer& peer : options.dicom_peers) {
+    if (peer.type == dicom::PeerType::kDimse &&
+        peer.retrieve == dicom::RetrieveMethod::kMove) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "peer '", peer.name,
+          "' has retrieve: move, which needs the DICOM listener "
+          "(--dicom-listen): the server is its own C-MOVE destination"));
+    }
+  }
+  return absl::OkStatus();
 }
 
 // Outgoing associations call as the first --dicom-ae (DeliveryOptions'
@@ -513,6 +531,9 @@ int RunServer(ServerOptions options) {
   manager_options.isolate_jobs = options.isolation == "process";
   manager_options.max_attempts = options.max_attempts;
   manager_options.audit = audit.get();
+  // The C-MOVEs in progress (declared before the manager and the listener,
+  // which use it, so it outlives both).
+  dicom::PendingMoves pending_moves;
   JobManager manager(manager_options, spool->get(), &metrics);
   // The outbox (declared after the manager, so stopped before it).
   std::unique_ptr<dicom::DeliveryQueue> outbox;
@@ -522,6 +543,10 @@ int RunServer(ServerOptions options) {
     if (!peers.ok()) return fail(peers.status());
     options.dicom_peers.insert(options.dicom_peers.end(), peers->begin(),
                                peers->end());
+  }
+  if (absl::Status s = CheckMoveDestination(options); !s.ok()) return fail(s);
+  if (!options.dicom_listen.empty()) {
+    manager.SetMoveDestination(&pending_moves, CallingAeTitle(options));
   }
   if (!options.dicom_peers.empty()) {
     dicom::DeliveryOptions delivery;
@@ -601,8 +626,8 @@ int RunServer(ServerOptions options) {
       return fail(a.status());
     }
     assembler = *std::move(a);
-    absl::StatusOr<std::unique_ptr<dicom::StorageScp>> scp =
-        StartDicomListener(options, assembler.get(), &metrics, audit.get());
+    absl::StatusOr<std::unique_ptr<dicom::StorageScp>> scp = StartDicomListener(
+        options, assembler.get(), &metrics, audit.get(), &pending_moves);
     if (!scp.ok()) {
       manager.Shutdown(std::chrono::milliseconds(0));
       return fail(scp.status());

@@ -25,6 +25,7 @@
 #include "dcmtk/dcmtls/tlslayer.h"
 #include "server/audit.h"
 #include "server/dicom/config.h"
+#include "server/dicom/pending_moves.h"
 #include "server/dicom/series_assembler.h"
 #include "server/dicom/tls.h"
 #include "server/log_safe.h"
@@ -251,6 +252,7 @@ class AssociationScp : public DcmThreadSCP {
   ~AssociationScp() override {
     if (association_ != 0) {
       impl_->assembler->EndAssociation(association_, false);
+      EndMoves();
     }
   }
 
@@ -372,6 +374,7 @@ class AssociationScp : public DcmThreadSCP {
     if (association_ == 0) return;
     const bool clean = released_ && !cut_off_;
     impl_->assembler->EndAssociation(association_, clean);
+    EndMoves();
     association_ = 0;
     if (impl_->options.audit != nullptr) {
       AuditEvent e;
@@ -445,6 +448,23 @@ class AssociationScp : public DcmThreadSCP {
       return Refuse(STATUS_STORE_Error_DataSetDoesNotMatchSOPClass, request,
                     info);
     }
+    // An instance of a C-MOVE of ours goes to the move's folder, never to
+    // the assembler and the rules (pending_moves.h). Its UIDs are read (after
+    // the bounded scan) only when its caller has a move pending.
+    PendingMoves* moves = impl_->options.pending_moves;
+    if (moves != nullptr && moves->Expects(calling_)) {
+      absl::StatusOr<ReceivedInstance> received = ReadReceivedInstance(
+          staged, received_, impl_->assembler->scan_limits());
+      if (received.ok()) {
+        if (std::shared_ptr<PendingMoves::Move> move = moves->Find(
+                calling_, received->ids.study_uid, received->ids.series_uid)) {
+          return StoreForMove(std::move(move), staged, received->size, request,
+                              info);
+        }
+      }
+      // Not a moved instance (or unreadable: the assembler refuses it with
+      // the same reason).
+    }
     absl::StatusOr<std::string> key =
         impl_->assembler->AddInstance(association_, staged, received_);
     if (key.ok()) {
@@ -463,8 +483,39 @@ class AssociationScp : public DcmThreadSCP {
     return Refuse(STATUS_STORE_Error_CannotUnderstand, request, info);
   }
 
+  OFCondition StoreForMove(std::shared_ptr<PendingMoves::Move> move,
+                           const std::string& staged, int64_t size,
+                           T_DIMSE_C_StoreRQ& request,
+                           const DcmPresentationContextInfo& info) {
+    if (std::find(moves_.begin(), moves_.end(), move) == moves_.end()) {
+      moves_.push_back(move);
+    }
+    const absl::Status kept = move->Accept(association_, staged, size);
+    if (kept.ok()) {
+      ++stored_;
+      impl_->Count("instances_moved");
+      return sendSTOREResponse(info.presentationContextID, request,
+                               STATUS_Success);
+    }
+    spdlog::warn("dicom: instance of a C-MOVE from {} refused: {}",
+                 LogSafe(calling_), LogSafe(kept.message()));
+    return Refuse(kept.code() == absl::StatusCode::kResourceExhausted
+                      ? STATUS_STORE_Refused_OutOfResources
+                      : STATUS_STORE_Error_CannotUnderstand,
+                  request, info);
+  }
+
+  // The association ends: the moves it stored into stop waiting for it.
+  void EndMoves() {
+    for (const std::shared_ptr<PendingMoves::Move>& move : moves_) {
+      move->AssociationEnded(association_);
+    }
+    moves_.clear();
+  }
+
   AssociationRunner::Impl* const impl_;
   const std::string source_;
+  std::vector<std::shared_ptr<PendingMoves::Move>> moves_;
   std::string calling_, called_;
   const T_ASC_Parameters* params_ = nullptr;
   const char* rejection_ = nullptr;

@@ -19,13 +19,16 @@
 // context).
 //
 // C-STORE: the data set is written to a staging file as it arrives, bit for
-// bit (DCMTK does not parse it), then SeriesAssembler::AddInstance scans
-// and takes it; the response says what happened: success; 0xA700 (out of
-// resources: limits, quota, disk full — the association goes on); 0xC000
-// (cannot understand: not well-formed within the scan's limits, no UIDs);
-// 0xA900 (data set does not match SOP class). An instance that grows past
-// the per-series byte limit while it streams in is cut off by aborting the
-// association.
+// bit (DCMTK does not parse it). When the caller has a C-MOVE of ours
+// pending (options.pending_moves, pending_moves.h), the file is scanned and
+// its UIDs read first: an instance of the move goes to the move's folder
+// (never to the assembler or the rules). Otherwise
+// SeriesAssembler::AddInstance scans and takes it; the response says what
+// happened: success; 0xA700 (out of resources: limits, quota, disk full — the
+// association goes on); 0xC000 (cannot understand: not well-formed within the
+// scan's limits, no UIDs); 0xA900 (data set does not match SOP class). An
+// instance that grows past the per-series byte limit while it streams in is cut
+// off by aborting the association.
 #ifndef INTERSLICE_SERVER_DICOM_ASSOCIATION_H_
 #define INTERSLICE_SERVER_DICOM_ASSOCIATION_H_
 

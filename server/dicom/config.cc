@@ -808,8 +808,8 @@ absl::StatusOr<PeersConfig> LoadPeersConfig(const std::string& path) {
     const bool web = peer.type == PeerType::kDicomWeb;
     // Keys of the other kind of peer are errors that say so (a DICOMweb
     // peer with an ae_title was most likely meant as a DIMSE one).
-    const std::vector<std::string> dimse_only = {"ae_title", "host", "port",
-                                                 "tls", "allowed_sources"};
+    const std::vector<std::string> dimse_only = {
+        "ae_title", "host", "port", "tls", "allowed_sources", "retrieve"};
     const std::vector<std::string> web_only = {"url",
                                                "bearer_token_file",
                                                "basic_user",
@@ -870,6 +870,21 @@ absl::StatusOr<PeersConfig> LoadPeersConfig(const std::string& path) {
       absl::StatusOr<bool> tls = GetBool(p["tls"], ctx, "tls");
       if (!tls.ok()) return tls.status();
       peer.tls = *tls;
+    }
+    if (p["retrieve"]) {
+      absl::StatusOr<std::string> how =
+          GetString(p["retrieve"], ctx, "retrieve");
+      if (!how.ok()) return how.status();
+      const std::string lower =
+          absl::AsciiStrToLower(absl::StripAsciiWhitespace(*how));
+      if (lower == "move") {
+        peer.retrieve = RetrieveMethod::kMove;
+      } else if (lower != "get") {
+        return ctx.Error("retrieve", absl::StrCat("'", *how,
+                                                  "': expected get (C-GET, "
+                                                  "the default) or move "
+                                                  "(C-MOVE)"));
+      }
     }
     if (const YAML::Node sources = p["allowed_sources"]; sources) {
       if (!sources.IsSequence() || sources.size() == 0) {

@@ -10,10 +10,13 @@
 //        tls: false,                  # port default 104, tls default false
 //        max_associations: 4,         # optional, 1-16: deliveries to this
 //                                     # peer in parallel associations
-//        allowed_sources: [127.0.0.1, 10.20.0.0/16]}
+//        allowed_sources: [127.0.0.1, 10.20.0.0/16],
 //                                     # optional: the addresses or networks
 //                                     # associations calling as this AE
 //                                     # title may come from
+//        retrieve: get}               # optional, get (default) | move: how
+//                                     # a series is pulled (C-GET, or
+//                                     # C-MOVE to our listener)
 //     - {name: cloud, type: dicomweb,  # type: dimse (default) | dicomweb
 //        url: https://pacs.example/dicom-web,   # base URL (http or https)
 //        bearer_token_file: /etc/interslice/cloud.token,  # or:
@@ -21,7 +24,8 @@
 //        client_certificate: c.pem, client_key: k.pem,  # mutual TLS
 //        ca_certificates: ca.pem,     # https: CAs of the server
 //        max_associations: 4}         # STOW-RS requests in parallel
-//   A DICOMweb peer has no ae_title, host, port, tls or allowed_sources
+//   A DICOMweb peer has no ae_title, host, port, tls, allowed_sources or
+//   retrieve
 //   (errors if given); a DIMSE peer none of the DICOMweb keys. The files
 //   must exist and be readable at load time (token and password files not
 //   empty); only their paths appear in messages, never their contents.

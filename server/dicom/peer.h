@@ -35,6 +35,13 @@ struct SourceNetwork {
 // C-ECHO), or DICOMweb over HTTP(S) (STOW-RS, QIDO-RS, WADO-RS; PS3.18).
 enum class PeerType { kDimse, kDicomWeb };
 
+// How a series is pulled from a DIMSE peer (JobSpec.pacs_source): C-GET
+// (the instances come back on our association), or C-MOVE with the
+// server's own DICOM listener as the move destination (the peer opens
+// associations to our first AE title; it must know that AE title, and the
+// server must run its listener).
+enum class RetrieveMethod { kGet, kMove };
+
 // A DICOMweb peer's address and credentials. Paths, never secrets: the
 // secret files are read when a request is made (so a rotated token is
 // picked up without a restart), and their contents are never logged.
@@ -70,6 +77,8 @@ struct DicomPeer {
   // parallel associations keep a PACS's storage busy while we wait. For a
   // DICOMweb peer: STOW-RS requests in flight at once.
   int max_associations = 4;
+  // DIMSE peers only (peers-file key `retrieve: get|move`).
+  RetrieveMethod retrieve = RetrieveMethod::kGet;
   // Associations calling as this peer's AE title are accepted only from
   // these addresses (empty: from anywhere).
   std::vector<SourceNetwork> allowed_sources;

@@ -14,6 +14,7 @@
 #include "absl/strings/str_format.h"
 #include "core/dicom/series_reader.h"
 #include "server/dicom/dataset_scan.h"
+#include "server/dicom/pending_moves.h"
 #include "server/dicom/scu.h"
 #include "server/dicom/tls.h"
 #include "server/dicomweb/pull.h"
@@ -50,9 +51,40 @@ bool SyncPath(const std::string& path, bool directory) {
   return ok;
 }
 
+// DcmSCU with the TLS layer settable from outside.
+class RetrieveScu : public DcmSCU {
+ public:
+  // Protected in DcmSCU (3.6.7); dcmtls' TLS layer goes in through it.
+  using DcmSCU::useSecureConnection;
+};
+
+// The network, TLS when the peer uses it, and the association (the
+// presentation contexts added before). `tls` must outlive the association.
+absl::Status Associate(RetrieveScu& scu, const DicomPeer& peer,
+                       const DicomTlsLayer& tls) {
+  OFCondition cond = scu.initNetwork();
+  if (cond.bad()) {
+    return absl::InternalError(
+        absl::StrCat("cannot initialise the network: ", cond.text()));
+  }
+  if (tls != nullptr) {
+    cond = scu.useSecureConnection(tls.get());
+    if (cond.bad()) {
+      return absl::InternalError(absl::StrCat(
+          "cannot use TLS with ", PeerLabel(peer), ": ", cond.text()));
+    }
+  }
+  cond = scu.negotiateAssociation();
+  if (cond.bad()) {
+    return absl::UnavailableError(absl::StrCat(
+        "cannot associate with ", PeerLabel(peer), ": ", cond.text()));
+  }
+  return absl::OkStatus();
+}
+
 // C-GET with the sub-operations' instances written durably into a folder,
 // within the limits.
-class GetScu : public DcmSCU {
+class GetScu : public RetrieveScu {
  public:
   GetScu(std::string dest, const RetrieveOptions& options)
       : dest_(std::move(dest)), options_(options) {}
@@ -60,8 +92,6 @@ class GetScu : public DcmSCU {
   int64_t instances = 0;
   int64_t bytes = 0;
   absl::Status error = absl::OkStatus();
-  // Protected in DcmSCU (3.6.7); dcmtls' TLS layer goes in through it.
-  using DcmSCU::useSecureConnection;
 
  protected:
   // Bit-preserving (setStorageMode): DCMTK writes each sub-operation's data
@@ -126,6 +156,149 @@ class GetScu : public DcmSCU {
   const RetrieveOptions options_;
 };
 
+// The C-MOVE (see retrieve.h): the instances arrive at our listener, which
+// hands them to `move` (pending_moves.h); this waits for the final response
+// and for the storing associations to end. Returns the move's result;
+// the caller deletes what arrived on error.
+absl::StatusOr<RetrieveResult> MoveSeries(const DicomPeer& peer,
+                                          const std::string& study_uid,
+                                          const std::string& series_uid,
+                                          PendingMoves::Move& move,
+                                          const RetrieveOptions& options) {
+  RetrieveScu scu;
+  ConfigureScu(scu, peer, options.calling_ae_title, options.max_pdu_bytes,
+               options.timeout_seconds);
+  OFList<OFString> model_syntaxes;
+  model_syntaxes.push_back(UID_LittleEndianExplicitTransferSyntax);
+  model_syntaxes.push_back(UID_LittleEndianImplicitTransferSyntax);
+  scu.addPresentationContext(UID_MOVEStudyRootQueryRetrieveInformationModel,
+                             model_syntaxes);
+  scu.addPresentationContext(UID_FINDStudyRootQueryRetrieveInformationModel,
+                             model_syntaxes);
+  absl::StatusOr<DicomTlsLayer> tls_or = TlsLayerFor(peer, options.tls);
+  if (!tls_or.ok()) return tls_or.status();
+  DicomTlsLayer tls = *std::move(tls_or);
+  if (absl::Status s = Associate(scu, peer, tls); !s.ok()) return s;
+  const T_ASC_PresentationContextID pc = scu.findPresentationContextID(
+      UID_MOVEStudyRootQueryRetrieveInformationModel, "");
+  if (pc == 0) {
+    scu.releaseAssociation();
+    return absl::FailedPreconditionError(absl::StrCat(
+        PeerLabel(peer),
+        " does not offer C-MOVE (Study Root); set retrieve: get for it in "
+        "the peers file if it offers C-GET"));
+  }
+  DcmDataset query;
+  query.putAndInsertString(DCM_QueryRetrieveLevel, "SERIES");
+  query.putAndInsertString(DCM_StudyInstanceUID, study_uid.c_str());
+  query.putAndInsertString(DCM_SeriesInstanceUID, series_uid.c_str());
+  // A PACS may answer a C-MOVE of a series it lacks and one to a move
+  // destination it does not know alike (Orthanc 1.10: 0xC000, no
+  // sub-operations, no comment); a C-FIND first tells them apart, when
+  // the peer offers it.
+  if (const T_ASC_PresentationContextID find_pc = scu.findPresentationContextID(
+          UID_FINDStudyRootQueryRetrieveInformationModel, "");
+      find_pc != 0) {
+    DcmDataset keys(query);
+    OFList<QRResponse*> found;
+    const OFCondition find = scu.sendFINDRequest(find_pc, &keys, &found);
+    int matches = 0;
+    Uint16 find_status = 0;
+    for (QRResponse* r : found) {
+      if (DICOM_PENDING_STATUS(r->m_status) && r->m_dataset != nullptr) {
+        ++matches;
+      }
+      find_status = r->m_status;
+      delete r;
+    }
+    if (find.good() && find_status == STATUS_Success && matches == 0) {
+      scu.releaseAssociation();
+      return absl::NotFoundError(
+          absl::StrCat(PeerLabel(peer),
+                       " has no instance of the requested series (its "
+                       "C-FIND matches no such series)"));
+    }
+  }
+  OFList<RetrieveResponse*> responses;
+  const OFCondition cond = scu.sendMOVERequest(
+      pc, OFString(options.move_destination_ae.c_str()), &query, &responses);
+  bool answered = false;
+  Uint16 final_status = 0;
+  int64_t completed = 0, failed = 0, warnings = 0;
+  if (!responses.empty()) {
+    const RetrieveResponse* last = responses.back();
+    answered = true;
+    final_status = last->m_status;
+    completed = last->m_numberOfCompletedSubops;
+    failed = last->m_numberOfFailedSubops;
+    warnings = last->m_numberOfWarningSubops;
+  }
+  for (RetrieveResponse* r : responses) delete r;
+  if (scu.isConnected()) scu.releaseAssociation();
+
+  if (cond.bad() || !answered) {
+    return absl::UnavailableError(
+        absl::StrCat("C-MOVE from ", PeerLabel(peer),
+                     " failed: ", cond.bad() ? cond.text() : "no response"));
+  }
+  if (!move.error().ok()) return move.error();
+  if (final_status == STATUS_MOVE_Refused_MoveDestinationUnknown) {
+    return absl::FailedPreconditionError(absl::StrFormat(
+        "%s refused the C-MOVE: 0x%04X move destination unknown: it does "
+        "not know this server's AE title '%s' (add it, with the listener's "
+        "host and port, to its DICOM nodes; Orthanc: DicomModalities)",
+        PeerLabel(peer), final_status, options.move_destination_ae));
+  }
+  // The storing associations end after (or about when) the final response
+  // arrives: wait for them, so that what we count is what came.
+  const bool settled = move.WaitSettled(
+      completed, std::chrono::steady_clock::now() +
+                     std::chrono::seconds(options.timeout_seconds));
+  if (!move.error().ok()) return move.error();
+  const int64_t received = move.instances();
+  if (final_status != STATUS_Success && !DICOM_WARNING_STATUS(final_status)) {
+    return absl::FailedPreconditionError(absl::StrFormat(
+        "%s refused the C-MOVE to move destination '%s': 0x%04X %s (%d "
+        "sent, %d failed)%s",
+        PeerLabel(peer), options.move_destination_ae, final_status,
+        DU_cmoveStatusString(final_status), completed, failed,
+        completed + failed + warnings == 0
+            ? "; a PACS answers so when it does not know the move "
+              "destination: add this AE title, with the listener's host and "
+              "port, to its DICOM nodes (Orthanc: DicomModalities)"
+            : ""));
+  }
+  if (failed > 0 || warnings > 0) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        PeerLabel(peer), " could not send the whole series by C-MOVE: ", failed,
+        " failed and ", warnings, " warning sub-operation(s), ", completed,
+        " completed"));
+  }
+  if (!settled) {
+    return absl::DeadlineExceededError(absl::StrCat(
+        "C-MOVE from ", PeerLabel(peer), ": ",
+        received < completed
+            ? absl::StrCat("only ", received, " of the ", completed,
+                           " instance(s) it reported sent arrived at this "
+                           "server's listener")
+            : std::string("its storing association(s) did not end"),
+        " within ", options.timeout_seconds, " s of its final response"));
+  }
+  if (received != completed) {
+    return absl::FailedPreconditionError(
+        absl::StrCat(PeerLabel(peer), " reported ", completed,
+                     " instance(s) sent by C-MOVE, but ", received,
+                     " arrived at this server's listener"));
+  }
+  if (received == 0) {
+    return absl::NotFoundError(
+        absl::StrCat(PeerLabel(peer),
+                     " has no instance of the requested series (C-MOVE "
+                     "sent none)"));
+  }
+  return RetrieveResult{received, move.bytes()};
+}
+
 }  // namespace
 
 absl::StatusOr<RetrieveResult> RetrieveSeries(
@@ -139,6 +312,31 @@ absl::StatusOr<RetrieveResult> RetrieveSeries(
   if (study_instance_uid.empty() || series_instance_uid.empty()) {
     return absl::InvalidArgumentError(
         "pacs_source needs study_instance_uid and series_instance_uid");
+  }
+  if (peer.retrieve == RetrieveMethod::kMove) {
+    if (options.pending_moves == nullptr ||
+        options.move_destination_ae.empty()) {
+      return absl::FailedPreconditionError(absl::StrCat(
+          PeerLabel(peer),
+          " is retrieved from by C-MOVE (retrieve: move), which needs the "
+          "server's DICOM listener (--dicom-listen) as the move "
+          "destination"));
+    }
+    absl::StatusOr<std::shared_ptr<PendingMoves::Move>> move =
+        options.pending_moves->Register(
+            peer.ae_title, study_instance_uid, series_instance_uid, dest_dir,
+            options.max_instances, options.max_bytes);
+    if (!move.ok()) return move.status();
+    absl::StatusOr<RetrieveResult> result = MoveSeries(
+        peer, study_instance_uid, series_instance_uid, **move, options);
+    // From here on, late instances of this move are refused (never handed
+    // to the rules).
+    options.pending_moves->Close(*move);
+    SyncPath(dest_dir, true);
+    if (!result.ok()) {
+      (*move)->RemoveKept();  // nothing of a failed move stays
+    }
+    return result;
   }
   GetScu scu(dest_dir, options);
   ConfigureScu(scu, peer, options.calling_ae_title, options.max_pdu_bytes,
@@ -162,38 +360,22 @@ absl::StatusOr<RetrieveResult> RetrieveSeries(
   absl::StatusOr<DicomTlsLayer> tls_or = TlsLayerFor(peer, options.tls);
   if (!tls_or.ok()) return tls_or.status();
   DicomTlsLayer tls = *std::move(tls_or);
-  OFCondition cond = scu.initNetwork();
-  if (cond.bad()) {
-    return absl::InternalError(
-        absl::StrCat("cannot initialise the network: ", cond.text()));
-  }
-  if (tls != nullptr) {
-    cond = scu.useSecureConnection(tls.get());
-    if (cond.bad()) {
-      return absl::InternalError(absl::StrCat(
-          "cannot use TLS with ", PeerLabel(peer), ": ", cond.text()));
-    }
-  }
-  cond = scu.negotiateAssociation();
-  if (cond.bad()) {
-    return absl::UnavailableError(absl::StrCat(
-        "cannot associate with ", PeerLabel(peer), ": ", cond.text()));
-  }
+  if (absl::Status s = Associate(scu, peer, tls); !s.ok()) return s;
   const T_ASC_PresentationContextID pc = scu.findPresentationContextID(
       UID_GETStudyRootQueryRetrieveInformationModel, "");
   if (pc == 0) {
     scu.releaseAssociation();
     return absl::FailedPreconditionError(
         absl::StrCat(PeerLabel(peer),
-                     " does not offer C-GET (Study Root); the server "
-                     "retrieves with C-GET only"));
+                     " does not offer C-GET (Study Root); if it offers "
+                     "C-MOVE, set retrieve: move for it in the peers file"));
   }
   DcmDataset query;
   query.putAndInsertString(DCM_QueryRetrieveLevel, "SERIES");
   query.putAndInsertString(DCM_StudyInstanceUID, study_instance_uid.c_str());
   query.putAndInsertString(DCM_SeriesInstanceUID, series_instance_uid.c_str());
   OFList<RetrieveResponse*> responses;
-  cond = scu.sendCGETRequest(pc, &query, &responses);
+  OFCondition cond = scu.sendCGETRequest(pc, &query, &responses);
   Uint16 final_status = 0;
   int failed = 0;
   if (!responses.empty()) {

@@ -3,7 +3,12 @@
 // the same limits and error codes). For a DIMSE peer:
 // C-GET (DCMTK DcmSCU::sendCGETRequest) at SERIES level of the Study Root
 // model, with the storage sub-operations received on the same association
-// into a job's upload folder.
+// into a job's upload folder; or, for a peer with `retrieve: move`, C-MOVE
+// (DcmSCU::sendMOVERequest, Study Root, SERIES level) with the server's own
+// DICOM listener as the move destination (options.move_destination_ae):
+// the peer stores the instances over association(s) of its own, which the
+// listener routes into the folder through options.pending_moves
+// (pending_moves.h), with the same scan, fsync and rename as C-GET's.
 //
 // Contract:
 // - Every received instance is written to `dest_dir` (which must exist) as
@@ -28,6 +33,18 @@
 //   UIDs); a partial retrieval is an error too (failed sub-operations:
 //   FAILED_PRECONDITION with their count). Messages name the peer, never the
 //   UIDs.
+// - C-MOVE: the retrieval ends when the final C-MOVE response has arrived
+//   and every association that stored into the move has ended (waited for
+//   at most timeout_seconds). Its final response's completed count must
+//   equal the instances received (else FAILED_PRECONDITION naming both);
+//   failed or warning sub-operations are FAILED_PRECONDITION with their
+//   counts; a refused move (0xA801: the peer does not know our AE title as
+//   a move destination) FAILED_PRECONDITION naming the peer and the AE
+//   title; nothing sent and nothing failed: NOT_FOUND. On every error the
+//   files received so far are deleted from `dest_dir`. A move of the same
+//   series from the same peer by another job at the same time:
+//   FAILED_PRECONDITION. Without pending_moves (no listener):
+//   FAILED_PRECONDITION.
 // - Threads: blocking; call it from a worker thread, never from gRPC.
 #ifndef INTERSLICE_SERVER_DICOM_RETRIEVE_H_
 #define INTERSLICE_SERVER_DICOM_RETRIEVE_H_
@@ -40,6 +57,8 @@
 
 namespace interslice::server::dicom {
 
+class PendingMoves;
+
 struct RetrieveOptions {
   std::string calling_ae_title = "INTERSLICE";
   int timeout_seconds = 60;  // connect, association and each DIMSE message
@@ -47,6 +66,11 @@ struct RetrieveOptions {
   int64_t max_instances = 100000;
   int64_t max_bytes = int64_t{2} << 30;
   DicomTlsFiles tls;  // for peers with tls: true
+  // For peers with `retrieve: move`: our AE title the peer sends to (the
+  // listener's first), and the listener's registry of moves in progress
+  // (null: the server runs no listener).
+  std::string move_destination_ae;
+  PendingMoves* pending_moves = nullptr;
 };
 
 struct RetrieveResult {

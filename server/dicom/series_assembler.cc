@@ -218,6 +218,57 @@ SeriesFacts ReadSeriesFacts(const std::string& dir) {
   return facts;
 }
 
+absl::StatusOr<ReceivedInstance> ReadReceivedInstance(
+    const std::string& staged, int64_t received_bytes,
+    const DatasetScanLimits& limits) {
+  std::error_code ec;
+  ReceivedInstance out;
+  out.size = static_cast<int64_t>(fs::file_size(staged, ec));
+  if (ec) return absl::InternalError("a received instance vanished");
+  // The meta group is ours (DCMTK wrote it); what follows is as received.
+  absl::StatusOr<Part10Meta> meta = ReadPart10Meta(staged);
+  if (!meta.ok()) return meta.status();
+  if (received_bytes >= 0 &&
+      out.size - meta->dataset_offset != received_bytes) {
+    // The writer's buffered tail was lost (a full disk shows at close).
+    return absl::ResourceExhaustedError(
+        "the disk is full: a received instance could not be written whole");
+  }
+  // Bounded first: DCMTK's parser below reads only what passed.
+  if (absl::StatusOr<DatasetScanResult> scan = ScanPart10File(staged, limits);
+      !scan.ok()) {
+    return scan.status();
+  }
+  {
+    DcmFileFormat ff;
+    if (ff.loadFileUntilTag(staged.c_str(), EXS_Unknown, EGL_noChange,
+                            DCM_MaxReadLength, ERM_autoDetect, DCM_PixelData)
+            .bad()) {
+      return absl::InvalidArgumentError("the instance is not readable DICOM");
+    }
+    DcmDataset* ds = ff.getDataset();
+    out.ids.study_uid = GetString(ds, DCM_StudyInstanceUID);
+    out.ids.series_uid = GetString(ds, DCM_SeriesInstanceUID);
+    out.ids.sop_instance_uid = GetString(ds, DCM_SOPInstanceUID);
+  }
+  if (out.ids.series_uid.empty() || out.ids.sop_instance_uid.empty()) {
+    return absl::InvalidArgumentError(
+        "the instance has no Series or SOP Instance UID");
+  }
+  return out;
+}
+
+absl::Status KeepReceivedFile(const std::string& staged,
+                              const std::string& target) {
+  if (absl::Status synced = FsyncFile(staged); !synced.ok()) return synced;
+  if (::rename(staged.c_str(), target.c_str()) != 0) {
+    return absl::ResourceExhaustedError(
+        "the disk is full: cannot keep a received instance");
+  }
+  FsyncPath(fs::path(target).parent_path().string(), true);
+  return absl::OkStatus();
+}
+
 SeriesAssembler::SeriesAssembler(const AssemblerOptions& options, RuleSet rules,
                                  Spool* spool, Metrics* metrics,
                                  JobSubmitter submitter)
@@ -497,42 +548,11 @@ absl::StatusOr<std::string> SeriesAssembler::AddInstance(
     InstanceRefused(association);
     return status;
   };
-  const int64_t size = static_cast<int64_t>(fs::file_size(staged, ec));
-  if (ec) {
-    return refuse_unknown(absl::InternalError("a received instance vanished"));
-  }
-  // The meta group is ours (DCMTK wrote it); what follows is as received.
-  absl::StatusOr<Part10Meta> meta = ReadPart10Meta(staged);
-  if (!meta.ok()) return refuse_unknown(meta.status());
-  if (received_bytes >= 0 && size - meta->dataset_offset != received_bytes) {
-    // The writer's buffered tail was lost (a full disk shows at close).
-    return refuse_unknown(absl::ResourceExhaustedError(
-        "the disk is full: a received instance could not be written whole"));
-  }
-  // Bounded first: DCMTK's parser below reads only what passed.
-  if (absl::StatusOr<DatasetScanResult> scan =
-          ScanPart10File(staged, options_.scan_limits);
-      !scan.ok()) {
-    return refuse_unknown(scan.status());
-  }
-  InstanceIds ids;
-  {
-    DcmFileFormat ff;
-    if (ff.loadFileUntilTag(staged.c_str(), EXS_Unknown, EGL_noChange,
-                            DCM_MaxReadLength, ERM_autoDetect, DCM_PixelData)
-            .bad()) {
-      return refuse_unknown(
-          absl::InvalidArgumentError("the instance is not readable DICOM"));
-    }
-    DcmDataset* ds = ff.getDataset();
-    ids.study_uid = GetString(ds, DCM_StudyInstanceUID);
-    ids.series_uid = GetString(ds, DCM_SeriesInstanceUID);
-    ids.sop_instance_uid = GetString(ds, DCM_SOPInstanceUID);
-  }
-  if (ids.series_uid.empty() || ids.sop_instance_uid.empty()) {
-    return refuse_unknown(absl::InvalidArgumentError(
-        "the instance has no Series or SOP Instance UID"));
-  }
+  absl::StatusOr<ReceivedInstance> received =
+      ReadReceivedInstance(staged, received_bytes, options_.scan_limits);
+  if (!received.ok()) return refuse_unknown(received.status());
+  const int64_t size = received->size;
+  const InstanceIds& ids = received->ids;
   std::string called_ae;
   {
     std::lock_guard<std::mutex> lock(mu_);

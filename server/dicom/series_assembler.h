@@ -123,6 +123,27 @@ struct InstanceIds {
   std::string study_uid, series_uid, sop_instance_uid;
 };
 
+// A received file at `staged` (the listener's staging file: DCMTK's meta
+// group, then the data set as received) checked as every received instance
+// is before it is kept: written whole (`received_bytes`: the data set's
+// bytes as they arrived, -1: unknown; fewer in the file: RESOURCE_EXHAUSTED,
+// the disk is full), the bounded scan (INVALID_ARGUMENT), then its header's
+// UIDs (INVALID_ARGUMENT without a series or SOP instance UID). The file is
+// left where it is.
+struct ReceivedInstance {
+  InstanceIds ids;
+  int64_t size = 0;  // of the file
+};
+absl::StatusOr<ReceivedInstance> ReadReceivedInstance(
+    const std::string& staged, int64_t received_bytes,
+    const DatasetScanLimits& limits);
+
+// Keeps a checked file: fsync, rename to `target`, fsync of its folder (an
+// OK means kept: the C-STORE may answer success). RESOURCE_EXHAUSTED when
+// the sync or the rename fails (the file is left at `staged`).
+absl::Status KeepReceivedFile(const std::string& staged,
+                              const std::string& target);
+
 class SeriesAssembler {
  public:
   // `spool` (may be null in tests) accounts received bytes against the
@@ -146,6 +167,8 @@ class SeriesAssembler {
   // listener cuts off (aborts) a reception that passes it while it streams
   // in, since no status can answer an instance before all of it arrived.
   int64_t max_instance_bytes() const { return options_.max_bytes_per_series; }
+  // The bounded scan's limits for received instances.
+  const DatasetScanLimits& scan_limits() const { return options_.scan_limits; }
 
   // A fresh path under incoming/ for an instance about to be received.
   std::string StagingPath();

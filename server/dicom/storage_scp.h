@@ -42,6 +42,7 @@ class Metrics;
 
 namespace interslice::server::dicom {
 
+class PendingMoves;
 class SeriesAssembler;
 
 struct StorageScpOptions {
@@ -68,6 +69,10 @@ struct StorageScpOptions {
   // Associations accepted, ended and refused are recorded here (may be
   // null: no audit trail). Outlives the listener.
   AuditLog* audit = nullptr;
+  // The C-MOVEs of ours in progress (pending_moves.h): instances that
+  // belong to one go to its folder instead of the assembler. May be null
+  // (no moves). Outlives the listener.
+  PendingMoves* pending_moves = nullptr;
 };
 
 class StorageScp {

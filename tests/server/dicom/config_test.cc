@@ -110,6 +110,30 @@ TEST_F(ConfigTest, MaxAssociationsIsBounded) {
               HasSubstr("max_associations: expected an integer"));
 }
 
+TEST_F(ConfigTest, RetrieveIsGetOrMove) {
+  absl::StatusOr<PeersConfig> config = LoadPeersConfig(
+      Write("p.yaml",
+            "peers:\n"
+            "  - {name: a, ae_title: A, host: h}\n"
+            "  - {name: b, ae_title: B, host: h, retrieve: move}\n"
+            "  - {name: c, ae_title: C, host: h, retrieve: ' GET '}\n"));
+  ASSERT_TRUE(config.ok()) << config.status();
+  ASSERT_EQ(config->peers.size(), 3u);
+  EXPECT_EQ(config->peers[0].retrieve, RetrieveMethod::kGet);  // the default
+  EXPECT_EQ(config->peers[1].retrieve, RetrieveMethod::kMove);
+  EXPECT_EQ(config->peers[2].retrieve, RetrieveMethod::kGet);
+  EXPECT_THAT(PeersError("peers:\n  - {name: a, ae_title: A, host: h, "
+                         "retrieve: find}\n"),
+              HasSubstr("peer 'a' (#1): retrieve: 'find': expected get"));
+  EXPECT_THAT(PeersError("peers:\n  - {name: a, ae_title: A, host: h, "
+                         "retrieve: [move]}\n"),
+              HasSubstr("retrieve: expected text"));
+  // DIMSE only: a DICOMweb peer pulls by QIDO-RS + WADO-RS.
+  EXPECT_THAT(PeersError("peers:\n  - {name: w, type: dicomweb, url: "
+                         "'http://h/dicom-web', retrieve: move}\n"),
+              HasSubstr("peer 'w' (#1): retrieve: not for a DICOMweb peer"));
+}
+
 TEST_F(ConfigTest, PeersFileAsJson) {
   absl::StatusOr<PeersConfig> config = LoadPeersConfig(
       Write("p.json",

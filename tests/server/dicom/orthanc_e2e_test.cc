@@ -7,7 +7,10 @@
 //  - a destination that is down gets the results after it comes back, also
 //    across a server restart;
 //  - a job can read its series from Orthanc (C-GET) instead of uploads, and
-//    gives the same results;
+//    gives the same results; by C-MOVE too (retrieve: move), with the same
+//    results, the moved instances never reaching the rules, and clear
+//    errors for a series Orthanc lacks and a move destination it does not
+//    know;
 //  - results sent by STOW-RS (a DICOMweb peer) are the instances C-STORE
 //    sends.
 #include <signal.h>
@@ -411,6 +414,132 @@ TEST_F(OrthancEndToEndTest, PullFromOrthancEqualsUploadedFiles) {
   const CommandResult w = Cli(Cat({"watch", missing}, server->ServerFlag()));
   EXPECT_NE(w.exit_code, 0);
   EXPECT_THAT(w.err, HasSubstr("orthanc"));
+}
+
+// Issue 25: a peer with `retrieve: move` is pulled by C-MOVE, with the
+// server's listener as the move destination. The same series pulled by
+// C-GET and by C-MOVE gives the same results; the moved instances go to the
+// job only, never to the rules (a rule here matches every CT series: were
+// they handed to the assembler, it would make a job of its own, and the
+// move would count none of them).
+TEST_F(OrthancEndToEndTest, PullByMoveEqualsPullByGetAndNeverReachesRules) {
+  absl::StatusOr<int> uploaded = orthanc_->UploadFolder(kPhantom.string());
+  ASSERT_TRUE(uploaded.ok()) << uploaded.status();
+  ASSERT_EQ(*uploaded, 28);
+  std::ofstream(peers_) << "peers:\n  - {name: orthanc, ae_title: "
+                        << orthanc_->ae_title()
+                        << ", host: 127.0.0.1, port: " << orthanc_->dicom_port()
+                        << "}\n  - {name: orthanc-move, ae_title: "
+                        << orthanc_->ae_title()
+                        << ", host: 127.0.0.1, port: " << orthanc_->dicom_port()
+                        << ", retrieve: move}\n";
+  const std::string rules = (dir_.path() / "rules.yaml").string();
+  std::ofstream(rules) << "stable_seconds: 1\n"
+                          "rules:\n"
+                          "  - name: every-ct\n"
+                          "    match: {modality: CT}\n"
+                          "    complete_on_release: true\n"
+                          "    job: {threshold: 300, mesh: none, volume: "
+                          "none}\n";
+  auto server =
+      StartServer({"--dicom-listen", absl::StrCat("127.0.0.1:", dicom_port_),
+                   "--dicom-ae", "INTERSLICE", "--rules", rules});
+  ASSERT_TRUE(server->running());
+  const std::string moved = Submit(
+      *server,
+      {"--pacs", "orthanc-move", "--study", study_, "--series", series_});
+  const std::string got = Submit(
+      *server, {"--pacs", "orthanc", "--study", study_, "--series", series_});
+  for (const std::string& job : {moved, got}) {
+    const CommandResult w =
+        Cli(Cat({"watch", job, "--quiet"}, server->ServerFlag()));
+    ASSERT_EQ(w.exit_code, 0) << w.err << server->Log() << orthanc_->log();
+    const CommandResult f = Cli(
+        Cat({"fetch", job, "--out", (dir_.path() / job).string(), "--quiet"},
+            server->ServerFlag()));
+    ASSERT_EQ(f.exit_code, 0) << f.err;
+  }
+  EXPECT_THAT(server->Log(), HasSubstr("retrieved 28 instance(s)"));
+  // Same source instances and job: same mesh bytes, same derived UIDs and
+  // pixel data.
+  const std::string stl =
+      ReadFileOrEmpty((dir_.path() / moved / "surface.stl").string());
+  EXPECT_FALSE(stl.empty());
+  EXPECT_TRUE(stl ==
+              ReadFileOrEmpty((dir_.path() / got / "surface.stl").string()));
+  const auto a = LocalPayloads((dir_.path() / moved).string());
+  const auto b = LocalPayloads((dir_.path() / got).string());
+  EXPECT_GT(a.size(), 30u);
+  EXPECT_TRUE(a == b);
+  // Nothing reached the assembler: no series in its spool, no rule job
+  // (only the two submitted jobs are listed).
+  std::error_code ec;
+  int assembled = 0;
+  for (const auto& f : fs::recursive_directory_iterator(
+           dir_.path() / "spool" / "dicom-in", ec)) {
+    if (f.path().extension() == ".dcm") ++assembled;
+  }
+  EXPECT_EQ(assembled, 0);
+  const CommandResult list = Cli(Cat({"list", "--all"}, server->ServerFlag()));
+  ASSERT_EQ(list.exit_code, 0) << list.err;
+  int jobs = 0;
+  std::istringstream lines(list.out);
+  for (std::string line; std::getline(lines, line);) {
+    if (!line.empty() && line[0] != ' ') ++jobs;  // details are indented
+  }
+  EXPECT_EQ(jobs, 2) << list.out;
+
+  // A series Orthanc lacks: the job fails, naming the peer, nothing found.
+  const std::string missing = Submit(
+      *server,
+      {"--pacs", "orthanc-move", "--study", study_, "--series", "1.2.3"});
+  const CommandResult w = Cli(Cat({"watch", missing}, server->ServerFlag()));
+  EXPECT_NE(w.exit_code, 0);
+  EXPECT_THAT(w.err, HasSubstr("orthanc-move"));
+  EXPECT_THAT(w.err, HasSubstr("no instance of the requested series"));
+}
+
+// Orthanc does not know the move destination (the server's AE title is not
+// among its DicomModalities): it refuses the C-MOVE (Orthanc 1.10 answers
+// 0xC000 "unable to process", not 0xA801) and the job fails with a message
+// naming the move destination, not "not found" (the series is there).
+TEST_F(OrthancEndToEndTest, MoveToAnAeThePacsDoesNotKnowFailsTheJob) {
+  absl::StatusOr<int> uploaded = orthanc_->UploadFolder(kPhantom.string());
+  ASSERT_TRUE(uploaded.ok()) << uploaded.status();
+  std::ofstream(peers_) << "peers:\n  - {name: orthanc, ae_title: "
+                        << orthanc_->ae_title()
+                        << ", host: 127.0.0.1, port: " << orthanc_->dicom_port()
+                        << ", retrieve: move}\n";
+  auto server =
+      StartServer({"--dicom-listen", absl::StrCat("127.0.0.1:", dicom_port_),
+                   "--dicom-ae", "NOTREGISTERED"});
+  ASSERT_TRUE(server->running());
+  const std::string job = Submit(
+      *server, {"--pacs", "orthanc", "--study", study_, "--series", series_});
+  const CommandResult w = Cli(Cat({"watch", job}, server->ServerFlag()));
+  EXPECT_NE(w.exit_code, 0);
+  EXPECT_THAT(w.err, HasSubstr("refused the C-MOVE to move destination "
+                               "'NOTREGISTERED'"));
+  EXPECT_THAT(w.err, HasSubstr("does not know the move destination"));
+  EXPECT_THAT(w.err, HasSubstr("orthanc"));
+}
+
+// retrieve: move without the listener cannot work: the start fails, saying
+// why.
+TEST_F(OrthancEndToEndTest, MovePeerWithoutListenerIsAStartError) {
+  std::ofstream(peers_) << "peers:\n  - {name: orthanc, ae_title: "
+                        << orthanc_->ae_title()
+                        << ", host: 127.0.0.1, port: " << orthanc_->dicom_port()
+                        << ", retrieve: move}\n";
+  ServerProcess server(ServerOptions{
+      .spool = dir_ / "spool",
+      .log = dir_ / "server.log",
+      .extra = {"--dicom-peers", peers_, "--isolation", "thread"}});
+  EXPECT_FALSE(server.Start());
+  EXPECT_EQ(server.exit_code(), 1);
+  EXPECT_THAT(server.Log(),
+              HasSubstr("peer 'orthanc' has retrieve: move, which needs the "
+                        "DICOM listener (--dicom-listen)"));
 }
 
 // The whole loop: Orthanc sends the phantom to interslice's listener, a rule
