@@ -124,8 +124,8 @@ struct SimplifiedMesh {
 // INVALID_ARGUMENT for a negative max_triangles, a negative or non-finite
 // max_error_mm, a triangle index out of range, or non-finite vertices.
 // Runs on one thread (meshoptimizer is serial); cancellation is polled
-// before and after the simplification (which cannot be interrupted: about
-// a second per million triangles).
+// before and after the simplification (which cannot be interrupted: 2-7 s
+// for the CT phantom's 2.7 million triangles on a loaded 2-core machine).
 absl::StatusOr<SimplifiedMesh> SimplifyMesh(const Mesh& mesh,
                                             const SimplifyOptions& options,
                                             const ComputeContext& context);
