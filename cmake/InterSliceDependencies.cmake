@@ -31,6 +31,8 @@ if(CMAKE_LIBRARY_ARCHITECTURE)
        /usr/lib/${CMAKE_LIBRARY_ARCHITECTURE}/cmake/OpenVDB)
 endif()
 find_package(OpenVDB REQUIRED COMPONENTS openvdb)
+# meshoptimizer: the Encapsulated STL's size cap (core/surface SimplifyMesh).
+find_package(meshoptimizer CONFIG REQUIRED)
 
 # Only the ITK modules we use, which keeps include paths and link lines short.
 find_package(ITK REQUIRED COMPONENTS

@@ -66,13 +66,33 @@ std::vector<std::string> InterpolationSummary(const JobReport& report,
                                     report.mesh_vertices));
   }
   if (report.dicom_mesh_adaptivity >= 0) {
+    // The distance from the full surface only when it was measured
+    // (dicom_mesh_resolution_mm > 0): a capped mesh without it is not
+    // "within 0 mm".
+    const std::string deviation =
+        report.dicom_mesh_resolution_mm > 0
+            ? absl::StrFormat(
+                  ", %s %.3g mm (mean %.3g mm) from the full surface",
+                  report.dicom_mesh_samples_beyond_band > 0 ? "at least"
+                                                            : "within",
+                  report.dicom_mesh_max_deviation_mm,
+                  report.dicom_mesh_mean_deviation_mm)
+        : report.dicom_mesh_triangles < report.dicom_mesh_triangles_before_cap
+            ? ", distance from the full surface not measured"
+            : "";
     lines.push_back(absl::StrFormat(
-        "  DICOM mesh %d triangles (adaptivity %g), %s %.3g mm (mean %.3g "
-        "mm) from the full surface",
-        report.dicom_mesh_triangles, report.dicom_mesh_adaptivity,
-        report.dicom_mesh_samples_beyond_band > 0 ? "at least" : "within",
-        report.dicom_mesh_max_deviation_mm,
-        report.dicom_mesh_mean_deviation_mm));
+        "  DICOM mesh %d triangles (adaptivity %g)%s",
+        report.dicom_mesh_triangles, report.dicom_mesh_adaptivity, deviation));
+    if (report.dicom_mesh_triangles < report.dicom_mesh_triangles_before_cap ||
+        report.dicom_mesh_over_cap) {
+      lines.push_back(absl::StrFormat(
+          "  DICOM mesh capped at %g MB: %d -> %d triangles (STL %.1f MB), "
+          "simplifier's error estimate %.3g mm%s",
+          report.dicom_mesh_max_mb, report.dicom_mesh_triangles_before_cap,
+          report.dicom_mesh_triangles, report.dicom_mesh_stl_bytes / 1e6,
+          report.dicom_mesh_simplify_error_mm,
+          report.dicom_mesh_over_cap ? " (could not reach the cap)" : ""));
+    }
   }
   std::string timings;
   double total = 0;

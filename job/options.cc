@@ -131,6 +131,13 @@ constexpr OptionDef<IO> kInterpolationOptions[] = {
      "(default 0: as surface.stl; 1 takes the CT phantom's from 133 to 20 MB, "
      "up to 1.8 mm off; the report's dicom_mesh gives the measured distance "
      "from the full surface); surface.stl keeps --adaptivity"},
+    {"dicom_mesh_max_mb", "spec.dicom_mesh_max_mb", ValueKind::kNumber,
+     &IO::dicom_mesh_max_mb,
+     "Size cap in MB (10^6 bytes) of the Encapsulated STL object (default 25; "
+     "0 = none): a larger mesh is simplified by quadric edge collapse "
+     "(meshoptimizer) after --dicom-mesh-adaptivity, and the report's "
+     "dicom_mesh gives its triangles and error estimate; surface.stl is never "
+     "capped"},
     {"mesh", "spec.outputs.mesh_formats", ValueKind::kList, &IO::mesh,
      "Mesh formats: any of stl,ply,obj, or none"},
     {"volume", "spec.outputs.volume_formats", ValueKind::kList, &IO::volume,
@@ -627,6 +634,16 @@ absl::StatusOr<JobSpec> BuildJobSpec(const InterpolationOptions& o) {
       return OptionError("dicom_mesh_adaptivity", "must be in [0, 1]");
     }
     spec.dicom_mesh_adaptivity = *o.dicom_mesh_adaptivity;
+  }
+  if (o.dicom_mesh_max_mb.has_value()) {
+    const double mb = *o.dicom_mesh_max_mb;
+    if (!(mb == 0 || (mb >= kMinDicomMeshMaxMb && mb <= kMaxDicomMeshMaxMb))) {
+      return OptionError(
+          "dicom_mesh_max_mb",
+          absl::StrCat("must be 0 (no cap) or between ", kMinDicomMeshMaxMb,
+                       " and ", kMaxDicomMeshMaxMb, " MB"));
+    }
+    spec.dicom_mesh_max_mb = mb;
   }
   absl::StatusOr<std::vector<std::string>> mesh =
       ParseNames(o.mesh, {"stl", "ply", "obj"}, "mesh");

@@ -92,6 +92,9 @@ struct InterpolationOptions {
   // The Encapsulated STL's own adaptivity; unset: the core's default
   // (core/pipeline kDefaultDicomMeshAdaptivity).
   std::optional<double> dicom_mesh_adaptivity;
+  // The Encapsulated STL's size cap, MB; unset: the core's default
+  // (core/pipeline kDefaultDicomMeshMaxMb).
+  std::optional<double> dicom_mesh_max_mb;
   std::string mesh = "stl";
   std::string volume = "nii";
   // Previews (core/pipeline JobSpec::preview_formats): PNG by default, on

@@ -217,6 +217,7 @@ v1::JobSpec ToWire(const JobSpec& spec) {
   }
   p.set_multiframe_volume(spec.multiframe_volume);
   p.set_dicom_mesh_adaptivity(spec.dicom_mesh_adaptivity);
+  p.set_dicom_mesh_max_mb(spec.dicom_mesh_max_mb);
   if (spec.dicom_compression == "rle") {
     p.mutable_derived_series()->set_pixel_compression(
         v1::DICOM_PIXEL_COMPRESSION_RLE_LOSSLESS);
@@ -329,6 +330,7 @@ absl::StatusOr<InterpolationOptions> InterpolationOptionsFromWire(
   if (p.has_dicom_mesh_adaptivity()) {
     o.dicom_mesh_adaptivity = p.dicom_mesh_adaptivity();
   }
+  if (p.has_dicom_mesh_max_mb()) o.dicom_mesh_max_mb = p.dicom_mesh_max_mb();
   if (p.has_outputs()) {
     absl::StatusOr<std::string> volume =
         FormatNames(p.outputs().volume_formats(), kVolumeFormats, "volume");
@@ -355,6 +357,7 @@ absl::StatusOr<FillJobOptions> FillOptionsFromWire(const v1::JobSpec& p) {
   if (p.has_dicom_mesh_adaptivity()) {
     return NotForFill("dicom_mesh_adaptivity");
   }
+  if (p.has_dicom_mesh_max_mb()) return NotForFill("dicom_mesh_max_mb");
   if (p.derived_series().ByteSizeLong() > 0) {
     return NotForFill("derived_series");
   }

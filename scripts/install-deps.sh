@@ -12,6 +12,9 @@ packages=(
   libgtest-dev libgmock-dev libbenchmark-dev
   libfftw3-dev libtbb-dev
   libopenvdb-dev libboost-iostreams-dev
+  # the Encapsulated STL's size cap (core/surface SimplifyMesh): quadric edge
+  # collapse; its shared library reaches the image through stage-image.sh's ldd
+  libmeshoptimizer-dev
   libcli11-dev prometheus-cpp-dev libcivetweb-dev libabsl-dev nlohmann-json3-dev
   zlib1g-dev libdeflate-dev libgdcm-dev libssl-dev
   # previews (core/preview): Cairo draws the 2D views and writes PNG; the

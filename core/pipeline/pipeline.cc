@@ -332,6 +332,16 @@ std::vector<RgbPicture> Pictures(const std::vector<PreviewImage>& images) {
 
 }  // namespace
 
+int64_t MaxEncapsulatedStlTriangles(double max_mb, int64_t source_instances) {
+  if (!(max_mb > 0)) return 0;
+  const double bytes =
+      max_mb * 1e6 - static_cast<double>(kEncapsulatedStlHeaderReserveBytes) -
+      static_cast<double>(kEncapsulatedStlBytesPerSourceInstance) *
+          static_cast<double>(std::max<int64_t>(0, source_instances)) -
+      84;
+  return std::max<int64_t>(1, static_cast<int64_t>(std::floor(bytes / 50)));
+}
+
 absl::Status ValidateJobSpec(const JobSpec& spec) {
   if (spec.inputs.empty()) {
     return absl::InvalidArgumentError("no input DICOM files or folders given");
@@ -379,6 +389,14 @@ absl::Status ValidateJobSpec(const JobSpec& spec) {
   if (!(spec.dicom_mesh_adaptivity >= 0 && spec.dicom_mesh_adaptivity <= 1)) {
     return absl::InvalidArgumentError(
         "DICOM mesh adaptivity must be in [0, 1]");
+  }
+  if (!(spec.dicom_mesh_max_mb == 0 ||
+        (spec.dicom_mesh_max_mb >= kMinDicomMeshMaxMb &&
+         spec.dicom_mesh_max_mb <= kMaxDicomMeshMaxMb))) {
+    return absl::InvalidArgumentError(
+        absl::StrFormat("DICOM mesh size cap must be 0 (none) or between %g "
+                        "and %g MB",
+                        kMinDicomMeshMaxMb, kMaxDicomMeshMaxMb));
   }
   if (!(spec.mesh_adaptivity >= 0 && spec.mesh_adaptivity <= 1)) {
     return absl::InvalidArgumentError("mesh adaptivity must be in [0, 1]");
@@ -647,18 +665,41 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
   if (wants_dicom_mesh) {
     // A stage only when it does something: another mesh, or its deviation
     // (the default, 0 for both, stores the surface as extracted).
+    // First the adaptivity (another extraction), then the size cap
+    // (quadric edge collapse of that mesh).
+    const int64_t max_triangles = MaxEncapsulatedStlTriangles(
+        spec.dicom_mesh_max_mb, static_cast<int64_t>(source.slices.size()));
+    const bool reextract = spec.dicom_mesh_adaptivity != spec.mesh_adaptivity;
+    const bool may_cap =
+        max_triangles > 0 &&
+        (reextract ||
+         static_cast<int64_t>(mesh.triangles.size()) > max_triangles);
     std::optional<StageClock> clock;
-    if (spec.dicom_mesh_adaptivity != spec.mesh_adaptivity ||
-        spec.dicom_mesh_adaptivity > 0) {
+    if (reextract || may_cap || spec.dicom_mesh_adaptivity > 0) {
       clock.emplace(report, context, "dicom-mesh");
     }
     SurfaceOptions options;
-    if (spec.dicom_mesh_adaptivity != spec.mesh_adaptivity) {
+    if (reextract) {
       options.adaptivity = spec.dicom_mesh_adaptivity;
       INTERSLICE_ASSIGN_OR_RETURN(dicom_mesh_storage,
                                   ExtractSurface(field, options, context));
       dicom_mesh = &dicom_mesh_storage;
     }
+    report.dicom_mesh_max_mb = spec.dicom_mesh_max_mb;
+    report.dicom_mesh_triangles_before_cap =
+        static_cast<int64_t>(dicom_mesh->triangles.size());
+    if (max_triangles > 0 &&
+        static_cast<int64_t>(dicom_mesh->triangles.size()) > max_triangles) {
+      INTERSLICE_ASSIGN_OR_RETURN(
+          SimplifiedMesh simplified,
+          SimplifyMesh(*dicom_mesh, {.max_triangles = max_triangles}, context));
+      dicom_mesh_storage = std::move(simplified.mesh);
+      dicom_mesh = &dicom_mesh_storage;
+      report.dicom_mesh_simplify_error_mm = simplified.error_mm;
+      report.dicom_mesh_over_cap = simplified.triangles_after > max_triangles;
+    }
+    report.dicom_mesh_stl_bytes =
+        84 + 50 * static_cast<int64_t>(dicom_mesh->triangles.size());
     report.dicom_mesh_adaptivity = spec.dicom_mesh_adaptivity;
     report.dicom_mesh_vertices =
         static_cast<int64_t>(dicom_mesh->vertices.size());
@@ -1001,7 +1042,12 @@ std::string JobReportToJson(const JobReport& report) {
         {"max_deviation_mm", report.dicom_mesh_max_deviation_mm},
         {"mean_deviation_mm", report.dicom_mesh_mean_deviation_mm},
         {"deviation_resolution_mm", report.dicom_mesh_resolution_mm},
-        {"samples_beyond_band", report.dicom_mesh_samples_beyond_band}};
+        {"samples_beyond_band", report.dicom_mesh_samples_beyond_band},
+        {"max_mb", report.dicom_mesh_max_mb},
+        {"triangles_before_cap", report.dicom_mesh_triangles_before_cap},
+        {"simplify_error_mm", report.dicom_mesh_simplify_error_mm},
+        {"stl_bytes", report.dicom_mesh_stl_bytes},
+        {"over_cap", report.dicom_mesh_over_cap}};
   }
   bool previews = !report.preview_notes.empty();
   for (const StageTiming& s : report.stages) previews |= s.stage == "preview";
@@ -1119,6 +1165,16 @@ absl::StatusOr<JobReport> JobReportFromJson(const std::string& text) {
           d.at("deviation_resolution_mm").get<double>();
       report.dicom_mesh_samples_beyond_band =
           d.at("samples_beyond_band").get<int64_t>();
+      // The size cap's fields: absent in reports from before it.
+      if (d.contains("max_mb")) {
+        report.dicom_mesh_max_mb = d.at("max_mb").get<double>();
+        report.dicom_mesh_triangles_before_cap =
+            d.at("triangles_before_cap").get<int64_t>();
+        report.dicom_mesh_simplify_error_mm =
+            d.at("simplify_error_mm").get<double>();
+        report.dicom_mesh_stl_bytes = d.at("stl_bytes").get<int64_t>();
+        report.dicom_mesh_over_cap = d.at("over_cap").get<bool>();
+      }
     }
     if (j.contains("previews")) {
       report.preview_notes =

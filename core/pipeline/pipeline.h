@@ -24,8 +24,28 @@ namespace interslice {
 // from 133 MB to 20 MB (thick) and 26 MB (tilted), with vertices, edge
 // midpoints and centroids up to 1.8 / 2.0 mm (mean 0.14 / 0.16 mm) from the
 // full surface, and the exact measurement of that costs minutes on a shared
-// machine; so simplification is asked for, not the default.
+// machine; so adaptivity is asked for, not the default: the default size
+// cap (kDefaultDicomMeshMaxMb, quadric edge collapse) is what makes the
+// Encapsulated STL fit a PACS.
 inline constexpr double kDefaultDicomMeshAdaptivity = 0;
+
+// JobSpec::dicom_mesh_max_mb's default: the Encapsulated STL object is at
+// most 25 MB (10^6 bytes, DICOM header included), a size PACS take (issue
+// 25). The CT phantom's full surface is 133 MB.
+inline constexpr double kDefaultDicomMeshMaxMb = 25;
+// The smallest cap other than 0 (none) and the largest, MB.
+inline constexpr double kMinDicomMeshMaxMb = 0.1;
+inline constexpr double kMaxDicomMeshMaxMb = 4000;
+// What the cap leaves for the DICOM object's header around the binary STL:
+// a fixed part plus one SourceInstanceSequence item per source image
+// (measured: 7.5 KB in all for the 28-slice CT phantom, about 160 bytes an
+// item with 64-character UIDs; both kept generous).
+inline constexpr int64_t kEncapsulatedStlHeaderReserveBytes = 64 * 1024;
+inline constexpr int64_t kEncapsulatedStlBytesPerSourceInstance = 256;
+// The most triangles a binary STL may have (84 + 50 bytes per triangle) for
+// its Encapsulated STL object, which references `source_instances` images,
+// to stay within max_mb; 0 for max_mb 0 (no cap), at least 1 otherwise.
+int64_t MaxEncapsulatedStlTriangles(double max_mb, int64_t source_instances);
 
 struct JobSpec {
   // DICOM files and/or directories (searched recursively).
@@ -73,6 +93,14 @@ struct JobSpec {
   // (adaptivity 0) is measured (core/surface MeasureMeshDeviation) and
   // reported (JobReport::dicom_mesh_*). Default: kDefaultDicomMeshAdaptivity.
   double dicom_mesh_adaptivity = kDefaultDicomMeshAdaptivity;
+  // The Encapsulated STL's size cap, MB (10^6 bytes, the DICOM object with
+  // its header): 0 = no cap, else in [kMinDicomMeshMaxMb,
+  // kMaxDicomMeshMaxMb]. Applied after dicom_mesh_adaptivity: a mesh over
+  // MaxEncapsulatedStlTriangles is simplified to that many triangles
+  // (core/surface SimplifyMesh, quadric edge collapse) and meshoptimizer's
+  // error estimate reported (JobReport::dicom_mesh_simplify_error_mm).
+  // surface.stl is never capped. Default: kDefaultDicomMeshMaxMb.
+  double dicom_mesh_max_mb = kDefaultDicomMeshMaxMb;
   // Outputs, written into output_dir (created if missing):
   //   volume formats "nii" -> distance.nii.gz, mask.nii.gz;
   //                  "nrrd" -> distance.nrrd, mask.nrrd;
@@ -249,6 +277,17 @@ struct JobReport {
   // Samples farther than the measurement's band (>= 2 mm): then the max is
   // only known to be at least dicom_mesh_max_deviation_mm.
   int64_t dicom_mesh_samples_beyond_band = 0;
+  // The size cap (JobSpec::dicom_mesh_max_mb, 0 = none) and what it did:
+  // the triangles before it (the surface as extracted at
+  // dicom_mesh_adaptivity), meshoptimizer's error estimate in mm (0 when
+  // the cap did not bite; SimplifiedMesh::error_mm says what it means), and
+  // the embedded binary STL's size. over_cap: the simplifier could not
+  // reach the cap (the object is larger than asked).
+  double dicom_mesh_max_mb = 0;
+  int64_t dicom_mesh_triangles_before_cap = 0;
+  double dicom_mesh_simplify_error_mm = 0;
+  int64_t dicom_mesh_stl_bytes = 0;
+  bool dicom_mesh_over_cap = false;
   // JobSpec::preview_formats only: one sentence each, no patient data (a
   // preview skipped and why, an empty mask, ...).
   std::vector<std::string> preview_notes;

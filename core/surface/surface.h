@@ -1,5 +1,6 @@
 // The zero level set of a refined distance field as a triangle mesh
-// (OpenVDB volumeToMesh), and mesh writers (binary STL, PLY, OBJ).
+// (OpenVDB volumeToMesh), its simplification to a size budget
+// (meshoptimizer), and mesh writers (binary STL, PLY, OBJ).
 //
 // Field convention: positive inside, negative outside, units mm (any
 // consistent unit works; only the sign and linear interpolation matter).
@@ -73,6 +74,61 @@ struct MeshDeviation {
 absl::StatusOr<MeshDeviation> MeasureMeshDeviation(
     const Mesh& simplified, const Mesh& reference, double resolution_mm,
     const ComputeContext& context);
+
+// Mesh simplification for a size budget (the Encapsulated STL a PACS takes):
+// quadric edge collapse (Garland & Heckbert, "Surface Simplification Using
+// Quadric Error Metrics", SIGGRAPH 1997) as meshoptimizer implements it
+// (zeux/meshoptimizer 0.18, meshopt_simplify: edges collapse cheapest first,
+// collapses that would flip a triangle are refused, vertices on open borders
+// stay on their border).
+struct SimplifyOptions {
+  // Stop once the mesh has at most this many triangles; 0: no count target
+  // (then only max_error_mm stops it).
+  int64_t max_triangles = 0;
+  // Never make a collapse whose quadric error estimate exceeds this, mm;
+  // 0: no error bound (the count target alone decides). With both set, the
+  // first one reached stops it, so the result can keep more than
+  // max_triangles.
+  double max_error_mm = 0;
+};
+
+struct SimplifiedMesh {
+  // Compacted: only the vertices the triangles use, in first-use order
+  // (meshopt_optimizeVertexFetch). Winding as given (outward stays outward).
+  Mesh mesh;
+  // meshoptimizer's resulting error, converted to mm (relative error times
+  // meshopt_simplifyScale, the mesh's extent): the square root of the
+  // largest quadric error of a collapse made, i.e. an estimate of how far a
+  // moved vertex lies from the planes of the triangles it replaced. It is an
+  // estimate, not a guaranteed Hausdorff bound: points inside new triangles
+  // (not only vertices) and planes merged into one quadric can lie farther.
+  // MeasureMeshDeviation measures the actual distance. 0 when nothing was
+  // collapsed.
+  double error_mm = 0;
+  int64_t triangles_before = 0;
+  int64_t triangles_after = 0;
+};
+
+// Topology: meshoptimizer collapses only edges whose collapse keeps the
+// neighbourhood manifold as it classifies it (interior edges of a closed
+// mesh stay interior); it does not remove small closed components once they
+// cannot shrink further, so max_triangles may not be reached (the result
+// then says triangles_after > max_triangles). A closed, consistently
+// oriented input (ExtractSurface's) gives a closed, consistently oriented
+// output (tests/core/surface/simplify_test.cc checks it on spheres).
+// The input is used as indexed: vertices shared by index, as ExtractSurface
+// gives them (duplicate positions are welded by meshoptimizer's position
+// remap, not by us).
+// A mesh already within max_triangles, or options with neither set, give
+// the mesh as is (compacted, error 0).
+// INVALID_ARGUMENT for a negative max_triangles, a negative or non-finite
+// max_error_mm, a triangle index out of range, or non-finite vertices.
+// Runs on one thread (meshoptimizer is serial); cancellation is polled
+// before and after the simplification (which cannot be interrupted: 2-7 s
+// for the CT phantom's 2.7 million triangles on a loaded 2-core machine).
+absl::StatusOr<SimplifiedMesh> SimplifyMesh(const Mesh& mesh,
+                                            const SimplifyOptions& options,
+                                            const ComputeContext& context);
 
 // Writers. Files are written in full or not at all (temporary + rename);
 // errors name the path. Binary little-endian STL and PLY; OBJ is text.

@@ -16,6 +16,7 @@
 
 #include "absl/strings/str_format.h"
 #include "core/dicom/series_reader.h"
+#include "core/pipeline/pipeline.h"
 #include "core/volume_io/volume_io.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
@@ -40,6 +41,7 @@ namespace {
 
 namespace fs = std::filesystem;
 using ::testing::HasSubstr;
+using ::testing::Not;
 
 using testing::CommandResult;
 using testing::RunCli;
@@ -764,6 +766,94 @@ TEST_F(DicomOutputTest, DicomMeshAdaptivitySimplifiesTheEncapsulatedStlOnly) {
              (dir_ / "bad").string());
   EXPECT_EQ(bad.exit_code, 1);
   EXPECT_THAT(bad.out, HasSubstr("dicom-mesh-adaptivity"));
+}
+
+// The Encapsulated STL is capped in size (--dicom-mesh-max-mb, default 25
+// MB) by simplifying its mesh; surface.stl stays the full mesh, and the
+// report gives the triangles, size and the simplifier's error estimate.
+TEST_F(DicomOutputTest, DicomMeshMaxMbCapsTheEncapsulatedStlOnly) {
+  auto run = [&](const std::string& name, const std::string& extra) {
+    const fs::path out = dir_ / name;
+    const CommandResult r =
+        RunCli("run " + kPhantom.string() +
+               " --threshold 300 --roi 200,60,0,300,160,28 --method linear "
+               "--volume none --mesh stl --previews none --seg --out " +
+               out.string() + " --report " + (out / "report.json").string() +
+               " " + extra);
+    EXPECT_EQ(r.exit_code, 0) << r.out;
+    return std::pair(ReadJson(out / "report.json"), r.out);
+  };
+  // The default cap (25 MB) is above this region's mesh: nothing simplified.
+  const auto [uncapped, uncapped_out] = run("default", "");
+  const int64_t triangles = uncapped["mesh"]["triangles"].get<int64_t>();
+  ASSERT_GT(84 + 50 * triangles, 300'000) << "the region's mesh is too small "
+                                             "for the cap below to bite";
+  const nlohmann::json& d0 = uncapped["dicom_mesh"];
+  EXPECT_EQ(d0["max_mb"].get<double>(), kDefaultDicomMeshMaxMb);
+  EXPECT_EQ(d0["triangles"].get<int64_t>(), triangles);
+  EXPECT_EQ(d0["triangles_before_cap"].get<int64_t>(), triangles);
+  EXPECT_EQ(d0["simplify_error_mm"].get<double>(), 0);
+  EXPECT_EQ(d0["stl_bytes"].get<int64_t>(), 84 + 50 * triangles);
+  EXPECT_FALSE(d0["over_cap"].get<bool>());
+  EXPECT_LE(fs::file_size(dir_ / "default/surface-stl.dcm"),
+            kDefaultDicomMeshMaxMb * 1e6);
+  EXPECT_THAT(uncapped_out, Not(HasSubstr("DICOM mesh capped")));
+
+  // A cap of 0.3 MB: the object is at most 300 000 bytes, its STL the
+  // simplified mesh, surface.stl unchanged.
+  const auto [capped, capped_out] = run("capped", "--dicom-mesh-max-mb 0.3");
+  const nlohmann::json& d = capped["dicom_mesh"];
+  const int64_t kept = d["triangles"].get<int64_t>();
+  EXPECT_EQ(d["max_mb"].get<double>(), 0.3);
+  EXPECT_EQ(d["triangles_before_cap"].get<int64_t>(), triangles);
+  // The phantom has 28 slices, each referenced in the object's header.
+  EXPECT_LE(kept, MaxEncapsulatedStlTriangles(0.3, 28));
+  EXPECT_GT(kept, MaxEncapsulatedStlTriangles(0.3, 28) * 9 / 10);
+  EXPECT_EQ(d["stl_bytes"].get<int64_t>(), 84 + 50 * kept);
+  EXPECT_FALSE(d["over_cap"].get<bool>());
+  // The simplifier's estimate: positive, well under the 1 mm voxels.
+  EXPECT_GT(d["simplify_error_mm"].get<double>(), 0);
+  EXPECT_LT(d["simplify_error_mm"].get<double>(), 1.0);
+  EXPECT_LE(fs::file_size(dir_ / "capped/surface-stl.dcm"), 300'000u);
+  EXPECT_EQ(fs::file_size(dir_ / "capped/surface.stl"),
+            fs::file_size(dir_ / "default/surface.stl"));
+  EXPECT_THAT(capped_out, HasSubstr("DICOM mesh capped at 0.3 MB"));
+  EXPECT_THAT(capped_out,
+              HasSubstr("distance from the full surface not measured"));
+  DcmFileFormat file;
+  ASSERT_TRUE(
+      file.loadFile(OFFilename((dir_ / "capped/surface-stl.dcm").c_str()))
+          .good());
+  Uint32 length = 0;
+  ASSERT_TRUE(file.getDataset()
+                  ->findAndGetUint32(DCM_EncapsulatedDocumentLength, length)
+                  .good());
+  EXPECT_EQ(static_cast<int64_t>(length), 84 + 50 * kept);
+  EXPECT_FALSE(fs::exists(dir_ / "capped/.surface-dicom.stl"));
+
+  // After the adaptivity: the cap applies to the re-extracted mesh, and the
+  // deviation is measured for the mesh stored.
+  const auto [both, both_out] =
+      run("both", "--dicom-mesh-adaptivity 0.2 --dicom-mesh-max-mb 0.3");
+  const nlohmann::json& b = both["dicom_mesh"];
+  EXPECT_LT(b["triangles_before_cap"].get<int64_t>(), triangles);
+  EXPECT_LE(b["triangles"].get<int64_t>(),
+            MaxEncapsulatedStlTriangles(0.3, 28));
+  EXPECT_GT(b["max_deviation_mm"].get<double>(), 0);
+  EXPECT_EQ(b["samples_beyond_band"].get<int64_t>(), 0);
+  EXPECT_LE(fs::file_size(dir_ / "both/surface-stl.dcm"), 300'000u);
+
+  // No cap: the object holds surface.stl as it is.
+  const auto [none, none_out] = run("none", "--dicom-mesh-max-mb 0");
+  EXPECT_EQ(none["dicom_mesh"]["triangles"].get<int64_t>(), triangles);
+
+  for (const char* value : {"0.05", "-1", "5000", "nan"}) {
+    const CommandResult bad = RunCli(
+        "run " + kPhantom.string() + " --threshold 300 " +
+        "--dicom-mesh-max-mb " + value + " --out " + (dir_ / "bad").string());
+    EXPECT_EQ(bad.exit_code, 1) << value;
+    EXPECT_THAT(bad.out, HasSubstr("dicom-mesh-max-mb")) << value;
+  }
 }
 
 }  // namespace

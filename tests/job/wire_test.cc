@@ -160,6 +160,7 @@ TEST(WireTest, InterpolationSpecsRoundTrip) {
   cases[1].intensity_method = "linear";
   cases[1].volume = "nii-uncompressed,nrrd";
   cases[1].mesh = "obj";
+  cases[1].dicom_mesh_max_mb = 0;  // no cap
   cases[2].method = "morph";
   cases[2].factor = 4;
   cases[2].tolerance = 1e-4;
@@ -171,6 +172,8 @@ TEST(WireTest, InterpolationSpecsRoundTrip) {
   cases[2].series_uid = "1.2.3";
   cases[2].multiframe_volume = "stack 1";
   cases[2].strict_spacing = true;
+  cases[2].dicom_mesh_adaptivity = 0.25;
+  cases[2].dicom_mesh_max_mb = 12.5;
   // A box in mm with fractions and negative coordinates, corners reversed.
   cases[2].roi_mm = "120.25,-30.5,-71.125,-80.75,44.1,12.3";
   cases[3].method = "linear";
@@ -202,6 +205,8 @@ TEST(WireTest, InterpolationSpecsRoundTrip) {
     EXPECT_EQ(back->series_instance_uid, spec->series_instance_uid);
     EXPECT_EQ(back->segment_label, spec->segment_label);
     EXPECT_EQ(back->segment_code, spec->segment_code);
+    EXPECT_EQ(back->dicom_mesh_adaptivity, spec->dicom_mesh_adaptivity);
+    EXPECT_EQ(back->dicom_mesh_max_mb, spec->dicom_mesh_max_mb) << n;
     EXPECT_EQ(back->roi_mm.has_value(), spec->roi_mm.has_value()) << n;
     if (spec->roi_mm.has_value()) {
       EXPECT_EQ(back->roi_mm->min, spec->roi_mm->min);
@@ -210,6 +215,30 @@ TEST(WireTest, InterpolationSpecsRoundTrip) {
     EXPECT_TRUE(back->inputs.empty());
     EXPECT_TRUE(back->output_dir.empty());
   }
+}
+
+// The Encapsulated STL's size cap: 25 MB when absent, 0 kept as "no cap",
+// out of range refused naming the field, and refused for fills.
+TEST(WireTest, DicomMeshMaxMbDefaultsRangeAndFills) {
+  v1::JobSpec p;
+  p.set_threshold(300);
+  EXPECT_EQ(JobSpecFromWire(p)->dicom_mesh_max_mb, kDefaultDicomMeshMaxMb);
+  EXPECT_EQ(kDefaultDicomMeshMaxMb, 25);
+  p.set_dicom_mesh_max_mb(0);
+  EXPECT_EQ(JobSpecFromWire(p)->dicom_mesh_max_mb, 0);
+  p.set_dicom_mesh_max_mb(7.5);
+  EXPECT_EQ(JobSpecFromWire(p)->dicom_mesh_max_mb, 7.5);
+  for (double bad : {-1.0, 0.01, 5000.0}) {
+    p.set_dicom_mesh_max_mb(bad);
+    EXPECT_THAT(std::string(JobSpecFromWire(p).status().message()),
+                HasSubstr("dicom_mesh_max_mb"))
+        << bad;
+  }
+  v1::JobSpec fill;
+  fill.mutable_fill()->set_segmentation_file("labels.nrrd");
+  fill.set_dicom_mesh_max_mb(10);
+  EXPECT_THAT(std::string(FillOptionsFromWire(fill).status().message()),
+              HasSubstr("dicom_mesh_max_mb"));
 }
 
 TEST(WireTest, RoiMmReachesTheSpecAndIsRefusedForFills) {
