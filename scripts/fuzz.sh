@@ -159,6 +159,7 @@ for target in "${targets[@]}"; do
   esac
   log="$dir/last-run.log"
   echo "fuzz: $target for $seconds s (log: ${log#$root/})"
+  touch "$probe/started"
   set +e
   # The test suite's suppressions (tools/sanitizers/: GDCM's JPEG 2000
   # codec leaks libopenjp2 objects on undecodable frames; ITK's scanline
@@ -177,7 +178,17 @@ for target in "${targets[@]}"; do
   if [ $rc -ne 0 ]; then
     status=1
     line="$line: FAILED, input kept in ${dir#$root/}/crashes/"
-    grep -E '^(==[0-9]+==ERROR|SUMMARY|.*runtime error)' "$log" | head -5 >&2 || true
+    # The report with its stacks (the CI log is all that is left of a fresh
+    # clone's run), at most 80 lines from the first error.
+    awk '/^==[0-9]+==ERROR|runtime error/ {on=1} on {print; if (++n >= 80) exit}' "$log" >&2 || true
+    # And the input itself when it is small, so that it can be reproduced
+    # from the log alone: base64 -d > input && <target> input.
+    find "$dir/crashes" -type f -newer "$probe/started" -print0 |
+    while IFS= read -r -d '' artifact; do
+      if [ "$(stat -c %s "$artifact")" -le 16384 ]; then
+        echo "fuzz: $(basename "$artifact") (base64): $(base64 -w0 "$artifact")" >&2
+      fi
+    done
   fi
   echo "fuzz: $line"
   summary+=("$line")

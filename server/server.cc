@@ -294,9 +294,10 @@ absl::StatusOr<std::unique_ptr<dicom::StorageScp>> StartDicomListener(
 
 // A peer pulled from by C-MOVE sends to our listener: without one, no pull
 // from it could ever succeed, so the start fails saying so.
-absl::Status CheckMoveDestination(const ServerOptions& options) {
-  if (!options.dicom_listen.empty()) return absl::OkStatus();
-  for (const dicom::DicomPeer& peer : options.dicom_peers) {
+absl::Status CheckMoveDestination(const std::string& dicom_listen,
+                                  const std::vector<dicom::DicomPeer>& peers) {
+  if (!dicom_listen.empty()) return absl::OkStatus();
+  for (const dicom::DicomPeer& peer : peers) {
     if (peer.type == dicom::PeerType::kDimse &&
         peer.retrieve == dicom::RetrieveMethod::kMove) {
       return absl::InvalidArgumentError(absl::StrCat(
@@ -544,7 +545,11 @@ int RunServer(ServerOptions options) {
     options.dicom_peers.insert(options.dicom_peers.end(), peers->begin(),
                                peers->end());
   }
-  if (absl::Status s = CheckMoveDestination(options); !s.ok()) return fail(s);
+  if (absl::Status s =
+          CheckMoveDestination(options.dicom_listen, options.dicom_peers);
+      !s.ok()) {
+    return fail(s);
+  }
   if (!options.dicom_listen.empty()) {
     manager.SetMoveDestination(&pending_moves, CallingAeTitle(options));
   }
@@ -910,6 +915,11 @@ int CheckConfig(const ServerOptions& options) {
                     DescribeRule(rule).c_str());
       }
     }
+  }
+  // What the start would refuse (server.cc's Run), said here too.
+  if (absl::Status s = CheckMoveDestination(options.dicom_listen, peers);
+      !s.ok()) {
+    problem(std::string(s.message()));
   }
   const std::string calling = CallingAeTitle(options);
   for (const dicom::DicomPeer& peer : peers) {

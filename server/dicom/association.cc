@@ -270,6 +270,16 @@ class AssociationScp : public DcmThreadSCP {
 
   OFBool checkCallingAETitleAccepted(const OFString& calling) override {
     const std::string ae = Trimmed(calling.c_str());
+    if (ae.empty()) {
+      // PS3.8 9.3.2: an AE title is never all spaces. Refused here even
+      // when unknown callers are accepted: DCMTK 3.6.7 cannot answer such
+      // a request with an A-ASSOCIATE-AC (constructAssociatePDU refuses the
+      // empty title and leaks the PDU's lists, 64 bytes per association),
+      // so accepting it would only leak and abort.
+      rejection_ = refusal::kCallingAe;
+      rejection_detail_ = "calling AE title is empty";
+      return OFFalse;
+    }
     bool known = false;
     std::vector<std::string> allowed;
     const std::shared_ptr<const PeersConfig> peers = impl_->Peers();

@@ -45,6 +45,7 @@ namespace interslice::testing {
 namespace {
 
 namespace fs = std::filesystem;
+namespace raw = interslice::testing;  // raw_pdu.h: PDUs byte by byte
 using ::testing::HasSubstr;
 
 const std::string kCli = INTERSLICE_CLI_PATH;
@@ -418,6 +419,35 @@ TEST(DicomNodeTest, UnknownCallersAcceptedWhenThePeersFileSaysSo) {
   WriteFile(dir / "open.yaml", "accept_unknown_callers: true\npeers: []\n");
   DicomServer server(dir, "spool", {"--dicom-peers", dir / "open.yaml"});
   ASSERT_TRUE(server.up()) << server.Log();
+  CommandResult r = RunCommand({kEchoScu, "-aet", "ANYONE", "-aec",
+                                "INTERSLICE", "127.0.0.1", server.port()});
+  EXPECT_EQ(r.exit_code, 0) << r.err;
+}
+
+// Found by dicom_listener_fuzzer (fuzz_cases/empty-calling-ae-leak.bin): an
+// association request whose calling AE title is empty (PS3.8 9.3.2 forbids
+// it) was accepted when unknown callers are, and DCMTK 3.6.7 could not build
+// the A-ASSOCIATE-AC for it: 64 bytes leaked and the association aborted.
+// It is rejected now, with its reason, and the server serves on.
+TEST(DicomNodeTest, EmptyCallingAeTitleIsRejectedEvenWhenAnyCallerIsAccepted) {
+  TempDir dir;
+  WriteFile(dir / "open.yaml", "accept_unknown_callers: true\npeers: []\n");
+  DicomServer server(dir, "spool", {"--dicom-peers", dir / "open.yaml"});
+  ASSERT_TRUE(server.up()) << server.Log();
+  const int fd = raw::Connect(std::stoi(server.port()));
+  ASSERT_GE(fd, 0);
+  ASSERT_TRUE(raw::SendAll(
+      fd, raw::AssociateRq("INTERSLICE", "",
+                           {{1,
+                             UID_VerificationSOPClass,
+                             {UID_LittleEndianImplicitTransferSyntax}}})));
+  std::optional<raw::Pdu> answer = raw::ReadPdu(fd, 30);
+  ::close(fd);
+  ASSERT_TRUE(answer.has_value()) << server.Log();
+  EXPECT_EQ(answer->type, 0x03) << "not an A-ASSOCIATE-RJ";
+  EXPECT_TRUE(WaitUntil([&] { return server.Refused("calling_ae") >= 1; }, 30))
+      << server.Log();
+  EXPECT_THAT(server.Log(), HasSubstr("calling AE title is empty"));
   CommandResult r = RunCommand({kEchoScu, "-aet", "ANYONE", "-aec",
                                 "INTERSLICE", "127.0.0.1", server.port()});
   EXPECT_EQ(r.exit_code, 0) << r.err;
@@ -808,8 +838,6 @@ TEST(DicomNodeTest, DocumentedExamplesStartAServer) {
 }
 
 // ---- Issue 22: the DICOM edge -------------------------------------------
-
-namespace raw = interslice::testing;
 
 // A raw association calling as `calling` that proposes CT storage (context
 // 1, explicit VR little endian) and Verification (context 3). The socket
@@ -1679,6 +1707,24 @@ TEST(DicomNodeConfigTest, CheckConfigEchoesPeersAndPrintsTheRules) {
               HasSubstr("rule 'three-d' (#1): match.called_ae: INTERSLICE_3D "
                         "is not an AE title this server listens as "
                         "(--dicom-ae INTERSLICE)"));
+
+  // A peer pulled from by C-MOVE needs the listener as its destination: the
+  // start refuses that, and so does the check (which echoes the peer all the
+  // same).
+  const std::string move = dir / "peers-move.yaml";
+  WriteFile(move, absl::StrCat("peers:\n  - {name: live, ae_title: LIVE, "
+                               "host: 127.0.0.1, port: ",
+                               live.port(), ", retrieve: move}\n"));
+  r = RunCommand({kServer, "--check-config", "--spool", dir / "spool",
+                  "--dicom-peers", move},
+                 120);
+  EXPECT_EQ(r.exit_code, 1) << r.out << r.err;
+  problems = ProblemLines(r.err);
+  ASSERT_EQ(problems.size(), 1u) << r.err;
+  EXPECT_THAT(problems[0],
+              HasSubstr("peer 'live' has retrieve: move, which needs the "
+                        "DICOM listener (--dicom-listen)"));
+  EXPECT_THAT(r.out, HasSubstr("C-ECHO answered"));
 }
 
 TEST(DicomNodeConfigTest, UnreachablePeerIsAWarningAndAMetricAtStart) {
