@@ -80,7 +80,8 @@ class DemonsOnOwnWorkUnits
   ~DemonsOnOwnWorkUnits() override = default;
 
   void ApplyUpdate(const TimeStepType& dt) override {
-    // SmoothUpdateField is never switched on here (RegisterSlicesCoarse).
+    // ITK's own (on the global pool); RegisterSlicesCoarse never sets it.
+    if (this->GetSmoothUpdateField()) this->SmoothUpdateField();
     Field* field = this->GetOutput();
     Field* update = this->GetUpdateBuffer();
     const itk::SizeValueType count =
