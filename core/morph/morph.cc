@@ -13,9 +13,11 @@
 #include "core/morph/morph_internal.h"
 #include "itkConnectedComponentImageFilter.h"
 #include "itkFastSymmetricForcesDemonsRegistrationFilter.h"
+#include "itkGaussianOperator.h"
 #include "itkImage.h"
 #include "itkMultiResolutionPDEDeformableRegistration.h"
 #include "itkVector.h"
+#include "itkVectorNeighborhoodOperatorImageFilter.h"
 #include "tbb/parallel_for.h"
 #include "tbb/task_arena.h"
 
@@ -40,6 +42,105 @@ Image::Pointer MakeImage(const std::vector<float>& data, int64_t nx,
   std::copy(data.begin(), data.end(), image->GetBufferPointer());
   return image;
 }
+
+// ITK's symmetric-forces demons with its per-iteration helper filters on the
+// filter's own work units. ITK 5.2 runs the displacement smoothing (the
+// regulariser, PDEDeformableRegistrationFilter::SmoothDisplacementField) and
+// the field update (ApplyUpdate's adder) in filters it creates itself, which
+// take ITK's process-wide default number of threads: every demons iteration
+// then hands three small jobs to ITK's global thread pool and waits for them,
+// whatever SetNumberOfWorkUnits says, and whatever the ComputeContext gives
+// (profiled on the phantom fill of issue 24: the pool's wake-ups and waits
+// were ~12% of the CPU and most of the per-iteration cost). This subclass
+// computes the same two steps with the same ITK operator on the filter's
+// work units, so a registration run with 1 work unit stays on the calling
+// thread (the caller's tbb arena bounds the parallelism). The results are
+// identical: the same Gaussian operator (variance sigma^2, the filter's
+// maximum error and kernel width) applied along x then y with the same
+// boundary condition, and the same float sum for the update (the demons
+// function's time step is 1; another time step scales the update first, as
+// ITK does). Only ESMDemonsRegistrationFunction's warper, private to ITK,
+// still takes the global default.
+class DemonsOnOwnWorkUnits
+    : public itk::FastSymmetricForcesDemonsRegistrationFilter<Image, Image,
+                                                              Field> {
+ public:
+  ITK_DISALLOW_COPY_AND_MOVE(DemonsOnOwnWorkUnits);
+  using Self = DemonsOnOwnWorkUnits;
+  using Superclass =
+      itk::FastSymmetricForcesDemonsRegistrationFilter<Image, Image, Field>;
+  using Pointer = itk::SmartPointer<Self>;
+  using ConstPointer = itk::SmartPointer<const Self>;
+  itkNewMacro(Self);
+  itkTypeMacro(DemonsOnOwnWorkUnits,
+               FastSymmetricForcesDemonsRegistrationFilter);
+
+ protected:
+  DemonsOnOwnWorkUnits() = default;
+  ~DemonsOnOwnWorkUnits() override = default;
+
+  void ApplyUpdate(const TimeStepType& dt) override {
+    // ITK's own (on the global pool); RegisterSlicesCoarse never sets it.
+    if (this->GetSmoothUpdateField()) this->SmoothUpdateField();
+    Field* field = this->GetOutput();
+    Field* update = this->GetUpdateBuffer();
+    const itk::SizeValueType count =
+        field->GetBufferedRegion().GetNumberOfPixels();
+    if (update->GetBufferedRegion() != field->GetBufferedRegion()) {
+      itkExceptionMacro(<< "update and displacement regions differ");
+    }
+    Displacement* f = field->GetBufferPointer();
+    Displacement* u = update->GetBufferPointer();
+    if (std::fabs(dt - 1.0) > 1.0e-4) {
+      for (itk::SizeValueType v = 0; v < count; ++v) u[v] = u[v] * dt;
+    }
+    for (itk::SizeValueType v = 0; v < count; ++v) f[v] = f[v] + u[v];
+    const auto* function = dynamic_cast<
+        const itk::ESMDemonsRegistrationFunction<Image, Image, Field>*>(
+        this->GetDifferenceFunction().GetPointer());
+    if (function == nullptr) {
+      itkExceptionMacro(<< "unexpected demons difference function");
+    }
+    this->SetRMSChange(function->GetRMSChange());
+    if (this->GetSmoothDisplacementField()) this->SmoothDisplacementField();
+    // The buffer changed in place: without a new time stamp the demons
+    // function's warper would not warp the moving image by the new field
+    // in the next iteration (ITK's own ApplyUpdate grafts a new output).
+    field->Modified();
+  }
+
+  void SmoothDisplacementField() override {
+    Field* field = this->GetOutput();
+    using Smoother = itk::VectorNeighborhoodOperatorImageFilter<Field, Field>;
+    Field::Pointer current = Field::New();
+    current->CopyInformation(field);
+    current->SetRegions(field->GetBufferedRegion());
+    current->Allocate();
+    const itk::SizeValueType count =
+        field->GetBufferedRegion().GetNumberOfPixels();
+    std::copy(field->GetBufferPointer(), field->GetBufferPointer() + count,
+              current->GetBufferPointer());
+    for (unsigned axis = 0; axis < 2; ++axis) {
+      itk::GaussianOperator<float, 2> gaussian;
+      gaussian.SetDirection(axis);
+      const double sigma = this->GetStandardDeviations()[axis];
+      gaussian.SetVariance(sigma * sigma);
+      gaussian.SetMaximumError(this->GetMaximumError());
+      gaussian.SetMaximumKernelWidth(this->GetMaximumKernelWidth());
+      gaussian.CreateDirectional();
+      auto smoother = Smoother::New();
+      smoother->SetNumberOfWorkUnits(this->GetNumberOfWorkUnits());
+      smoother->SetOperator(gaussian);
+      smoother->SetInput(current);
+      smoother->GetOutput()->SetRequestedRegion(field->GetBufferedRegion());
+      smoother->Update();
+      current = smoother->GetOutput();
+      current->DisconnectPipeline();
+    }
+    std::copy(current->GetBufferPointer(), current->GetBufferPointer() + count,
+              field->GetBufferPointer());
+  }
+};
 
 // Block mean by `d` (partial blocks at the border averaged over what exists),
 // after clipping to +-clip.
@@ -128,8 +229,7 @@ absl::StatusOr<CoarseDisplacement> RegisterSlicesCoarse(
   int levels = options.levels;
   while (levels > 1 && (std::min(mx, my) >> (levels - 1)) < 4) --levels;
 
-  using Demons =
-      itk::FastSymmetricForcesDemonsRegistrationFilter<Image, Image, Field>;
+  using Demons = DemonsOnOwnWorkUnits;
   using MultiResolution =
       itk::MultiResolutionPDEDeformableRegistration<Image, Image, Field, float>;
   Field::Pointer field;
