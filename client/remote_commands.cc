@@ -906,6 +906,59 @@ int RunFind(const Connection& connection, const v1::FindRequest& request) {
   return 0;
 }
 
+// One line per kept series: id, since when, from whom, what, why (UIDs
+// included: only admins are answered).
+int RunKeptList(const Connection& connection) {
+  auto stub = v1::InterSlice::NewStub(connection.channel());
+  grpc::ClientContext context;
+  connection.Authorize(context);
+  SetTimeout(context, 120);
+  v1::ListKeptResponse response;
+  const grpc::Status s =
+      stub->ListKept(&context, v1::ListKeptRequest(), &response);
+  if (!s.ok()) return Fail(DescribeRpcError(s, connection.address()));
+  for (const v1::ListKeptResponse::Series& k : response.series()) {
+    std::printf(
+        "%s  kept %s  %s -> %s  %s  %lld instance(s)  study %s  series %s  "
+        "%s\n",
+        Printable(k.id()).c_str(), UtcTime(k.kept_since_unix_ms()).c_str(),
+        Printable(k.calling_ae()).c_str(), Printable(k.called_ae()).c_str(),
+        k.modality().empty() ? "?" : Printable(k.modality()).c_str(),
+        static_cast<long long>(k.instance_count()),
+        Printable(k.study_instance_uid()).c_str(),
+        Printable(k.series_instance_uid()).c_str(), Printable(k.why()).c_str());
+  }
+  if (response.series().empty()) std::fprintf(stderr, "no series is kept\n");
+  return 0;
+}
+
+// One line per series run again: "job ID" for each job made, "not matched
+// ID: why" for each series no rule takes (not an error).
+int RunKeptRerun(const Connection& connection, const std::string& id,
+                 bool all_unmatched) {
+  auto stub = v1::InterSlice::NewStub(connection.channel());
+  grpc::ClientContext context;
+  connection.Authorize(context);
+  SetTimeout(context, 600);
+  v1::RerunKeptRequest request;
+  request.set_id(id);
+  request.set_all_unmatched(all_unmatched);
+  v1::RerunKeptResponse response;
+  const grpc::Status s = stub->RerunKept(&context, request, &response);
+  if (!s.ok()) return Fail(DescribeRpcError(s, connection.address()));
+  for (const std::string& job : response.job_ids()) {
+    std::printf("job %s\n", Printable(job).c_str());
+  }
+  for (const std::string& why : response.not_matched()) {
+    std::printf("not matched %s\n", Printable(why).c_str());
+  }
+  if (all_unmatched && response.job_ids().empty() &&
+      response.not_matched().empty()) {
+    std::fprintf(stderr, "no kept series without a job\n");
+  }
+  return 0;
+}
+
 int RunInfo(const Connection& connection) {
   auto stub = v1::InterSlice::NewStub(connection.channel());
   grpc::ClientContext context;
@@ -1063,6 +1116,25 @@ void RemoteCommands::Register(CLI::App& app) {
   find_->add_option("--max-studies", find_max_studies_,
                     "At most this many studies (default: the server's, 100)");
   AddConnectionOptions(*find_, connection_);
+
+  kept_ = app.add_subcommand(
+      "kept",
+      "The series the server's DICOM listener holds (no rule matched, or "
+      "their job was made), and running them again (admins only)");
+  kept_->require_subcommand(1);
+  kept_list_ = kept_->add_subcommand(
+      "list",
+      "One line per kept series: id, since, AE titles, modality, instances, "
+      "UIDs, why it is kept");
+  AddConnectionOptions(*kept_list_, connection_);
+  kept_rerun_ = kept_->add_subcommand(
+      "rerun",
+      "Match a kept series (or every one without a job) against the "
+      "server's rules now and make its job; prints each job id");
+  kept_rerun_->add_option("id", kept_id_, "A kept series' id (kept list)");
+  kept_rerun_->add_flag("--all-unmatched", kept_all_unmatched_,
+                        "Every kept series no rule matched");
+  AddConnectionOptions(*kept_rerun_, connection_);
 }
 
 void RemoteCommands::RegisterFill(CLI::App& fill, FillArguments& args) {
@@ -1127,14 +1199,22 @@ int RemoteCommands::ExecuteFill() {
 }
 
 int RemoteCommands::Execute() {
-  CLI::App* commands[] = {interpolate_, submit_, watch_,  fetch_, cancel_,
-                          list_,        info_,   health_, find_};
+  CLI::App* commands[] = {interpolate_, submit_,    watch_,     fetch_,
+                          cancel_,      list_,      info_,      health_,
+                          find_,        kept_list_, kept_rerun_};
   bool any = false;
   for (CLI::App* c : commands) any = any || (c != nullptr && c->parsed());
   if (!any) return -1;
   if (deadline_seconds_ < 0) return Fail("--deadline must be >= 0");
+  if (kept_rerun_->parsed() && kept_all_unmatched_ == !kept_id_.empty()) {
+    return Fail("kept rerun: give a kept series' id or --all-unmatched");
+  }
   absl::StatusOr<Connection> connection = Connection::Open(connection_);
   if (!connection.ok()) return Fail(std::string(connection.status().message()));
+  if (kept_list_->parsed()) return RunKeptList(*connection);
+  if (kept_rerun_->parsed()) {
+    return RunKeptRerun(*connection, kept_id_, kept_all_unmatched_);
+  }
   if (interpolate_->parsed()) {
     return RunInterpolate(*connection, run_args_, deadline_seconds_);
   }

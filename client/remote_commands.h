@@ -1,6 +1,7 @@
 // The commands that talk to an interslice-server: interpolate (one call),
 // submit / watch / fetch / cancel / list (detached jobs), info and health,
-// find (what a DICOM peer of the server holds).
+// find (what a DICOM peer of the server holds), kept list / kept rerun (the
+// series the server's DICOM listener holds, run again against its rules).
 // Errors are one line on stderr and exit code 1.
 #ifndef INTERSLICE_CLIENT_REMOTE_COMMANDS_H_
 #define INTERSLICE_CLIENT_REMOTE_COMMANDS_H_
@@ -54,6 +55,9 @@ class RemoteCommands {
   std::string find_modality_;
   std::string find_accession_;
   int find_max_studies_ = 0;
+  // kept rerun: one series, or every one without a job.
+  std::string kept_id_;
+  bool kept_all_unmatched_ = false;
   CLI::App* interpolate_ = nullptr;
   CLI::App* submit_ = nullptr;
   CLI::App* watch_ = nullptr;
@@ -63,6 +67,9 @@ class RemoteCommands {
   CLI::App* info_ = nullptr;
   CLI::App* health_ = nullptr;
   CLI::App* find_ = nullptr;
+  CLI::App* kept_ = nullptr;
+  CLI::App* kept_list_ = nullptr;
+  CLI::App* kept_rerun_ = nullptr;
   CLI::App* fill_ = nullptr;
   FillArguments* fill_args_ = nullptr;
 };

@@ -659,6 +659,7 @@ int RunServer(ServerOptions options) {
                             &metrics);
   Forwarder forwarder(peer_credentials);
   service.set_forwarder(&forwarder);
+  service.set_assembler(assembler.get());
 
   if (options.reflection) {
     // Linking gRPC's reflection library registers the service in every

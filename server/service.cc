@@ -19,6 +19,7 @@
 #include "server/audit.h"
 #include "server/dicom/delivery.h"
 #include "server/dicom/find.h"
+#include "server/dicom/series_assembler.h"
 #include "server/log_safe.h"
 #include "server/status_map.h"
 #include "spdlog/spdlog.h"
@@ -1103,6 +1104,123 @@ grpc::ServerUnaryReactor* InterSliceService::Find(
     spdlog::info("find on peer {}: {} study(ies), {} series{} in {:.2f} s",
                  peer.name, response->studies_size(), series,
                  found->truncated ? " (truncated at the caps)" : "", seconds);
+    reactor->Finish(grpc::Status::OK);
+  });
+  return reactor;
+}
+
+grpc::ServerUnaryReactor* InterSliceService::ListKept(
+    grpc::CallbackServerContext* context, const v1::ListKeptRequest* request,
+    v1::ListKeptResponse* response) {
+  (void)request;
+  grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
+  absl::StatusOr<Caller> caller = Authenticate(context);
+  if (!caller.ok()) {
+    reactor->Finish(ToGrpcStatus(caller.status()));
+    return reactor;
+  }
+  // Every sender's series, UIDs included: not any one caller's.
+  if (!caller->admin && !caller->identity.empty()) {
+    reactor->Finish(grpc::Status(
+        grpc::PERMISSION_DENIED,
+        "ListKept lists the DICOM listener's series: admin identities only"));
+    return reactor;
+  }
+  if (assembler_ == nullptr) {
+    reactor->Finish(grpc::Status(
+        grpc::FAILED_PRECONDITION,
+        "the server has no DICOM listener (--dicom-listen): nothing is kept"));
+    return reactor;
+  }
+  io_->Post([this, reactor, response, identity = caller->identity,
+             source = context->peer()] {
+    for (dicom::KeptSeries& k : assembler_->ListKept()) {
+      v1::ListKeptResponse::Series* s = response->add_series();
+      s->set_id(std::move(k.id));
+      s->set_calling_ae(std::move(k.calling_ae));
+      s->set_called_ae(std::move(k.called_ae));
+      s->set_modality(std::move(k.modality));
+      s->set_instance_count(k.instances);
+      s->set_kept_since_unix_ms(k.kept_since_unix_ms);
+      s->set_why(std::move(k.why));
+      s->set_job_id(std::move(k.job_id));
+      s->set_study_instance_uid(std::move(k.study_uid));
+      s->set_series_instance_uid(std::move(k.series_uid));
+    }
+    AuditEvent listed;
+    listed.event = "kept.listed";
+    listed.identity = identity;
+    listed.source = source;
+    listed.count = response->series_size();
+    Audit(std::move(listed));
+    reactor->Finish(grpc::Status::OK);
+  });
+  return reactor;
+}
+
+grpc::ServerUnaryReactor* InterSliceService::RerunKept(
+    grpc::CallbackServerContext* context, const v1::RerunKeptRequest* request,
+    v1::RerunKeptResponse* response) {
+  grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
+  absl::StatusOr<Caller> caller = Authenticate(context);
+  if (!caller.ok()) {
+    reactor->Finish(ToGrpcStatus(caller.status()));
+    return reactor;
+  }
+  // It makes jobs of any sender's series.
+  if (!caller->admin && !caller->identity.empty()) {
+    reactor->Finish(grpc::Status(
+        grpc::PERMISSION_DENIED,
+        "RerunKept runs the DICOM listener's series: admin identities only"));
+    return reactor;
+  }
+  if (request->all_unmatched() == !request->id().empty()) {
+    reactor->Finish(
+        grpc::Status(grpc::INVALID_ARGUMENT,
+                     "give either the id of one kept series or all_unmatched"));
+    return reactor;
+  }
+  if (assembler_ == nullptr) {
+    reactor->Finish(grpc::Status(
+        grpc::FAILED_PRECONDITION,
+        "the server has no DICOM listener (--dicom-listen): nothing is kept"));
+    return reactor;
+  }
+  io_->Post([this, reactor, response, id = request->id(),
+             all = request->all_unmatched(), identity = caller->identity,
+             source = context->peer()] {
+    absl::StatusOr<std::vector<dicom::KeptRerun>> reruns;
+    if (all) {
+      reruns = assembler_->RerunAllUnmatched();
+    } else if (absl::StatusOr<dicom::KeptRerun> one = assembler_->RerunKept(id);
+               one.ok()) {
+      reruns = std::vector<dicom::KeptRerun>{*std::move(one)};
+    } else {
+      reruns = one.status();
+    }
+    AuditEvent event;
+    event.event = "kept.rerun";
+    event.identity = identity;
+    event.source = source;
+    if (!reruns.ok()) {
+      event.outcome = AuditOutcome::kMinorFailure;
+      event.detail = std::string(reruns.status().message());
+      Audit(std::move(event));
+      reactor->Finish(ToGrpcStatus(reruns.status()));
+      return;
+    }
+    for (const dicom::KeptRerun& r : *reruns) {
+      if (!r.job_id.empty()) response->add_job_ids(r.job_id);
+      if (!r.not_matched.empty()) {
+        response->add_not_matched(absl::StrCat(r.id, ": ", r.not_matched));
+      }
+    }
+    event.count = response->job_ids_size();
+    event.detail =
+        absl::StrCat(all ? "all unmatched" : "one series", ": ",
+                     response->job_ids_size(), " job(s) made, ",
+                     response->not_matched_size(), " without a matching rule");
+    Audit(std::move(event));
     reactor->Finish(grpc::Status::OK);
   });
   return reactor;

@@ -37,6 +37,9 @@ namespace interslice::server {
 
 class AuditLog;
 struct AuditEvent;
+namespace dicom {
+class SeriesAssembler;
+}  // namespace dicom
 
 struct ServiceOptions {
   // Bearer tokens, one of which every call must carry; empty = none (the
@@ -87,11 +90,24 @@ class InterSliceService final : public v1::InterSlice::CallbackService {
   grpc::ServerUnaryReactor* Find(grpc::CallbackServerContext* context,
                                  const v1::FindRequest* request,
                                  v1::FindResponse* response) override;
+  // The DICOM listener's kept series (admins only; FAILED_PRECONDITION
+  // without a listener). Both read the spool: run on the I/O executor.
+  grpc::ServerUnaryReactor* ListKept(grpc::CallbackServerContext* context,
+                                     const v1::ListKeptRequest* request,
+                                     v1::ListKeptResponse* response) override;
+  grpc::ServerUnaryReactor* RerunKept(grpc::CallbackServerContext* context,
+                                      const v1::RerunKeptRequest* request,
+                                      v1::RerunKeptResponse* response) override;
 
   // Calls for jobs this replica does not hold go to their owner through
   // `forwarder` (server/forwarding.h); without one they are unknown jobs.
   // Set before the server starts.
   void set_forwarder(Forwarder* forwarder) { forwarder_ = forwarder; }
+  // The DICOM listener's series assembler (ListKept, RerunKept); null: no
+  // listener. Set before the server starts; outlives the service's calls.
+  void set_assembler(dicom::SeriesAssembler* assembler) {
+    assembler_ = assembler;
+  }
 
   // Shared with the reactors (service.cc).
   const ServiceOptions& options() const { return options_; }
@@ -120,6 +136,7 @@ class InterSliceService final : public v1::InterSlice::CallbackService {
   Executor* const io_;
   Metrics* const metrics_;
   Forwarder* forwarder_ = nullptr;
+  dicom::SeriesAssembler* assembler_ = nullptr;
   // C-FINDs on DICOM peers block for up to their timeouts: threads of their
   // own, never the reactors' nor io_'s; at most kMaxDicomQueries queued or
   // running (then RESOURCE_EXHAUSTED).

@@ -9,10 +9,12 @@
 #include <filesystem>
 #include <fstream>
 #include <optional>
+#include <tuple>
 
 #include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
 #include "core/common/sha256.h"
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
@@ -144,6 +146,89 @@ std::optional<SegmentationRef> ReadSegmentationRef(const std::string& dir) {
   return std::nullopt;
 }
 
+// The *.dcm files of `dir`, in name order.
+std::vector<std::string> DicomFiles(const std::string& dir) {
+  std::error_code ec;
+  std::vector<std::string> files;
+  for (const auto& entry : fs::directory_iterator(dir, ec)) {
+    if (entry.path().extension() == ".dcm") files.push_back(entry.path());
+  }
+  std::sort(files.begin(), files.end());
+  return files;
+}
+
+// The UIDs of a kept instance's header (empty where unreadable).
+InstanceIds ReadInstanceIds(const std::string& file) {
+  InstanceIds ids;
+  DcmFileFormat ff;
+  if (ff.loadFileUntilTag(file.c_str(), EXS_Unknown, EGL_noChange,
+                          DCM_MaxReadLength, ERM_autoDetect, DCM_PixelData)
+          .bad()) {
+    return ids;
+  }
+  DcmDataset* ds = ff.getDataset();
+  ids.study_uid = GetString(ds, DCM_StudyInstanceUID);
+  ids.series_uid = GetString(ds, DCM_SeriesInstanceUID);
+  ids.sop_instance_uid = GetString(ds, DCM_SOPInstanceUID);
+  ids.frame_of_reference_uid = GetString(ds, DCM_FrameOfReferenceUID);
+  return ids;
+}
+
+// The FrameOfReferenceUID of a held series: its first instance's.
+std::string HeldFrameOfReference(const std::string& held) {
+  const std::vector<std::string> files = DicomFiles(held);
+  return files.empty() ? ""
+                       : ReadInstanceIds(files.front()).frame_of_reference_uid;
+}
+
+// SHA-256 of a kept instance's data set: the bytes after the meta group,
+// as the sender sent them (the meta group is written by our listener and
+// names the sender, which may differ for the same instance).
+absl::StatusOr<std::string> DatasetSha256(const std::string& path) {
+  absl::StatusOr<Part10Meta> meta = ReadPart10Meta(path);
+  if (!meta.ok()) return meta.status();
+  std::ifstream in(path, std::ios::binary);
+  in.seekg(meta->dataset_offset);
+  if (!in) return absl::InternalError("cannot read a kept instance");
+  Sha256 hash;
+  std::vector<char> buffer(1 << 16);
+  while (in) {
+    in.read(buffer.data(), static_cast<std::streamsize>(buffer.size()));
+    hash.Update(std::string_view(buffer.data(), in.gcount()));
+  }
+  if (in.bad()) return absl::InternalError("cannot read a kept instance");
+  return hash.Finish();
+}
+
+// A kept series' id: its folder's name under unmatched/, <key>-<unix ms>
+// (checked before it becomes part of a path).
+bool IsKeptId(const std::string& id) {
+  const size_t dash = id.find('-');
+  if (dash != 32 || id.size() < 34 || id.size() > 33 + 19) return false;
+  for (size_t i = 0; i < id.size(); ++i) {
+    const char c = id[i];
+    const bool ok = i < 32    ? (c >= '0' && c <= '9') || (c >= 'a' && c <= 'f')
+                    : i == 32 ? c == '-'
+                              : c >= '0' && c <= '9';
+    if (!ok) return false;
+  }
+  return true;
+}
+
+// origin.json of a series folder: the AE titles it was received with.
+std::pair<std::string, std::string> ReadOrigin(const std::string& dir) {
+  std::ifstream origin(fs::path(dir) / "origin.json");
+  nlohmann::json j = nlohmann::json::parse(origin, nullptr, false);
+  if (!j.is_object()) return {};
+  return {j.value("calling_ae", ""), j.value("called_ae", "")};
+}
+
+std::string JobOrigin(const std::string& calling_ae,
+                      const std::string& called_ae, const Rule& rule) {
+  return absl::StrCat("dicom:", calling_ae, "->", called_ae, " rule ",
+                      rule.name);
+}
+
 }  // namespace
 
 SeriesFacts ReadSeriesFacts(const std::string& dir) {
@@ -250,6 +335,7 @@ absl::StatusOr<ReceivedInstance> ReadReceivedInstance(
     out.ids.study_uid = GetString(ds, DCM_StudyInstanceUID);
     out.ids.series_uid = GetString(ds, DCM_SeriesInstanceUID);
     out.ids.sop_instance_uid = GetString(ds, DCM_SOPInstanceUID);
+    out.ids.frame_of_reference_uid = GetString(ds, DCM_FrameOfReferenceUID);
   }
   if (out.ids.series_uid.empty() || out.ids.sop_instance_uid.empty()) {
     return absl::InvalidArgumentError(
@@ -371,6 +457,9 @@ absl::Status SeriesAssembler::Recover() {
     std::ifstream incomplete(entry.path() / kIncompleteFile);
     nlohmann::json k = nlohmann::json::parse(incomplete, nullptr, false);
     if (k.is_object()) p.incomplete = k.value("reason", "incomplete");
+    if (const std::string held = NewestHeld(key); !held.empty()) {
+      p.held_frame_of_reference = HeldFrameOfReference(held);
+    }
     if (spool_ != nullptr) spool_->Add(p.bytes);
     Pending& kept = pending_[key] = p;
     if (was_open) {
@@ -495,7 +584,8 @@ static std::pair<int64_t, int64_t> CarryInstances(const std::string& from,
 }
 
 absl::Status SeriesAssembler::StartSeries(const std::string& key, Pending& p,
-                                          const Association& a) {
+                                          const Association& a,
+                                          const std::string& held) {
   std::error_code ec;
   const std::string dir = SeriesDir(key);
   fs::create_directories(dir, ec);
@@ -512,7 +602,6 @@ absl::Status SeriesAssembler::StartSeries(const std::string& key, Pending& p,
   p.calling_ae = a.calling_ae;
   // The series was complete before (its job made, or no rule matched) and
   // is held: the next job takes those instances too.
-  const std::string held = NewestHeld(key);
   if (!held.empty()) {
     const bool had_job = fs::exists(fs::path(held) / "job", ec);
     const auto [n, bytes] = CarryInstances(held, dir);
@@ -584,6 +673,26 @@ absl::StatusOr<std::string> SeriesAssembler::AddInstance(
   };
   if (!synced.ok()) return refuse(synced);
   const bool fresh = it == pending_.end();
+  // A late instance of a held series (see "Another frame of reference").
+  const std::string held = fresh ? NewestHeld(key) : "";
+  const std::string held_frame =
+      fresh ? (held.empty() ? "" : HeldFrameOfReference(held))
+            : it->second.held_frame_of_reference;
+  if (!held_frame.empty() && !ids.frame_of_reference_uid.empty() &&
+      ids.frame_of_reference_uid != held_frame) {
+    if (metrics_ != nullptr) {
+      metrics_->DicomEvent("instances_other_frame_of_reference");
+    }
+    spdlog::warn(
+        "dicom: an instance from {} -> {} of a series held from before has "
+        "another frame of reference than the held instances: refused, never "
+        "merged into another geometry (send it as a series of its own)",
+        LogSafe(a.calling_ae), LogSafe(a.called_ae));
+    return refuse(absl::InvalidArgumentError(
+        "the instance's frame of reference differs from that of the "
+        "instances of its series held from before: refused, not merged into "
+        "another geometry"));
+  }
   Pending candidate;
   Pending& p = fresh ? candidate : it->second;
   const bool replaces = !fresh && fs::exists(target, ec);
@@ -600,7 +709,8 @@ absl::StatusOr<std::string> SeriesAssembler::AddInstance(
   }
   Pending* series = &p;
   if (fresh) {
-    if (absl::Status s = StartSeries(key, candidate, a); !s.ok()) {
+    candidate.held_frame_of_reference = held_frame;
+    if (absl::Status s = StartSeries(key, candidate, a, held); !s.ok()) {
       if (spool_ != nullptr) spool_->Release(size);
       return refuse(s);
     }
@@ -765,6 +875,7 @@ int SeriesAssembler::CompleteStableSeries() {
 void SeriesAssembler::Complete(const std::string& key, const Pending& p,
                                const std::string& dir) {
   if (metrics_ != nullptr) metrics_->DicomEvent("series_completed");
+  if (DropIfResentUnchanged(key, p, dir)) return;
   SeriesFacts facts = ReadSeriesFacts(dir);
   facts.calling_ae = p.calling_ae;
   facts.called_ae = p.called_ae;
@@ -784,8 +895,7 @@ void SeriesAssembler::Complete(const std::string& key, const Pending& p,
         options_.unmatched_retention_seconds);
     return;
   }
-  const std::string origin = absl::StrCat("dicom:", p.calling_ae, "->",
-                                          p.called_ae, " rule ", rule->name);
+  const std::string origin = JobOrigin(p.calling_ae, p.called_ae, *rule);
   if (rule->job.has_fill()) {
     CompleteFill(key, p, dir, *rule, origin);
     return;
@@ -921,9 +1031,11 @@ void SeriesAssembler::DropStaleIncomplete() {
   }
 }
 
-void SeriesAssembler::CompleteFill(const std::string& key, const Pending& p,
-                                   const std::string& dir, const Rule& rule,
-                                   const std::string& origin) {
+std::string SeriesAssembler::CompleteFill(const std::string& key,
+                                          const Pending& p,
+                                          const std::string& dir,
+                                          const Rule& rule,
+                                          const std::string& origin) {
   std::error_code ec;
   const std::string from =
       absl::StrCat(LogSafe(p.calling_ae), " -> ", LogSafe(p.called_ae));
@@ -934,7 +1046,7 @@ void SeriesAssembler::CompleteFill(const std::string& key, const Pending& p,
         "dicom: rule {} matched a segmentation from {} that names no "
         "referenced series; kept for {} s, then removed",
         LogSafe(rule.name), from, options_.unmatched_retention_seconds);
-    return;
+    return "";
   }
   // The referenced series, by the keys it would have been filed under.
   std::string held;
@@ -971,7 +1083,7 @@ void SeriesAssembler::CompleteFill(const std::string& key, const Pending& p,
     if (waited <
         std::chrono::duration<double>(options_.unmatched_retention_seconds)) {
       PutBack(key, again, dir);
-      return;
+      return "";
     }
     KeepUnmatched(key, dir);
     spdlog::warn(
@@ -979,7 +1091,7 @@ void SeriesAssembler::CompleteFill(const std::string& key, const Pending& p,
         "it references in vain; kept for {} s, then removed",
         from, LogSafe(rule.name), options_.unmatched_retention_seconds,
         options_.unmatched_retention_seconds);
-    return;
+    return "";
   }
   if (spool_ != nullptr) spool_->Release(p.bytes);
   absl::StatusOr<std::string> job =
@@ -991,7 +1103,7 @@ void SeriesAssembler::CompleteFill(const std::string& key, const Pending& p,
         "dicom: rule {} matched a segmentation from {} but its fill job "
         "could not be made ({}); trying again after another stable wait",
         LogSafe(rule.name), from, LogSafe(job.status().message()));
-    return;
+    return "";
   }
   fs::remove_all(dir, ec);
   if (metrics_ != nullptr) metrics_->DicomEvent("jobs_created");
@@ -999,6 +1111,223 @@ void SeriesAssembler::CompleteFill(const std::string& key, const Pending& p,
       "dicom: job={} (fill) made by rule {} for a segmentation from {} on a "
       "series held in the spool",
       *job, LogSafe(rule.name), from);
+  return *job;
+}
+
+bool SeriesAssembler::DropIfResentUnchanged(const std::string& key,
+                                            const Pending& p,
+                                            const std::string& dir) {
+  const std::string held = NewestHeld(key);
+  if (held.empty()) return false;
+  std::string job_id;
+  if (!(std::ifstream(fs::path(held) / "job") >> job_id)) {
+    return false;  // held without a job: the rules may have been fixed
+  }
+  const std::vector<std::string> ours = DicomFiles(dir);
+  const std::vector<std::string> theirs = DicomFiles(held);
+  if (ours.size() != theirs.size()) return false;
+  int64_t resent = 0;
+  for (size_t i = 0; i < ours.size(); ++i) {
+    // Names are hashes of the SOP Instance UID: the same set of instances.
+    if (fs::path(ours[i]).filename() != fs::path(theirs[i]).filename()) {
+      return false;
+    }
+    struct stat mine {
+    }, held_one{};
+    if (::stat(ours[i].c_str(), &mine) != 0 ||
+        ::stat(theirs[i].c_str(), &held_one) != 0) {
+      return false;
+    }
+    // Carried over from the held copy (a hard link): the same file.
+    if (mine.st_dev == held_one.st_dev && mine.st_ino == held_one.st_ino) {
+      continue;
+    }
+    absl::StatusOr<std::string> a = DatasetSha256(ours[i]);
+    absl::StatusOr<std::string> b = DatasetSha256(theirs[i]);
+    if (!a.ok() || !b.ok() || *a != *b) return false;
+    ++resent;
+  }
+  std::error_code ec;
+  fs::remove_all(dir, ec);
+  if (spool_ != nullptr) spool_->Release(p.bytes);
+  if (metrics_ != nullptr) metrics_->DicomEvent("series_resent_unchanged");
+  spdlog::info(
+      "dicom: {} instance(s) from {} -> {} of a series whose job={} was made "
+      "arrived again, re-sent, unchanged: no job made, the held series "
+      "stays",
+      resent, LogSafe(p.calling_ae), LogSafe(p.called_ae), job_id);
+  return true;
+}
+
+std::vector<KeptSeries> SeriesAssembler::ListKept() {
+  const std::shared_ptr<const RuleSet> rules = this->rules();
+  std::vector<KeptSeries> kept;
+  std::error_code ec;
+  for (const auto& entry :
+       fs::directory_iterator(fs::path(options_.root) / "unmatched", ec)) {
+    const std::string id = entry.path().filename().string();
+    if (!IsKeptId(id)) continue;
+    const std::string dir = entry.path().string();
+    KeptSeries k;
+    k.id = id;
+    if (!absl::SimpleAtoi(id.substr(33), &k.kept_since_unix_ms)) continue;
+    std::tie(k.calling_ae, k.called_ae) = ReadOrigin(dir);
+    std::ifstream(fs::path(dir) / "job") >> k.job_id;
+    const std::vector<std::string> files = DicomFiles(dir);
+    if (files.empty()) continue;  // removed meanwhile
+    k.instances = static_cast<int64_t>(files.size());
+    const InstanceIds ids = ReadInstanceIds(files.front());
+    k.study_uid = ids.study_uid;
+    k.series_uid = ids.series_uid;
+    SeriesFacts facts = ReadSeriesFacts(dir);
+    facts.calling_ae = k.calling_ae;
+    facts.called_ae = k.called_ae;
+    k.modality = facts.modality;
+    k.why = k.job_id.empty() ? absl::StrCat("no rule matched; the rules now: ",
+                                            rules->ExplainNoMatch(facts))
+                             : absl::StrCat("job ", k.job_id, " made");
+    kept.push_back(std::move(k));
+  }
+  std::sort(kept.begin(), kept.end(),
+            [](const KeptSeries& a, const KeptSeries& b) {
+              return std::tie(a.kept_since_unix_ms, a.id) <
+                     std::tie(b.kept_since_unix_ms, b.id);
+            });
+  return kept;
+}
+
+absl::StatusOr<KeptRerun> SeriesAssembler::RerunKept(const std::string& id) {
+  const absl::Status not_found = absl::NotFoundError(
+      "no kept series has that id (see `interslice kept list`; a kept series "
+      "is removed at the end of its retention time)");
+  if (!IsKeptId(id)) return not_found;
+  const std::string key = id.substr(0, 32);
+  const std::string held =
+      (fs::path(options_.root) / "unmatched" / id).string();
+  std::error_code ec;
+  if (!fs::is_directory(held, ec)) return not_found;
+  Pending p;
+  std::tie(p.calling_ae, p.called_ae) = ReadOrigin(held);
+  for (const std::string& file : DicomFiles(held)) {
+    ++p.instances;
+    p.bytes += static_cast<int64_t>(fs::file_size(file, ec));
+  }
+  if (p.instances == 0) return not_found;
+  SeriesFacts facts = ReadSeriesFacts(held);
+  facts.calling_ae = p.calling_ae;
+  facts.called_ae = p.called_ae;
+  // One generation of the rules, as in Complete.
+  const std::shared_ptr<const RuleSet> rules = this->rules();
+  const Rule* rule = rules->FirstMatch(facts);
+  const std::string from =
+      absl::StrCat(LogSafe(p.calling_ae), " -> ", LogSafe(p.called_ae));
+  KeptRerun out;
+  out.id = id;
+  if (rule == nullptr) {
+    out.not_matched =
+        absl::StrCat("no rule matched: ", rules->ExplainNoMatch(facts));
+    spdlog::info(
+        "dicom: a kept series from {} ({} instance(s), modality {}) run "
+        "again: still no rule of rule set {} matched: {}",
+        from, p.instances, LogSafe(facts.modality), LogSafe(rules->path),
+        LogSafe(rules->ExplainNoMatch(facts)));
+    return out;
+  }
+  // Out of unmatched/ as CompleteStableSeries takes a series out of
+  // series/: a late instance then starts a new folder, which KeepUnmatched
+  // gives these instances once the job is made.
+  std::string dir;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    dir = (fs::path(options_.root) / "completing" /
+           absl::StrCat(key, "-", ++next_completion_))
+              .string();
+    if (pending_.count(key) > 0) {
+      return absl::FailedPreconditionError(
+          "more instances of this series are being received: it makes its "
+          "job by the rules when they are complete");
+    }
+    if (::rename(held.c_str(), dir.c_str()) != 0) return not_found;
+  }
+  const std::string origin = JobOrigin(p.calling_ae, p.called_ae, *rule);
+  spdlog::info(
+      "dicom: a kept series from {} ({} instance(s)) run again on request: "
+      "rule {} of rule set {} matches",
+      from, p.instances, LogSafe(rule->name), LogSafe(rules->path));
+  if (rule->job.has_fill()) {
+    out.job_id = CompleteFill(key, p, dir, *rule, origin);
+    if (out.job_id.empty()) {
+      out.not_matched = absl::StrCat(
+          "rule '", rule->name,
+          "' matches this segmentation, but no job was made: the series it "
+          "references is not held (see the server's log)");
+    }
+    return out;
+  }
+  // As Complete: the job's admission reserves the bytes again.
+  if (spool_ != nullptr) spool_->Release(p.bytes);
+  absl::StatusOr<std::string> job = submitter_(rule->job, dir, origin, "");
+  if (!job.ok()) {
+    if (spool_ != nullptr) spool_->Add(p.bytes);
+    bool back = false;
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      // Held again under its own name (its retention unchanged), unless a
+      // late instance started the series again meanwhile: then it joins.
+      back =
+          pending_.count(key) == 0 && ::rename(dir.c_str(), held.c_str()) == 0;
+    }
+    if (!back) PutBack(key, p, dir);
+    spdlog::warn(
+        "dicom: rule {} matched a kept series from {} run again, but its job "
+        "could not be made ({}); {}",
+        LogSafe(rule->name), from, LogSafe(job.status().message()),
+        back ? "it stays kept" : "it waits with the instances received since");
+    return job.status();
+  }
+  if (spool_ != nullptr) spool_->Add(p.bytes);
+  KeepUnmatched(key, dir, *job);
+  if (metrics_ != nullptr) metrics_->DicomEvent("jobs_created");
+  spdlog::info(
+      "dicom: job={} made by rule {} for a kept series from {} ({} "
+      "instance(s)), run again on request",
+      *job, LogSafe(rule->name), from, p.instances);
+  out.job_id = *job;
+  return out;
+}
+
+absl::StatusOr<std::vector<KeptRerun>> SeriesAssembler::RerunAllUnmatched() {
+  // Ids only (oldest first): RerunKept reads each series itself.
+  std::vector<std::pair<int64_t, std::string>> ids;
+  std::error_code ec;
+  for (const auto& entry :
+       fs::directory_iterator(fs::path(options_.root) / "unmatched", ec)) {
+    const std::string id = entry.path().filename().string();
+    int64_t since = 0;
+    if (!IsKeptId(id) || !absl::SimpleAtoi(id.substr(33), &since) ||
+        fs::exists(entry.path() / "job", ec)) {
+      continue;
+    }
+    ids.emplace_back(since, id);
+  }
+  std::sort(ids.begin(), ids.end());
+  std::vector<KeptRerun> out;
+  std::vector<std::string> made;
+  for (const auto& [since, id] : ids) {
+    absl::StatusOr<KeptRerun> r = RerunKept(id);
+    if (absl::IsNotFound(r.status())) continue;  // its retention ended
+    if (!r.ok()) {
+      return absl::Status(
+          r.status().code(),
+          absl::StrCat("kept series ", id, ": ", r.status().message(), " (",
+                       made.size(), " job(s) made before it",
+                       made.empty() ? "" : ": ", absl::StrJoin(made, ", "),
+                       ")"));
+    }
+    if (!r->job_id.empty()) made.push_back(r->job_id);
+    out.push_back(*std::move(r));
+  }
+  return out;
 }
 
 void SeriesAssembler::SweepUnmatched() {

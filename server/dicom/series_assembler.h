@@ -48,6 +48,33 @@
 //   replace the earlier job's as far as the derived UIDs allow (see
 //   docs/dicom-node.md). Past the retention time a late instance starts a
 //   series of its own.
+// - Re-sent, unchanged (issue 25): when a series that grew from a held copy
+//   whose job was made completes with exactly the held instances (the same
+//   SOP Instance UIDs, and each data set byte for byte the same: SHA-256 of
+//   the data set after the meta group, which our listener writes), its
+//   result could not change: no job is made, one line is logged (AE titles,
+//   count, "re-sent, unchanged"), series_resent_unchanged is counted, the
+//   new folder is deleted and the held copy stays as it was. A changed or
+//   new instance makes the job on the whole series as before. A held copy
+//   without a job (no rule matched) is run again when re-sent: the rules
+//   may have been fixed since.
+// - Another frame of reference (issue 25): a late instance whose
+//   FrameOfReferenceUID differs from that of the held copy of its series
+//   (both present) is refused (INVALID_ARGUMENT: the C-STORE fails, the
+//   sender keeps it), logged with the AE titles and counted
+//   (instances_other_frame_of_reference). Refused rather than kept as a
+//   series of its own: it carries the held series' Study and Series UIDs,
+//   so a job of it alone would be a one-instance job named like the held
+//   series' results, and joined to the held instances it would be a volume
+//   of two geometries. As every refusal, it makes what its association
+//   stores into that series incomplete (above).
+//
+// Kept series (issue 25): ListKept reports what unmatched/ holds, and
+// RerunKept matches a held series against the rules in force now (after a
+// SIGHUP reload) and makes its job through the same completion path as a
+// series that just completed (same submitter and origin, so the same
+// results-replace-by-parameters behaviour); the folder is then held again
+// with a `job` file, as after any job.
 //
 // Segmentations (issue 13): a SEG or RTSTRUCT series is matched against the
 // fill rules only (config.h). When one matches, the series its first
@@ -121,6 +148,7 @@ using JobSubmitter = std::function<absl::StatusOr<std::string>(
 // The identity of a received instance (from its header).
 struct InstanceIds {
   std::string study_uid, series_uid, sop_instance_uid;
+  std::string frame_of_reference_uid;  // empty when not given
 };
 
 // A received file at `staged` (the listener's staging file: DCMTK's meta
@@ -137,6 +165,30 @@ struct ReceivedInstance {
 absl::StatusOr<ReceivedInstance> ReadReceivedInstance(
     const std::string& staged, int64_t received_bytes,
     const DatasetScanLimits& limits);
+
+// A complete series held in unmatched/, as ListKept reports it.
+struct KeptSeries {
+  std::string id;  // the folder's name, <key>-<unix ms>: opaque
+  std::string calling_ae, called_ae, modality;
+  int64_t instances = 0;
+  int64_t kept_since_unix_ms = 0;
+  std::string job_id;  // the job made of it; empty: none
+  // "job <id> made", or "no rule matched; the rules now: " and, per rule,
+  // its first failing criterion (RuleSet::ExplainNoMatch). No UIDs.
+  std::string why;
+  // Of its first instance: for admins only, never logged.
+  std::string study_uid, series_uid;
+};
+
+// What RerunKept did with one kept series.
+struct KeptRerun {
+  std::string id;
+  std::string job_id;  // the job made; empty when none was
+  // No job: why (no rule of the set in force matches it, with each rule's
+  // first failing criterion; or a fill rule matched a segmentation whose
+  // referenced series is not held). No UIDs.
+  std::string not_matched;
+};
 
 // Keeps a checked file: fsync, rename to `target`, fsync of its folder (an
 // OK means kept: the C-STORE may answer success). RESOURCE_EXHAUSTED when
@@ -216,6 +268,24 @@ class SeriesAssembler {
 
   int pending_series();
 
+  // Blocking (reads every header of every held series). The held series,
+  // oldest first; `why` is explained against the rules in force now.
+  std::vector<KeptSeries> ListKept();
+  // Blocking. Runs the kept series `id` (KeptSeries::id) again: matched
+  // against the rules in force now and, when a rule matches, made into its
+  // job exactly as a series that just completed (Complete's path). No rule
+  // matches: OK with not_matched set, the series stays held as it was.
+  // NOT_FOUND: no held series has that id (never had, or removed at the
+  // end of its retention); FAILED_PRECONDITION: more instances of the
+  // series are being received (it makes its job when they complete); a
+  // submission error (a full queue, a drain) as the job manager gave it,
+  // the series then held as it was.
+  absl::StatusOr<KeptRerun> RerunKept(const std::string& id);
+  // Blocking. RerunKept for every held series without a job, oldest first;
+  // stops at the first error (its message says how many jobs were made
+  // before it).
+  absl::StatusOr<std::vector<KeptRerun>> RerunAllUnmatched();
+
  private:
   struct Pending {
     std::string called_ae, calling_ae;
@@ -237,6 +307,9 @@ class SeriesAssembler {
     // A segmentation waiting for its referenced series: since when (the
     // first try); unset otherwise.
     std::optional<std::chrono::steady_clock::time_point> waiting_since;
+    // The FrameOfReferenceUID of the held copy it grew from (empty: none,
+    // or not given): a late instance of another one is refused.
+    std::string held_frame_of_reference;
   };
   struct Association {
     std::string calling_ae, called_ae;
@@ -253,9 +326,17 @@ class SeriesAssembler {
   void Complete(const std::string& key, const Pending& pending,
                 const std::string& dir);
   // The fill rule `rule` matched the segmentation series in `dir`.
-  void CompleteFill(const std::string& key, const Pending& pending,
-                    const std::string& dir, const Rule& rule,
-                    const std::string& origin);
+  // Returns the fill job's id, or "" when none was made (the segmentation
+  // then waits for its series in series/, or is held without a job).
+  std::string CompleteFill(const std::string& key, const Pending& pending,
+                           const std::string& dir, const Rule& rule,
+                           const std::string& origin);
+  // A series that grew from a held copy whose job was made completed with
+  // nothing new (see "Re-sent, unchanged"): logs, counts and deletes `dir`
+  // and returns true; false when something changed or there is no such
+  // held copy.
+  bool DropIfResentUnchanged(const std::string& key, const Pending& pending,
+                             const std::string& dir);
   // Back into series/ to be tried again after another stable wait (merged
   // with instances that arrived meanwhile).
   void PutBack(const std::string& key, const Pending& pending,
@@ -270,8 +351,10 @@ class SeriesAssembler {
                       const std::string& reason);
   // With mu_ held: the first instance of a series that is not pending:
   // creates its folder, with the held copy's instances when there is one.
+  // `held`: the newest held copy of the series (NewestHeld), or "".
   absl::Status StartSeries(const std::string& key, Pending& pending,
-                           const Association& association);
+                           const Association& association,
+                           const std::string& held);
   std::string SeriesDir(const std::string& key) const;
   std::string NewestHeld(const std::string& key) const;
 

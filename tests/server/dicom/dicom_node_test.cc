@@ -109,6 +109,8 @@ struct ServerSetup {
   // Non-empty: the spool is a tmpfs of this size ("6m") in a mount
   // namespace of the server's own (unshare -m), so that its disk can fill.
   std::string tmpfs_size;
+  // More "NAME:TOKEN" lines for the token file (identities besides admin).
+  std::string extra_tokens;
 };
 
 // A server with the DICOM listener (and an admin token, so that the test
@@ -121,7 +123,8 @@ class DicomServer {
       : token_file_(dir / "admin.token"),
         setup_(setup),
         server_(Options(dir, name, std::move(extra), setup)) {
-    std::ofstream(dir / "admin.tokens") << "admin:admin-token\n";
+    std::ofstream(dir / "admin.tokens") << "admin:admin-token\n"
+                                        << setup.extra_tokens;
     std::ofstream(token_file_) << "admin-token\n";
     started_ = server_.Start();
   }
@@ -1879,6 +1882,136 @@ TEST(DicomNodeConfigTest, SighupReloadsPeersAndRulesAndRefusesABadFile) {
       << trail;
   EXPECT_THAT(trail, HasSubstr("reload refused, generation 1 stays live"))
       << trail;
+}
+
+// Issue 25: a series no rule matched is kept; once the rules file is fixed
+// and reloaded (SIGHUP), `interslice kept rerun` makes its job, whose
+// results equal `interslice run`'s on the same files with the same options.
+// Admins only; an unknown id is NOT_FOUND.
+TEST(DicomNodeConfigTest, KeptSeriesRunAgainAfterTheRulesAreFixed) {
+  TempDir dir;
+  CommandResult local =
+      RunCommand(Cat(Cat({kCli, "run", kPhantom}, kJobArgs),
+                     {"--out", dir / "local", "--quiet", "--threads", "1"}),
+                 300);
+  ASSERT_EQ(local.exit_code, 0) << local.err;
+  const std::string rules = dir / "rules-kept.yaml";
+  auto write_rules = [&](int min_slices) {
+    WriteFile(rules, absl::StrCat("stable_seconds: 0.5\nrules:\n"
+                                  "  - name: ct-head\n"
+                                  "    match: {modality: CT, slice_count: "
+                                  "{min: ",
+                                  min_slices, "}}\n    job: ", kJobYaml, "\n"));
+  };
+  write_rules(40);  // the mistake: the phantom has 28 slices
+  DicomServer server(dir, "spool",
+                     {"--dicom-peers", WritePeers(dir), "--rules", rules},
+                     {.extra_tokens = "user:user-token\n"});
+  ASSERT_TRUE(server.up()) << server.Log();
+  std::ofstream(dir / "user.token") << "user-token\n";
+  const std::vector<std::string> user =
+      Cat(Cat({"--server"}, {server.Client()[1]}),
+          {"--token-file", dir / "user.token"});
+  const std::vector<std::string> files = PhantomFiles();
+  ASSERT_EQ(StoreScu(server, {}, files).exit_code, 0);
+  ASSERT_TRUE(WaitUntil(
+      [&] { return absl::StrContains(server.Log(), "no rule of rule set"); },
+      120))
+      << server.Log();
+
+  // Listed, one line, with why.
+  CommandResult list =
+      RunCommand(Cat({kCli, "kept", "list"}, server.Client()), 60);
+  ASSERT_EQ(list.exit_code, 0) << list.err;
+  std::vector<std::string> lines =
+      absl::StrSplit(list.out, '\n', absl::SkipEmpty());
+  ASSERT_EQ(lines.size(), 1u) << list.out;
+  EXPECT_THAT(lines[0], HasSubstr("  STORESCU -> INTERSLICE  CT  28 "
+                                  "instance(s)  study "));
+  EXPECT_THAT(lines[0], HasSubstr("no rule matched; the rules now: rule "
+                                  "'ct-head': slice_count 28 not >= 40"));
+  DcmFileFormat first;
+  ASSERT_TRUE(first.loadFile(OFFilename(files[0].c_str())).good());
+  OFString study, series;
+  first.getDataset()->findAndGetOFString(DCM_StudyInstanceUID, study);
+  first.getDataset()->findAndGetOFString(DCM_SeriesInstanceUID, series);
+  EXPECT_THAT(lines[0], HasSubstr(absl::StrCat("study ", study.c_str(),
+                                               "  series ", series.c_str())));
+  const std::string id = lines[0].substr(0, lines[0].find(' '));
+
+  // Not for other identities.
+  for (const std::vector<std::string>& command :
+       {std::vector<std::string>{kCli, "kept", "list"},
+        std::vector<std::string>{kCli, "kept", "rerun", id}}) {
+    CommandResult refused = RunCommand(Cat(command, user), 60);
+    EXPECT_EQ(refused.exit_code, 1);
+    EXPECT_THAT(refused.err, HasSubstr("admin identities only"));
+    EXPECT_EQ(std::count(refused.err.begin(), refused.err.end(), '\n'), 1);
+  }
+  // An unknown id.
+  CommandResult unknown = RunCommand(
+      Cat({kCli, "kept", "rerun", "0123456789abcdef0123456789abcdef-1"},
+          server.Client()),
+      60);
+  EXPECT_EQ(unknown.exit_code, 1);
+  EXPECT_THAT(unknown.err, HasSubstr("no kept series has that id"));
+  // The rules unchanged: not matched, not an error.
+  CommandResult still =
+      RunCommand(Cat({kCli, "kept", "rerun", id}, server.Client()), 60);
+  ASSERT_EQ(still.exit_code, 0) << still.err;
+  EXPECT_EQ(still.out,
+            absl::StrCat("not matched ", id,
+                         ": no rule matched: rule 'ct-head': slice_count 28 "
+                         "not >= 40\n"));
+  EXPECT_TRUE(server.Jobs().empty());
+
+  // The rules fixed and reloaded.
+  write_rules(20);
+  ASSERT_EQ(::kill(server.pid(), SIGHUP), 0);
+  ASSERT_TRUE(WaitUntil(
+      [&] {
+        return absl::StrContains(server.Log(),
+                                 "configuration generation 2 is live");
+      },
+      120))
+      << server.Log();
+  CommandResult rerun =
+      RunCommand(Cat({kCli, "kept", "rerun", id}, server.Client()), 120);
+  ASSERT_EQ(rerun.exit_code, 0) << rerun.err << server.Log();
+  ASSERT_TRUE(absl::StartsWith(rerun.out, "job ")) << rerun.out;
+  const std::string job =
+      std::string(absl::StripAsciiWhitespace(rerun.out.substr(4)));
+  EXPECT_EQ(server.Jobs(), std::vector<std::string>{job});
+  CommandResult watch =
+      RunCommand(Cat({kCli, "watch", job, "--quiet"}, server.Client()), 300);
+  ASSERT_EQ(watch.exit_code, 0) << watch.err << server.Log();
+  CommandResult fetch = RunCommand(
+      Cat({kCli, "fetch", job, "--out", dir / "remote"}, server.Client()), 120);
+  ASSERT_EQ(fetch.exit_code, 0) << fetch.err;
+  ExpectSameFiles(dir / "local", dir / "remote", 12, {},
+                  DicomComparison::kSameSize);
+  // The job is the rule's, as if the series had just completed.
+  CommandResult jobs =
+      RunCommand(Cat({kCli, "list", "--all"}, server.Client()), 60);
+  EXPECT_THAT(jobs.out,
+              HasSubstr("origin    DICOM from STORESCU to INTERSLICE, rule "
+                        "ct-head\n"));
+  // Kept again, now with its job.
+  list = RunCommand(Cat({kCli, "kept", "list"}, server.Client()), 60);
+  ASSERT_EQ(list.exit_code, 0) << list.err;
+  EXPECT_THAT(list.out, HasSubstr(absl::StrCat("job ", job, " made\n")));
+  // Nothing to run without a job any more.
+  CommandResult all = RunCommand(
+      Cat({kCli, "kept", "rerun", "--all-unmatched"}, server.Client()), 60);
+  EXPECT_EQ(all.exit_code, 0) << all.err;
+  EXPECT_EQ(all.out, "");
+  // Neither an id nor --all-unmatched: one line, exit 1.
+  CommandResult neither =
+      RunCommand(Cat({kCli, "kept", "rerun"}, server.Client()), 60);
+  EXPECT_EQ(neither.exit_code, 1);
+  EXPECT_THAT(neither.err, HasSubstr("give a kept series' id or "
+                                     "--all-unmatched"));
+  EXPECT_THAT(server.Log(), ::testing::Not(HasSubstr("1.3.46.670589")));
 }
 
 }  // namespace

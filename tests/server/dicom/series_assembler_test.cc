@@ -6,6 +6,7 @@
 
 #include <filesystem>
 #include <fstream>
+#include <functional>
 
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
@@ -122,6 +123,39 @@ class AssemblerTest : public ::testing::Test {
             .string();
     EXPECT_TRUE(ff.saveFile(path.c_str()).good());
     return path;
+  }
+  // A copy of phantom file `i` changed by `change` (saved as DCMTK writes
+  // it; `name` tells the copies of one test apart).
+  std::string Changed(size_t i, const std::string& name,
+                      const std::function<void(DcmDataset&)>& change) {
+    DcmFileFormat ff;
+    EXPECT_TRUE(ff.loadFile(files_[i].c_str()).good());
+    change(*ff.getDataset());
+    const std::string path =
+        (fs::temp_directory_path() /
+         ("interslice-changed-" + std::to_string(::getpid()) + "-" + name +
+          ".dcm"))
+            .string();
+    EXPECT_TRUE(ff.saveFile(path.c_str()).good());
+    return path;
+  }
+  // Files [first, last) as given, in one association released normally.
+  void SendFiles(SeriesAssembler& a, const std::vector<std::string>& files) {
+    const uint64_t id = a.BeginAssociation("PACS", "INTERSLICE");
+    for (const std::string& file : files) {
+      absl::StatusOr<std::string> k = AddFile(a, id, file);
+      EXPECT_TRUE(k.ok()) << k.status();
+    }
+    a.EndAssociation(id, /*released=*/true);
+  }
+  // The held copies' folder names.
+  std::vector<std::string> Held() const {
+    std::vector<std::string> names;
+    for (const auto& e : fs::directory_iterator(root_ / "unmatched")) {
+      names.push_back(e.path().filename().string());
+    }
+    std::sort(names.begin(), names.end());
+    return names;
   }
   int IncompleteSeries() const {
     int n = 0;
@@ -450,6 +484,214 @@ TEST_F(AssemblerTest, FactsForRules) {
   ASSERT_TRUE(facts.slice_spacing_mm.has_value());
   EXPECT_NEAR(*facts.slice_spacing_mm, 5.0, 0.01);  // the phantom's README
   ASSERT_TRUE(facts.slice_thickness_mm.has_value());
+}
+
+// Issue 25: instances that arrive again after the job was made, each the
+// same SOP instance with the same bytes, cannot change the result: no job,
+// and the held copy stays as it was (with its job file and retention).
+TEST_F(AssemblerTest, ResentUnchangedInstancesMakeNoJob) {
+  auto a = Open(Rules("CT", 0.05));
+  Send(*a, 0, files_.size());
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  ASSERT_EQ(a->CompleteStableSeries(), 1);
+  ASSERT_EQ(submitted_.size(), 1u);
+  const std::vector<std::string> held = Held();
+  ASSERT_EQ(held.size(), 1u);
+  // A sender retries four of the instances (or all of them).
+  Send(*a, 0, 4);
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  EXPECT_EQ(a->CompleteStableSeries(), 1);
+  EXPECT_EQ(submitted_.size(), 1u);
+  Send(*a, 0, files_.size());
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  EXPECT_EQ(a->CompleteStableSeries(), 1);
+  EXPECT_EQ(submitted_.size(), 1u);
+  EXPECT_EQ(Held(), held);
+  int kept = 0;
+  for (const auto& e : fs::directory_iterator(root_ / "unmatched" / held[0])) {
+    if (e.path().extension() == ".dcm") ++kept;
+  }
+  EXPECT_EQ(kept, 28);
+  EXPECT_TRUE(fs::exists(root_ / "unmatched" / held[0] / "job"));
+  EXPECT_EQ(a->pending_series(), 0);
+  EXPECT_TRUE(fs::is_empty(root_ / "series"));
+  EXPECT_TRUE(fs::is_empty(root_ / "completing"));
+}
+
+// One re-sent instance changed (the same SOP Instance UID, other content):
+// the job is made again, on the whole series.
+TEST_F(AssemblerTest, ResentChangedInstanceMakesTheJobOnTheWholeSeries) {
+  auto a = Open(Rules("CT", 0.05));
+  Send(*a, 0, files_.size());
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  ASSERT_EQ(a->CompleteStableSeries(), 1);
+  ASSERT_EQ(submitted_.size(), 1u);
+  const std::string changed = Changed(2, "window", [](DcmDataset& ds) {
+    ds.putAndInsertString(DCM_WindowCenter, "123");
+  });
+  SendFiles(*a, {files_[1].string(), changed, files_[3].string()});
+  fs::remove(changed);
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  EXPECT_EQ(a->CompleteStableSeries(), 1);
+  ASSERT_EQ(submitted_.size(), 2u);
+  EXPECT_EQ(submitted_[1].files, 28);
+  // A new instance (another SOP Instance UID) too.
+  const std::string extra = ExtraInstance(0, "1.2.826.0.1.3680043.2.1125.99.7");
+  SendFiles(*a, {extra});
+  fs::remove(extra);
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  EXPECT_EQ(a->CompleteStableSeries(), 1);
+  ASSERT_EQ(submitted_.size(), 3u);
+  EXPECT_EQ(submitted_[2].files, 29);
+}
+
+// A series held without a job (no rule matched) and sent again unchanged
+// is matched again: the rules may have been fixed since.
+TEST_F(AssemblerTest, ResentUnmatchedSeriesIsMatchedAgain) {
+  auto a = Open(Rules("MR", 0.05));
+  Send(*a, 0, 4);
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  ASSERT_EQ(a->CompleteStableSeries(), 1);
+  EXPECT_TRUE(submitted_.empty());
+  a->SetRules(Rules("CT", 0.05));
+  Send(*a, 0, 4);
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  ASSERT_EQ(a->CompleteStableSeries(), 1);
+  ASSERT_EQ(submitted_.size(), 1u);
+  EXPECT_EQ(submitted_[0].files, 4);
+}
+
+// A late instance of a held series from another frame of reference is
+// refused (never merged into the held series' geometry); the held copy
+// stays, and what its association stored into the series with it is
+// incomplete (as for any refused instance).
+TEST_F(AssemblerTest, LateInstanceOfAnotherFrameOfReferenceIsRefused) {
+  auto a = Open(Rules("CT", 0.05));
+  Send(*a, 0, files_.size());
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  ASSERT_EQ(a->CompleteStableSeries(), 1);
+  const std::vector<std::string> held = Held();
+  auto other_frame = [](const std::string& uid) {
+    return [uid](DcmDataset& ds) {
+      ds.putAndInsertString(DCM_SOPInstanceUID, uid.c_str());
+      ds.putAndInsertString(DCM_FrameOfReferenceUID,
+                            "1.2.826.0.1.3680043.2.1125.99.500");
+    };
+  };
+  // Alone in its association: refused, nothing starts.
+  const std::string lone =
+      Changed(0, "lone", other_frame("1.2.826.0.1.3680043.2.1125.99.11"));
+  uint64_t id = a->BeginAssociation("PACS", "INTERSLICE");
+  absl::StatusOr<std::string> key = AddFile(*a, id, lone);
+  fs::remove(lone);
+  ASSERT_FALSE(key.ok());
+  EXPECT_EQ(key.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(key.status().message(), HasSubstr("frame of reference"));
+  a->EndAssociation(id, true);
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  EXPECT_EQ(a->CompleteStableSeries(), 0);
+  EXPECT_EQ(submitted_.size(), 1u);
+  EXPECT_EQ(Held(), held);
+  // After a late instance of the same frame (accepted): refused too, and
+  // the grown series makes no job of two geometries.
+  const std::string same = ExtraInstance(1, "1.2.826.0.1.3680043.2.1125.99.12");
+  const std::string other =
+      Changed(2, "other", other_frame("1.2.826.0.1.3680043.2.1125.99.13"));
+  id = a->BeginAssociation("PACS", "INTERSLICE");
+  EXPECT_TRUE(AddFile(*a, id, same).ok());
+  key = AddFile(*a, id, other);
+  fs::remove(same);
+  fs::remove(other);
+  ASSERT_FALSE(key.ok());
+  EXPECT_THAT(key.status().message(), HasSubstr("frame of reference"));
+  a->EndAssociation(id, true);
+  EXPECT_EQ(IncompleteSeries(), 1);
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  EXPECT_EQ(a->CompleteStableSeries(), 0);
+  EXPECT_EQ(submitted_.size(), 1u);
+}
+
+// Kept series are listed with why they are kept, and run again against the
+// rules in force now.
+TEST_F(AssemblerTest, KeptSeriesAreListedAndRunAgainByTheRulesNow) {
+  auto a = Open(Rules("MR", 0.05));
+  Send(*a, 0, 6);
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  ASSERT_EQ(a->CompleteStableSeries(), 1);
+  ASSERT_TRUE(submitted_.empty());
+  std::vector<KeptSeries> kept = a->ListKept();
+  ASSERT_EQ(kept.size(), 1u);
+  EXPECT_EQ(kept[0].calling_ae, "PACS");
+  EXPECT_EQ(kept[0].called_ae, "INTERSLICE");
+  EXPECT_EQ(kept[0].modality, "CT");
+  EXPECT_EQ(kept[0].instances, 6);
+  EXPECT_GT(kept[0].kept_since_unix_ms, 0);
+  EXPECT_TRUE(kept[0].job_id.empty());
+  EXPECT_EQ(kept[0].why,
+            "no rule matched; the rules now: rule 'r1': modality is 'CT', not "
+            "'MR'");
+  EXPECT_FALSE(kept[0].study_uid.empty());
+  EXPECT_FALSE(kept[0].series_uid.empty());
+  // The same rules: still no match, not an error; kept as it was.
+  absl::StatusOr<KeptRerun> again = a->RerunKept(kept[0].id);
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_TRUE(again->job_id.empty());
+  EXPECT_THAT(again->not_matched, HasSubstr("modality is 'CT', not 'MR'"));
+  EXPECT_EQ(Held(), std::vector<std::string>{kept[0].id});
+  // Unknown ids, a path among them.
+  for (const std::string& bad : {std::string("nope"), std::string("../series"),
+                                 kept[0].id.substr(0, 33) + "1"}) {
+    EXPECT_EQ(a->RerunKept(bad).status().code(), absl::StatusCode::kNotFound)
+        << bad;
+  }
+  // The rules fixed (a reload): its job, with every instance.
+  a->SetRules(Rules("CT", 0.05));
+  absl::StatusOr<KeptRerun> run = a->RerunKept(kept[0].id);
+  ASSERT_TRUE(run.ok()) << run.status();
+  EXPECT_EQ(run->job_id, "job1");
+  EXPECT_TRUE(run->not_matched.empty());
+  ASSERT_EQ(submitted_.size(), 1u);
+  EXPECT_EQ(submitted_[0].files, 6);
+  EXPECT_EQ(submitted_[0].origin, "dicom:PACS->INTERSLICE rule r1");
+  // Held again, now with its job; the old id is gone.
+  kept = a->ListKept();
+  ASSERT_EQ(kept.size(), 1u);
+  EXPECT_EQ(kept[0].job_id, "job1");
+  EXPECT_EQ(kept[0].why, "job job1 made");
+  EXPECT_EQ(a->RerunKept(run->id).status().code(), absl::StatusCode::kNotFound);
+  EXPECT_TRUE(fs::is_empty(root_ / "completing"));
+  EXPECT_TRUE(fs::is_empty(root_ / "series"));
+  // A held series with a job is not "unmatched"; one can still be run by
+  // its id.
+  absl::StatusOr<std::vector<KeptRerun>> all = a->RerunAllUnmatched();
+  ASSERT_TRUE(all.ok()) << all.status();
+  EXPECT_TRUE(all->empty());
+  run = a->RerunKept(kept[0].id);
+  ASSERT_TRUE(run.ok()) << run.status();
+  EXPECT_EQ(run->job_id, "job2");
+}
+
+// A full queue: the rerun fails with the manager's error and the series
+// stays kept under its id; --all-unmatched runs each one without a job.
+TEST_F(AssemblerTest, RerunThatCannotBeSubmittedKeepsTheSeries) {
+  auto a = Open(Rules("MR", 0.05));
+  Send(*a, 0, 3);
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  ASSERT_EQ(a->CompleteStableSeries(), 1);
+  const std::vector<std::string> held = Held();
+  ASSERT_EQ(held.size(), 1u);
+  a->SetRules(Rules("CT", 0.05));
+  fail_next_ = true;
+  absl::StatusOr<KeptRerun> run = a->RerunKept(held[0]);
+  EXPECT_EQ(run.status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_EQ(Held(), held);
+  EXPECT_EQ(a->pending_series(), 0);
+  absl::StatusOr<std::vector<KeptRerun>> all = a->RerunAllUnmatched();
+  ASSERT_TRUE(all.ok()) << all.status();
+  ASSERT_EQ(all->size(), 1u);
+  EXPECT_EQ((*all)[0].job_id, "job1");
+  ASSERT_EQ(submitted_.size(), 1u);
+  EXPECT_EQ(submitted_[0].files, 3);
 }
 
 }  // namespace
