@@ -118,7 +118,8 @@ JSON
 echo "machine: $(nproc) CPUs, load before $(cut -d' ' -f1-3 /proc/loadavg)"
 for series in "$root/data/ct-head-phantom-thick" "$root/tests/data/ct-tilt"; do
   name=$(basename "$series")
-  instances=$(ls "$series"/*.dcm | wc -l)
+  files=("$series"/*.dcm)
+  instances=${#files[@]}
   times=() jobs=() sends=()
   for run in $(seq "$runs"); do
     read -r seconds job send results < <(round_trip "$series" "$work/$name-$run")

@@ -84,14 +84,17 @@ cleanup() {
   local status=$?
   # The walk-through's background processes (Orthanc, the server).
   local pids
-  pids=$(jobs -p)
-  if [[ -n $pids ]]; then
-    kill $pids 2>/dev/null || true
-    for _ in $(seq 100); do
-      kill -0 $pids 2>/dev/null || break
+  mapfile -t pids < <(jobs -p)
+  if ((${#pids[@]})); then
+    kill "${pids[@]}" 2>/dev/null || true
+    local alive pid
+    for _ in $(seq 100); do  # up to 10 s for a clean stop
+      alive=0
+      for pid in "${pids[@]}"; do kill -0 "$pid" 2>/dev/null && alive=1; done
+      ((alive)) || break
       command sleep 0.1
     done
-    kill -9 $pids 2>/dev/null || true
+    kill -9 "${pids[@]}" 2>/dev/null || true
   fi
   if ((status != 0)); then
     echo "--- the walk-through as run:" >&2
@@ -115,7 +118,8 @@ set -euo pipefail  # whatever the walk-through set
 orthanc=http://127.0.0.1:$orthanc_http
 study_uid=$(dcmdump +P 0020,000d "$series/I10.dcm" | sed -n 's/.*\[\(.*\)\].*/\1/p')
 [[ -n $study_uid ]] || fail "no StudyInstanceUID in $series/I10.dcm"
-source_instances=$(ls "$series"/*.dcm | wc -l)
+source_files=("$series"/*.dcm)
+source_instances=${#source_files[@]}
 
 job_out() {
   local dirs=("$work"/var/interslice/jobs/*/out)
