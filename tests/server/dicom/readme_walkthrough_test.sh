@@ -28,6 +28,7 @@ fail() {
 }
 
 work=$(mktemp -d "${TMPDIR:-/tmp}/interslice-walkthrough.XXXXXX")
+trap 'rm -rf "$work"' EXIT  # until the walk-through starts (cleanup below)
 root=$work/checkout
 mkdir -p "$root" "$work/var" "$work/bin"
 for entry in "$source_dir"/*; do
