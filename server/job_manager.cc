@@ -969,6 +969,20 @@ void JobManager::RunOne(const std::shared_ptr<Job>& job) {
   const int64_t upload_bytes = job->record_.upload_bytes();
   spool_->RemoveUploads(id);
   spool_->Release(upload_bytes);
+  if (result.ok()) {
+    // Before publishing: the status, the quota and the deliveries see only
+    // what is kept (server/spool.h).
+    JobRecord record;
+    {
+      std::lock_guard<std::mutex> lock(job->mu_);
+      record = job->record_;
+    }
+    if (const int64_t bytes = RemoveArtifactsNotAskedFor(record, &*result);
+        bytes > 0) {
+      spdlog::info("job={} kept only what it was asked for: {} bytes not kept",
+                   id, bytes);
+    }
+  }
   const int64_t now = UnixMillisNow();
   const int64_t expires = now + options_.retention_seconds * 1000;
   absl::Status published =

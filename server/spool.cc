@@ -9,10 +9,13 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <set>
 #include <sstream>
 #include <system_error>
 
+#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
+#include "nlohmann/json.hpp"
 
 namespace interslice::server {
 namespace fs = std::filesystem;
@@ -174,6 +177,84 @@ bool Spool::FileSystemFull() const {
   struct statvfs fs;
   if (::statvfs(root_.c_str(), &fs) != 0) return false;
   return static_cast<uint64_t>(fs.f_bavail) * fs.f_frsize < (1u << 20);
+}
+
+namespace {
+
+bool MadeByDicomListener(const JobRecord& record) {
+  // Records of servers before JobOrigin carry only the origin text.
+  return record.status().source().door() == v1::JobOrigin::DICOM ||
+         absl::StartsWith(record.status().origin(), "dicom:");
+}
+
+}  // namespace
+
+int64_t RemoveArtifactsNotAskedFor(const JobRecord& record,
+                                   job::JobResult* result) {
+  if (!MadeByDicomListener(record) || record.spec().send_to().empty()) {
+    return 0;
+  }
+  std::set<std::string> kinds;
+  for (const Artifact& a : result->artifacts) kinds.insert(a.kind);
+  const auto surplus = [&](const Artifact& a) {
+    if (a.kind == "surface") {
+      return absl::EndsWith(a.path, ".stl") &&
+             kinds.count("surface-stl-dicom") != 0;
+    }
+    if (a.kind == "mask") return kinds.count("seg") != 0;
+    if (a.kind == "distance") return kinds.count("distance-map") != 0;
+    return false;
+  };
+  std::vector<Artifact> kept;
+  std::set<std::string> removed_names;
+  int64_t removed_bytes = 0;
+  const auto remove = [&](const Artifact& a) {
+    std::error_code ec;
+    const fs::path path(a.path);
+    int64_t bytes = TreeSize(a.path);  // a folder's files
+    if (fs::is_regular_file(path, ec)) {
+      bytes = static_cast<int64_t>(fs::file_size(path, ec));
+    }
+    fs::remove_all(path, ec);
+    if (ec) return false;  // kept, and listed, when it cannot be removed
+    removed_bytes += bytes;
+    removed_names.insert(path.filename().string());
+    return true;
+  };
+  bool mesh_file_kept = false;
+  for (const Artifact& a : result->artifacts) {
+    if (surplus(a) && remove(a)) continue;
+    mesh_file_kept |= a.kind == "surface";
+    kept.push_back(a);
+  }
+  // The note on mesh coordinates, once no mesh file is left to explain.
+  if (!mesh_file_kept) {
+    std::vector<Artifact> still;
+    for (const Artifact& a : kept) {
+      if (a.kind == "surface-coordinates" && remove(a)) continue;
+      still.push_back(a);
+    }
+    kept = std::move(still);
+  }
+  if (removed_names.empty()) return 0;
+  result->artifacts = std::move(kept);
+  // The report lists the artifacts by bare file name (JobKind::UseSpool).
+  nlohmann::ordered_json report = nlohmann::ordered_json::parse(
+      result->report_json, nullptr, /*allow_exceptions=*/false);
+  if (!report.is_discarded() && report.contains("artifacts") &&
+      report["artifacts"].is_array()) {
+    nlohmann::ordered_json artifacts = nlohmann::ordered_json::array();
+    for (const auto& a : report["artifacts"]) {
+      const bool gone =
+          a.contains("path") && a["path"].is_string() &&
+          removed_names.count(
+              fs::path(a["path"].get<std::string>()).filename().string()) != 0;
+      if (!gone) artifacts.push_back(a);
+    }
+    report["artifacts"] = std::move(artifacts);
+    result->report_json = report.dump(2);
+  }
+  return removed_bytes;
 }
 
 }  // namespace interslice::server

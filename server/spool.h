@@ -23,6 +23,7 @@
 
 #include "absl/status/statusor.h"
 #include "interslice/spool/v1/record.pb.h"
+#include "job/job.h"
 
 namespace interslice::server {
 
@@ -74,6 +75,32 @@ absl::Status WriteFileAtomically(const std::string& path,
 
 // Sum of the sizes of the regular files below `path`.
 int64_t TreeSize(const std::string& path);
+
+// A finished job keeps only what it was asked for (issue 25). A job the
+// DICOM listener made (JobOrigin DICOM) whose results go to PACS peers
+// (send_to) was asked, through its rule, for the DICOM objects it delivers.
+// Beside them the pipeline writes the same data again in other formats,
+// which no peer receives and no client fetches (only an admin could), so
+// they are not kept:
+//  - surface.stl when the Encapsulated STL (surface-stl.dcm) was written:
+//    it is the mesh the rule's `mesh: [stl]` sends to the PACS (the same
+//    bytes when the mesh was not simplified; the unsimplified surface, 5x the
+//    PACS object on the thick phantom, when it was);
+//  - mask.<ext> when the SEG carries the same mask on the same grid;
+//  - distance.<ext> when the distance map goes out as a Parametric Map;
+//  - surface-coordinates.txt once no surface.* file is kept (it explains
+//    their coordinates).
+// Everything else stays: every DICOM file (the delivery queue reads them
+// until each peer has accepted every instance, across restarts, and they
+// stay until retention ends), the previews, the mesh and volume formats no
+// DICOM object carries (ply, obj; a distance volume without the distance
+// map), the report. Jobs of the gRPC doors keep every artifact: their
+// clients fetch them.
+// Removes those files from disk and from `result` (its artifacts and the
+// "artifacts" of its report JSON); returns the bytes removed. Call it once
+// the job has succeeded, before its results are published.
+int64_t RemoveArtifactsNotAskedFor(const JobRecord& record,
+                                   job::JobResult* result);
 
 }  // namespace interslice::server
 
