@@ -10,17 +10,29 @@
 #
 #   scripts/eval-intensity.sh [--out DIR] [--build-dir DIR] [--threads N]
 #                             [--methods LIST] [--no-publish]
+#                             [--series NAME=DIR]... [--levels E,B,LO,HI]
+#                             [--report FILE]
 #
-# Exits 0 with a message when ../shared/data is absent. About 15 minutes on 2
-# cores.
+# --series (repeatable) replaces the default series (thin and tilt of
+# ../shared/data) by other folders, e.g. a thin MR series kept outside the
+# repository; --levels sets the evaluation's edge level, body level and
+# homogeneous soft-tissue range in the series' modality units (default
+# 300,-500,-100,100: HU), the same for every series of the run; --report names
+# the published report in docs/eval (default intensity.md). The method's
+# settings are the same whatever the series. Exits 0 with a message when
+# ../shared/data is absent and no --series is given. About 15 minutes on 2
+# cores for the two CT phantoms.
 set -euo pipefail
 repo="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 data="$(cd "$repo/.." && pwd)/shared/data"
 out="$repo/build-eval/intensity-report"
 build="$repo/build-eval"
 threads=0
-methods="linear,catmull-rom,pchip-z,morph,morph-bwd,morph-nofallback,morph-maps"
+methods="linear,catmull-rom,pchip-z,morph,morph-nopair,morph-bwd,morph-nofallback,morph-maps"
 publish=1
+report=intensity.md
+levels="300,-500,-100,100"
+series=()
 command_line="scripts/eval-intensity.sh $*"
 while [ $# -gt 0 ]; do
   case "$1" in
@@ -29,13 +41,24 @@ while [ $# -gt 0 ]; do
     --threads) threads="$2"; shift 2 ;;
     --methods) methods="$2"; shift 2 ;;
     --no-publish) publish=0; shift ;;
-    -h|--help) sed -n 2,15p "$0"; exit 0 ;;
+    --series) series+=("$2"); shift 2 ;;
+    --levels) levels="$2"; shift 2 ;;
+    --report) report="$2"; shift 2 ;;
+    -h|--help) sed -n 2,26p "$0"; exit 0 ;;
     *) echo "eval-intensity.sh: unknown option $1" >&2; exit 64 ;;
   esac
 done
-if [ ! -d "$data/ct-head-phantom-thin" ]; then
-  echo "eval-intensity.sh: $data/ct-head-phantom-thin not found; skipping."
-  exit 0
+if [ ${#series[@]} -eq 0 ]; then
+  if [ ! -d "$data/ct-head-phantom-thin" ]; then
+    echo "eval-intensity.sh: $data/ct-head-phantom-thin not found; skipping."
+    exit 0
+  fi
+  series=("thin=$data/ct-head-phantom-thin" "tilt=$data/ct-head-phantom-tilt")
+fi
+IFS=, read -r edge_level body_level soft_lo soft_hi <<< "$levels"
+if [ -z "$soft_hi" ]; then
+  echo "eval-intensity.sh: --levels needs EDGE,BODY,SOFT_LO,SOFT_HI" >&2
+  exit 64
 fi
 py=/usr/bin/python3
 if ! "$py" -c "import matplotlib, numpy" 2>/dev/null; then
@@ -49,27 +72,38 @@ fi
 ninja -C "$build" -j2 interslice_grey_eval
 mkdir -p "$out"
 runs=()
-# name, folder, drop-k factors; bone edges at 300 HU, body at -500 HU, soft
-# tissue -100..100 HU for both (same settings for every series).
-for entry in "thin ct-head-phantom-thin" "tilt ct-head-phantom-tilt"; do
-  set -- $entry
-  [ -d "$data/$2" ] || continue
-  rm -rf "${out:?}/$1"
+# name=folder; drop-k factors 2, 4, 8; the edge level, body level and soft
+# tissue range of --levels (by default bone edges at 300 HU, body at -500 HU,
+# soft tissue -100..100 HU), the same for every series of the run.
+for entry in "${series[@]}"; do
+  name="${entry%%=*}"
+  dir="${entry#*=}"
+  if [ ! -d "$dir" ]; then
+    echo "eval-intensity.sh: $dir not found; skipping $name." >&2
+    continue
+  fi
+  rm -rf "${out:?}/$name"
   start=$(date +%s)
-  "$build/tools/eval/interslice_grey_eval" --series "$data/$2" --name "$1" \
-    --out "$out/$1" --ks 2,4,8 --methods "$methods" --bone 300 --body -500 \
-    --soft=-100,100 --threads "$threads" 2> "$out/$1.log"
-  echo "eval-intensity.sh: $1 done in $(( $(date +%s) - start )) s (log $out/$1.log)"
-  runs+=("$out/$1")
+  "$build/tools/eval/interslice_grey_eval" --series "$dir" --name "$name" \
+    --out "$out/$name" --ks 2,4,8 --methods "$methods" --bone="$edge_level" \
+    --body="$body_level" --soft="$soft_lo,$soft_hi" --threads "$threads" \
+    2> "$out/$name.log"
+  echo "eval-intensity.sh: $name done in $(( $(date +%s) - start )) s (log $out/$name.log)"
+  runs+=("$out/$name")
 done
+if [ ${#runs[@]} -eq 0 ]; then
+  echo "eval-intensity.sh: no series found" >&2
+  exit 66
+fi
 machine="$(nproc) cores, load average $(cut -d' ' -f1-3 /proc/loadavg) at the end, $(date -u +%Y-%m-%dT%H:%MZ)"
 "$py" "$repo/tools/eval/grey_report.py" "$out" "${runs[@]}" \
   --command "$command_line" --machine "$machine"
 if [ "$publish" = 1 ]; then
   docs="$repo/docs/eval"
-  rm -f "$docs"/intensity.md "$docs"/intensity_*.png "$docs"/intensity_*.json
-  cp "$out"/intensity.md "$out"/intensity_*.png "$docs"/
+  cp "$out"/intensity.md "$docs/$report"
   for r in "${runs[@]}"; do
+    rm -f "$docs/intensity_$(basename "$r")"_*.png "$docs/intensity_$(basename "$r").json"
+    cp "$out/intensity_$(basename "$r")"_*.png "$docs"/ 2>/dev/null || true
     "$py" - "$r" "$docs/intensity_$(basename "$r").json" <<'PY'
 import json, sys
 r = json.load(open(sys.argv[1] + "/results.json"))

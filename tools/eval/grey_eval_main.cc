@@ -15,6 +15,7 @@
 // pchip-z (in place along z), morph (MorphIntensity defaults), and ablations:
 // morph-maps (registration by the bone's distance maps), morph-bwd (key
 // slice s+1 sampled through the backward field), morph-nofallback,
+// morph-nopair (without the pair check),
 // morph-linvals (values blended linearly along the trajectory). GREY_*
 // environment variables override the morph's settings for sensitivity runs (see
 // ApplyOverrides).
@@ -80,6 +81,9 @@ void ApplyOverrides(IntensityMorphOptions& o) {
   num("GREY_QHIGH", o.ratio_high);
   num("GREY_GHIGH", o.gain_high);
   num("GREY_RSIGMA", o.residual_sigma_px);
+  num("GREY_PAIR_TOL", o.pair_tolerance_noise);
+  num("GREY_PAIR_SIGMA", o.pair_sigma_px);
+  num("GREY_PAIR_STATIC", o.pair_static_noise);
   num("GREY_SIGMA", o.demons.field_sigma_px);
   integer("GREY_ITS", o.demons.iterations);
   integer("GREY_DS", o.demons.downsample);
@@ -107,6 +111,7 @@ absl::StatusOr<IntensityMorphOptions> MethodOptions(const std::string& name) {
     o.ratio_high = 2e6;
     o.min_jacobian = 1e-9;
     o.max_gap_ratio = 1e9;
+    o.pair_check = false;
   } else if (name == "morph-maps-nofallback") {
     o.registration = IntensityRegistration::kDistanceMaps;
     o.gain_low = -2e6;
@@ -115,6 +120,9 @@ absl::StatusOr<IntensityMorphOptions> MethodOptions(const std::string& name) {
     o.ratio_high = 2e6;
     o.min_jacobian = 1e-9;
     o.max_gap_ratio = 1e9;
+    o.pair_check = false;
+  } else if (name == "morph-nopair") {
+    o.pair_check = false;
   } else if (name == "morph-cr") {
     o.values = MorphValues::kCatmullRom;
   } else if (name == "morph-linvals") {
@@ -350,6 +358,13 @@ absl::Status Run(const Options& o) {
         }
       }
     };
+    if (const char* dump = std::getenv("GREY_DUMP")) {
+      // Debugging aid: the homogeneous soft-tissue mask (uint8) on the grid.
+      std::ofstream(absl::StrCat(dump, "/", o.name, "_k", k, "_homogeneous.u8"),
+                    std::ios::binary)
+          .write(reinterpret_cast<const char*>(homogeneous.data()),
+                 homogeneous.size());
+    }
     band(o.bone, bone_band, true);
     band(o.body, skin_band, false);
     const std::vector<EdgePoint> bone_points =
@@ -408,6 +423,7 @@ absl::Status Run(const Options& o) {
                                                 padding, &maps, mo, context));
         result = std::move(mi.values);
         row["fallback_fraction"] = mi.statistics.fallback_fraction;
+        row["noise_sigma"] = mi.statistics.noise_sigma;
         row["gaps_not_registered"] = mi.statistics.gaps_not_registered;
         row["mean_displacement_mm"] = mi.statistics.mean_displacement_mm;
         row["max_displacement_mm"] = mi.statistics.max_displacement_mm;

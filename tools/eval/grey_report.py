@@ -80,6 +80,14 @@ def figure(r, k, out_dir):
     return name
 
 
+def noise_note(r):
+    sigmas = [row["noise_sigma"] for row in r["rows"]
+              if row["method"] == "morph" and "noise_sigma" in row]
+    if not sigmas:
+        return ""
+    return f"; noise estimated by the morph {min(sigmas):.1f}-{max(sigmas):.1f} (k = 2-8)"
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("out")
@@ -105,7 +113,9 @@ def main():
         "Rise: median 10-90% rise distance (mm) across bone edges along the truth's gradient; "
         "*oblique* = edges whose normal is at least 30 degrees out of the slice plane "
         "(|n.z| >= 0.5), where interpolation in z decides the edge; the truth's own figure in "
-        "brackets. Fallback: fraction of inserted voxels whose value is mostly the linear blend.",
+        "brackets. Fallback: fraction of inserted voxels whose value is mostly the linear blend "
+        "(where the key slices differ). Noise: the key slices' noise standard deviation the "
+        "morph estimated from the data (Immerkaer 1996; the unit of its pair check).",
         "",
     ]
     for r in runs:
@@ -113,7 +123,8 @@ def main():
         tilt = r.get("gantry_tilt_degrees", 0)
         lines += [f"Grid (ROI) {r['grid']['size']} at {[round(s, 3) for s in r['grid']['spacing']]} mm"
                   + (f", gantry tilt {tilt:.1f} degrees (resampled by the reader)" if tilt else "")
-                  + f"; bone level {r['bone']}, body level {r['body']}.", ""]
+                  + f"; edge (bone) level {r['bone']}, body level {r['body']}, soft tissue {r['soft']}"
+                  + noise_note(r) + ".", ""]
         lines += ["| k | method | RMSE body | PSNR body dB | SSIM | RMSE homogeneous | RMSE bone band | RMSE skin band | rise bone mm (truth) | rise oblique mm (truth) | fallback | seconds |",
                   "|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for row in r["rows"]:

@@ -553,6 +553,92 @@ TEST(DicomNodeTest, PhantomSentWithStorescuMakesTheRulesJob) {
   EXPECT_THAT(log, ::testing::Not(HasSubstr("1.3.46.670589")));
 }
 
+// The pixel data of every instance in a derived series folder, in file name
+// order (empty if the folder holds none or one cannot be read).
+std::vector<std::string> SeriesPixels(const std::string& folder) {
+  std::vector<std::string> files;
+  std::error_code ec;
+  for (const auto& e : fs::directory_iterator(folder, ec)) {
+    if (e.path().extension() == ".dcm") files.push_back(e.path().string());
+  }
+  std::sort(files.begin(), files.end());
+  std::vector<std::string> pixels;
+  for (const std::string& file : files) {
+    DcmFileFormat dicom;
+    DcmElement* element = nullptr;
+    Uint8* bytes = nullptr;
+    if (!dicom.loadFile(OFFilename(file.c_str())).good() ||
+        !dicom.getDataset()->findAndGetElement(DCM_PixelData, element).good() ||
+        !element->getUint8Array(bytes).good() || bytes == nullptr) {
+      return {};
+    }
+    pixels.emplace_back(reinterpret_cast<const char*>(bytes),
+                        element->getLength());
+  }
+  return pixels;
+}
+
+// A rule's intensity_method reaches the job it makes: the derived intensity
+// series of a rule asking for `linear` (the default is morph) is, pixel for
+// pixel, the one `run --intensity-method linear` writes, and not morph's.
+TEST(DicomNodeTest, RuleIntensityMethodReachesTheDerivedSeries) {
+  TempDir dir;
+  const std::vector<std::string> job = {
+      "--threshold", "300",       "--roi", "208,208,0,304,304,28", "--mesh",
+      "none",        "--volume",  "none",  "--output-series",      "intensity",
+      "--quiet",     "--threads", "1"};
+  for (const std::string method : {"linear", "morph"}) {
+    CommandResult local = RunCommand(
+        Cat(Cat({kCli, "run", kPhantom}, job),
+            {"--intensity-method", method, "--out", dir / ("local-" + method)}),
+        300);
+    ASSERT_EQ(local.exit_code, 0) << local.err;
+  }
+  const std::vector<std::string> linear =
+      SeriesPixels(dir / "local-linear/series-intensity");
+  const std::vector<std::string> morph =
+      SeriesPixels(dir / "local-morph/series-intensity");
+  ASSERT_GT(linear.size(), 28u);  // the key slices and those inserted
+  ASSERT_EQ(linear.size(), morph.size());
+  ASSERT_NE(linear, morph);  // else the test could not see the key dropped
+  const std::string rules = dir / "rules.yaml";
+  WriteFile(rules,
+            "stable_seconds: 1.5\n"
+            "rules:\n"
+            "  - name: ct-linear\n"
+            "    match: {modality: CT, calling_ae: STORESCU}\n"
+            "    job: {threshold: 300, roi: [208, 208, 0, 304, 304, 28], "
+            "mesh: none, volume: none, output_series: [intensity], "
+            "intensity_method: linear}\n");
+  DicomServer server(dir, "spool",
+                     {"--dicom-peers", WritePeers(dir), "--rules", rules});
+  ASSERT_TRUE(server.up()) << server.Log();
+  CommandResult store = StoreScu(server, {}, PhantomFiles());
+  ASSERT_EQ(store.exit_code, 0) << store.err;
+  std::vector<std::string> jobs;
+  ASSERT_TRUE(WaitUntil(
+      [&] {
+        jobs = server.Jobs();
+        return !jobs.empty();
+      },
+      120))
+      << server.Log();
+  ASSERT_EQ(jobs.size(), 1u);
+  CommandResult watch = RunCommand(
+      Cat({kCli, "watch", jobs[0], "--quiet"}, server.Client()), 300);
+  ASSERT_EQ(watch.exit_code, 0) << watch.err << server.Log();
+  CommandResult fetch = RunCommand(
+      Cat({kCli, "fetch", jobs[0], "--out", dir / "remote"}, server.Client()),
+      120);
+  ASSERT_EQ(fetch.exit_code, 0) << fetch.err;
+  EXPECT_THAT(server.Log(), HasSubstr("made by rule ct-linear"));
+  const std::vector<std::string> remote =
+      SeriesPixels(dir / "remote/series-intensity");
+  ASSERT_EQ(remote.size(), linear.size());
+  EXPECT_TRUE(remote == linear);
+  EXPECT_FALSE(remote == morph);
+}
+
 // complete_on_release: a normal release completes the series at once; an
 // aborted association leaves its instances waiting with their series.
 TEST(DicomNodeTest, ReleaseCompletesAtOnceAbortKeepsTheInstances) {
