@@ -185,8 +185,9 @@ struct IntensityMorphStatistics {
   // fallback_voxels / inserted_voxels (0 if none).
   double fallback_fraction = 0;
   // The key slices' noise standard deviation estimated from the data
-  // (Immerkaer 1996, see above), mean over the registered gaps, modality
-  // units (0 if none).
+  // (the median absolute deviation of neighbouring key slices' difference,
+  // intensity_morph.cc PairNoiseScale), mean over the registered gaps,
+  // modality units (0 if none).
   double noise_sigma = 0;
   // Mean and largest forward displacement over all registered gaps, mm.
   double mean_displacement_mm = 0;
