@@ -231,6 +231,12 @@ absl::StatusOr<std::unique_ptr<dicom::SeriesAssembler>> StartDicomAssembler(
   a.max_bytes_per_series = options.dicom_max_series_bytes;
   a.unmatched_retention_seconds =
       static_cast<double>(options.retention_seconds);
+  a.job_ended_without_results = [manager](const std::string& id) {
+    std::shared_ptr<Job> job = manager->Find(id);
+    if (job == nullptr) return false;
+    const v1::JobState state = job->Snapshot(false).state();
+    return state == v1::JOB_STATE_FAILED || state == v1::JOB_STATE_CANCELLED;
+  };
   return dicom::SeriesAssembler::Open(
       a, std::move(rules), spool, metrics,
       [manager](const v1::JobSpec& spec, const std::string& dir,

@@ -1123,6 +1123,14 @@ bool SeriesAssembler::DropIfResentUnchanged(const std::string& key,
   if (!(std::ifstream(fs::path(held) / "job") >> job_id)) {
     return false;  // held without a job: the rules may have been fixed
   }
+  if (options_.job_ended_without_results &&
+      options_.job_ended_without_results(job_id)) {
+    spdlog::info(
+        "dicom: a series from {} -> {} whose job={} ended without results "
+        "arrived again: its job is made again",
+        LogSafe(p.calling_ae), LogSafe(p.called_ae), job_id);
+    return false;
+  }
   const std::vector<std::string> ours = DicomFiles(dir);
   const std::vector<std::string> theirs = DicomFiles(held);
   if (ours.size() != theirs.size()) return false;

@@ -133,6 +133,12 @@ struct AssemblerOptions {
   // How often the stable wait is checked (tests shorten the rule set's
   // stable_seconds, not this).
   std::chrono::milliseconds poll_interval{200};
+  // Whether the job `job_id` ended without results (failed or cancelled).
+  // A series re-sent unchanged after such a job makes its job again: a
+  // re-send is how a PACS operator retries. After any other job (queued,
+  // running, succeeded, or no longer known to the server) an unchanged
+  // re-send makes none. Unset: never asked (no job is made again).
+  std::function<bool(const std::string& job_id)> job_ended_without_results;
 };
 
 // Makes the job for a complete series: `files_dir` holds its instances (the

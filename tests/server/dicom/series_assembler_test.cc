@@ -6,6 +6,7 @@
 
 #include <filesystem>
 #include <fstream>
+#include <set>
 #include <functional>
 
 #include "dcmtk/config/osconfig.h"
@@ -516,6 +517,37 @@ TEST_F(AssemblerTest, ResentUnchangedInstancesMakeNoJob) {
   EXPECT_EQ(a->pending_series(), 0);
   EXPECT_TRUE(fs::is_empty(root_ / "series"));
   EXPECT_TRUE(fs::is_empty(root_ / "completing"));
+}
+
+// Re-sending is how a PACS operator retries: after a job that ended
+// without results, the unchanged series makes its job again; after one that
+// did not, it makes none (found in review of the re-send change).
+TEST_F(AssemblerTest, ResentUnchangedSeriesAfterAFailedJobMakesItAgain) {
+  std::set<std::string> failed;
+  AssemblerOptions options;
+  options.job_ended_without_results = [&failed](const std::string& id) {
+    return failed.count(id) > 0;
+  };
+  auto a = Open(Rules("CT", 0.05), options);
+  Send(*a, 0, files_.size());
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  ASSERT_EQ(a->CompleteStableSeries(), 1);
+  ASSERT_EQ(submitted_.size(), 1u);
+  Send(*a, 0, files_.size());  // job1 did not fail: nothing made
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  EXPECT_EQ(a->CompleteStableSeries(), 1);
+  EXPECT_EQ(submitted_.size(), 1u);
+  failed.insert("job1");
+  Send(*a, 0, files_.size());
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  EXPECT_EQ(a->CompleteStableSeries(), 1);
+  ASSERT_EQ(submitted_.size(), 2u);
+  EXPECT_EQ(submitted_[1].files, 28);
+  const std::vector<std::string> held = Held();
+  ASSERT_EQ(held.size(), 1u);
+  std::string job;
+  std::ifstream(root_ / "unmatched" / held[0] / "job") >> job;
+  EXPECT_EQ(job, "job2");
 }
 
 // One re-sent instance changed (the same SOP Instance UID, other content):
