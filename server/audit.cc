@@ -64,7 +64,8 @@ std::string Line(const AuditEvent& e) {
   if (!e.peer.empty()) j["peer"] = LogSafe(e.peer);
   if (e.count >= 0) j["count"] = e.count;
   if (!e.detail.empty()) j["detail"] = LogSafe(RedactPhi(e.detail));
-  return j.dump() + "\n";
+  return j.dump(-1, ' ', false, nlohmann::json::error_handler_t::replace) +
+         "\n";
 }
 
 }  // namespace

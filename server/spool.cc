@@ -252,7 +252,8 @@ int64_t RemoveArtifactsNotAskedFor(const JobRecord& record,
       if (!gone) artifacts.push_back(a);
     }
     report["artifacts"] = std::move(artifacts);
-    result->report_json = report.dump(2);
+    result->report_json =
+        report.dump(2, ' ', false, nlohmann::json::error_handler_t::replace);
   }
   return removed_bytes;
 }

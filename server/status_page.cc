@@ -257,7 +257,8 @@ std::string RenderStatusJson(const StatusSnapshot& s) {
         {{"name", r.name}, {"match", r.match}, {"send_to", r.send_to}});
   }
   j["rules"] = std::move(rules);
-  return j.dump() + "\n";
+  return j.dump(-1, ' ', false, nlohmann::json::error_handler_t::replace) +
+         "\n";
 }
 
 struct StatusServer::Impl {

@@ -532,7 +532,8 @@ void SeriesAssembler::MarkIncomplete(const std::string& key, Pending& p,
   p.incomplete = reason;
   nlohmann::json j = {{"reason", reason}, {"since_unix_ms", UnixMillisNow()}};
   if (absl::Status s = WriteFileAtomically(
-          (fs::path(SeriesDir(key)) / kIncompleteFile).string(), j.dump());
+          (fs::path(SeriesDir(key)) / kIncompleteFile).string(),
+          j.dump(-1, ' ', false, nlohmann::json::error_handler_t::replace));
       !s.ok()) {
     // Kept in memory all the same; after a restart the open-<n> files of
     // an interrupted association mark it again.
@@ -593,7 +594,9 @@ absl::Status SeriesAssembler::StartSeries(const std::string& key, Pending& p,
   nlohmann::json origin = {{"called_ae", a.called_ae},
                            {"calling_ae", a.calling_ae}};
   if (absl::Status s = WriteFileAtomically(
-          (fs::path(dir) / "origin.json").string(), origin.dump());
+          (fs::path(dir) / "origin.json").string(),
+          origin.dump(-1, ' ', false,
+                      nlohmann::json::error_handler_t::replace));
       !s.ok()) {
     fs::remove_all(dir, ec);
     return absl::ResourceExhaustedError(s.message());

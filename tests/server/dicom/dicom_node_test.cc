@@ -432,7 +432,7 @@ TEST(DicomNodeTest, UnknownCallersAcceptedWhenThePeersFileSaysSo) {
 // it) was accepted when unknown callers are, and DCMTK 3.6.7 could not build
 // the A-ASSOCIATE-AC for it: 64 bytes leaked and the association aborted.
 // It is rejected now, with its reason, and the server serves on.
-TEST(DicomNodeTest, EmptyCallingAeTitleIsRejectedEvenWhenAnyCallerIsAccepted) {
+TEST(DicomNodeTest, EmptyOrNonAsciiCallingAeTitleIsRejectedEvenWhenAnyCallerIsAccepted) {
   TempDir dir;
   WriteFile(dir / "open.yaml", "accept_unknown_callers: true\npeers: []\n");
   DicomServer server(dir, "spool", {"--dicom-peers", dir / "open.yaml"});
@@ -451,6 +451,25 @@ TEST(DicomNodeTest, EmptyCallingAeTitleIsRejectedEvenWhenAnyCallerIsAccepted) {
   EXPECT_TRUE(WaitUntil([&] { return server.Refused("calling_ae") >= 1; }, 30))
       << server.Log();
   EXPECT_THAT(server.Log(), HasSubstr("calling AE title is empty"));
+  // Found by the fuzzer next (fuzz_cases/non-ascii-calling-ae-crash.bin): a
+  // calling AE title with bytes outside the default repertoire was accepted
+  // and its first instance stopped the server (origin.json is UTF-8 JSON).
+  const int second = raw::Connect(std::stoi(server.port()));
+  ASSERT_GE(second, 0);
+  ASSERT_TRUE(raw::SendAll(
+      second, raw::AssociateRq("INTERSLICE", "ST\xb7\xad\xba\xac" "CU",
+                               {{1,
+                                 UID_CTImageStorage,
+                                 {UID_LittleEndianExplicitTransferSyntax}}})));
+  answer = raw::ReadPdu(second, 30);
+  ::close(second);
+  ASSERT_TRUE(answer.has_value()) << server.Log();
+  EXPECT_EQ(answer->type, 0x03) << "not an A-ASSOCIATE-RJ";
+  EXPECT_TRUE(WaitUntil([&] { return server.Refused("calling_ae") >= 2; }, 30))
+      << server.Log();
+  EXPECT_THAT(server.Log(),
+              HasSubstr("calling AE title has a character outside the default "
+                        "repertoire"));
   CommandResult r = RunCommand({kEchoScu, "-aet", "ANYONE", "-aec",
                                 "INTERSLICE", "127.0.0.1", server.port()});
   EXPECT_EQ(r.exit_code, 0) << r.err;
