@@ -432,7 +432,8 @@ TEST(DicomNodeTest, UnknownCallersAcceptedWhenThePeersFileSaysSo) {
 // it) was accepted when unknown callers are, and DCMTK 3.6.7 could not build
 // the A-ASSOCIATE-AC for it: 64 bytes leaked and the association aborted.
 // It is rejected now, with its reason, and the server serves on.
-TEST(DicomNodeTest, EmptyOrNonAsciiCallingAeTitleIsRejectedEvenWhenAnyCallerIsAccepted) {
+TEST(DicomNodeTest,
+     EmptyOrNonAsciiCallingAeTitleIsRejectedEvenWhenAnyCallerIsAccepted) {
   TempDir dir;
   WriteFile(dir / "open.yaml", "accept_unknown_callers: true\npeers: []\n");
   DicomServer server(dir, "spool", {"--dicom-peers", dir / "open.yaml"});
@@ -457,7 +458,9 @@ TEST(DicomNodeTest, EmptyOrNonAsciiCallingAeTitleIsRejectedEvenWhenAnyCallerIsAc
   const int second = raw::Connect(std::stoi(server.port()));
   ASSERT_GE(second, 0);
   ASSERT_TRUE(raw::SendAll(
-      second, raw::AssociateRq("INTERSLICE", "ST\xb7\xad\xba\xac" "CU",
+      second, raw::AssociateRq("INTERSLICE",
+                               "ST\xb7\xad\xba\xac"
+                               "CU",
                                {{1,
                                  UID_CTImageStorage,
                                  {UID_LittleEndianExplicitTransferSyntax}}})));
