@@ -289,6 +289,42 @@ std::vector<float> MinJacobian(const CoarseDisplacement& u) {
 
 inline double Ramp(double x) { return std::clamp(x, 0.0, 1.0); }
 
+// The pair check's smoothing is cropped with this margin, in sigmas (see
+// write_gap in MorphIntensity).
+constexpr double kPairCropMarginSigmas = 16.0;
+
+// A half-open box of pixels [x0, x1) x [y0, y1) of a plane; empty until a
+// pixel is added.
+struct PixelBox {
+  int64_t x0 = 0, y0 = 0, x1 = 0, y1 = 0;
+  bool Empty() const { return x1 <= x0 || y1 <= y0; }
+  void Add(int64_t i, int64_t j) {
+    if (Empty()) {
+      x0 = i, y0 = j, x1 = i + 1, y1 = j + 1;
+      return;
+    }
+    x0 = std::min(x0, i), y0 = std::min(y0, j);
+    x1 = std::max(x1, i + 1), y1 = std::max(y1, j + 1);
+  }
+  // Grows the box by `margin` pixels on every side, within nx x ny.
+  void Grow(int64_t margin, int64_t nx, int64_t ny) {
+    x0 = std::max<int64_t>(0, x0 - margin);
+    y0 = std::max<int64_t>(0, y0 - margin);
+    x1 = std::min(nx, x1 + margin);
+    y1 = std::min(ny, y1 + margin);
+  }
+  int64_t Width() const { return x1 - x0; }
+  int64_t Height() const { return y1 - y0; }
+  int64_t Pixels() const { return Width() * Height(); }
+  bool Contains(int64_t i, int64_t j) const {
+    return i >= x0 && i < x1 && j >= y0 && j < y1;
+  }
+  // Row-major index of plane pixel (i, j) inside the box.
+  int64_t Index(int64_t i, int64_t j) const {
+    return (i - x0) + Width() * (j - y0);
+  }
+};
+
 // A bilinear sample that also says whether one of its (weighted) neighbours
 // is the padding value.
 inline float SampleUnpadded(const float* plane, int64_t nx, int64_t ny,
@@ -670,17 +706,65 @@ absl::StatusOr<MorphedIntensity> MorphIntensity(
     // the two samples the morph blends and of the two the linear blend
     // does, smoothed, and the morph's value until the check decides.
     const bool pair_check = options.pair_check && options.register_slices;
-    std::vector<float> pair_morph, pair_linear, morph_value;
+    std::vector<float> pair_morph, morph_value;
     std::vector<uint8_t> candidate;
-    if (pair_check) {
-      pair_morph.resize(plane);
-      pair_linear.resize(plane);
-      morph_value.resize(plane);
-      candidate.resize(plane);
-    }
     const double pair_tolerance =
         options.pair_tolerance_noise * reg[s].pair_unit;
     const double static_limit = options.pair_static_noise * reg[s].pair_unit;
+    // The linear pair is the same two key-slice pixels for every slice of
+    // the gap, so e_linear and the static weight are computed once per gap.
+    // The morph's pair changes with t and is smoothed per slice, but only
+    // where it can change a value: a pixel whose static weight is 0 keeps
+    // w_pair = 1 whatever e_morph is, and so does one the morph does not
+    // reach (weight 0). Its smoothing is therefore restricted to the box of
+    // the pixels with both, grown by kPairCropMarginSigmas sigma: ITK's
+    // recursive Gaussian (Deriche's 4th-order IIR) there differs from the
+    // whole slice's by less than float precision (its responses decay as
+    // exp(-1.5 x / sigma), e^-24 at the margin).
+    std::vector<double> e_linear, static_weight;
+    PixelBox pair_box;  // empty: no pixel where the check can act
+    if (pair_check) {
+      std::vector<float> pair_linear(plane, 0.0f);
+      for (int64_t v = 0; v < plane; ++v) {
+        const float lin0 = g0[v], lin1 = g1[v];
+        if (padding.has_value() && (lin0 == *padding || lin1 == *padding)) {
+          continue;
+        }
+        pair_linear[v] = (lin1 - lin0) * (lin1 - lin0);
+      }
+      absl::StatusOr<std::vector<float>> linear_disagreement =
+          Smooth(pair_linear, nx, ny, options.pair_sigma_px);
+      if (!linear_disagreement.ok()) {
+        fail(linear_disagreement.status());
+        return;
+      }
+      e_linear.resize(plane);
+      static_weight.resize(plane);
+      for (int64_t j = 0; j < ny; ++j)
+        for (int64_t i = 0; i < nx; ++i) {
+          const int64_t v = i + nx * j;
+          e_linear[v] = std::sqrt(std::max(0.0f, (*linear_disagreement)[v]));
+          // Static: the linear pair agrees within the noise (1 up to
+          // pair_static_noise units, 0 from twice that).
+          static_weight[v] = static_limit > 0
+                                 ? Ramp(2.0 - e_linear[v] / static_limit)
+                                 : (e_linear[v] <= 0 ? 1.0 : 0.0);
+          if (static_weight[v] > 0 && weight[v] > 0) pair_box.Add(i, j);
+        }
+      if (!pair_box.Empty() && !options.crop_pair_check) {
+        pair_box = {0, 0, nx, ny};
+      } else if (!pair_box.Empty()) {
+        pair_box.Grow(static_cast<int64_t>(std::ceil(kPairCropMarginSigmas *
+                                                     options.pair_sigma_px)),
+                      nx, ny);
+      }
+      if (!pair_box.Empty()) {
+        pair_morph.resize(pair_box.Pixels());
+        morph_value.resize(plane);
+        candidate.resize(plane);
+      }
+    }
+    const bool pair_crop = !pair_box.Empty();
     for (int64_t k : gap_slices[s]) {
       const double t = place[k].t;
       const double t2 = t * t, t3 = t2 * t;
@@ -694,17 +778,17 @@ absl::StatusOr<MorphedIntensity> MorphIntensity(
         for (int64_t i = 0; i < nx; ++i) {
           const int64_t v = i + nx * j;
           const float lin0 = g0[v], lin1 = g1[v];
-          if (pair_check) {
-            candidate[v] = 0;
-            pair_morph[v] = pair_linear[v] = 0;
-          }
+          const bool in_pair_box = pair_crop && pair_box.Contains(i, j);
+          const int64_t box_v = in_pair_box ? pair_box.Index(i, j) : 0;
+          if (pair_crop) candidate[v] = 0;
+          if (in_pair_box) pair_morph[box_v] = 0;
           if (padding.has_value() && (lin0 == *padding || lin1 == *padding)) {
             dst[v] = *padding;  // outside the scanned field, as linear
             continue;
           }
-          if (pair_check) {
+          if (in_pair_box) {
             const float step = lin1 - lin0;
-            pair_morph[v] = pair_linear[v] = step * step;
+            pair_morph[box_v] = step * step;
           }
           const double linear = (1 - t) * lin0 + t * lin1;
           const bool counted = changing[v] != 0;
@@ -789,47 +873,47 @@ absl::StatusOr<MorphedIntensity> MorphIntensity(
             fallbacks += counted;
             continue;
           }
-          if (pair_check) {
+          if (in_pair_box) {
+            pair_morph[box_v] = static_cast<float>((a1 - a0) * (a1 - a0));
+          }
+          if (pair_crop && static_weight[v] > 0) {
+            // Decided after the smoothing below.
             dst[v] = static_cast<float>(linear);
             morph_value[v] = static_cast<float>(value);
-            pair_morph[v] = static_cast<float>((a1 - a0) * (a1 - a0));
             candidate[v] = 1;
             continue;
           }
+          // The pair check blends the morph's value as a float.
+          if (pair_check) value = static_cast<float>(value);
           if (w < 0.5) fallbacks += counted;
           dst[v] = static_cast<float>(w * value + (1 - w) * linear);
         }
-      if (!pair_check) continue;
+      if (!pair_crop) continue;
       absl::StatusOr<std::vector<float>> morph_disagreement =
-          Smooth(pair_morph, nx, ny, options.pair_sigma_px);
-      absl::StatusOr<std::vector<float>> linear_disagreement =
-          Smooth(pair_linear, nx, ny, options.pair_sigma_px);
-      if (!morph_disagreement.ok() || !linear_disagreement.ok()) {
-        fail(morph_disagreement.ok() ? linear_disagreement.status()
-                                     : morph_disagreement.status());
+          Smooth(pair_morph, pair_box.Width(), pair_box.Height(),
+                 options.pair_sigma_px);
+      if (!morph_disagreement.ok()) {
+        fail(morph_disagreement.status());
         return;
       }
-      for (int64_t v = 0; v < plane; ++v) {
-        if (!candidate[v]) continue;
-        const double e_morph =
-            std::sqrt(std::max(0.0f, (*morph_disagreement)[v]));
-        const double e_linear =
-            std::sqrt(std::max(0.0f, (*linear_disagreement)[v]));
-        // Static: the linear pair agrees within the noise (1 up to
-        // pair_static_noise units, 0 from twice that). Dragged: the morph's
-        // pair disagrees by pair_tolerance_noise units more.
-        const double static_tissue = static_limit > 0
-                                         ? Ramp(2.0 - e_linear / static_limit)
-                                         : (e_linear <= 0 ? 1.0 : 0.0);
-        const double dragged = pair_tolerance > 0
-                                   ? Ramp((e_morph - e_linear) / pair_tolerance)
-                                   : (e_morph > e_linear ? 1.0 : 0.0);
-        const double w_pair = 1.0 - static_tissue * dragged;
-        const double w = weight[v] * w_pair;
-        if (w < 0.5) fallbacks += changing[v] != 0;
-        const double linear = (1 - t) * g0[v] + t * g1[v];
-        dst[v] = static_cast<float>(w * morph_value[v] + (1 - w) * linear);
-      }
+      for (int64_t j = pair_box.y0; j < pair_box.y1; ++j)
+        for (int64_t i = pair_box.x0; i < pair_box.x1; ++i) {
+          const int64_t v = i + nx * j;
+          if (!candidate[v]) continue;
+          const double e_morph = std::sqrt(
+              std::max(0.0f, (*morph_disagreement)[pair_box.Index(i, j)]));
+          // Dragged: the morph's pair disagrees by pair_tolerance_noise
+          // units more than the linear pair.
+          const double dragged =
+              pair_tolerance > 0
+                  ? Ramp((e_morph - e_linear[v]) / pair_tolerance)
+                  : (e_morph > e_linear[v] ? 1.0 : 0.0);
+          const double w_pair = 1.0 - static_weight[v] * dragged;
+          const double w = weight[v] * w_pair;
+          if (w < 0.5) fallbacks += changing[v] != 0;
+          const double linear = (1 - t) * g0[v] + t * g1[v];
+          dst[v] = static_cast<float>(w * morph_value[v] + (1 - w) * linear);
+        }
     }
     fallback_count[s] = fallbacks;
     inserted_count[s] = inserted;

@@ -167,6 +167,12 @@ struct IntensityMorphOptions {
   // 0.06 dB (thin) and 0.36 dB (tilted) at k = 8 against no pair check
   // (docs/eval/intensity-notes.md).
   bool pair_check = true;
+  // Smooth the morph's pair only around the pixels where the check can act
+  // (static weight and morph weight both > 0, plus 16 sigma): the same
+  // values as whole slices to float precision, ~15% less CPU on the CT
+  // phantoms. false smooths whole slices (the reference the crop is tested
+  // against).
+  bool crop_pair_check = true;
   double pair_tolerance_noise = 2.0;
   double pair_static_noise = 8.0;
   double pair_sigma_px = 1.5;

@@ -367,6 +367,70 @@ TEST(MorphIntensityTest, NoisyFlatSlicesAreNoWorseThanTheLinearBlend) {
       << "morph " << morph_error << " HU, linear " << linear_error << " HU";
 }
 
+TEST(MorphIntensityTest, CroppedPairCheckEqualsTheWholeSlicesCheck) {
+  // The pair check smooths the morph's pair only around the pixels where it
+  // can act (IntensityMorphOptions::crop_pair_check). On a 256 px slice whose
+  // only motion (an oblique edge moving 24 px, a static disc beside it) sits
+  // off centre, so that the box is smaller than the slice and does not start
+  // at its corner, the values must be those of the whole slices' check.
+  constexpr int64_t n = 256;
+  std::mt19937 random(31);
+  std::normal_distribution<float> noise(0.0f, 4.0f);
+  const double disc_cx = 190, disc_cy = 200, disc_r = 12;
+  auto slice = [&](double edge_row, float* out) {
+    for (int64_t j = 0; j < n; ++j)
+      for (int64_t i = 0; i < n; ++i) {
+        double value = -1000;
+        if (i > 150 && i < 235 && j > 120 && j < edge_row + (i - 150) * 0.3) {
+          value = 90;
+        }
+        if (std::hypot(i - disc_cx, j - disc_cy) <= disc_r) value = 105;
+        out[i + n * j] = static_cast<float>(value) + noise(random);
+      }
+  };
+  Volume<float> keys;
+  keys.grid.size = {n, n, 2};
+  keys.grid.spacing = {kPixelMm, kPixelMm, 2.0};
+  keys.data.resize(2 * n * n);
+  slice(170, keys.data.data());
+  slice(146, keys.data.data() + n * n);
+  const std::vector<double> positions = {0.0, 2.0};
+  Grid target = keys.grid;
+  target.size[2] = 5;
+  target.spacing[2] = 0.5;
+  ComputeContext context;
+  IntensityMorphOptions cropped;
+  ASSERT_TRUE(cropped.crop_pair_check);
+  IntensityMorphOptions whole;
+  whole.crop_pair_check = false;
+  auto a = MorphIntensity(keys, positions, target, std::nullopt, nullptr,
+                          cropped, context);
+  auto b = MorphIntensity(keys, positions, target, std::nullopt, nullptr, whole,
+                          context);
+  ASSERT_TRUE(a.ok()) << a.status();
+  ASSERT_TRUE(b.ok()) << b.status();
+  ASSERT_EQ(a->values.data.size(), b->values.data.size());
+  double max_difference = 0;
+  for (size_t v = 0; v < a->values.data.size(); ++v) {
+    max_difference = std::max<double>(
+        max_difference, std::abs(a->values.data[v] - b->values.data[v]));
+  }
+  EXPECT_LE(max_difference, 1e-3);
+  EXPECT_EQ(a->statistics.fallback_voxels, b->statistics.fallback_voxels);
+  // The check acted on this case (else the test pins nothing).
+  IntensityMorphOptions unchecked;
+  unchecked.pair_check = false;
+  auto c = MorphIntensity(keys, positions, target, std::nullopt, nullptr,
+                          unchecked, context);
+  ASSERT_TRUE(c.ok()) << c.status();
+  double check_effect = 0;
+  for (size_t v = 0; v < a->values.data.size(); ++v) {
+    check_effect = std::max<double>(
+        check_effect, std::abs(a->values.data[v] - c->values.data[v]));
+  }
+  EXPECT_GT(check_effect, 5.0);
+}
+
 TEST(MorphIntensityTest, StaticTissueNextToALargeMotionIsNotDragged) {
   // What made the morph worse than linear in homogeneous soft tissue of the
   // CT phantoms at every 2nd slice: soft tissue (an insert, 90 HU, on air)
