@@ -9,6 +9,7 @@
 #include <filesystem>
 #include <fstream>
 #include <functional>
+#include <future>
 #include <limits>
 #include <optional>
 #include <system_error>
@@ -615,6 +616,34 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
     report.output_grid = stacked.field.grid;
   }
 
+  // The intensity morph (written in the write stage) needs only the source
+  // slices and the output grid, so it runs from here on beside the solve,
+  // mesh and preview stages, which leave a core idle much of the time (the
+  // Encapsulated STL's simplification and the mesh writer are serial): on
+  // the CT phantom with the shipped rule, the job takes ~25% less time. It
+  // runs on its own thread with the job's thread count (so the job briefly
+  // uses one thread more than ComputeContext::threads), reports no progress
+  // of its own (Report is never called concurrently; the write stage says
+  // "intensity" when it takes the result) and polls the same cancellation.
+  // The future is declared after everything it reads, so an early return
+  // waits for it before they go.
+  std::optional<float> intensity_padding;
+  std::future<absl::StatusOr<MorphedIntensity>> morphing;
+  if (wants_intensity) {
+    INTERSLICE_ASSIGN_OR_RETURN(intensity_padding, SourcePixelPadding(source));
+    if (spec.intensity_method == "morph") {
+      ComputeContext morph_context = context;
+      morph_context.progress = nullptr;
+      morphing = std::async(
+          std::launch::async, [&image, &positions, grid = stacked.field.grid,
+                               padding = intensity_padding,
+                               morph_context = std::move(morph_context)] {
+            return MorphIntensity(image, positions, grid, padding, nullptr,
+                                  IntensityMorphOptions(), morph_context);
+          });
+    }
+  }
+
   // solve
   {
     StageClock clock(report, context, "solve");
@@ -792,16 +821,14 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
             objects.intensity,
             PlanEnhancedIntensity(source, objects.intensity, dicom_options));
       }
-      INTERSLICE_ASSIGN_OR_RETURN(const std::optional<float> padding,
-                                  SourcePixelPadding(source));
+      const std::optional<float> padding = intensity_padding;
       report.intensity_method = spec.intensity_method;
       if (spec.intensity_method == "morph") {
         dicom_options.intensity_interpolation =
             DicomWriteOptions::IntensityInterpolation::kMorph;
-        INTERSLICE_ASSIGN_OR_RETURN(
-            MorphedIntensity morphed,
-            MorphIntensity(image, positions, field.grid, padding, nullptr,
-                           IntensityMorphOptions(), context));
+        context.Report({.stage = "intensity", .fraction = 0});
+        INTERSLICE_ASSIGN_OR_RETURN(MorphedIntensity morphed, morphing.get());
+        context.Report({.stage = "intensity", .fraction = 1});
         intensity = std::move(morphed.values);
         const IntensityMorphStatistics& stats = morphed.statistics;
         report.intensity_gaps = stats.gaps;
