@@ -1,11 +1,14 @@
 #include "core/pipeline/pipeline.h"
 
 #include <algorithm>
+#include <atomic>
+#include <chrono>
 #include <cmath>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <map>
+#include <thread>
 
 #include "core/dicom/series_reader.h"
 #include "core/sdf/signed_distance.h"
@@ -255,6 +258,47 @@ TEST_F(PipelineTest, CancellationStopsTheJobAndWritesNothing) {
   const auto report = RunJob(spec, context);
   EXPECT_EQ(report.status().code(), absl::StatusCode::kCancelled);
   EXPECT_FALSE(fs::exists(dir_ / "distance.nrrd"));
+}
+
+// The intensity morph runs on its own thread beside the solve, mesh and
+// preview stages: progress is still never reported concurrently, the
+// "intensity" stage is still reported, and a job cancelled during the solve
+// ends cancelled with no intensity series (the morph's thread is waited for
+// before what it reads goes: ASan/TSan would see it otherwise).
+TEST_F(PipelineTest, IntensityMorphBesideTheShapeStages) {
+  JobSpec spec = SmallJob();
+  spec.output_series = {"intensity"};
+  spec.intensity_method = "morph";
+  spec.volume_formats = {};
+  std::atomic<int> inside{0};
+  std::atomic<bool> overlapped{false};
+  std::vector<std::string> stages;
+  ComputeContext context;
+  context.threads = 2;
+  context.progress = [&](const ProgressEvent& e) {
+    if (inside.fetch_add(1) != 0) overlapped = true;
+    if (stages.empty() || stages.back() != e.stage) stages.push_back(e.stage);
+    std::this_thread::sleep_for(std::chrono::milliseconds(2));
+    inside.fetch_sub(1);
+  };
+  absl::StatusOr<JobReport> report = RunJob(spec, context);
+  ASSERT_TRUE(report.ok()) << report.status();
+  EXPECT_FALSE(overlapped.load());
+  EXPECT_THAT(stages, ::testing::Contains("intensity"));
+  EXPECT_EQ(report->intensity_method, "morph");
+  EXPECT_GT(report->intensity_gaps, 0);
+
+  CancellationToken token;
+  ComputeContext cancelling;
+  cancelling.threads = 2;
+  cancelling.cancel = &token;
+  cancelling.progress = [&](const ProgressEvent& e) {
+    if (e.stage == "solve") token.Cancel();
+  };
+  spec.output_dir = (dir_ / "cancelled").string();
+  const auto cancelled = RunJob(spec, cancelling);
+  EXPECT_EQ(cancelled.status().code(), absl::StatusCode::kCancelled);
+  EXPECT_FALSE(fs::exists(dir_ / "cancelled" / "series-intensity"));
 }
 
 TEST_F(PipelineTest, RejectsBadSpecsWithClearErrors) {
