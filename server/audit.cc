@@ -84,6 +84,8 @@ const char* AtnaEventFor(const std::string& event) {
       {"job.cancel_requested", "110103 DICOM Instances Accessed"},
       {"job.fetched", "110106 Export"},
       {"jobs.listed", "110112 Query"},
+      {"kept.listed", "110112 Query"},
+      {"kept.rerun", "110103 DICOM Instances Accessed"},
       {"status.viewed", "110112 Query"},
       {"delivery.delivered", "110104 DICOM Instances Transferred"},
       {"delivery.failed", "110104 DICOM Instances Transferred"},

@@ -69,7 +69,8 @@ Metrics::Metrics() : registry_(std::make_shared<prometheus::Registry>()) {
         "instances_refused", "series_completed", "jobs_created",
         "series_incomplete", "series_incomplete_dropped",
         "presentation_contexts_refused", "config_reload_refused",
-        "instances_moved"}) {
+        "instances_moved", "series_resent_unchanged",
+        "instances_other_frame_of_reference"}) {
     dicom_->Add({{"event", event}});
   }
   dicom_refused_ =

@@ -67,6 +67,10 @@ TEST(AuditLogTest, WritesOneJsonObjectPerLineWithTheAtnaEvent) {
               ::testing::MatchesRegex("20[0-9-]+T[0-9:]+\\.[0-9]{3}Z"));
   const nlohmann::json second = nlohmann::json::parse(lines[1]);
   EXPECT_EQ(second["atna"], "110104 DICOM Instances Transferred");
+  // Every event the server records has its own ATNA mapping (the fallback
+  // is for names that are not ours).
+  EXPECT_STREQ(AtnaEventFor("kept.listed"), "110112 Query");
+  EXPECT_STREQ(AtnaEventFor("kept.rerun"), "110103 DICOM Instances Accessed");
   EXPECT_EQ(second["outcome"], "serious failure");
   EXPECT_EQ(second["count"], 3);
   EXPECT_EQ(second["peer"], "pacs");

@@ -1469,6 +1469,16 @@ TEST(DicomEdgeTest, QueryRetrieveAssociationsAreCountedAsRejected) {
   TempDir dir;
   DicomServer server(dir, "spool", {"--dicom-peers", WritePeers(dir)});
   ASSERT_TRUE(server.up()) << server.Log();
+  // Every event docs/dicom-node.md names is exposed from the start (at 0),
+  // so a dashboard's rate() has a series before the first one happens.
+  for (const char* event :
+       {"series_resent_unchanged", "instances_other_frame_of_reference",
+        "instances_moved", "series_incomplete_dropped"}) {
+    EXPECT_EQ(server.Metric(absl::StrCat(
+                  "interslice_dicom_events_total{event=\"", event, "\"}")),
+              0)
+        << event;
+  }
   const std::vector<std::string> query = {
       "-S",         "-k",        "QueryRetrieveLevel=STUDY",
       "-aet",       "STORESCU",  "-aec",
