@@ -1185,6 +1185,7 @@ absl::Status JobManager::RetrieveFromPeer(const std::shared_ptr<Job>& job,
   options.tls = deliveries_->options().tls;
   options.pending_moves = pending_moves_;
   options.move_destination_ae = move_destination_ae_;
+  options.cancel = &job->token_;
   options.max_bytes =
       std::min(options_.max_upload_bytes, spool_->quota_bytes());
   const auto started = std::chrono::steady_clock::now();

@@ -592,7 +592,8 @@ int RunServer(ServerOptions options) {
     manager.SetDeliveryQueue(outbox.get());
   }
   if (absl::Status s = manager.Recover(); !s.ok()) return fail(s);
-  manager.Start();
+  // The workers start after the DICOM listener (below): a recovered job that
+  // pulls by C-MOVE needs the listener as its move destination.
   if (outbox != nullptr) outbox->Start();
   // A wrong host, port or AE title of a peer shows at start (a warning and
   // interslice_dicom_peer_reachable{peer} 0), not after a day of delivery
@@ -646,6 +647,7 @@ int RunServer(ServerOptions options) {
     dicom_scp = *std::move(scp);
     assembler->Start();
   }
+  manager.Start();
 
   Executor io(options.io_threads);
   ServiceOptions service_options;

@@ -97,21 +97,35 @@ void PendingMoves::Move::RemoveKept() {
 absl::StatusOr<std::shared_ptr<PendingMoves::Move>> PendingMoves::Register(
     const std::string& calling_ae, const std::string& study_uid,
     const std::string& series_uid, const std::string& dest_dir,
-    int64_t max_instances, int64_t max_bytes) {
-  std::lock_guard<std::mutex> lock(mu_);
-  Expire();
+    int64_t max_instances, int64_t max_bytes,
+    const std::function<absl::Status()>& may_wait) {
   const Key key{Trim(calling_ae), study_uid, series_uid};
-  if (auto it = moves_.find(key); it != moves_.end()) {
-    std::lock_guard<std::mutex> move_lock(it->second->mu_);
-    if (!it->second->closed_) {
+  for (;;) {
+    std::shared_ptr<Move> busy;
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      Expire();
+      if (auto it = moves_.find(key); it != moves_.end()) {
+        std::lock_guard<std::mutex> move_lock(it->second->mu_);
+        if (!it->second->closed_) busy = it->second;
+      }
+      if (busy == nullptr) {
+        auto move = std::make_shared<Move>(dest_dir, max_instances, max_bytes);
+        moves_[key] = move;
+        return move;
+      }
+    }
+    if (!may_wait) {
       return absl::FailedPreconditionError(
           "another job is moving the same series from this peer right now; "
           "try again when it has finished");
     }
+    if (absl::Status wait = may_wait(); !wait.ok()) return wait;
+    // Without the registry's lock: the listener goes on meanwhile.
+    std::unique_lock<std::mutex> move_lock(busy->mu_);
+    busy->cv_.wait_for(move_lock, std::chrono::milliseconds(200),
+                       [&] { return busy->closed_; });
   }
-  auto move = std::make_shared<Move>(dest_dir, max_instances, max_bytes);
-  moves_[key] = move;
-  return move;
 }
 
 void PendingMoves::Close(const std::shared_ptr<Move>& move) {

@@ -11,8 +11,11 @@
 // assembler as any other instance.
 //
 // Contract:
-// - One pending move per key: Register fails (FAILED_PRECONDITION) while
-//   another move of the same series from the same peer is in progress.
+// - One pending move per key: while another move of the same series from
+//   the same peer is in progress, Register waits for it to end (two jobs
+//   pulling the same series run their moves one after the other), as long
+//   as its `may_wait` says OK (polled every 200 ms; without one it fails at
+//   once with FAILED_PRECONDITION).
 // - Move::Accept writes durably (fsync, rename, fsync of the folder: the
 //   same helpers as the assembler, series_assembler.h) a received file that
 //   already passed the bounded scan, within max_instances / max_bytes (past
@@ -31,6 +34,7 @@
 #include <chrono>
 #include <condition_variable>
 #include <cstdint>
+#include <functional>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -91,13 +95,15 @@ class PendingMoves {
   };
 
   // A move of the series from the peer calling as `calling_ae` into
-  // `dest_dir` (which must exist).
-  absl::StatusOr<std::shared_ptr<Move>> Register(const std::string& calling_ae,
-                                                 const std::string& study_uid,
-                                                 const std::string& series_uid,
-                                                 const std::string& dest_dir,
-                                                 int64_t max_instances,
-                                                 int64_t max_bytes);
+  // `dest_dir` (which must exist). While the same series from the same peer
+  // is being moved, waits for that move to end while `may_wait` returns OK
+  // (its other status is returned: the job was cancelled, or waited long
+  // enough); a null `may_wait` does not wait (FAILED_PRECONDITION).
+  absl::StatusOr<std::shared_ptr<Move>> Register(
+      const std::string& calling_ae, const std::string& study_uid,
+      const std::string& series_uid, const std::string& dest_dir,
+      int64_t max_instances, int64_t max_bytes,
+      const std::function<absl::Status()>& may_wait = nullptr);
   // The move ended (successfully or not): later instances are refused.
   void Close(const std::shared_ptr<Move>& move);
 

@@ -3,6 +3,7 @@
 #include <fcntl.h>
 #include <unistd.h>
 
+#include <chrono>
 #include <cstdio>
 #include <filesystem>
 #include <memory>
@@ -12,12 +13,15 @@
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "core/common/status_macros.h"
 #include "core/dicom/series_reader.h"
 #include "server/dicom/dataset_scan.h"
 #include "server/dicom/pending_moves.h"
 #include "server/dicom/scu.h"
 #include "server/dicom/tls.h"
 #include "server/dicomweb/pull.h"
+#include "server/log_safe.h"
+#include "spdlog/spdlog.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
@@ -322,10 +326,31 @@ absl::StatusOr<RetrieveResult> RetrieveSeries(
           "server's DICOM listener (--dicom-listen) as the move "
           "destination"));
     }
+    const auto wait_until = std::chrono::steady_clock::now() +
+                            std::chrono::seconds(options.move_wait_seconds);
+    bool waited = false;
     absl::StatusOr<std::shared_ptr<PendingMoves::Move>> move =
         options.pending_moves->Register(
             peer.ae_title, study_instance_uid, series_instance_uid, dest_dir,
-            options.max_instances, options.max_bytes);
+            options.max_instances, options.max_bytes, [&]() -> absl::Status {
+              if (!waited) {
+                spdlog::info(
+                    "{}: another job is moving the same series; this one "
+                    "waits for it",
+                    LogSafe(PeerLabel(peer)));
+                waited = true;
+              }
+              if (options.cancel != nullptr) {
+                INTERSLICE_RETURN_IF_ERROR(options.cancel->Check());
+              }
+              if (std::chrono::steady_clock::now() >= wait_until) {
+                return absl::FailedPreconditionError(absl::StrCat(
+                    "another job has been moving the same series from ",
+                    PeerLabel(peer), " for over ", options.move_wait_seconds,
+                    " s; try again when it has finished"));
+              }
+              return absl::OkStatus();
+            });
     if (!move.ok()) return move.status();
     absl::StatusOr<RetrieveResult> result = MoveSeries(
         peer, study_instance_uid, series_instance_uid, **move, options);

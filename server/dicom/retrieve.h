@@ -53,6 +53,7 @@
 #include <string>
 
 #include "absl/status/statusor.h"
+#include "core/common/compute.h"
 #include "server/dicom/peer.h"
 
 namespace interslice::server::dicom {
@@ -71,6 +72,11 @@ struct RetrieveOptions {
   // (null: the server runs no listener).
   std::string move_destination_ae;
   PendingMoves* pending_moves = nullptr;
+  // A C-MOVE waits for another job's move of the same series from the same
+  // peer to end, at most this long (then FAILED_PRECONDITION) and only while
+  // `cancel` (the job's, may be null) is not cancelled.
+  int move_wait_seconds = 3600;
+  const CancellationToken* cancel = nullptr;
 };
 
 struct RetrieveResult {

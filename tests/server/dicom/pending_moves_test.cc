@@ -1,5 +1,6 @@
 #include "server/dicom/pending_moves.h"
 
+#include <atomic>
 #include <chrono>
 #include <filesystem>
 #include <fstream>
@@ -37,6 +38,50 @@ class PendingMovesTest : public ::testing::Test {
   fs::path dest_ = dir_.path() / "job";
   int n_ = 0;
 };
+
+// Two jobs pulling the same series from the same peer: the second's move
+// waits for the first to end instead of failing at once, and gives up with
+// its own status (cancelled) when told to.
+TEST_F(PendingMovesTest, SecondMoveOfTheSameSeriesWaitsForTheFirst) {
+  PendingMoves moves;
+  auto first =
+      moves.Register("ORTHANC", "1.2", "1.2.3", dest_.string(), 10, 1000);
+  ASSERT_TRUE(first.ok()) << first.status();
+  std::atomic<bool> closed{false};
+  std::atomic<int> polls{0};
+  absl::StatusOr<std::shared_ptr<PendingMoves::Move>> second =
+      absl::UnknownError("not registered");
+  std::thread waiter([&] {
+    second = moves.Register("ORTHANC", "1.2", "1.2.3", dest_.string(), 10, 1000,
+                            [&] {
+                              ++polls;
+                              return absl::OkStatus();
+                            });
+    // Only after the first move closed.
+    EXPECT_TRUE(closed.load());
+  });
+  const auto deadline =
+      std::chrono::steady_clock::now() + std::chrono::seconds(30);
+  while (polls.load() < 2 && std::chrono::steady_clock::now() < deadline) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  EXPECT_GE(polls.load(), 2);  // still waiting after a poll period
+  // A move of another series from the same peer is not held up meanwhile.
+  EXPECT_TRUE(
+      moves.Register("ORTHANC", "1.2", "1.2.4", dest_.string(), 10, 1000).ok());
+  closed = true;
+  moves.Close(*first);
+  waiter.join();
+  ASSERT_TRUE(second.ok()) << second.status();
+  EXPECT_NE(*second, *first);
+  EXPECT_EQ(moves.Find("ORTHANC", "1.2", "1.2.3"), *second);
+
+  // A third one while the second is open, whose job is cancelled.
+  auto third = moves.Register("ORTHANC", "1.2", "1.2.3", dest_.string(), 10,
+                              1000, [] { return absl::CancelledError("job"); });
+  EXPECT_EQ(third.status().code(), absl::StatusCode::kCancelled);
+  EXPECT_EQ(moves.Find("ORTHANC", "1.2", "1.2.3"), *second);
+}
 
 TEST_F(PendingMovesTest, KeepsInstancesOfItsSeriesFromItsPeerOnly) {
   PendingMoves moves;
