@@ -15,6 +15,9 @@
 namespace interslice::client {
 namespace {
 
+// How long one connection attempt may take (see Connection::Open).
+constexpr int kMinConnectTimeoutMs = 5000;
+
 absl::StatusOr<std::string> ReadFile(const std::string& path,
                                      const std::string& option) {
   std::ifstream in(path, std::ios::binary);
@@ -100,8 +103,13 @@ absl::StatusOr<Connection> Connection::Open(const ConnectionOptions& options) {
   // addresses that are down.
   args.SetLoadBalancingPolicyName("round_robin");
   // A replica that restarts is used again within a second or so.
+  // GRPC_ARG_MIN_RECONNECT_BACKOFF_MS is what gRPC gives one connection
+  // attempt (TCP, TLS, the server's HTTP/2 SETTINGS; default 20 s): at 200
+  // ms a server whose first answer was slower (TLS over a WAN, a loaded
+  // host) was reported unreachable; 5 s still gives up on an address that
+  // silently went away (a rescheduled pod) soon enough to try the next.
   args.SetInt(GRPC_ARG_INITIAL_RECONNECT_BACKOFF_MS, 200);
-  args.SetInt(GRPC_ARG_MIN_RECONNECT_BACKOFF_MS, 200);
+  args.SetInt(GRPC_ARG_MIN_RECONNECT_BACKOFF_MS, kMinConnectTimeoutMs);
   args.SetInt(GRPC_ARG_MAX_RECONNECT_BACKOFF_MS, 1000);
   c.channel_ = grpc::CreateCustomChannel(ShuffleStaticList(options.server),
                                          credentials, args);

@@ -304,8 +304,11 @@ std::shared_ptr<v1::InterSlice::Stub> Forwarder::StubFor(
     grpc::ChannelArguments args;
     // A restarted owner is used again within a second or so, and a pod that
     // came back with a new IP address is found by its name again.
+    // GRPC_ARG_MIN_RECONNECT_BACKOFF_MS is what gRPC gives one connection
+    // attempt (TLS handshake included): 5 s, not 200 ms, which made a loaded
+    // owner "unavailable" (as in client/grpc_channel.cc).
     args.SetInt(GRPC_ARG_INITIAL_RECONNECT_BACKOFF_MS, 200);
-    args.SetInt(GRPC_ARG_MIN_RECONNECT_BACKOFF_MS, 200);
+    args.SetInt(GRPC_ARG_MIN_RECONNECT_BACKOFF_MS, 5000);
     args.SetInt(GRPC_ARG_MAX_RECONNECT_BACKOFF_MS, 1000);
     args.SetInt(GRPC_ARG_DNS_MIN_TIME_BETWEEN_RESOLUTIONS_MS, 1000);
     args.SetInt(GRPC_ARG_ENABLE_RETRIES, 0);
