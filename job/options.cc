@@ -90,8 +90,8 @@ constexpr OptionDef<IO> kInterpolationOptions[] = {
      &IO::dicom_layout,
      "Layout of the DICOM intensity series: classic (one CT/MR image per "
      "slice, DIR/series-intensity/IM00001.dcm ...) or enhanced (one Enhanced "
-     "CT multi-frame instance, DIR/series-intensity/enhanced.dcm; CT "
-     "sources only)"},
+     "CT or Enhanced MR multi-frame instance, "
+     "DIR/series-intensity/enhanced.dcm; CT and MR sources only)"},
     {"intensity_method", "spec.derived_series.intensity_method",
      ValueKind::kText, &IO::intensity_method,
      "Grey values of the DICOM intensity series between source slices: morph "

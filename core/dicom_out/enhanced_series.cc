@@ -1,12 +1,25 @@
-// WriteEnhancedIntensity: the intensity volume as one Enhanced CT Image
-// instance (DCMTK dcmect + dcmfg).
+// WriteEnhancedIntensity: the intensity volume as one Enhanced CT Image or
+// Enhanced MR Image instance (DCMTK dcmect + dcmfg).
+//
+// Both IODs have the same modules but their modality-specific image module
+// and series module (PS3.3 A.38.1 and A.36.2), and the same functional
+// groups but the image frame type (CT Image Frame Type, C.8.15.3.1; MR Image
+// Frame Type, C.8.13.5.1) and, for CT, Irradiation Event Identification.
+// DCMTK 3.6.7 has a class for Enhanced CT (EctEnhancedCT) but none for
+// Enhanced MR, so both are built with EctEnhancedCT as the container of the
+// shared dcmiod modules, the dcmfg functional groups and the frames; for MR
+// the encoded dataset then gets the SOP class, the Enhanced MR Image
+// module's attributes and the shared MR Image Frame Type group written here
+// (ConvertToEnhancedMr), and never the CT-only groups.
 #include "core/dicom_out/enhanced_series.h"
 
 #include <algorithm>
 #include <cstdint>
+#include <initializer_list>
 #include <limits>
 #include <memory>
 #include <optional>
+#include <set>
 #include <string>
 #include <vector>
 
@@ -61,10 +74,24 @@ using dicom_out_internal::StoredPaddingValue;
 using dicom_out_internal::ValidateOutputGrid;
 using dicom_out_internal::Window;
 
+// The enhanced IOD written for a source, by its modality.
+enum class EnhancedIod { kCt, kMr };
+
+const char* IodName(EnhancedIod iod) {
+  return iod == EnhancedIod::kCt ? "Enhanced CT" : "Enhanced MR";
+}
+
+// kCt for "CT", kMr for "MR"; nullopt for every other modality.
+std::optional<EnhancedIod> IodForModality(const std::string& modality) {
+  if (modality == "CT") return EnhancedIod::kCt;
+  if (modality == "MR") return EnhancedIod::kMr;
+  return std::nullopt;
+}
+
 absl::Status Check(const OFCondition& cond, const std::string& what) {
   if (cond.good()) return absl::OkStatus();
   return absl::InternalError(
-      absl::StrCat("Enhanced CT: cannot ", what, ": ", cond.text()));
+      absl::StrCat("enhanced intensity: cannot ", what, ": ", cond.text()));
 }
 
 // Body Part Examined -> the SNOMED CT anatomic region of PS3.16 Annex L
@@ -139,7 +166,9 @@ WindowText FormatWindows(const std::vector<Window>& windows) {
 // Source Image Evidence Sequence (Enhanced CT Image module, type 1C: the
 // frames' Derivation Image items reference source images): the source
 // instances, as a Hierarchical SOP Instance Reference (study, series,
-// instances). Absent when the source cannot be referenced (anonymised).
+// instances), each instance once (the frames of a multi-frame source are
+// slices of one instance). Absent when the source cannot be referenced
+// (anonymised).
 void AddSourceImageEvidence(const DicomSeries& source, DcmItem& to) {
   if (source.series_instance_uid.empty() || source.sop_class_uid.empty() ||
       source.study_instance_uid.empty()) {
@@ -147,8 +176,12 @@ void AddSourceImageEvidence(const DicomSeries& source, DcmItem& to) {
   }
   DcmItem* study = nullptr;
   DcmItem* series = nullptr;
+  std::set<std::string> listed;
   for (const DicomSliceInfo& slice : source.slices) {
-    if (slice.sop_instance_uid.empty()) continue;
+    if (slice.sop_instance_uid.empty() ||
+        !listed.insert(slice.sop_instance_uid).second) {
+      continue;
+    }
     if (study == nullptr) {
       to.findOrCreateSequenceItem(DCM_SourceImageEvidenceSequence, study, 0);
       study->putAndInsertString(DCM_StudyInstanceUID,
@@ -167,6 +200,19 @@ void AddSourceImageEvidence(const DicomSeries& source, DcmItem& to) {
   }
 }
 
+// True when source slice s is one frame of a multi-frame instance (not its
+// only frame, or an instance other slices are frames of too), which a
+// reference then names by frame number.
+bool IsFrameOfMultiFrameInstance(const DicomSeries& source, int64_t s) {
+  const DicomSliceInfo& slice = source.slices[static_cast<size_t>(s)];
+  if (slice.frame > 0) return true;
+  return std::count_if(source.slices.begin(), source.slices.end(),
+                       [&slice](const DicomSliceInfo& other) {
+                         return other.sop_instance_uid ==
+                                slice.sop_instance_uid;
+                       }) > 1;
+}
+
 // The per-frame groups of output slice k.
 struct FrameGroups {
   std::unique_ptr<FGPlanePosPatient> position;
@@ -183,7 +229,8 @@ absl::StatusOr<std::unique_ptr<FrameGroups>> MakeFrameGroups(
       FormatDecimalString(p[0]).c_str(), FormatDecimalString(p[1]).c_str(),
       FormatDecimalString(p[2]).c_str()));
   if (groups->position == nullptr) {
-    return absl::InternalError("Enhanced CT: cannot create a plane position");
+    return absl::InternalError(
+        "enhanced intensity: cannot create a plane position");
   }
   // One stack, frames in order along the normal (PS3.3 C.7.6.16.2.2.4).
   INTERSLICE_RETURN_IF_ERROR(
@@ -236,10 +283,186 @@ absl::StatusOr<std::unique_ptr<FrameGroups>> MakeFrameGroups(
                     .setReferencedSOPInstanceUID(
                         source.slices[s].sop_instance_uid.c_str()),
                 "reference a source image"));
+      if (IsFrameOfMultiFrameInstance(source, s)) {
+        // A multi-frame source (an enhanced CT/MR): slice s is one frame of
+        // its instance.
+        INTERSLICE_RETURN_IF_ERROR(
+            Check(source_item->getImageSOPInstanceReference()
+                      .addReferencedFrameNumber(
+                          static_cast<Uint16>(source.slices[s].frame + 1)),
+                  "reference a source frame"));
+      }
       item->getSourceImageItems().push_back(source_item);
     }
   }
   return groups;
+}
+
+// Image Type / Frame Type of every frame (PS3.3 C.8.16.1): derived, primary
+// (it shows the anatomy, not a measure of it), a volume, resampled.
+constexpr char kDerivedFrameType[] = "DERIVED\\PRIMARY\\VOLUME\\RESAMPLED";
+
+// The MR Image Description macro (PS3.3 C.8.13.3) of the source: what its
+// values are (ComplexImageComponent) and weighted by (AcquisitionContrast).
+struct MrImageDescription {
+  std::string complex_image_component;
+  std::string acquisition_contrast;
+  // MR Image and Spectroscopy Instance macro (C.8.13.2), type 1C; the
+  // dciodvfy of Debian bookworm (2022) requires it of our DERIVED frames.
+  std::string applicable_safety_standard_agency;
+};
+
+// The value of `tag` in the MR Image Frame Type of the source's frame
+// `frame` (per frame, then shared), else at the top level of `src`; empty
+// when absent or not one of `allowed` (the defined terms).
+std::string SourceMrValue(DcmItem& src, int frame, const DcmTagKey& tag,
+                          std::initializer_list<const char*> allowed) {
+  std::vector<DcmItem*> places;
+  DcmItem* group = nullptr;
+  DcmItem* type = nullptr;
+  if (src.findAndGetSequenceItem(DCM_PerFrameFunctionalGroupsSequence, group,
+                                 frame)
+          .good() &&
+      group->findAndGetSequenceItem(DCM_MRImageFrameTypeSequence, type, 0)
+          .good()) {
+    places.push_back(type);
+  }
+  if (src.findAndGetSequenceItem(DCM_SharedFunctionalGroupsSequence, group, 0)
+          .good() &&
+      group->findAndGetSequenceItem(DCM_MRImageFrameTypeSequence, type, 0)
+          .good()) {
+    places.push_back(type);
+  }
+  places.push_back(&src);
+  for (DcmItem* place : places) {
+    OFString value;
+    if (place->findAndGetOFString(tag, value).bad() || value.empty()) continue;
+    for (const char* term : allowed) {
+      if (value == term) return term;
+    }
+  }
+  return "";
+}
+
+// The source's description, for frames that hold its values resampled: its
+// complex component (an MR Image source has none: MAGNITUDE, what MR images
+// show unless they say otherwise) and its contrast (UNKNOWN, a defined term
+// of AcquisitionContrast, when it does not say).
+MrImageDescription SourceMrDescription(DcmItem& src,
+                                       const DicomSeries& source) {
+  const int frame = source.slices.empty() ? 0 : source.slices.front().frame;
+  MrImageDescription d;
+  d.complex_image_component =
+      SourceMrValue(src, frame, DCM_ComplexImageComponent,
+                    {"MAGNITUDE", "PHASE", "REAL", "IMAGINARY"});
+  if (d.complex_image_component.empty())
+    d.complex_image_component = "MAGNITUDE";
+  d.acquisition_contrast =
+      SourceMrValue(src, frame, DCM_AcquisitionContrast,
+                    {"DIFFUSION", "FLOW_ENCODED", "FLUID_ATTENUATED",
+                     "PERFUSION", "PROTON_DENSITY", "STIR", "TAGGING", "T1",
+                     "T2", "T2_STAR", "TOF", "UNKNOWN"});
+  if (d.acquisition_contrast.empty()) d.acquisition_contrast = "UNKNOWN";
+  // The agency whose MR safety standard the acquisition followed: the
+  // source's, else IEC (IEC 60601-2-33, the international MR equipment
+  // safety standard; an MR Image source does not say).
+  d.applicable_safety_standard_agency = SourceMrValue(
+      src, frame, DCM_ApplicableSafetyStandardAgency, {"IEC", "FDA", "MHW"});
+  if (d.applicable_safety_standard_agency.empty()) {
+    d.applicable_safety_standard_agency = "IEC";
+  }
+  return d;
+}
+
+// Writes the Common CT/MR (C.8.16.2) and MR (C.8.13.3) Image Description
+// macros' values of our frames into `to`.
+void PutMrImageDescription(const MrImageDescription& d, DcmItem& to) {
+  to.putAndInsertString(DCM_PixelPresentation, "MONOCHROME");
+  to.putAndInsertString(DCM_VolumetricProperties, "VOLUME");
+  to.putAndInsertString(DCM_VolumeBasedCalculationTechnique, "NONE");
+  to.putAndInsertString(DCM_ComplexImageComponent,
+                        d.complex_image_component.c_str());
+  to.putAndInsertString(DCM_AcquisitionContrast,
+                        d.acquisition_contrast.c_str());
+}
+
+// Turns the encoded object into an Enhanced MR Image (PS3.3 A.36.2): its SOP
+// class, the MR Series module's Modality, and the Enhanced MR Image module
+// (C.8.13.1) in place of the Enhanced CT Image module: the same Image Type,
+// Content Qualification and Common CT/MR Image Description macro (written
+// by EctEnhancedCT), plus the MR Image Description macro. The MR Pulse
+// Sequence module and the MR acquisition groups (Timing, FOV/Geometry,
+// Echo, ...), like ResonantNucleus, MagneticFieldStrength and
+// KSpaceFiltering, are required only for ORIGINAL or MIXED frames: ours are
+// DERIVED.
+// The shared MR Image Frame Type functional group (C.8.13.5.1) is written
+// into the dataset here: dcmfg has no class for it, and its FGUnknown
+// crashes when copied (FGUnknown::clone, DCMTK 3.6.7), which
+// addForAllFrames does.
+absl::Status ConvertToEnhancedMr(const MrImageDescription& d, DcmItem& ds) {
+  DcmItem* shared = nullptr;
+  DcmItem* type = nullptr;
+  INTERSLICE_RETURN_IF_ERROR(Check(
+      ds.findAndGetSequenceItem(DCM_SharedFunctionalGroupsSequence, shared, 0),
+      "find the shared functional groups"));
+  INTERSLICE_RETURN_IF_ERROR(Check(
+      shared->findOrCreateSequenceItem(DCM_MRImageFrameTypeSequence, type, 0),
+      "create the MR image frame type"));
+  INTERSLICE_RETURN_IF_ERROR(
+      Check(type->putAndInsertString(DCM_FrameType, kDerivedFrameType),
+            "set the frame type"));
+  PutMrImageDescription(d, *type);
+  INTERSLICE_RETURN_IF_ERROR(
+      Check(ds.putAndInsertString(DCM_ApplicableSafetyStandardAgency,
+                                  d.applicable_safety_standard_agency.c_str()),
+            "set the applicable safety standard agency"));
+  INTERSLICE_RETURN_IF_ERROR(
+      Check(ds.putAndInsertString(DCM_SOPClassUID, UID_EnhancedMRImageStorage),
+            "set the SOP class"));
+  INTERSLICE_RETURN_IF_ERROR(
+      Check(ds.putAndInsertString(DCM_Modality, "MR"), "set the modality"));
+  PutMrImageDescription(d, ds);
+  return absl::OkStatus();
+}
+
+// The CT-only shared functional groups (PS3.3 A.38.1.4): CT Image Frame
+// Type (C.8.15.3.1) and Irradiation Event Identification (C.7.6.16.2.27).
+absl::Status AddCtFunctionalGroups(DcmItem& src,
+                                   const DerivedObjectIdentity& identity,
+                                   const DicomWriteOptions& options,
+                                   EctEnhancedCT& ct) {
+  FGCTImageFrameType frame_type;
+  INTERSLICE_RETURN_IF_ERROR(
+      Check(frame_type.setFrameType(kDerivedFrameType), "set the frame type"));
+  frame_type.setPixelPresentation(FGCTImageFrameType::E_PixelPres_Monochrome);
+  frame_type.setVolumetricProperties(FGCTImageFrameType::E_VolProp_Volume);
+  frame_type.setVolumeBasedCalculationTechnique(
+      FGCTImageFrameType::DT_VolBasedCalcTechnique_None);
+  INTERSLICE_RETURN_IF_ERROR(
+      Check(ct.addForAllFrames(frame_type), "add the CT image frame type"));
+
+  // The irradiation event: the source's (the frames show what it
+  // irradiated), else one derived for this object.
+  OFString irradiation_event;
+  if (src.findAndGetOFString(DCM_IrradiationEventUID, irradiation_event)
+          .bad() ||
+      irradiation_event.empty()) {
+    INTERSLICE_ASSIGN_OR_RETURN(
+        const std::string uid,
+        DeriveDicomUid(
+            options.uid_root,
+            absl::StrCat("enhanced-intensity/", identity.series_instance_uid,
+                         "/irradiation-event")));
+    irradiation_event = uid.c_str();
+  }
+  FGIrradiationEventIdentification irradiation;
+  INTERSLICE_RETURN_IF_ERROR(
+      Check(irradiation.setIrradiationEventUID(irradiation_event),
+            "set the irradiation event UID"));
+  INTERSLICE_RETURN_IF_ERROR(
+      Check(ct.addForAllFrames(irradiation), "add the irradiation event"));
+
+  return absl::OkStatus();
 }
 
 }  // namespace
@@ -247,12 +470,12 @@ absl::StatusOr<std::unique_ptr<FrameGroups>> MakeFrameGroups(
 absl::StatusOr<DerivedObjectIdentity> PlanEnhancedIntensity(
     const DicomSeries& source, const DerivedObjectIdentity& classic,
     const DicomWriteOptions& options) {
-  if (source.modality != "CT") {
+  const std::optional<EnhancedIod> iod = IodForModality(source.modality);
+  if (!iod.has_value()) {
     return absl::FailedPreconditionError(absl::StrCat(
-        "the enhanced DICOM layout is written for CT sources only (Enhanced "
-        "CT Image); this series' modality is '",
-        source.modality,
-        "': use the classic layout (Enhanced MR is not implemented)"));
+        "the enhanced DICOM layout is written for CT and MR sources (Enhanced "
+        "CT Image, Enhanced MR Image); this series' modality is '",
+        source.modality, "': use the classic layout"));
   }
   if (classic.series_instance_uid.empty()) {
     return absl::InvalidArgumentError(
@@ -272,7 +495,9 @@ absl::StatusOr<DerivedObjectIdentity> PlanEnhancedIntensity(
   INTERSLICE_ASSIGN_OR_RETURN(
       enhanced.dimension_organization_uid,
       DeriveDicomUid(options.uid_root, absl::StrCat(base, "/dimensions")));
-  enhanced.sop_class_uid = UID_EnhancedCTImageStorage;
+  enhanced.sop_class_uid = *iod == EnhancedIod::kCt
+                               ? UID_EnhancedCTImageStorage
+                               : UID_EnhancedMRImageStorage;
   return enhanced;
 }
 
@@ -284,15 +509,24 @@ absl::Status WriteEnhancedIntensity(const DicomSeries& source,
   const Grid& grid = values.grid;
   INTERSLICE_RETURN_IF_ERROR(ValidateOutputGrid(
       source, grid, values.data.size(), "enhanced intensity"));
-  if (identity.sop_class_uid != UID_EnhancedCTImageStorage ||
+  const std::optional<EnhancedIod> iod = IodForModality(source.modality);
+  if (!iod.has_value()) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "enhanced intensity: written for CT and MR sources; this series' "
+        "modality is '",
+        source.modality, "'"));
+  }
+  const char* sop_class = *iod == EnhancedIod::kCt ? UID_EnhancedCTImageStorage
+                                                   : UID_EnhancedMRImageStorage;
+  if (identity.sop_class_uid != sop_class ||
       identity.sop_instance_uids.size() != 1 ||
       identity.sop_instance_uids.front().empty() ||
       identity.series_instance_uid.empty() ||
       identity.dimension_organization_uid.empty()) {
-    return absl::InvalidArgumentError(
-        "enhanced intensity: the identity must name one Enhanced CT instance "
-        "with series and dimension organization UIDs "
-        "(PlanEnhancedIntensity)");
+    return absl::InvalidArgumentError(absl::StrCat(
+        "enhanced intensity: the identity must name one ", IodName(*iod),
+        " instance with series and dimension organization UIDs "
+        "(PlanEnhancedIntensity)"));
   }
   const int64_t nx = grid.size[0], ny = grid.size[1], nz = grid.size[2];
   // Pixel Data is one element: its length must fit 32 bits (even, below the
@@ -332,7 +566,10 @@ absl::Status WriteEnhancedIntensity(const DicomSeries& source,
   derivation += encoding.description;
   if (derivation.size() > 1024) derivation.resize(1024);  // ST limit
 
-  // The Enhanced CT Image module: a derived volume of axial-stack frames,
+  const MrImageDescription mr_description = SourceMrDescription(src, source);
+
+  // The Enhanced CT Image module (for MR, ConvertToEnhancedMr makes it the
+  // Enhanced MR Image module): a derived volume of axial-stack frames,
   // resampled (PS3.3 C.8.15.2.1.1: value 4 RESAMPLED), monochrome, not a
   // projection (VolumeBasedCalculationTechnique NONE). Its creator is
   // interslice (Enhanced General Equipment needs all four values; software
@@ -349,39 +586,39 @@ absl::Status WriteEnhancedIntensity(const DicomSeries& source,
           EctTypes::E_VolProps_Volume, EctTypes::DT_VolBasedCalcTechnique_None,
           equipment),
       "create the object"));
-  std::unique_ptr<EctEnhancedCT> ct(raw);
+  std::unique_ptr<EctEnhancedCT> object(raw);
 
   // Identity; patient and study are copied from the source after encoding.
   const std::string date = CurrentDate();
   const std::string time = CurrentTime();
   INTERSLICE_RETURN_IF_ERROR(Check(
-      ct->getStudy().setStudyInstanceUID((identity.study_instance_uid.empty()
-                                              ? source.study_instance_uid
-                                              : identity.study_instance_uid)
-                                             .c_str()),
+      object->getStudy().setStudyInstanceUID(
+          (identity.study_instance_uid.empty() ? source.study_instance_uid
+                                               : identity.study_instance_uid)
+              .c_str()),
       "set StudyInstanceUID"));
   INTERSLICE_RETURN_IF_ERROR(
-      Check(ct->getFrameOfReference().setFrameOfReferenceUID(
+      Check(object->getFrameOfReference().setFrameOfReferenceUID(
                 (identity.frame_of_reference_uid.empty()
                      ? source.frame_of_reference_uid
                      : identity.frame_of_reference_uid)
                     .c_str()),
             "set FrameOfReferenceUID"));
-  INTERSLICE_RETURN_IF_ERROR(Check(ct->getSeries().setSeriesInstanceUID(
+  INTERSLICE_RETURN_IF_ERROR(Check(object->getSeries().setSeriesInstanceUID(
                                        identity.series_instance_uid.c_str()),
                                    "set SeriesInstanceUID"));
-  ct->getSeries().setSeriesNumber(
+  object->getSeries().setSeriesNumber(
       std::to_string(identity.series_number).c_str());
-  ct->getSeries().setSeriesDescription(
+  object->getSeries().setSeriesDescription(
       identity.series_description.substr(0, 64).c_str());
-  ct->getSeries().setSeriesDate(date.c_str());
-  ct->getSeries().setSeriesTime(time.c_str());
+  object->getSeries().setSeriesDate(date.c_str());
+  object->getSeries().setSeriesTime(time.c_str());
   INTERSLICE_RETURN_IF_ERROR(
-      Check(ct->getSOPCommon().setSOPInstanceUID(
+      Check(object->getSOPCommon().setSOPInstanceUID(
                 identity.sop_instance_uids.front().c_str()),
             "set SOPInstanceUID"));
-  ct->getIODMultiFrameFGModule().setContentDate(date.c_str());
-  ct->getIODMultiFrameFGModule().setContentTime(time.c_str());
+  object->getIODMultiFrameFGModule().setContentDate(date.c_str());
+  object->getIODMultiFrameFGModule().setContentTime(time.c_str());
 
   // Shared functional groups.
   FGPixelMeasures measures;
@@ -395,7 +632,7 @@ absl::Status WriteEnhancedIntensity(const DicomSeries& source,
   measures.setSliceThickness(slice_spacing.c_str());
   measures.setSpacingBetweenSlices(slice_spacing.c_str());
   INTERSLICE_RETURN_IF_ERROR(
-      Check(ct->addForAllFrames(measures), "add pixel measures"));
+      Check(object->addForAllFrames(measures), "add pixel measures"));
   const Vec3 row = grid.Axis(0), col = grid.Axis(1);
   std::unique_ptr<FGPlaneOrientationPatient> orientation(
       FGPlaneOrientationPatient::createMinimal(
@@ -406,24 +643,20 @@ absl::Status WriteEnhancedIntensity(const DicomSeries& source,
           FormatDecimalString(col[1]).c_str(),
           FormatDecimalString(col[2]).c_str()));
   if (orientation == nullptr) {
-    return absl::InternalError("Enhanced CT: cannot create plane orientation");
+    return absl::InternalError(
+        "enhanced intensity: cannot create the plane orientation");
   }
   INTERSLICE_RETURN_IF_ERROR(
-      Check(ct->addForAllFrames(*orientation), "add plane orientation"));
+      Check(object->addForAllFrames(*orientation), "add plane orientation"));
 
-  FGCTImageFrameType frame_type;
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(frame_type.setFrameType("DERIVED\\PRIMARY\\VOLUME\\RESAMPLED"),
-            "set the frame type"));
-  frame_type.setPixelPresentation(FGCTImageFrameType::E_PixelPres_Monochrome);
-  frame_type.setVolumetricProperties(FGCTImageFrameType::E_VolProp_Volume);
-  frame_type.setVolumeBasedCalculationTechnique(
-      FGCTImageFrameType::DT_VolBasedCalcTechnique_None);
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(ct->addForAllFrames(frame_type), "add the CT image frame type"));
-
+  // The classic layout's rescale ("HU" for CT; "US" for MR, whose classic
+  // images carry it only when it is not the identity): stored values map to
+  // the same modality values in both layouts.
   FGPixelValueTransformation transformation;
-  transformation.setFGType(FGPixelValueTransformation::E_PixelValTrans_CT);
+  transformation.setFGType(
+      *iod == EnhancedIod::kCt
+          ? FGPixelValueTransformation::E_PixelValTrans_CT
+          : FGPixelValueTransformation::E_PixelValTrans_Normal);
   INTERSLICE_RETURN_IF_ERROR(
       Check(transformation.setRescaleIntercept(
                 FormatDecimalString(encoding.intercept).c_str()),
@@ -433,8 +666,9 @@ absl::Status WriteEnhancedIntensity(const DicomSeries& source,
                 FormatDecimalString(encoding.slope).c_str()),
             "set the rescale slope"));
   INTERSLICE_RETURN_IF_ERROR(
-      Check(transformation.setRescaleType("HU"), "set the rescale type"));
-  INTERSLICE_RETURN_IF_ERROR(Check(ct->addForAllFrames(transformation),
+      Check(transformation.setRescaleType(encoding.rescale_type.c_str()),
+            "set the rescale type"));
+  INTERSLICE_RETURN_IF_ERROR(Check(object->addForAllFrames(transformation),
                                    "add the pixel value transformation"));
 
   FGFrameVOILUT voi;
@@ -444,7 +678,7 @@ absl::Status WriteEnhancedIntensity(const DicomSeries& source,
   INTERSLICE_RETURN_IF_ERROR(Check(
       voi.setWindowWidth(window_text.widths.c_str()), "set the window width"));
   INTERSLICE_RETURN_IF_ERROR(
-      Check(ct->addForAllFrames(voi), "add the frame VOI LUT"));
+      Check(object->addForAllFrames(voi), "add the frame VOI LUT"));
 
   const AnatomicRegion region = RegionOf(src);
   FGFrameAnatomy anatomy;
@@ -455,31 +689,15 @@ absl::Status WriteEnhancedIntensity(const DicomSeries& source,
                                        region.code, "SCT", region.meaning),
                                    "set the anatomic region"));
   INTERSLICE_RETURN_IF_ERROR(
-      Check(ct->addForAllFrames(anatomy), "add the frame anatomy"));
+      Check(object->addForAllFrames(anatomy), "add the frame anatomy"));
 
-  // The irradiation event: the source's (the frames show what it
-  // irradiated), else one derived for this object.
-  OFString irradiation_event;
-  if (src.findAndGetOFString(DCM_IrradiationEventUID, irradiation_event)
-          .bad() ||
-      irradiation_event.empty()) {
-    INTERSLICE_ASSIGN_OR_RETURN(
-        const std::string uid,
-        DeriveDicomUid(
-            options.uid_root,
-            absl::StrCat("enhanced-intensity/", identity.series_instance_uid,
-                         "/irradiation-event")));
-    irradiation_event = uid.c_str();
-  }
-  FGIrradiationEventIdentification irradiation;
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(irradiation.setIrradiationEventUID(irradiation_event),
-            "set the irradiation event UID"));
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(ct->addForAllFrames(irradiation), "add the irradiation event"));
+  if (*iod == EnhancedIod::kCt) {
+    INTERSLICE_RETURN_IF_ERROR(
+        AddCtFunctionalGroups(src, identity, options, *object));
+  }  // (MR: its frame type is written at the end, ConvertToEnhancedMr.)
 
   // One dimension: the position along the normal.
-  IODMultiframeDimensionModule& dimensions = ct->getDimensions();
+  IODMultiframeDimensionModule& dimensions = object->getDimensions();
   INTERSLICE_RETURN_IF_ERROR(Check(
       dimensions.addDimensionIndex(
           DCM_ImagePositionPatient, identity.dimension_organization_uid.c_str(),
@@ -489,7 +707,7 @@ absl::Status WriteEnhancedIntensity(const DicomSeries& source,
 
   // The frames: the classic layout's stored values, slice by slice.
   std::vector<Uint16> stored(static_cast<size_t>(nx * ny));
-  EctEnhancedCT::FramesType frames = ct->getFrames();
+  EctEnhancedCT::FramesType frames = object->getFrames();
   for (int64_t k = 0; k < nz; ++k) {
     INTERSLICE_ASSIGN_OR_RETURN(
         std::unique_ptr<FrameGroups> groups,
@@ -505,28 +723,32 @@ absl::Status WriteEnhancedIntensity(const DicomSeries& source,
     if (encoding.is_signed) {
       auto* typed = OFget<EctEnhancedCT::Frames<Sint16>>(&frames);
       if (typed == nullptr) {
-        return absl::InternalError("Enhanced CT: no signed frame store");
+        return absl::InternalError("enhanced intensity: no signed frame store");
       }
       added = typed->addFrame(reinterpret_cast<Sint16*>(stored.data()),
                               stored.size(), per_frame);
     } else {
       auto* typed = OFget<EctEnhancedCT::Frames<Uint16>>(&frames);
       if (typed == nullptr) {
-        return absl::InternalError("Enhanced CT: no unsigned frame store");
+        return absl::InternalError(
+            "enhanced intensity: no unsigned frame store");
       }
       added = typed->addFrame(stored.data(), stored.size(), per_frame);
     }
     INTERSLICE_RETURN_IF_ERROR(Check(added, absl::StrCat("add frame ", k + 1)));
   }
-  if (static_cast<int64_t>(ct->getNumberOfFrames()) != nz) {
+  if (static_cast<int64_t>(object->getNumberOfFrames()) != nz) {
     return absl::InternalError(
-        absl::StrFormat("Enhanced CT: %d of %d frames were added",
-                        ct->getNumberOfFrames(), nz));
+        absl::StrFormat("enhanced intensity: %d of %d frames were added",
+                        object->getNumberOfFrames(), nz));
   }
 
   DcmFileFormat file;
   DcmDataset& ds = *file.getDataset();
-  INTERSLICE_RETURN_IF_ERROR(Check(ct->writeDataset(ds), "encode"));
+  INTERSLICE_RETURN_IF_ERROR(Check(object->writeDataset(ds), "encode"));
+  if (*iod == EnhancedIod::kMr) {
+    INTERSLICE_RETURN_IF_ERROR(ConvertToEnhancedMr(mr_description, ds));
+  }
   CopyPatientStudyFrameOfReference(src, identity, ds);
   for (const DcmTagKey& tag : {DCM_PatientPosition, DCM_BodyPartExamined}) {
     DcmElement* element = nullptr;

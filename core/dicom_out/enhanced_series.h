@@ -1,20 +1,25 @@
 // The enhanced layout of the intensity series (`--dicom-layout enhanced`):
-// the whole derived intensity volume as ONE Enhanced CT Image instance
-// (1.2.840.10008.5.1.4.1.1.2.1, DICOM PS3.3 A.38), frame k + 1 = output
-// slice k, instead of one CT Image per slice (WriteIntensitySeries, the
-// classic layout and the default). Written with DCMTK's dcmect
-// (EctEnhancedCT) and dcmfg functional groups. PACS and viewers that take
-// enhanced objects (OHIF, 3D Slicer, dcm2niix, GDCM) load one file instead
-// of hundreds.
+// the whole derived intensity volume as ONE multi-frame instance, frame
+// k + 1 = output slice k, instead of one image per slice
+// (WriteIntensitySeries, the classic layout and the default):
+// - a CT source: Enhanced CT Image (1.2.840.10008.5.1.4.1.1.2.1, DICOM
+//   PS3.3 A.38);
+// - an MR source (modality MR: MR Image, Enhanced MR or Legacy Converted
+//   Enhanced MR Image): Enhanced MR Image (1.2.840.10008.5.1.4.1.1.4.1,
+//   PS3.3 A.36.2).
+// Written with DCMTK's dcmect (EctEnhancedCT) and dcmfg functional groups;
+// DCMTK 3.6.7 has no Enhanced MR class, so the MR object is the same build
+// with its MR-specific attributes and functional group written into the
+// dataset (enhanced_series.cc). PACS and viewers that take enhanced objects
+// (OHIF, 3D Slicer, dcm2niix, GDCM) load one file instead of hundreds.
 //
 // Same volume: every frame's ImagePositionPatient / ImageOrientationPatient /
 // PixelSpacing and stored values (with the same RescaleSlope / Intercept,
 // windows and PixelPaddingValue) equal the classic layout's image k (the
-// geometry contract of dicom_writer.h holds frame by frame).
+// geometry contract of dicom_writer.h holds frame by frame). For MR the
+// frames' rescale is the identity when the classic MR images carry none.
 //
-// Only CT sources: Enhanced MR needs its MR functional groups written by
-// hand (DCMTK 3.6.7 has no Enhanced MR class), which is not done yet; an MR
-// or other source is FAILED_PRECONDITION naming the modality.
+// Any other modality (PT, XA, ...) is FAILED_PRECONDITION naming it.
 #ifndef INTERSLICE_CORE_DICOM_OUT_ENHANCED_SERIES_H_
 #define INTERSLICE_CORE_DICOM_OUT_ENHANCED_SERIES_H_
 
@@ -38,8 +43,9 @@ inline constexpr char kEnhancedIntensityFileName[] = "enhanced.dcm";
 // SOP instance and dimension organization UIDs, each derived from the
 // classic series UID (so deterministic whenever that is, random under
 // random_uids, and never the classic series' UIDs: a PACS that holds both
-// layouts of a job keeps them apart). SOP class Enhanced CT Image Storage.
-// FAILED_PRECONDITION for a source that is not CT Image Storage (see above);
+// layouts of a job keeps them apart). SOP class Enhanced CT Image Storage
+// for a CT source, Enhanced MR Image Storage for an MR source.
+// FAILED_PRECONDITION for a source of another modality (see above);
 // INVALID_ARGUMENT for a malformed UID root or an empty classic identity.
 absl::StatusOr<DerivedObjectIdentity> PlanEnhancedIntensity(
     const DicomSeries& source, const DerivedObjectIdentity& classic,
@@ -48,21 +54,27 @@ absl::StatusOr<DerivedObjectIdentity> PlanEnhancedIntensity(
 // Writes `values` (modality values on the output grid, see dicom_writer.h)
 // as the one enhanced instance named by `identity` (PlanEnhancedIntensity)
 // to `path`, atomically (its folder must exist).
-// - Shared functional groups: Pixel Measures, Plane Orientation, CT Image
-//   Frame Type (DERIVED\PRIMARY\VOLUME\RESAMPLED), Pixel Value
-//   Transformation (the classic layout's slope, intercept, "HU"), Frame VOI
-//   LUT (the source's windows), Frame Anatomy (from the source's Body Part
-//   Examined, PS3.16 Annex L; "Entire body" when it names none we know),
-//   Irradiation Event Identification (the source's, else a derived UID).
+// - Shared functional groups: Pixel Measures, Plane Orientation, the image
+//   frame type DERIVED\PRIMARY\VOLUME\RESAMPLED (CT Image Frame Type; MR
+//   Image Frame Type with the source's ComplexImageComponent, default
+//   MAGNITUDE, and AcquisitionContrast, default UNKNOWN), Pixel Value
+//   Transformation (the classic layout's slope, intercept and type: "HU"
+//   for CT, "US" for MR), Frame VOI LUT (the source's windows), Frame
+//   Anatomy (from the source's Body Part Examined, PS3.16 Annex L; "Entire
+//   body" when it names none we know); CT only: Irradiation Event
+//   Identification (the source's, else a derived UID).
 // - Per frame: Plane Position, Frame Content (dimension index k + 1 along
 //   ImagePositionPatient, stack "1", in-stack position k + 1) and Derivation
-//   Image (the one or two source slices nearest along the normal, derivation
-//   DCM 113085 "Spatial resampling", purpose DCM 121322).
+//   Image (the one or two source slices nearest along the normal, with their
+//   frame number when the source is multi-frame; derivation DCM 113085
+//   "Spatial resampling", purpose DCM 121322).
 // - Dimension Organization: one dimension, ImagePositionPatient in the Plane
 //   Position Sequence; DimensionOrganizationType 3D.
 // - Pixel data: options.intensity_encoding: native Explicit VR Little Endian
 //   or RLE Lossless (one fragment per frame, DCMTK's RLE codec).
-// INVALID_ARGUMENT for a bad grid, identity or values, or pixel data over
+// FAILED_PRECONDITION for a source that is neither CT nor MR;
+// INVALID_ARGUMENT for a bad grid, values, or an identity not planned for
+// this source's modality, or pixel data over
 // DICOM's 4 GiB element limit; FAILED_PRECONDITION when a source file cannot
 // be read again; INTERNAL (naming the step) when DCMTK refuses a value or
 // the file cannot be written.

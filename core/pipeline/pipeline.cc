@@ -550,12 +550,12 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
     }
   }
   if (wants_intensity && spec.dicom_layout == "enhanced" &&
-      source.modality != "CT") {
+      source.modality != "CT" && source.modality != "MR") {
     // Said now, not after the whole computation (PlanEnhancedIntensity
     // says it again at the write).
     return absl::FailedPreconditionError(absl::StrCat(
-        "--dicom-layout enhanced writes Enhanced CT only; this series' "
-        "modality is '",
+        "--dicom-layout enhanced writes Enhanced CT and Enhanced MR only; "
+        "this series' modality is '",
         source.modality, "' (use the classic layout)"));
   }
   INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
@@ -815,7 +815,7 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
           objects,
           PlanDerivedObjects(source, field.grid.size[2], dicom_options));
       if (spec.dicom_layout == "enhanced") {
-        // One Enhanced CT instance instead of an image per slice; the SEG,
+        // One Enhanced CT / MR instance instead of an image per slice; the SEG,
         // distance map, previews and STL reference it.
         INTERSLICE_ASSIGN_OR_RETURN(
             objects.intensity,

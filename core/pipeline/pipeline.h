@@ -143,10 +143,11 @@ struct JobSpec {
   std::string dicom_compression = "none";
   // Layout of the intensity series: "classic" (default: one CT/MR image per
   // output slice, series-intensity/IM00001.dcm ...) or "enhanced" (one
-  // Enhanced CT Image instance, frame k = output slice k,
-  // series-intensity/enhanced.dcm, core/dicom_out/enhanced_series.h; the SEG
-  // and the distance map then reference its frames). Enhanced needs a CT
-  // source: FAILED_PRECONDITION otherwise, before any computation. Classic
+  // Enhanced CT Image or, for an MR source, Enhanced MR Image instance, frame
+  // k = output slice k, series-intensity/enhanced.dcm,
+  // core/dicom_out/enhanced_series.h; the SEG and the distance map then
+  // reference its frames). Enhanced needs a CT or MR source:
+  // FAILED_PRECONDITION otherwise, before any computation. Classic
   // UIDs are unchanged; the enhanced object's are derived from them.
   std::string dicom_layout = "classic";
   // How the intensity series (output_series "intensity", or brought along

@@ -1038,18 +1038,19 @@ absl::StatusOr<RuleSet> LoadRulesFile(const std::string& path,
         r["fill"] ? ParseFill(r["fill"], ctx) : ParseJob(r["job"], ctx);
     if (!job.ok()) return job.status();
     rule.job = *std::move(job);
-    // The enhanced layout is written for CT sources only (Enhanced CT Image,
-    // core/dicom_out/enhanced_series.h): a rule that matches another
-    // modality would make jobs that all fail, found only when a series
-    // arrives. (A rule without a modality criterion may still meet an MR
-    // series; that job fails FAILED_PRECONDITION naming the layout.)
+    // The enhanced layout is written for CT and MR sources (Enhanced CT /
+    // MR Image, core/dicom_out/enhanced_series.h): a rule that matches
+    // another modality would make jobs that all fail, found only when a
+    // series arrives. (A rule without a modality criterion may still meet a
+    // PT series; that job fails FAILED_PRECONDITION naming the layout.)
     if (rule.job.derived_series().layout() == v1::DICOM_LAYOUT_ENHANCED &&
-        rule.match.modality && !SameText(*rule.match.modality, "CT")) {
+        rule.match.modality && !SameText(*rule.match.modality, "CT") &&
+        !SameText(*rule.match.modality, "MR")) {
       return ctx.Error(
           "job",
-          absl::StrCat("dicom_layout enhanced is written for CT only "
-                       "(Enhanced CT Image; Enhanced MR is not implemented), "
-                       "but the rule matches modality '",
+          absl::StrCat("dicom_layout enhanced is written for CT and MR only "
+                       "(Enhanced CT / Enhanced MR Image), but the rule "
+                       "matches modality '",
                        *rule.match.modality, "': use dicom_layout classic"));
     }
     if (r["send_to"]) {

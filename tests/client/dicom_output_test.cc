@@ -49,6 +49,9 @@ using testing::RunCli;
 const fs::path kPhantom =
     fs::path(INTERSLICE_SOURCE_DIR) / "data/ct-head-phantom-thick";
 const fs::path kTilt = fs::path(INTERSLICE_TEST_DATA_DIR) / "ct-tilt";
+// A Siemens XA10 Enhanced MR (6 frames, one volume).
+const fs::path kEnhancedMr =
+    fs::path(INTERSLICE_TEST_DATA_DIR) / "multiframe" / "siemens-xa10-6_1.dcm";
 
 class DicomOutputTest : public ::testing::Test {
  protected:
@@ -483,22 +486,29 @@ void ExpectItkSeesReportGridInOneFile(const fs::path& file,
   }
 }
 
-// --dicom-layout enhanced: the intensity series is one Enhanced CT file that
-// our reader and ITK/GDCM read as the classic series' volume (the phantom
-// and the tilted CT), valid for dciodvfy with the SEG and the distance map
+// --dicom-layout enhanced: the intensity series is one Enhanced CT (CT
+// sources) or Enhanced MR (MR sources) file that our reader and ITK/GDCM
+// read as the classic series' volume (the phantom, the tilted CT and a
+// Siemens enhanced MR), valid for dciodvfy with the SEG and the distance map
 // that reference it; a bad value is a one-line error.
 TEST_F(DicomOutputTest, EnhancedLayoutIsTheClassicVolume) {
   struct Source {
     std::string name;
     fs::path dir;
     std::string args;
+    const char* sop_class;
   };
   for (const Source& source : std::vector<Source>{
-           {"phantom", kPhantom, "--roi 150,100,0,350,300,6 --factor 3"},
-           {"tilt", kTilt, "--factor 2"}}) {
+           {"phantom", kPhantom,
+            "--threshold 300 --roi 150,100,0,350,300,6 --factor 3",
+            UID_EnhancedCTImageStorage},
+           {"tilt", kTilt, "--threshold 300 --factor 2",
+            UID_EnhancedCTImageStorage},
+           {"mr", kEnhancedMr, "--threshold 100 --factor 2",
+            UID_EnhancedMRImageStorage}}) {
     SCOPED_TRACE(source.name);
     const std::string common =
-        "run " + source.dir.string() + " --threshold 300 " + source.args +
+        "run " + source.dir.string() + " " + source.args +
         " --method direct --quiet --volume none --mesh none --previews none "
         "--output-series intensity,mask,distance ";
     for (const char* layout : {"classic", "enhanced"}) {
@@ -531,7 +541,7 @@ TEST_F(DicomOutputTest, EnhancedLayoutIsTheClassicVolume) {
         ReadDicomSeries({(enhanced / "series-intensity").string()}, {}, {});
     ASSERT_TRUE(from_classic.ok()) << from_classic.status();
     ASSERT_TRUE(from_enhanced.ok()) << from_enhanced.status();
-    EXPECT_EQ(from_enhanced->sop_class_uid, UID_EnhancedCTImageStorage);
+    EXPECT_EQ(from_enhanced->sop_class_uid, source.sop_class);
     const Grid& a = from_classic->image.grid;
     const Grid& b = from_enhanced->image.grid;
     for (int c = 0; c < 3; ++c) {

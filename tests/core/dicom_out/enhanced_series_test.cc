@@ -3,6 +3,7 @@
 // dciodvfy, referenced frame by frame by the SEG and the Parametric Map.
 #include "core/dicom_out/enhanced_series.h"
 
+#include <algorithm>
 #include <cmath>
 #include <filesystem>
 #include <memory>
@@ -34,6 +35,11 @@ using ::testing::HasSubstr;
 using testing::LoadDicom;
 
 constexpr char kTestRoot[] = "1.2.826.0.1.3680043.10.1234";
+// The field-map volume of philips-enhanced-mr-64frames.dcm (as the reader
+// names it).
+constexpr char kPhilipsFieldMapVolume[] =
+    "stack 1, temporal position 1, frame type "
+    "ORIGINAL\\PRIMARY\\T1\\FIELD_MAP (REAL)";
 
 class TempDir : public testing::TempDir {
  public:
@@ -56,11 +62,15 @@ struct Case {
   Volume<float> intensity;
 };
 
-Case LoadCase(const std::string& name) {
+// `name`: a folder or file under tests/data, or an absolute path; `volume`
+// picks one volume of a multi-frame source (DicomReadOptions::volume).
+Case LoadCase(const std::string& name, const std::string& volume = "") {
   QuietDicomToolkitLogging();
   Case c;
+  DicomReadOptions read_options;
+  read_options.volume = volume;
   auto series = ReadDicomSeries(
-      {(fs::path(INTERSLICE_TEST_DATA_DIR) / name).string()}, {}, {});
+      {(fs::path(INTERSLICE_TEST_DATA_DIR) / name).string()}, read_options, {});
   EXPECT_TRUE(series.ok()) << series.status();
   if (!series.ok()) return c;
   c.source = *std::move(series);
@@ -123,14 +133,17 @@ void ExpectEnhancedIsClassic(const Case& c, const DicomWriteOptions& options) {
       WriteEnhancedIntensity(c.source, c.intensity, *identity, options, path)
           .ok());
   {
-    SCOPED_TRACE("enhanced CT");
+    SCOPED_TRACE("enhanced " + c.source.modality);
     ExpectValidIod({path});
   }
   RegisterDicomDecoders();
   auto enhanced = LoadDicom(path);
   DcmDataset& e = *enhanced->getDataset();
   ASSERT_TRUE(e.chooseRepresentation(EXS_LittleEndianExplicit, nullptr).good());
-  EXPECT_EQ(GetString(e, DCM_SOPClassUID), UID_EnhancedCTImageStorage);
+  EXPECT_EQ(GetString(e, DCM_SOPClassUID), c.source.modality == "MR"
+                                               ? UID_EnhancedMRImageStorage
+                                               : UID_EnhancedCTImageStorage);
+  EXPECT_EQ(GetString(e, DCM_Modality), c.source.modality);
   EXPECT_EQ(GetString(e, DCM_SOPInstanceUID), identity->sop_instance_uids[0]);
   EXPECT_EQ(GetString(e, DCM_StudyInstanceUID), c.source.study_instance_uid);
   EXPECT_EQ(GetString(e, DCM_FrameOfReferenceUID),
@@ -164,10 +177,13 @@ void ExpectEnhancedIsClassic(const Case& c, const DicomWriteOptions& options) {
               GetString(i, DCM_PixelSpacing));
     EXPECT_EQ(GetString(*measures, DCM_SliceThickness),
               GetString(i, DCM_SliceThickness));
+    // A classic MR image without a rescale has the identity (MR images
+    // have no Modality LUT module).
+    const bool classic_rescale = i.tagExists(DCM_RescaleSlope);
     EXPECT_EQ(GetString(*transform, DCM_RescaleSlope),
-              GetString(i, DCM_RescaleSlope));
+              classic_rescale ? GetString(i, DCM_RescaleSlope) : "1");
     EXPECT_EQ(GetString(*transform, DCM_RescaleIntercept),
-              GetString(i, DCM_RescaleIntercept));
+              classic_rescale ? GetString(i, DCM_RescaleIntercept) : "0");
     EXPECT_EQ(GetString(e, DCM_PixelRepresentation),
               GetString(i, DCM_PixelRepresentation));
     // Frame content: dimension index k + 1 along the normal.
@@ -200,6 +216,132 @@ TEST(EnhancedSeriesTest, TiltedCtFramesAreTheClassicImages) {
   ExpectEnhancedIsClassic(c, Options());
 }
 
+// An MR Image Storage series (4 slices, 5 mm apart, written here from the
+// one real Siemens MR slice of tests/data/transfer-syntaxes with its own
+// positions and UIDs): the classic layout is MR Image, the enhanced one
+// Enhanced MR Image, frame k = image k.
+std::string WriteMrImageSeries(const fs::path& dir) {
+  auto file = LoadDicom(
+      (fs::path(INTERSLICE_TEST_DATA_DIR) / "transfer-syntaxes" / "1.dcm")
+          .string());
+  DcmDataset& ds = *file->getDataset();
+  EXPECT_EQ(GetString(ds, DCM_SOPClassUID), UID_MRImageStorage);
+  double position[3], orientation[6];
+  for (int i = 0; i < 3; ++i) {
+    ds.findAndGetFloat64(DCM_ImagePositionPatient, position[i], i);
+  }
+  for (int i = 0; i < 6; ++i) {
+    ds.findAndGetFloat64(DCM_ImageOrientationPatient, orientation[i], i);
+  }
+  const double normal[3] = {
+      orientation[1] * orientation[5] - orientation[2] * orientation[4],
+      orientation[2] * orientation[3] - orientation[0] * orientation[5],
+      orientation[0] * orientation[4] - orientation[1] * orientation[3]};
+  fs::create_directories(dir);
+  for (int k = 0; k < 4; ++k) {
+    std::string text;
+    for (int i = 0; i < 3; ++i) {
+      if (i > 0) text += "\\";
+      text += std::to_string(position[i] + 5.0 * k * normal[i]);
+    }
+    EXPECT_TRUE(
+        ds.putAndInsertString(DCM_ImagePositionPatient, text.c_str()).good());
+    const std::string uid =
+        std::string(kTestRoot) + ".77." + std::to_string(k + 1);
+    ds.putAndInsertString(DCM_SOPInstanceUID, uid.c_str());
+    ds.putAndInsertString(DCM_InstanceNumber, std::to_string(k + 1).c_str());
+    ds.findAndDeleteElement(DCM_SliceLocation);
+    ds.findAndDeleteElement(DCM_MediaStorageSOPInstanceUID);
+    file->getMetaInfo()->clear();
+    EXPECT_TRUE(
+        file->saveFile((dir / ("MR" + std::to_string(k) + ".dcm")).c_str(),
+                       EXS_LittleEndianExplicit)
+            .good());
+  }
+  return dir.string();
+}
+
+TEST(EnhancedSeriesTest, MrImageSeriesFramesAreTheEnhancedMrImages) {
+  TempDir source_dir;
+  const Case c = LoadCase(WriteMrImageSeries(source_dir.path() / "mr"));
+  ASSERT_EQ(c.source.modality, "MR");
+  ASSERT_EQ(c.source.sop_class_uid, UID_MRImageStorage);
+  ASSERT_EQ(c.source.slices.size(), 4u);
+  ExpectEnhancedIsClassic(c, Options());
+}
+
+// A Siemens XA10 Enhanced MR source (6 frames): read as MR, written as
+// Enhanced MR (its classic layout is Secondary Capture).
+TEST(EnhancedSeriesTest, EnhancedMrSourceFramesAreTheClassicImages) {
+  const Case c = LoadCase("multiframe/siemens-xa10-6_1.dcm");
+  ASSERT_EQ(c.source.modality, "MR");
+  ExpectEnhancedIsClassic(c, Options());
+}
+
+// The Philips field map (the REAL frames of a T1 B0 acquisition, rescaled
+// -500 + 1.28 x stored): its own complex component and contrast, its
+// rescale, and each derivation names the source frame it came from.
+TEST(EnhancedSeriesTest, EnhancedMrDescribesItsSourceFrames) {
+  const Case c = LoadCase("multiframe/philips-enhanced-mr-64frames.dcm",
+                          kPhilipsFieldMapVolume);
+  ASSERT_EQ(c.source.modality, "MR");
+  ExpectEnhancedIsClassic(c, Options());
+  TempDir dir;
+  auto objects = PlanDerivedObjects(c.source, c.grid.size[2], Options());
+  ASSERT_TRUE(objects.ok());
+  auto identity =
+      PlanEnhancedIntensity(c.source, objects->intensity, Options());
+  ASSERT_TRUE(identity.ok());
+  const std::string path = (dir.path() / "enhanced.dcm").string();
+  ASSERT_TRUE(
+      WriteEnhancedIntensity(c.source, c.intensity, *identity, Options(), path)
+          .ok());
+  auto file = LoadDicom(path);
+  DcmDataset& e = *file->getDataset();
+  DcmItem* type = Group(e, DCM_MRImageFrameTypeSequence, 0);
+  ASSERT_NE(type, nullptr);
+  EXPECT_EQ(GetString(*type, DCM_FrameType),
+            "DERIVED\\PRIMARY\\VOLUME\\RESAMPLED");
+  EXPECT_EQ(GetString(*type, DCM_ComplexImageComponent), "REAL");
+  EXPECT_EQ(GetString(*type, DCM_AcquisitionContrast), "T1");
+  EXPECT_EQ(GetString(e, DCM_ComplexImageComponent), "REAL");
+  EXPECT_EQ(GetString(e, DCM_ImageType), "DERIVED\\PRIMARY\\VOLUME\\RESAMPLED");
+  // No CT groups in an MR object.
+  EXPECT_EQ(Group(e, DCM_CTImageFrameTypeSequence, 0), nullptr);
+  EXPECT_EQ(Group(e, DCM_IrradiationEventIdentificationSequence, 0), nullptr);
+  DcmItem* transform = Group(e, DCM_PixelValueTransformationSequence, 0);
+  ASSERT_NE(transform, nullptr);
+  EXPECT_EQ(GetString(*transform, DCM_RescaleIntercept), "-500");
+  // Frame k's derivation names source frames (1-based, of the one source
+  // instance) whose positions bracket it.
+  for (unsigned long k = 0; k < static_cast<unsigned long>(c.grid.size[2]);
+       ++k) {
+    SCOPED_TRACE(k);
+    DcmItem* derivation = Group(e, DCM_DerivationImageSequence, k);
+    ASSERT_NE(derivation, nullptr);
+    DcmItem* source = Item(*derivation, DCM_SourceImageSequence, 0);
+    ASSERT_NE(source, nullptr);
+    const std::string frame = GetString(*source, DCM_ReferencedFrameNumber);
+    ASSERT_FALSE(frame.empty());
+    const int n = std::stoi(frame);
+    const auto slice =
+        std::find_if(c.source.slices.begin(), c.source.slices.end(),
+                     [n](const DicomSliceInfo& s) { return s.frame + 1 == n; });
+    ASSERT_NE(slice, c.source.slices.end()) << "frame " << n;
+    EXPECT_LE(std::abs(slice->position_along_normal -
+                       (c.source.slices.front().position_along_normal +
+                        static_cast<double>(k) * c.grid.spacing[2])),
+              c.source.max_gap_mm + 1e-3);
+  }
+  // Source Image Evidence lists the one source instance once.
+  DcmItem* evidence = Item(e, DCM_SourceImageEvidenceSequence, 0);
+  ASSERT_NE(evidence, nullptr);
+  DcmItem* series = Item(*evidence, DCM_ReferencedSeriesSequence, 0);
+  ASSERT_NE(series, nullptr);
+  EXPECT_NE(Item(*series, DCM_ReferencedSOPSequence, 0), nullptr);
+  EXPECT_EQ(Item(*series, DCM_ReferencedSOPSequence, 1), nullptr);
+}
+
 TEST(EnhancedSeriesTest, RleEnhancedCtIsValidAndTheSameVolume) {
   const Case c = LoadCase("ct-thick");
   DicomWriteOptions options = Options();
@@ -221,8 +363,9 @@ TEST(EnhancedSeriesTest, RleEnhancedCtIsValidAndTheSameVolume) {
 
 // The SEG and the distance map reference frame k + 1 of the one enhanced
 // instance (not image k of a series that is not there), and stay valid.
-TEST(EnhancedSeriesTest, SegAndDistanceMapReferenceItsFrames) {
-  const Case c = LoadCase("ct-thick");
+void ExpectSegAndDistanceMapReferenceFrames(const Case& c,
+                                            const char* enhanced_sop_class,
+                                            float threshold) {
   const DicomWriteOptions options = Options();
   auto objects = PlanDerivedObjects(c.source, c.grid.size[2], options);
   ASSERT_TRUE(objects.ok());
@@ -235,7 +378,7 @@ TEST(EnhancedSeriesTest, SegAndDistanceMapReferenceItsFrames) {
   mask.grid = c.grid;
   mask.data.resize(c.grid.VoxelCount());
   for (size_t n = 0; n < distance.data.size(); ++n) {
-    distance.data[n] = c.intensity.data[n] > 300 ? 1.0f : -1.0f;
+    distance.data[n] = c.intensity.data[n] > threshold ? 1.0f : -1.0f;
     mask.data[n] = distance.data[n] > 0;
   }
   TempDir dir;
@@ -260,7 +403,7 @@ TEST(EnhancedSeriesTest, SegAndDistanceMapReferenceItsFrames) {
       DcmItem* source = Item(*derivation, DCM_SourceImageSequence, 0);
       ASSERT_NE(source, nullptr);
       EXPECT_EQ(GetString(*source, DCM_ReferencedSOPClassUID),
-                UID_EnhancedCTImageStorage);
+                enhanced_sop_class);
       EXPECT_EQ(GetString(*source, DCM_ReferencedSOPInstanceUID),
                 enhanced->sop_instance_uids[0]);
       EXPECT_EQ(GetString(*source, DCM_ReferencedFrameNumber),
@@ -271,6 +414,18 @@ TEST(EnhancedSeriesTest, SegAndDistanceMapReferenceItsFrames) {
     EXPECT_EQ(GetString(*series, DCM_SeriesInstanceUID),
               enhanced->series_instance_uid);
   }
+}
+
+TEST(EnhancedSeriesTest, SegAndDistanceMapReferenceItsFrames) {
+  ExpectSegAndDistanceMapReferenceFrames(LoadCase("ct-thick"),
+                                         UID_EnhancedCTImageStorage, 300);
+}
+
+// The same for an Enhanced MR (item 2 of issue 25: as for CT).
+TEST(EnhancedSeriesTest, SegAndDistanceMapReferenceEnhancedMrFrames) {
+  const Case c = LoadCase("multiframe/siemens-xa10-6_1.dcm");
+  ASSERT_EQ(c.source.modality, "MR");
+  ExpectSegAndDistanceMapReferenceFrames(c, UID_EnhancedMRImageStorage, 100);
 }
 
 // UIDs: derived like the classic ones (a rerun replaces), never the classic
@@ -302,16 +457,53 @@ TEST(EnhancedSeriesTest, UidsAreDerivedAndDistinctFromTheClassicSeries) {
   EXPECT_NE(e1->sop_instance_uids, e2->sop_instance_uids);
 }
 
-// Enhanced MR is not written: an MR source is a clear refusal, not a CT.
-TEST(EnhancedSeriesTest, NonCtSourceIsRefusedByName) {
+// Only CT and MR have an enhanced IOD written here: another modality is a
+// clear refusal naming it, never a CT or MR object.
+TEST(EnhancedSeriesTest, OtherModalityIsRefusedByName) {
   Case c = LoadCase("ct-thick");
   auto objects = PlanDerivedObjects(c.source, c.grid.size[2], Options());
   ASSERT_TRUE(objects.ok());
-  c.source.modality = "MR";
+  c.source.modality = "PT";
   auto refused = PlanEnhancedIntensity(c.source, objects->intensity, Options());
   EXPECT_EQ(refused.status().code(), absl::StatusCode::kFailedPrecondition);
-  EXPECT_THAT(refused.status().message(), HasSubstr("'MR'"));
+  EXPECT_THAT(refused.status().message(), HasSubstr("'PT'"));
+  EXPECT_THAT(refused.status().message(), HasSubstr("CT and MR"));
   EXPECT_THAT(refused.status().message(), HasSubstr("classic layout"));
+  TempDir dir;
+  auto ct = PlanEnhancedIntensity(LoadCase("ct-thick").source,
+                                  objects->intensity, Options());
+  ASSERT_TRUE(ct.ok());
+  const absl::Status status = WriteEnhancedIntensity(
+      c.source, c.intensity, *ct, Options(), (dir.path() / "x.dcm").string());
+  EXPECT_EQ(status.code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_THAT(status.message(), HasSubstr("'PT'"));
+  EXPECT_FALSE(fs::exists(dir.path() / "x.dcm"));
+}
+
+// An identity planned for a CT source does not write an MR source (nor the
+// reverse): the SOP class follows the source's modality.
+TEST(EnhancedSeriesTest, IdentityOfTheOtherModalityIsInvalidArgument) {
+  const Case ct = LoadCase("ct-thick");
+  Case mr = ct;
+  mr.source.modality = "MR";
+  auto objects = PlanDerivedObjects(ct.source, ct.grid.size[2], Options());
+  ASSERT_TRUE(objects.ok());
+  auto ct_identity =
+      PlanEnhancedIntensity(ct.source, objects->intensity, Options());
+  auto mr_identity =
+      PlanEnhancedIntensity(mr.source, objects->intensity, Options());
+  ASSERT_TRUE(ct_identity.ok() && mr_identity.ok());
+  EXPECT_EQ(ct_identity->sop_class_uid, UID_EnhancedCTImageStorage);
+  EXPECT_EQ(mr_identity->sop_class_uid, UID_EnhancedMRImageStorage);
+  TempDir dir;
+  EXPECT_EQ(WriteEnhancedIntensity(mr.source, mr.intensity, *ct_identity,
+                                   Options(), (dir.path() / "a.dcm").string())
+                .code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(WriteEnhancedIntensity(ct.source, ct.intensity, *mr_identity,
+                                   Options(), (dir.path() / "b.dcm").string())
+                .code(),
+            absl::StatusCode::kInvalidArgument);
 }
 
 // A classic identity (one UID per slice) is not an enhanced one.

@@ -23,6 +23,7 @@
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
 #include "dcmtk/dcmdata/dcfilefo.h"
+#include "dcmtk/dcmdata/dcuid.h"
 #include "dcmtk/dcmseg/segdoc.h"
 #include "dcmtk/dcmseg/segment.h"
 
@@ -173,6 +174,83 @@ TEST_F(PipelineTest, EveryObjectOfEveryRealSeriesPassesDciodvfy) {
     seg->getSegment(1)->getSegmentLabel(label);
     EXPECT_EQ(std::string(label.c_str()), c.segment_label);
   }
+}
+
+// --dicom-layout enhanced (issue 25) on an MR source: one Enhanced MR Image
+// instance that the job's SEG, distance map, DICOM previews and STL lie on,
+// every object valid for dciodvfy.
+TEST_F(PipelineTest, EnhancedLayoutOfAnMrSourceIsOneValidEnhancedMr) {
+  JobSpec spec;
+  spec.inputs = {std::string(INTERSLICE_TEST_DATA_DIR) +
+                 "/multiframe/siemens-xa10-6_1.dcm"};
+  spec.lower_threshold = 100;
+  spec.solver.method = SolverMethod::kLinear;
+  spec.z_resolution.factor = 2;
+  spec.output_dir = dir_.string();
+  spec.volume_formats = {};
+  spec.mesh_formats = {"stl"};
+  spec.output_series = {"intensity", "distance", "mask"};
+  spec.preview_formats = {"dicom"};
+  spec.dicom_layout = "enhanced";
+  absl::StatusOr<JobReport> report = RunJob(spec, {.threads = 2});
+  ASSERT_TRUE(report.ok()) << report.status();
+  std::vector<std::string> intensity;
+  for (const auto& entry : fs::directory_iterator(dir_ / "series-intensity")) {
+    intensity.push_back(entry.path().filename().string());
+  }
+  EXPECT_EQ(intensity, std::vector<std::string>{"enhanced.dcm"});
+  DcmFileFormat enhanced;
+  ASSERT_TRUE(
+      enhanced.loadFile((dir_ / "series-intensity" / "enhanced.dcm").c_str())
+          .good());
+  OFString sop_class, frames;
+  enhanced.getDataset()->findAndGetOFString(DCM_SOPClassUID, sop_class);
+  enhanced.getDataset()->findAndGetOFString(DCM_NumberOfFrames, frames);
+  EXPECT_EQ(std::string(sop_class.c_str()), UID_EnhancedMRImageStorage);
+  EXPECT_EQ(std::string(frames.c_str()),
+            std::to_string(report->output_grid.size[2]));
+  std::vector<std::string> files;
+  for (const auto& entry : fs::recursive_directory_iterator(dir_)) {
+    if (entry.path().extension() == ".dcm") {
+      files.push_back(entry.path().string());
+    }
+  }
+  // enhanced, seg, distance, surface STL, four previews
+  EXPECT_GE(files.size(), 8u);
+  std::string errors;
+  EXPECT_EQ(testing::DciodvfyErrors(files, &errors), 0) << errors;
+}
+
+// A modality without an enhanced IOD here (PT: the thick CT relabelled) is
+// refused before the computation, naming it and the modalities written.
+TEST_F(PipelineTest, EnhancedLayoutOfAPtSourceIsRefusedBeforeComputing) {
+  const fs::path pt = dir_ / "pt";
+  fs::create_directories(pt);
+  for (const auto& entry : fs::directory_iterator(kSeries)) {
+    if (entry.path().extension() != ".dcm") continue;
+    DcmFileFormat file;
+    ASSERT_TRUE(file.loadFile(entry.path().c_str()).good());
+    file.getDataset()->putAndInsertString(DCM_Modality, "PT");
+    ASSERT_TRUE(file.saveFile((pt / entry.path().filename()).c_str()).good());
+  }
+  JobSpec spec = SmallJob();
+  spec.inputs = {pt.string()};
+  spec.output_dir = (dir_ / "out").string();
+  spec.output_series = {"intensity"};
+  spec.dicom_layout = "enhanced";
+  std::vector<std::string> stages;
+  ComputeContext context;
+  context.progress = [&](const ProgressEvent& e) {
+    if (stages.empty() || stages.back() != e.stage) stages.push_back(e.stage);
+  };
+  absl::StatusOr<JobReport> report = RunJob(spec, context);
+  ASSERT_EQ(report.status().code(), absl::StatusCode::kFailedPrecondition)
+      << report.status();
+  EXPECT_THAT(report.status().message(), ::testing::HasSubstr("'PT'"));
+  EXPECT_THAT(report.status().message(),
+              ::testing::HasSubstr("Enhanced CT and Enhanced MR"));
+  EXPECT_THAT(stages, ::testing::Not(::testing::Contains("solve")));
+  EXPECT_FALSE(fs::exists(dir_ / "out" / "series-intensity"));
 }
 
 // --segment-label / --segment-code reach the SEG, and change its UIDs (it is

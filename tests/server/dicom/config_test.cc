@@ -451,17 +451,30 @@ TEST_F(ConfigTest, RuleDicomLayoutReachesTheJobSpec) {
       HasSubstr("dicom_layout"));
 }
 
-// Regression (issue 25): a rule for MR with the enhanced layout loaded, and
-// every series it matched made a job that failed FAILED_PRECONDITION. It is
-// now refused when the file is loaded (at start, --check-config, SIGHUP).
-TEST_F(ConfigTest, EnhancedLayoutOnANonCtRuleIsRefusedAtLoad) {
+// Regression (issue 25): a rule for a modality without an enhanced IOD
+// (written here: CT and MR) loaded, and every series it matched made a job
+// that failed FAILED_PRECONDITION. It is refused when the file is loaded (at
+// start, --check-config, SIGHUP).
+TEST_F(ConfigTest, EnhancedLayoutOnANonCtOrMrRuleIsRefusedAtLoad) {
   const std::string error = RuleError(
-      "  - {name: mr, match: {modality: MR},\n"
+      "  - {name: pet, match: {modality: PT},\n"
       "     job: {threshold: 100, output_series: [intensity],\n"
       "           dicom_layout: enhanced}}\n");
-  EXPECT_THAT(error, HasSubstr("rule 'mr'"));
-  EXPECT_THAT(error, HasSubstr("dicom_layout enhanced is written for CT only"));
-  EXPECT_THAT(error, HasSubstr("'MR'"));
+  EXPECT_THAT(error, HasSubstr("rule 'pet'"));
+  EXPECT_THAT(error,
+              HasSubstr("dicom_layout enhanced is written for CT and MR only"));
+  EXPECT_THAT(error, HasSubstr("'PT'"));
+  // MR (Enhanced MR Image) loads.
+  absl::StatusOr<RuleSet> mr = LoadRulesFile(
+      Write("rules-mr.yaml",
+            "rules:\n"
+            "  - {name: mr, match: {modality: MR},\n"
+            "     job: {threshold: 100, output_series: [intensity],\n"
+            "           dicom_layout: enhanced}}\n"),
+      Peers());
+  ASSERT_TRUE(mr.ok()) << mr.status();
+  EXPECT_EQ(mr->rules[0].job.derived_series().layout(),
+            v1::DICOM_LAYOUT_ENHANCED);
   // CT (any case) and rules without a modality criterion still load.
   absl::StatusOr<RuleSet> set = LoadRulesFile(
       Write("rules-ct.yaml",
