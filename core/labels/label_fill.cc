@@ -797,9 +797,10 @@ absl::StatusOr<FillResult> FillBetweenSlices(const LabelVolume& input,
   result.factor = factor;
 
   // The context's threads. Besides the labels themselves, the scans of the
-  // whole volume before and after them run on these threads, one slice or
-  // one label per task, each writing only its own results: the same result
-  // for any thread count.
+  // whole volume before and after them run on these threads, one slice, one
+  // label or one block of slices per task, each writing only its own
+  // results (integer counts and bounds per block, the same totals for any
+  // split): the same result for any thread count.
   const int threads = context.threads > 0
                           ? context.threads
                           : tbb::this_task_arena::max_concurrency();
@@ -817,6 +818,18 @@ absl::StatusOr<FillResult> FillBetweenSlices(const LabelVolume& input,
                             body(t);
                           }
                         });
+    });
+  };
+  // [0, count) in at most `threads` contiguous blocks: body(begin, end,
+  // block). Per-block accumulators stay at threads x labels, not slices x
+  // labels.
+  const auto blocks_of = [&](int64_t count) {
+    return std::max<int64_t>(1, std::min<int64_t>(count, threads));
+  };
+  auto for_each_block = [&](int64_t count, const auto& body) {
+    const int64_t blocks = blocks_of(count);
+    for_each_index(blocks, [&](int64_t b) {
+      body(b * count / blocks, (b + 1) * count / blocks, b);
     });
   };
 
@@ -947,28 +960,30 @@ absl::StatusOr<FillResult> FillBetweenSlices(const LabelVolume& input,
     // does not start last; workers take the next label in that order.
     std::vector<int64_t> work(labels.size(), 0);
     {
-      // Per slice, then the union over the slices.
-      std::vector<std::vector<PlaneBox>> slice_extent(nz);
-      for_each_index(nz, [&](int64_t k) {
-        std::vector<PlaneBox>& extent = slice_extent[k];
+      // Per block of slices, then the union over the blocks.
+      std::vector<std::vector<PlaneBox>> block_extent(blocks_of(nz));
+      for_each_block(nz, [&](int64_t k0, int64_t k1, int64_t block) {
+        std::vector<PlaneBox>& extent = block_extent[block];
         extent.assign(labels.size(), PlaneBox{nx, 0, ny, 0});
-        for (int64_t j = 0; j < ny; ++j) {
-          const uint16_t* row = input.data.data() + (k * ny + j) * nx;
-          for (int64_t i = 0; i < nx; ++i) {
-            const int n = row[i] == 0 ? -1 : label_index[row[i]];
-            if (n < 0) continue;
-            PlaneBox& e = extent[n];
-            e.i0 = std::min(e.i0, i);
-            e.i1 = std::max(e.i1, i + 1);
-            e.j0 = std::min(e.j0, j);
-            e.j1 = std::max(e.j1, j + 1);
+        for (int64_t k = k0; k < k1; ++k) {
+          for (int64_t j = 0; j < ny; ++j) {
+            const uint16_t* row = input.data.data() + (k * ny + j) * nx;
+            for (int64_t i = 0; i < nx; ++i) {
+              const int n = row[i] == 0 ? -1 : label_index[row[i]];
+              if (n < 0) continue;
+              PlaneBox& e = extent[n];
+              e.i0 = std::min(e.i0, i);
+              e.i1 = std::max(e.i1, i + 1);
+              e.j0 = std::min(e.j0, j);
+              e.j1 = std::max(e.j1, j + 1);
+            }
           }
         }
       });
       std::vector<PlaneBox> extent(labels.size(), PlaneBox{nx, 0, ny, 0});
-      for (int64_t k = 0; k < nz; ++k) {
+      for (const std::vector<PlaneBox>& block : block_extent) {
         for (size_t n = 0; n < labels.size(); ++n) {
-          const PlaneBox& s = slice_extent[k][n];
+          const PlaneBox& s = block[n];
           PlaneBox& e = extent[n];
           e.i0 = std::min(e.i0, s.i0);
           e.i1 = std::max(e.i1, s.i1);
@@ -1047,14 +1062,12 @@ absl::StatusOr<FillResult> FillBetweenSlices(const LabelVolume& input,
       next_key[z] = annotated_keys[a + 1];
     }
   }
-  struct SliceCounts {
+  struct Counts {
     int64_t gap_closed = 0, restored = 0;
     std::vector<int64_t> per_label;
   };
-  std::vector<SliceCounts> counts(out_nz);
-  auto finish_slice = [&](int64_t z) {
-    SliceCounts& c = counts[z];
-    c.per_label.assign(labels.size(), 0);
+  std::vector<Counts> counts(blocks_of(out_nz));
+  auto finish_slice = [&](int64_t z, Counts& c) {
     uint16_t* o = out.data.data() + z * plane;
     const float* b = best.data() + z * plane;
     const uint16_t* bl = best_label.data() + z * plane;
@@ -1096,8 +1109,12 @@ absl::StatusOr<FillResult> FillBetweenSlices(const LabelVolume& input,
       if (o[p] != 0 && filled[o[p]]) ++c.per_label[label_index[o[p]]];
     }
   };
-  for_each_index(out_nz, finish_slice);
-  for (const SliceCounts& c : counts) {
+  for_each_block(out_nz, [&](int64_t z0, int64_t z1, int64_t block) {
+    Counts& c = counts[block];
+    c.per_label.assign(labels.size(), 0);
+    for (int64_t z = z0; z < z1; ++z) finish_slice(z, c);
+  });
+  for (const Counts& c : counts) {
     result.gap_voxels_closed += c.gap_closed;
     result.key_voxels_restored += c.restored;
     for (size_t n = 0; n < labels.size(); ++n) {
