@@ -796,22 +796,64 @@ absl::StatusOr<FillResult> FillBetweenSlices(const LabelVolume& input,
   FillResult result;
   result.factor = factor;
 
+  // The context's threads. Besides the labels themselves, the scans of the
+  // whole volume before and after them run on these threads, one slice, one
+  // label or one block of slices per task, each writing only its own
+  // results (integer counts and bounds per block, the same totals for any
+  // split): the same result for any thread count.
+  const int threads = context.threads > 0
+                          ? context.threads
+                          : tbb::this_task_arena::max_concurrency();
+  tbb::task_arena arena(threads);
+  auto for_each_index = [&](int64_t count, const auto& body) {
+    if (threads <= 1) {
+      for (int64_t t = 0; t < count; ++t) body(t);
+      return;
+    }
+    arena.execute([&] {
+      tbb::parallel_for(tbb::blocked_range<int64_t>(0, count, 1),
+                        [&](const tbb::blocked_range<int64_t>& range) {
+                          for (int64_t t = range.begin(); t != range.end();
+                               ++t) {
+                            body(t);
+                          }
+                        });
+    });
+  };
+  // [0, count) in at most `threads` contiguous blocks: body(begin, end,
+  // block). Per-block accumulators stay at threads x labels, not slices x
+  // labels.
+  const auto blocks_of = [&](int64_t count) {
+    return std::max<int64_t>(1, std::min<int64_t>(count, threads));
+  };
+  auto for_each_block = [&](int64_t count, const auto& body) {
+    const int64_t blocks = blocks_of(count);
+    for_each_index(blocks, [&](int64_t b) {
+      body(b * count / blocks, (b + 1) * count / blocks, b);
+    });
+  };
+
   // Key slices per label; the annotated slices are what the default rule
   // sees as "drawn": every slice holding a filled label.
   std::vector<int64_t> annotated;
   if (!options.key_slices.has_value()) {
-    for (int64_t k = 0; k < nz; ++k) {
+    std::vector<uint8_t> holds_filled(nz, 0);
+    for_each_index(nz, [&](int64_t k) {
       const uint16_t* s = input.data.data() + k * plane;
-      if (std::any_of(s, s + plane, [&](uint16_t v) { return filled[v]; })) {
-        annotated.push_back(k);
-      }
+      holds_filled[k] =
+          std::any_of(s, s + plane, [&](uint16_t v) { return filled[v]; });
+    });
+    for (int64_t k = 0; k < nz; ++k) {
+      if (holds_filled[k]) annotated.push_back(k);
     }
   }
   std::vector<std::vector<int64_t>> keys(labels.size());
-  std::set<int64_t> all_keys;
-  for (size_t n = 0; n < labels.size(); ++n) {
+  for_each_index(static_cast<int64_t>(labels.size()), [&](int64_t n) {
     keys[n] =
         KeySlicesForLabel(input, labels[n], annotated, options.key_slices);
+  });
+  std::set<int64_t> all_keys;
+  for (size_t n = 0; n < labels.size(); ++n) {
     all_keys.insert(keys[n].begin(), keys[n].end());
   }
   // is_key[n][k]: slice k is a key slice of labels[n].
@@ -896,9 +938,6 @@ absl::StatusOr<FillResult> FillBetweenSlices(const LabelVolume& input,
   // in ascending label order as soon as every smaller label is done: the
   // same result for any thread count. Fields computed ahead of a smaller
   // label wait in memory until it is merged.
-  const int threads = context.threads > 0
-                          ? context.threads
-                          : tbb::this_task_arena::max_concurrency();
   if (threads <= 1 || labels.size() <= 1) {
     for (size_t n = 0; n < labels.size(); ++n) {
       INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
@@ -921,19 +960,35 @@ absl::StatusOr<FillResult> FillBetweenSlices(const LabelVolume& input,
     // does not start last; workers take the next label in that order.
     std::vector<int64_t> work(labels.size(), 0);
     {
-      std::vector<PlaneBox> extent(labels.size(), PlaneBox{nx, 0, ny, 0});
-      for (int64_t k = 0; k < nz; ++k) {
-        for (int64_t j = 0; j < ny; ++j) {
-          const uint16_t* row = input.data.data() + (k * ny + j) * nx;
-          for (int64_t i = 0; i < nx; ++i) {
-            const int n = row[i] == 0 ? -1 : label_index[row[i]];
-            if (n < 0) continue;
-            PlaneBox& e = extent[n];
-            e.i0 = std::min(e.i0, i);
-            e.i1 = std::max(e.i1, i + 1);
-            e.j0 = std::min(e.j0, j);
-            e.j1 = std::max(e.j1, j + 1);
+      // Per block of slices, then the union over the blocks.
+      std::vector<std::vector<PlaneBox>> block_extent(blocks_of(nz));
+      for_each_block(nz, [&](int64_t k0, int64_t k1, int64_t block) {
+        std::vector<PlaneBox>& extent = block_extent[block];
+        extent.assign(labels.size(), PlaneBox{nx, 0, ny, 0});
+        for (int64_t k = k0; k < k1; ++k) {
+          for (int64_t j = 0; j < ny; ++j) {
+            const uint16_t* row = input.data.data() + (k * ny + j) * nx;
+            for (int64_t i = 0; i < nx; ++i) {
+              const int n = row[i] == 0 ? -1 : label_index[row[i]];
+              if (n < 0) continue;
+              PlaneBox& e = extent[n];
+              e.i0 = std::min(e.i0, i);
+              e.i1 = std::max(e.i1, i + 1);
+              e.j0 = std::min(e.j0, j);
+              e.j1 = std::max(e.j1, j + 1);
+            }
           }
+        }
+      });
+      std::vector<PlaneBox> extent(labels.size(), PlaneBox{nx, 0, ny, 0});
+      for (const std::vector<PlaneBox>& block : block_extent) {
+        for (size_t n = 0; n < labels.size(); ++n) {
+          const PlaneBox& s = block[n];
+          PlaneBox& e = extent[n];
+          e.i0 = std::min(e.i0, s.i0);
+          e.i1 = std::max(e.i1, s.i1);
+          e.j0 = std::min(e.j0, s.j0);
+          e.j1 = std::max(e.j1, s.j1);
         }
       }
       for (size_t n = 0; n < labels.size(); ++n) {
@@ -948,7 +1003,6 @@ absl::StatusOr<FillResult> FillBetweenSlices(const LabelVolume& input,
     std::stable_sort(order.begin(), order.end(),
                      [&](size_t a, size_t b) { return work[a] > work[b]; });
     std::atomic<size_t> next{0};
-    tbb::task_arena arena(threads);
     arena.execute([&] {
       tbb::parallel_for(
           tbb::blocked_range<int>(0, threads, 1),
@@ -989,54 +1043,85 @@ absl::StatusOr<FillResult> FillBetweenSlices(const LabelVolume& input,
   }
   INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
 
-  // Combine: the largest positive field wins.
+  // Combine, close gaps, restore key slices and count, one output slice at a
+  // time on the context's threads: every step reads and writes only its own
+  // slice (and the input), and the counts are integer sums, so the result
+  // does not depend on the thread count.
   LabelVolume& out = result.labels;
   out.grid = out_grid;
   out.data.assign(out_voxels, 0);
-  for (int64_t v = 0; v < out_voxels; ++v) {
-    if (best[v] > 0) out.data[v] = best_label[v];
-  }
-
-  // Gap closing between annotated slices labelled on both sides.
   const std::vector<int64_t> annotated_keys(all_keys.begin(), all_keys.end());
+  // bracket[z]: for an output slice strictly between two consecutive
+  // annotated key slices ka < kb (input indices), ka; otherwise -1.
+  std::vector<int64_t> bracket(out_nz, -1);
+  std::vector<int64_t> next_key(out_nz, -1);
   for (size_t a = 0; a + 1 < annotated_keys.size(); ++a) {
-    const int64_t ka = annotated_keys[a], kb = annotated_keys[a + 1];
-    const uint16_t* la = input.data.data() + ka * plane;
-    const uint16_t* lb = input.data.data() + kb * plane;
-    for (int64_t z = ka * factor + 1; z < kb * factor; ++z) {
+    for (int64_t z = annotated_keys[a] * factor + 1;
+         z < annotated_keys[a + 1] * factor; ++z) {
+      bracket[z] = annotated_keys[a];
+      next_key[z] = annotated_keys[a + 1];
+    }
+  }
+  struct Counts {
+    int64_t gap_closed = 0, restored = 0;
+    std::vector<int64_t> per_label;
+  };
+  std::vector<Counts> counts(blocks_of(out_nz));
+  auto finish_slice = [&](int64_t z, Counts& c) {
+    uint16_t* o = out.data.data() + z * plane;
+    const float* b = best.data() + z * plane;
+    const uint16_t* bl = best_label.data() + z * plane;
+    // The largest positive field wins.
+    for (int64_t p = 0; p < plane; ++p) {
+      if (b[p] > 0) o[p] = bl[p];
+    }
+    // Gap closing between annotated slices labelled on both sides.
+    if (bracket[z] >= 0) {
+      const uint16_t* la = input.data.data() + bracket[z] * plane;
+      const uint16_t* lb = input.data.data() + next_key[z] * plane;
       for (int64_t p = 0; p < plane; ++p) {
-        const int64_t v = z * plane + p;
-        if (out.data[v] != 0 || best[v] == kNoField) continue;
+        if (o[p] != 0 || b[p] == kNoField) continue;
         if (la[p] != 0 && lb[p] != 0) {
-          out.data[v] = best_label[v];
-          ++result.gap_voxels_closed;
+          o[p] = bl[p];
+          ++c.gap_closed;
         }
       }
     }
-  }
-
-  // Key slices exactly as drawn.
-  for (int64_t k = 0; k < nz; ++k) {
-    const uint16_t* drawn = input.data.data() + k * plane;
-    uint16_t* o = out.data.data() + k * factor * plane;
-    for (int64_t p = 0; p < plane; ++p) {
-      const uint16_t in = drawn[p];
-      uint16_t want = o[p];
-      if (in != 0 && (!filled[in] || is_key[label_index[in]][k])) {
-        want = in;
-      } else if (o[p] != 0 && is_key[label_index[o[p]]][k]) {
-        want = 0;  // drawn-and-empty for that label
-      }
-      if (want != o[p]) {
-        o[p] = want;
-        ++result.key_voxels_restored;
+    // Key slices exactly as drawn.
+    if (z % factor == 0) {
+      const int64_t k = z / factor;
+      const uint16_t* drawn = input.data.data() + k * plane;
+      for (int64_t p = 0; p < plane; ++p) {
+        const uint16_t in = drawn[p];
+        uint16_t want = o[p];
+        if (in != 0 && (!filled[in] || is_key[label_index[in]][k])) {
+          want = in;
+        } else if (o[p] != 0 && is_key[label_index[o[p]]][k]) {
+          want = 0;  // drawn-and-empty for that label
+        }
+        if (want != o[p]) {
+          o[p] = want;
+          ++c.restored;
+        }
       }
     }
+    for (int64_t p = 0; p < plane; ++p) {
+      if (o[p] != 0 && filled[o[p]]) ++c.per_label[label_index[o[p]]];
+    }
+  };
+  for_each_block(out_nz, [&](int64_t z0, int64_t z1, int64_t block) {
+    Counts& c = counts[block];
+    c.per_label.assign(labels.size(), 0);
+    for (int64_t z = z0; z < z1; ++z) finish_slice(z, c);
+  });
+  for (const Counts& c : counts) {
+    result.gap_voxels_closed += c.gap_closed;
+    result.key_voxels_restored += c.restored;
+    for (size_t n = 0; n < labels.size(); ++n) {
+      result.per_label[n].output_voxels += c.per_label[n];
+    }
   }
-
-  for (uint16_t v : out.data) {
-    if (v != 0 && filled[v]) ++result.per_label[label_index[v]].output_voxels;
-  }
+  INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
 
   if (options.keep_fields) {
     for (size_t n = 0; n < labels.size(); ++n) {

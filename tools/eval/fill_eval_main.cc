@@ -265,6 +265,10 @@ int Main(int argc, char** argv) {
   bool no_score = false;
   app.add_flag("--no-score", no_score,
                "Time the fills only (no Dice/HD95/MSD: for profiling)");
+  bool save_fills = false;
+  app.add_flag("--save-fills", save_fills,
+               "Write each fill's label map (fill-k<K>-<method>.nii.gz): to "
+               "compare two builds' fills voxel for voxel");
   int repeat = 1;
   app.add_option("--repeat", repeat,
                  "Run each fill this many times; seconds = the fastest");
@@ -475,6 +479,14 @@ int Main(int argc, char** argv) {
         cpu_seconds = std::min(
             cpu_seconds,
             static_cast<double>(std::clock() - cpu_start) / CLOCKS_PER_SEC);
+      }
+      if (save_fills) {
+        const std::string path =
+            absl::StrFormat("%s/fill-k%d-%s.nii.gz", out_dir, step, method);
+        if (absl::Status written = WriteVolume(out, path); !written.ok()) {
+          std::fprintf(stderr, "%s\n", std::string(written.message()).c_str());
+          return 1;
+        }
       }
       if (no_score) {
         std::printf("%lld,%s,seconds %.2f,cpu_seconds %.2f\n",

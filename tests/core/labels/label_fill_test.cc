@@ -275,6 +275,43 @@ TEST(FillTest, TiesGoToTheSmallerLabel) {
   EXPECT_GT(CountOnSlice(result->labels, 3, 2), 0);
 }
 
+// The same ties with the labels computed concurrently: label 1 also holds a
+// large square far from the discs on slice 0 (beyond the distance band, so
+// the fields at the discs stay symmetric), which makes it the longest job:
+// it is started first and finishes last, and must still be merged first.
+TEST(FillTest, TiesGoToTheSmallerLabelForAnyThreads) {
+  LabelVolume v;
+  v.grid.size = {240, 240, 5};
+  v.data.assign(v.grid.VoxelCount(), 0);
+  for (int64_t j = 0; j < 240; ++j) {
+    for (int64_t i = 0; i < 240; ++i) {
+      if ((i - 9.5) * (i - 9.5) + (j - 9.5) * (j - 9.5) <= 36) {
+        v.at(i, j, 0) = 1;
+        v.at(i, j, 4) = 2;
+      } else if (i >= 100 && j >= 100) {
+        v.at(i, j, 0) = 1;
+      }
+    }
+  }
+  FillOptions options;
+  SetMethod("linear", options);
+  options.key_slices = std::vector<int64_t>{0, 4};
+  for (const int threads : {1, 2, 4}) {
+    absl::StatusOr<FillResult> result =
+        FillBetweenSlices(v, options, ComputeContext{.threads = threads});
+    ASSERT_TRUE(result.ok()) << result.status();
+    int64_t ones = 0, twos = 0;
+    for (int64_t j = 0; j < 20; ++j) {
+      for (int64_t i = 0; i < 20; ++i) {
+        ones += result->labels.at(i, j, 2) == 1;
+        twos += result->labels.at(i, j, 2) == 2;
+      }
+    }
+    EXPECT_GT(ones, 0) << threads << " threads";
+    EXPECT_EQ(twos, 0) << threads << " threads";
+  }
+}
+
 TEST(FillTest, Errors) {
   const LabelVolume drawn = KeepSlices(TouchingHalves(), kKeys);
   const ComputeContext context{.threads = 1};
@@ -566,6 +603,107 @@ TEST(MorphFillTest, MovingStructuresFollowTheirMotion) {
   absl::StatusOr<FillResult> one = FillWith("morph", drawn, keys, 1);
   ASSERT_TRUE(one.ok());
   EXPECT_EQ(one->labels.data, morph->labels.data);
+}
+
+// Six labels of every kind the fill schedules differently: a ball and the
+// shell around it touching it (compact and thin, each validated), two discs
+// moving across the slices (the morph), a label drawn on one key slice only
+// and one on three, on 80 x 64 x 25 voxels.
+LabelVolume SixLabels() {
+  LabelVolume v;
+  v.grid.size = {80, 64, 25};
+  v.grid.spacing = {0.8, 0.8, 1.5};
+  v.data.assign(v.grid.VoxelCount(), 0);
+  for (int64_t k = 0; k < 25; ++k) {
+    for (int64_t j = 0; j < 64; ++j) {
+      for (int64_t i = 0; i < 80; ++i) {
+        const double r =
+            std::sqrt((i - 20.0) * (i - 20.0) + (j - 21.0) * (j - 21.0) +
+                      (k - 12.0) * (k - 12.0) * 0.8);
+        const double d3 = std::hypot(i - (42 + 1.1 * k), j - (8 + 0.8 * k));
+        const double d4 = std::hypot(i - (75 - 1.3 * k), j - 52.0);
+        uint16_t label = 0;
+        if (r <= 9.2) {
+          label = 1;
+        } else if (r <= 12.6) {
+          label = 2;
+        } else if (d3 <= 5.5) {
+          label = 3;
+        } else if (d4 <= 5.2) {
+          label = 4;
+        } else if (k == 10 && i >= 58 && i < 63 && j >= 28 && j < 34) {
+          label = 5;
+        } else if (k >= 4 && k <= 16 &&
+                   std::hypot(i - 30.0, j - 50.0) <=
+                       3.0 + 0.2 * std::abs(k - 10.0)) {
+          label = 6;
+        }
+        v.at(i, j, k) = label;
+      }
+    }
+  }
+  return v;
+}
+
+// Labels run concurrently, and the scans before and after them run per
+// slice on the context's threads: the label map, the counts, the per-label
+// report and the meshing fields must be the same for 1, 2 and 4 threads,
+// with the key slices given and detected, on the input grid and with twice
+// the slices.
+TEST(AutoFillTest, SameResultForOneTwoAndFourThreads) {
+  const LabelVolume truth = SixLabels();
+  const std::vector<int64_t> keys = EveryNth(5, 25);
+  const LabelVolume drawn = KeepSlices(truth, keys);
+  for (const bool detect : {false, true}) {
+    SCOPED_TRACE(detect ? "key slices detected, factor 2" : "keys given");
+    FillOptions options;
+    options.keep_fields = true;
+    if (detect) {
+      options.z_resolution.factor = 2;
+    } else {
+      options.key_slices = keys;
+    }
+    absl::StatusOr<FillResult> one =
+        FillBetweenSlices(drawn, options, ComputeContext{.threads = 1});
+    ASSERT_TRUE(one.ok()) << one.status();
+    ASSERT_EQ(one->per_label.size(), 6u);
+    // The case holds what it is meant to: the moving discs morphed, the
+    // one-slice label copied, labels filled between their key slices.
+    EXPECT_EQ(one->per_label[2].method, "morph");
+    EXPECT_EQ(one->per_label[3].method, "morph");
+    EXPECT_EQ(one->per_label[4].method, "copy");
+    EXPECT_EQ(one->per_label[4].drawn_slices, 1);
+    EXPECT_FALSE(one->per_label[0].validation_dice.empty());
+    const int64_t out_plane = one->labels.grid.SliceVoxelCount();
+    EXPECT_GT(std::count(
+                  one->labels.data.begin() + 12 * one->factor * out_plane,
+                  one->labels.data.begin() + (12 * one->factor + 1) * out_plane,
+                  uint16_t{1}),
+              100);
+    for (const int threads : {2, 4}) {
+      SCOPED_TRACE(threads);
+      absl::StatusOr<FillResult> many =
+          FillBetweenSlices(drawn, options, ComputeContext{.threads = threads});
+      ASSERT_TRUE(many.ok()) << many.status();
+      EXPECT_EQ(many->labels.grid.size, one->labels.grid.size);
+      EXPECT_TRUE(many->labels.data == one->labels.data);
+      EXPECT_EQ(many->gap_voxels_closed, one->gap_voxels_closed);
+      EXPECT_EQ(many->key_voxels_restored, one->key_voxels_restored);
+      EXPECT_EQ(many->warnings, one->warnings);
+      ASSERT_EQ(many->per_label.size(), one->per_label.size());
+      for (size_t n = 0; n < one->per_label.size(); ++n) {
+        const LabelFillInfo& a = one->per_label[n];
+        const LabelFillInfo& b = many->per_label[n];
+        EXPECT_EQ(b.label, a.label);
+        EXPECT_EQ(b.key_slices, a.key_slices);
+        EXPECT_EQ(b.method, a.method) << a.label;
+        EXPECT_EQ(b.output_voxels, a.output_voxels) << a.label;
+        EXPECT_EQ(b.validation_dice, a.validation_dice) << a.label;
+        EXPECT_EQ(b.validation_dice_4g, a.validation_dice_4g) << a.label;
+        EXPECT_TRUE(b.field.data == a.field.data) << a.label;
+      }
+    }
+  }
 }
 
 // What the selection saw, per rule: the doubled-gap Dice always (three or
