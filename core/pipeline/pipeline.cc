@@ -691,71 +691,101 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
       wants_intensity && Contains(spec.mesh_formats, "stl");
   Mesh dicom_mesh_storage;
   const Mesh* dicom_mesh = &mesh;
+  // The Encapsulated STL's mesh is made beside the preview and write stages
+  // (meshoptimizer's simplification is serial: ~2 s of the shipped rule's
+  // job on the CT phantom, a core otherwise idle), on its own thread with a
+  // context that reports no progress (Report is never concurrent); its
+  // stage time is recorded when the write stage takes it. It reads `mesh`
+  // and `field`, which nothing changes meanwhile, and writes only its own
+  // report fields. The future is declared after what it reads.
+  double dicom_mesh_seconds = -1;  // -1: no dicom-mesh stage
+  std::future<absl::Status> dicom_meshing;
   if (wants_dicom_mesh) {
-    // A stage only when it does something: another mesh, or its deviation
-    // (the default, 0 for both, stores the surface as extracted).
-    // First the adaptivity (another extraction), then the size cap
-    // (quadric edge collapse of that mesh).
-    const int64_t max_triangles = MaxEncapsulatedStlTriangles(
-        spec.dicom_mesh_max_mb, static_cast<int64_t>(source.slices.size()));
-    const bool reextract = spec.dicom_mesh_adaptivity != spec.mesh_adaptivity;
-    const bool may_cap =
-        max_triangles > 0 &&
-        (reextract ||
-         static_cast<int64_t>(mesh.triangles.size()) > max_triangles);
-    std::optional<StageClock> clock;
-    if (reextract || may_cap || spec.dicom_mesh_adaptivity > 0) {
-      clock.emplace(report, context, "dicom-mesh");
-    }
-    SurfaceOptions options;
-    if (reextract) {
-      options.adaptivity = spec.dicom_mesh_adaptivity;
-      INTERSLICE_ASSIGN_OR_RETURN(dicom_mesh_storage,
-                                  ExtractSurface(field, options, context));
-      dicom_mesh = &dicom_mesh_storage;
-    }
-    report.dicom_mesh_max_mb = spec.dicom_mesh_max_mb;
-    report.dicom_mesh_triangles_before_cap =
-        static_cast<int64_t>(dicom_mesh->triangles.size());
-    if (max_triangles > 0 &&
-        static_cast<int64_t>(dicom_mesh->triangles.size()) > max_triangles) {
-      INTERSLICE_ASSIGN_OR_RETURN(
-          SimplifiedMesh simplified,
-          SimplifyMesh(*dicom_mesh, {.max_triangles = max_triangles}, context));
-      dicom_mesh_storage = std::move(simplified.mesh);
-      dicom_mesh = &dicom_mesh_storage;
-      report.dicom_mesh_simplify_error_mm = simplified.error_mm;
-      report.dicom_mesh_over_cap = simplified.triangles_after > max_triangles;
-    }
-    report.dicom_mesh_stl_bytes =
-        84 + 50 * static_cast<int64_t>(dicom_mesh->triangles.size());
-    report.dicom_mesh_adaptivity = spec.dicom_mesh_adaptivity;
-    report.dicom_mesh_vertices =
-        static_cast<int64_t>(dicom_mesh->vertices.size());
-    report.dicom_mesh_triangles =
-        static_cast<int64_t>(dicom_mesh->triangles.size());
-    if (spec.dicom_mesh_adaptivity > 0) {
-      Mesh reference_storage;
-      const Mesh* reference = &mesh;
-      if (spec.mesh_adaptivity != 0) {
-        options.adaptivity = 0;
-        INTERSLICE_ASSIGN_OR_RETURN(reference_storage,
-                                    ExtractSurface(field, options, context));
-        reference = &reference_storage;
-      }
-      // The finest grid spacing: the deviation is known to about half a
-      // voxel of the output grid (half the spacing took minutes for the CT
-      // phantom's 2.7 million triangles).
-      const double resolution = *std::min_element(field.grid.spacing.begin(),
-                                                  field.grid.spacing.end());
-      INTERSLICE_ASSIGN_OR_RETURN(
-          const MeshDeviation deviation,
-          MeasureMeshDeviation(*dicom_mesh, *reference, resolution, context));
-      report.dicom_mesh_max_deviation_mm = deviation.max_mm;
-      report.dicom_mesh_mean_deviation_mm = deviation.mean_mm;
-      report.dicom_mesh_resolution_mm = deviation.resolution_mm;
-      report.dicom_mesh_samples_beyond_band = deviation.beyond_band;
-    }
+    ComputeContext mesh_context = context;
+    mesh_context.progress = nullptr;
+    dicom_meshing = std::async(
+        std::launch::async,
+        [&, mesh_context = std::move(mesh_context)]() -> absl::Status {
+          const ComputeContext& context = mesh_context;
+          const auto started = std::chrono::steady_clock::now();
+          // A stage only when it does something: another mesh, or its
+          // deviation (the default, 0 for both, stores the surface as
+          // extracted). First the adaptivity (another extraction), then the
+          // size cap (quadric edge collapse of that mesh).
+          const int64_t max_triangles = MaxEncapsulatedStlTriangles(
+              spec.dicom_mesh_max_mb,
+              static_cast<int64_t>(source.slices.size()));
+          const bool reextract =
+              spec.dicom_mesh_adaptivity != spec.mesh_adaptivity;
+          const bool may_cap =
+              max_triangles > 0 &&
+              (reextract ||
+               static_cast<int64_t>(mesh.triangles.size()) > max_triangles);
+          const bool staged =
+              reextract || may_cap || spec.dicom_mesh_adaptivity > 0;
+          absl::Status status = [&]() -> absl::Status {
+            SurfaceOptions options;
+            if (reextract) {
+              options.adaptivity = spec.dicom_mesh_adaptivity;
+              INTERSLICE_ASSIGN_OR_RETURN(
+                  dicom_mesh_storage, ExtractSurface(field, options, context));
+              dicom_mesh = &dicom_mesh_storage;
+            }
+            report.dicom_mesh_max_mb = spec.dicom_mesh_max_mb;
+            report.dicom_mesh_triangles_before_cap =
+                static_cast<int64_t>(dicom_mesh->triangles.size());
+            if (max_triangles > 0 &&
+                static_cast<int64_t>(dicom_mesh->triangles.size()) >
+                    max_triangles) {
+              INTERSLICE_ASSIGN_OR_RETURN(
+                  SimplifiedMesh simplified,
+                  SimplifyMesh(*dicom_mesh, {.max_triangles = max_triangles},
+                               context));
+              dicom_mesh_storage = std::move(simplified.mesh);
+              dicom_mesh = &dicom_mesh_storage;
+              report.dicom_mesh_simplify_error_mm = simplified.error_mm;
+              report.dicom_mesh_over_cap =
+                  simplified.triangles_after > max_triangles;
+            }
+            report.dicom_mesh_stl_bytes =
+                84 + 50 * static_cast<int64_t>(dicom_mesh->triangles.size());
+            report.dicom_mesh_adaptivity = spec.dicom_mesh_adaptivity;
+            report.dicom_mesh_vertices =
+                static_cast<int64_t>(dicom_mesh->vertices.size());
+            report.dicom_mesh_triangles =
+                static_cast<int64_t>(dicom_mesh->triangles.size());
+            if (spec.dicom_mesh_adaptivity > 0) {
+              Mesh reference_storage;
+              const Mesh* reference = &mesh;
+              if (spec.mesh_adaptivity != 0) {
+                options.adaptivity = 0;
+                INTERSLICE_ASSIGN_OR_RETURN(
+                    reference_storage, ExtractSurface(field, options, context));
+                reference = &reference_storage;
+              }
+              // The finest grid spacing: the deviation is known to about half a
+              // voxel of the output grid (half the spacing took minutes for the
+              // CT phantom's 2.7 million triangles).
+              const double resolution = *std::min_element(
+                  field.grid.spacing.begin(), field.grid.spacing.end());
+              INTERSLICE_ASSIGN_OR_RETURN(
+                  const MeshDeviation deviation,
+                  MeasureMeshDeviation(*dicom_mesh, *reference, resolution,
+                                       context));
+              report.dicom_mesh_max_deviation_mm = deviation.max_mm;
+              report.dicom_mesh_mean_deviation_mm = deviation.mean_mm;
+              report.dicom_mesh_resolution_mm = deviation.resolution_mm;
+              report.dicom_mesh_samples_beyond_band = deviation.beyond_band;
+            }
+            return absl::OkStatus();
+          }();
+          if (staged) {
+            dicom_mesh_seconds = std::chrono::duration<double>(
+                                     std::chrono::steady_clock::now() - started)
+                                     .count();
+          }
+          return status;
+        });
   }
   INTERSLICE_RETURN_IF_ERROR(context.CheckCancelled());
 
@@ -982,6 +1012,10 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
     // With DICOM outputs, the STL mesh also goes into the study as an
     // Encapsulated STL object; it embeds surface.stl, so it comes after.
     if (wants_dicom_mesh) {
+      INTERSLICE_RETURN_IF_ERROR(dicom_meshing.get());
+      if (dicom_mesh_seconds >= 0) {
+        report.stages.push_back({"dicom-mesh", dicom_mesh_seconds});
+      }
       const auto path = dir / kEncapsulatedStlFileName;
       // Its own mesh goes through a temporary STL file (the writer embeds a
       // file as it is), deleted once embedded.
