@@ -18,10 +18,10 @@
 # machine the absolute figures move with the load. The job's end is its
 # "succeeded" line in the node's log (its results published, its deliveries
 # starting), so "job" and "sending" split the total.
-# Measured 2026-11-26 on this 2-core machine under a load of 12-14 (six other
-# engineers building), RUNS=3: the phantom 40.1 s (job 37.5 s, sending the
-# 300 results 3.0 s), ct-tilt 3.7 s (job 3.6 s, sending 13 results 0.12 s);
-# the issue's goal (<= 8 s for the phantom) needs a rerun on an idle machine.
+# Measured 2026-11-26 on this 2-core machine, idle, RUNS=5: the phantom
+# 8.06 s (runs 7.89-8.62; job 7.13 s, sending the 300 results 0.94 s),
+# ct-tilt 0.51 s (docs/dicom-node.md, "Throughput"). Under a load of 12-14
+# (six other engineers building) it was 40.1 s, before the job's changes.
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 build=$(cd "${1:-$root/build}" && pwd)
