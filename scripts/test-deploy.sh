@@ -197,8 +197,10 @@ for _ in $(seq 1 100); do
   sleep 0.2
 done
 "$cli" health --server "$server" || { $runtime logs "$(container interslice)"; say "FAILED: the server is not healthy"; exit 1; }
-for _ in $(seq 1 100); do
-  curl -fsS "http://127.0.0.1:$ORTHANC_HTTP_PORT/system" >/dev/null 2>&1 && break
+# Orthanc's first start (a fresh volume, its plugins) took over 20 s once on
+# this 2-core machine: up to 90 s, polling what the test needs.
+for _ in $(seq 1 450); do
+  curl -fsS "http://127.0.0.1:$ORTHANC_HTTP_PORT/modalities?expand" 2>/dev/null | grep -q INTERSLICE && break
   sleep 0.2
 done
 curl -fsS "http://127.0.0.1:$ORTHANC_HTTP_PORT/modalities?expand" | grep -q INTERSLICE ||
