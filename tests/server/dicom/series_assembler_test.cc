@@ -6,8 +6,8 @@
 
 #include <filesystem>
 #include <fstream>
-#include <set>
 #include <functional>
+#include <set>
 
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
