@@ -18,9 +18,9 @@
 # machine the absolute figures move with the load. The job's end is its
 # "succeeded" line in the node's log (its results published, its deliveries
 # starting), so "job" and "sending" split the total.
-# Measured 2026-11-26 on this 2-core machine, idle, RUNS=5: the phantom
-# 8.06 s (runs 7.89-8.62; job 7.13 s, sending the 300 results 0.94 s),
-# ct-tilt 0.51 s (docs/dicom-node.md, "Throughput"). Under a load of 12-14
+# Measured 2026-11-26 on this 2-core machine, idle, 7 runs: the phantom
+# 7.38 s (runs 7.14-7.43; job 6.41 s, sending the 300 results 1.02 s),
+# ct-tilt 0.47 s (docs/dicom-node.md, "Throughput"). Under a load of 12-14
 # (six other engineers building) it was 40.1 s, before the job's changes.
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)

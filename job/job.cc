@@ -153,6 +153,10 @@ class InterpolationJob final : public JobKind {
     return absl::OkStatus();
   }
 
+  void OmitFilesDicomObjectsCarry() override {
+    spec_.omit_files_dicom_objects_carry = true;
+  }
+
   absl::StatusOr<JobResult> Run(const ComputeContext& context) const override {
     absl::StatusOr<JobReport> report = RunJob(spec_, context);
     if (!report.ok()) return report.status();

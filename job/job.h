@@ -89,6 +89,13 @@ class JobKind {
                                 const std::string& output_dir,
                                 int64_t max_output_voxels) = 0;
 
+  // For a job whose DICOM objects are all it delivers (a DICOM node's job
+  // that sends its results to PACS peers, server/spool.h
+  // DeliversOnlyDicomToPeers): files whose content those objects carry are
+  // not written (core/pipeline JobSpec::omit_files_dicom_objects_carry).
+  // Kinds that write no such files ignore it.
+  virtual void OmitFilesDicomObjectsCarry() {}
+
   // Runs the job. Errors from the core (each stage's header says which);
   // CANCELLED / DEADLINE_EXCEEDED when context.cancel fires.
   virtual absl::StatusOr<JobResult> Run(

@@ -1009,6 +1009,11 @@ absl::StatusOr<job::JobResult> JobManager::Execute(
   }
   if (!ready.ok()) return ready;
   job::JobKind& work = **kind;
+  bool omit_files_dicom_objects_carry;
+  {
+    std::lock_guard<std::mutex> lock(job->mu_);
+    omit_files_dicom_objects_carry = DeliversOnlyDicomToPeers(job->record_);
+  }
   const std::string upload_dir = spool_->UploadDir(id);
   const std::string output_dir = spool_->OutputDir(id);
   ComputeContext context;
@@ -1046,6 +1051,7 @@ absl::StatusOr<job::JobResult> JobManager::Execute(
     request.set_max_output_voxels(options_.max_output_voxels);
     request.set_threads(options_.threads_per_job);
     request.set_server_pid(::getpid());
+    request.set_omit_files_dicom_objects_carry(omit_files_dicom_objects_carry);
     WorkerOutcome outcome;
     absl::StatusOr<job::JobResult> result = RunInWorkerProcess(
         request, context, options_.worker, &outcome,
@@ -1064,6 +1070,7 @@ absl::StatusOr<job::JobResult> JobManager::Execute(
       !s.ok()) {
     return s;
   }
+  if (omit_files_dicom_objects_carry) work.OmitFilesDicomObjectsCarry();
   // As the worker process does (job_worker.cc): which series, for the
   // status; the job's own read reports a folder without one.
   if (absl::StatusOr<job::SourceSeries> source = job::DescribeSourceSeries(

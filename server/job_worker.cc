@@ -382,6 +382,9 @@ int RunJobWorker(int in_fd, int out_fd) {
       !s.ok()) {
     return finish(s, {});
   }
+  if (request.omit_files_dicom_objects_carry()) {
+    job.OmitFilesDicomObjectsCarry();
+  }
   if (request.deadline_unix_ms() > 0) {
     const auto now_unix = std::chrono::system_clock::now();
     const auto remaining =

@@ -189,11 +189,13 @@ bool MadeByDicomListener(const JobRecord& record) {
 
 }  // namespace
 
+bool DeliversOnlyDicomToPeers(const JobRecord& record) {
+  return MadeByDicomListener(record) && !record.spec().send_to().empty();
+}
+
 int64_t RemoveArtifactsNotAskedFor(const JobRecord& record,
                                    job::JobResult* result) {
-  if (!MadeByDicomListener(record) || record.spec().send_to().empty()) {
-    return 0;
-  }
+  if (!DeliversOnlyDicomToPeers(record)) return 0;
   std::set<std::string> kinds;
   for (const Artifact& a : result->artifacts) kinds.insert(a.kind);
   const auto surplus = [&](const Artifact& a) {

@@ -76,12 +76,20 @@ absl::Status WriteFileAtomically(const std::string& path,
 // Sum of the sizes of the regular files below `path`.
 int64_t TreeSize(const std::string& path);
 
+// Whether `record` is a job the DICOM listener made (JobOrigin DICOM) whose
+// results go to PACS peers (send_to): its DICOM objects are all it delivers.
+// Such a job does not write the files those objects carry
+// (job::JobKind::OmitFilesDicomObjectsCarry), and RemoveArtifactsNotAskedFor
+// removes them from one that did (a job recovered from an older server).
+bool DeliversOnlyDicomToPeers(const JobRecord& record);
+
 // A finished job keeps only what it was asked for (issue 25). A job the
 // DICOM listener made (JobOrigin DICOM) whose results go to PACS peers
 // (send_to) was asked, through its rule, for the DICOM objects it delivers.
-// Beside them the pipeline writes the same data again in other formats,
-// which no peer receives and no client fetches (only an admin could), so
-// they are not kept:
+// Beside them the pipeline used to write the same data again in other
+// formats, which no peer receives and no client fetches (only an admin
+// could); such jobs now skip them (DeliversOnlyDicomToPeers), and these are
+// removed where a job wrote them anyway (one queued by an older server):
 //  - surface.stl when the Encapsulated STL (surface-stl.dcm) was written:
 //    it is the mesh the rule's `mesh: [stl]` sends to the PACS (the same
 //    bytes when the mesh was not simplified; the unsimplified surface, 5x the

@@ -884,26 +884,40 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
       bool optional = false;
     };
     std::vector<Task> tasks;
+    // JobSpec::omit_files_dicom_objects_carry: a file whose content one of
+    // this job's DICOM objects carries is not written.
+    const bool omit = spec.omit_files_dicom_objects_carry;
     for (const std::string& format : spec.volume_formats) {
       const std::string ext = format == "nii"    ? ".nii.gz"
                               : format == "nrrd" ? ".nrrd"
                                                  : ".nii";
       const auto distance_path = dir / ("distance" + ext);
       const auto mask_path = dir / ("mask" + ext);
-      tasks.push_back({"distance", distance_path, [&, distance_path] {
-                         return WriteVolume(field, distance_path.string(),
-                                            context);
-                       }});
-      tasks.push_back({"mask", mask_path, [&, mask_path] {
-                         return WriteVolume(mask, mask_path.string(), context);
-                       }});
+      if (!(omit && wants_distance_map)) {
+        tasks.push_back({"distance", distance_path, [&, distance_path] {
+                           return WriteVolume(field, distance_path.string(),
+                                              context);
+                         }});
+      }
+      if (!(omit && wants_seg)) {
+        tasks.push_back({"mask", mask_path, [&, mask_path] {
+                           return WriteVolume(mask, mask_path.string(),
+                                              context);
+                         }});
+      }
     }
+    bool surface_stl_written = false;
+    bool mesh_file_written = false;
     for (const std::string& format : spec.mesh_formats) {
+      if (omit && wants_dicom_mesh && format == "stl") continue;
+      surface_stl_written |= format == "stl";
+      mesh_file_written = true;
       const auto path = dir / ("surface." + format);
       tasks.push_back({"surface", path,
                        [&, path] { return WriteMesh(mesh, path.string()); }});
     }
-    if (!spec.mesh_formats.empty()) {
+    // The note explains the mesh files' coordinates.
+    if (mesh_file_written) {
       const auto path = dir / "surface-coordinates.txt";
       tasks.push_back({"surface-coordinates", path, [&, path] {
                          return WriteTextFile(path.string(),
@@ -1017,17 +1031,19 @@ absl::StatusOr<JobReport> RunJob(const JobSpec& spec,
         report.stages.push_back({"dicom-mesh", dicom_mesh_seconds});
       }
       const auto path = dir / kEncapsulatedStlFileName;
-      // Its own mesh goes through a temporary STL file (the writer embeds a
-      // file as it is), deleted once embedded.
+      // Its own mesh, or the surface when surface.stl was not written, goes
+      // through a temporary STL file (the writer embeds a file as it is),
+      // deleted once embedded.
       std::filesystem::path stl = dir / "surface.stl";
-      if (dicom_mesh != &mesh) {
+      const bool temporary = dicom_mesh != &mesh || !surface_stl_written;
+      if (temporary) {
         stl = dir / ".surface-dicom.stl";
         INTERSLICE_RETURN_IF_ERROR(WriteStl(*dicom_mesh, stl.string()));
       }
       const absl::Status written =
           WriteEncapsulatedStl(source, stl.string(), objects.surface_stl,
                                dicom_options, path.string());
-      if (dicom_mesh != &mesh) {
+      if (temporary) {
         std::error_code ignored;
         std::filesystem::remove(stl, ignored);
       }

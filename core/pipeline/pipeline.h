@@ -110,6 +110,15 @@ struct JobSpec {
   //   mesh formats "stl", "ply", "obj" -> surface.<ext>.
   std::vector<std::string> volume_formats = {"nii"};
   std::vector<std::string> mesh_formats = {"stl"};
+  // When true, a file whose content one of this job's DICOM objects carries
+  // is not written (nor listed in the report): surface.stl when the
+  // Encapsulated STL is written, mask.<ext> with the SEG, distance.<ext>
+  // with the distance map; surface-coordinates.txt only beside a mesh file.
+  // For a job whose DICOM objects are all it delivers (the DICOM node's jobs
+  // that send to PACS peers, server/spool.h): the 2.7 million triangles of
+  // the CT phantom's surface.stl (133 MB) are then never formatted and
+  // written. Default false: every requested format is written.
+  bool omit_files_dicom_objects_carry = false;
   //   DICOM objects (see core/dicom_out/dicom_writer.h and
   //   docs/dicom-output.md), by output_series name:
   //     "intensity" -> series-intensity/IM00001.dcm ... (a CT/MR image

@@ -7,7 +7,9 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <iterator>
 #include <map>
+#include <set>
 #include <thread>
 
 #include "core/dicom/series_reader.h"
@@ -105,6 +107,64 @@ TEST_F(PipelineTest, RunsEveryStageAndWritesConsistentOutputs) {
   for (size_t n = 0; n < mask->data.size(); ++n) {
     ASSERT_EQ(mask->data[n], distance->data[n] >= 0 ? 1.0f : 0.0f) << n;
   }
+}
+
+// Issue 25: a job whose DICOM objects are all it delivers (the DICOM node's
+// jobs that send to PACS peers) does not write the files those objects carry:
+// no surface.stl beside the Encapsulated STL, no mask beside the SEG, no
+// distance volume beside the distance map, no coordinates note without a
+// mesh file. The Encapsulated STL embeds the same mesh as surface.stl of the
+// same job written in full, and no temporary file is left.
+TEST_F(PipelineTest, FilesTheDicomObjectsCarryAreOmittedWhenAsked) {
+  JobSpec full = SmallJob();
+  full.output_series = {"intensity", "mask", "distance"};
+  full.output_dir = (dir_ / "full").string();
+  JobSpec omitted = full;
+  omitted.output_dir = (dir_ / "omitted").string();
+  omitted.omit_files_dicom_objects_carry = true;
+  const auto full_report = RunJob(full, {.threads = 2});
+  ASSERT_TRUE(full_report.ok()) << full_report.status();
+  const auto report = RunJob(omitted, {.threads = 2});
+  ASSERT_TRUE(report.ok()) << report.status();
+
+  std::set<std::string> files, listed;
+  for (const auto& entry : fs::directory_iterator(dir_ / "omitted")) {
+    files.insert(entry.path().filename().string());
+  }
+  for (const Artifact& a : report->artifacts) {
+    listed.insert(fs::path(a.path).filename().string());
+  }
+  EXPECT_EQ(files, listed);
+  EXPECT_THAT(files,
+              ::testing::IsSupersetOf({"series-intensity", "seg.dcm",
+                                       "distance.dcm", "surface-stl.dcm"}));
+  for (const char* name :
+       {"surface.stl", "surface-coordinates.txt", "mask.nrrd", "distance.nrrd",
+        ".surface-dicom.stl"}) {
+    EXPECT_EQ(files.count(name), 0u) << name;
+    if (std::string(name) != ".surface-dicom.stl") {
+      EXPECT_TRUE(fs::exists(dir_ / "full" / name)) << name;
+    }
+  }
+  // The embedded mesh: the bytes of the full job's surface.stl (the mesh is
+  // small enough to be stored as extracted).
+  std::ifstream in(dir_ / "full" / "surface.stl", std::ios::binary);
+  const std::string stl((std::istreambuf_iterator<char>(in)),
+                        std::istreambuf_iterator<char>());
+  DcmFileFormat file;
+  ASSERT_TRUE(
+      file.loadFile(OFFilename((dir_ / "omitted/surface-stl.dcm").c_str()))
+          .good());
+  const Uint8* document = nullptr;
+  unsigned long length = 0;
+  ASSERT_TRUE(
+      file.getDataset()
+          ->findAndGetUint8Array(DCM_EncapsulatedDocument, document, &length)
+          .good());
+  ASSERT_GE(length, stl.size());
+  // The element has even length: one pad byte after an odd-sized document.
+  EXPECT_LE(length, stl.size() + 1);
+  EXPECT_EQ(std::memcmp(document, stl.data(), stl.size()), 0);
 }
 
 // Issue 26: every DICOM object a job writes (intensity series, SEG, distance

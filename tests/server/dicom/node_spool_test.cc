@@ -3,10 +3,11 @@
 // (deploy/config/rules.yaml: the derived series, the SEG and the mesh as an
 // Encapsulated STL, sent to `orthanc`) on tests/data/ct-tilt sent by
 // storescu, the results delivered to a real Orthanc; then the job's folder
-// in the spool must hold its record, the DICOM objects Orthanc received and
-// the previews, and nothing else (before: also surface.stl, the same mesh
-// again, and its coordinates note). A job submitted over gRPC with the same
-// outputs keeps every artifact: its client fetches them.
+// in the spool must hold its record and the DICOM objects Orthanc received,
+// and nothing else (before: also surface.stl, the same mesh again, and its
+// coordinates note, written and then removed; and PNG previews, which the
+// shipped rule no longer asks for: no peer receives them). A job submitted over
+// gRPC with the same outputs keeps every artifact: its client fetches them.
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
@@ -30,6 +31,7 @@ namespace {
 
 namespace fs = std::filesystem;
 using ::testing::HasSubstr;
+using ::testing::Not;
 
 const std::string kCli = INTERSLICE_CLI_PATH;
 const std::string kStoreScu = "/usr/bin/storescu";  // Debian's dcmtk
@@ -57,7 +59,11 @@ std::vector<std::string> JobFolders(const fs::path& spool) {
   return ids;
 }
 
-TEST(NodeSpoolTest, ShippedRulesJobKeepsOnlyWhatItDelivers) {
+// The job runs in a worker process (the default) or on the server's own
+// threads (--isolation thread): each path tells the job what to omit.
+class NodeSpoolTest : public ::testing::TestWithParam<std::string> {};
+
+TEST_P(NodeSpoolTest, ShippedRulesJobKeepsOnlyWhatItDelivers) {
   TempDir dir("interslice_node_spool_");
   const fs::path root = dir.path();
   auto orthanc = Orthanc::Start((root / "orthanc").string(), {});
@@ -73,7 +79,8 @@ TEST(NodeSpoolTest, ShippedRulesJobKeepsOnlyWhatItDelivers) {
       .log = (root / "server.log").string(),
       .extra = {"--dicom-listen", "127.0.0.1:0", "--dicom-ae", "INTERSLICE",
                 "--dicom-peers", peers, "--rules", kShippedRules,
-                "--delivery-retry", "0.2", "--delivery-retry-max", "1"},
+                "--delivery-retry", "0.2", "--delivery-retry-max", "1",
+                "--isolation", GetParam()},
       .threads_per_job = 1});
   ASSERT_TRUE(server.Start());
   const std::vector<std::string> client = server.ServerFlag();
@@ -106,6 +113,9 @@ TEST(NodeSpoolTest, ShippedRulesJobKeepsOnlyWhatItDelivers) {
       RunCommand(Cat({kCli, "watch", job, "--wait-deliveries"}, client), 300);
   ASSERT_EQ(watch.exit_code, 0) << watch.err << server.Log();
   EXPECT_THAT(server.Log(), HasSubstr("made by rule ct-bone"));
+  // The job never wrote what it would not keep (JobKind::
+  // OmitFilesDicomObjectsCarry), so nothing had to be removed afterwards.
+  EXPECT_THAT(server.Log(), Not(HasSubstr("kept only what it was asked for")));
 
   // What Orthanc received: every result instance, byte for byte as sent.
   auto instances = (*orthanc)->GetJson("/instances");
@@ -122,7 +132,7 @@ TEST(NodeSpoolTest, ShippedRulesJobKeepsOnlyWhatItDelivers) {
     delivered_bytes += static_cast<int64_t>(file->size());
   }
 
-  // The job's folder: its record, the delivered objects, the previews.
+  // The job's folder: its record and the delivered objects.
   const fs::path folder = spool / "jobs" / job;
   const std::map<std::string, int64_t> files = Files(folder);
   std::set<std::string> names;
@@ -131,10 +141,6 @@ TEST(NodeSpoolTest, ShippedRulesJobKeepsOnlyWhatItDelivers) {
       "job.pb",
       "out/seg.dcm",
       "out/surface-stl.dcm",
-      "out/previews/axial.png",
-      "out/previews/coronal.png",
-      "out/previews/sagittal.png",
-      "out/previews/3d-front.png",
   };
   // The derived series: one file per output slice, the rest of what went.
   const int derived_slices = delivered - 2;
@@ -144,18 +150,18 @@ TEST(NodeSpoolTest, ShippedRulesJobKeepsOnlyWhatItDelivers) {
     expected.insert(name);
   }
   EXPECT_EQ(names, expected) << "spool folder of the job " << job;
-  // Its size: what was delivered, plus the previews and the record (the
-  // only files no peer received).
+  // Its size: what was delivered, plus the record (the only file no peer
+  // received).
   int64_t total = 0, not_delivered = 0;
   for (const auto& [name, bytes] : files) {
     total += bytes;
-    if (name == "job.pb" || name.rfind("out/previews/", 0) == 0) {
+    if (name == "job.pb") {
       not_delivered += bytes;
     }
   }
   EXPECT_LE(total, delivered_bytes + not_delivered)
       << "the job keeps " << total << " bytes; delivered " << delivered_bytes
-      << ", previews and record " << not_delivered;
+      << ", record " << not_delivered;
 
   // The job's status lists only what is there: fetch gets every artifact,
   // and they are the folder's out/ files.
@@ -191,6 +197,9 @@ TEST(NodeSpoolTest, ShippedRulesJobKeepsOnlyWhatItDelivers) {
   EXPECT_EQ(grpc_files.count("out/surface-coordinates.txt"), 1u);
   EXPECT_EQ(server.Stop(), 0) << server.Log();
 }
+
+INSTANTIATE_TEST_SUITE_P(Isolation, NodeSpoolTest,
+                         ::testing::Values("process", "thread"));
 
 }  // namespace
 }  // namespace interslice::testing
