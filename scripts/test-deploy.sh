@@ -168,10 +168,10 @@ sed -e "s/host: orthanc, port: 4242/host: orthanc, port: $ORTHANC_DICOM_PORT/" \
   deploy/config/peers.yaml >"$INTERSLICE_CONFIG_DIR/peers.yaml"
 pacs_spacing=""
 [[ ${INTERSLICE_DEPLOY_FULL:-0} == 1 ]] || pacs_spacing=", spacing: 1.25"
-sed -e "s/volume: none}/volume: none$pacs_spacing}/" deploy/config/rules.yaml \
+sed -e "s/previews: none}/previews: none$pacs_spacing}/" deploy/config/rules.yaml \
   >"$INTERSLICE_CONFIG_DIR/rules.yaml"
 grep -q "port: $ORTHANC_DICOM_PORT" "$INTERSLICE_CONFIG_DIR/peers.yaml" &&
-  grep -q "volume: none$pacs_spacing}" "$INTERSLICE_CONFIG_DIR/rules.yaml" ||
+  grep -q "previews: none$pacs_spacing}" "$INTERSLICE_CONFIG_DIR/rules.yaml" ||
   { say "FAILED: deploy/config/{peers,rules}.yaml no longer have the expected lines"; exit 1; }
 # The server runs as uid 10001: the mounted files must be readable to it.
 chmod 755 "$work" "$INTERSLICE_CONFIG_DIR"
