@@ -121,7 +121,7 @@ if [ -n "$real" ]; then
     cp "$out"/segmentations_dice_*.png "$docs/" 2>/dev/null || true
     for name in phantom totalseg-41 totalseg-31 rt-breast-heart rt-heart rt-lung rt-tumour-bed lung-tumour; do
       mkdir -p "$docs/segmentations/$name"
-      for f in fill_summary.csv fill_metrics.csv fill_choices.csv fill_timing.csv labels.json; do
+      for f in fill_summary.csv fill_metrics.csv fill_choices.csv fill_validation_slices.csv fill_timing.csv labels.json; do
         [ -f "$out/$name/$f" ] && cp "$out/$name/$f" "$docs/segmentations/$name/"
       done
     done

@@ -352,11 +352,15 @@ absl::StatusOr<StackedField> MorphLabel(const Volume<float>& maps,
 // either side of it only (its trajectory over that gap). Returns the Dice
 // pooled over the scored slices per candidate (kCandidates order; the
 // morph's -1 without auto_morph), or empty when the label has fewer than
-// m + 2 key slices (m = 2: 3).
+// m + 2 key slices (m = 2: 3). With `slice_dice`, also each scored slice's
+// own Dice per candidate (kCandidates order; 1 where neither the drawing nor
+// the candidate has a pixel; the morph's -1 without auto_morph), for the
+// evaluation of selection rules (LabelFillInfo::validation_slice_dice).
 absl::StatusOr<std::vector<double>> ValidateCandidates(
     const LabelVolume& input, int label, const std::vector<int64_t>& key,
     const PlaneBox& box, const Volume<float>& maps, const FillOptions& options,
-    int m, const ComputeContext& context) {
+    int m, const ComputeContext& context,
+    std::vector<std::vector<double>>* slice_dice = nullptr) {
   const size_t n = key.size();
   const size_t needed = m == 2 ? 3 : static_cast<size_t>(m) + 2;
   if (n < needed) return std::vector<double>();
@@ -491,6 +495,9 @@ absl::StatusOr<std::vector<double>> ValidateCandidates(
       const float* ref = refined.data.data() + z * bplane;
       const float* cpy = copy.data.data() + z * bplane;
       const float* mor = with_morph ? morph[h].data() : nullptr;
+      std::vector<double> slice_both(kCandidateCount, 0),
+          slice_predicted(kCandidateCount, 0);
+      double slice_drawn = 0;
       for (int64_t j = 0; j < bh; ++j) {
         const uint16_t* row =
             input.data.data() +
@@ -498,17 +505,27 @@ absl::StatusOr<std::vector<double>> ValidateCandidates(
         for (int64_t i = 0; i < bw; ++i) {
           const int64_t p = j * bw + i;
           const bool truth = row[i] == label;
-          drawn += truth;
+          slice_drawn += truth;
           const float values[kCandidateCount] = {
               lin[p], ref[p], mor != nullptr ? mor[p] : -1.0f,
               0.5f * (lin[p] + cpy[p]), cpy[p]};
           for (int c = 0; c < kCandidateCount; ++c) {
             const bool in = values[c] > 0;
-            predicted[c] += in;
-            both[c] += in && truth;
+            slice_predicted[c] += in;
+            slice_both[c] += in && truth;
           }
         }
       }
+      drawn += slice_drawn;
+      std::vector<double> one(kCandidateCount, 0);
+      for (int c = 0; c < kCandidateCount; ++c) {
+        predicted[c] += slice_predicted[c];
+        both[c] += slice_both[c];
+        const double sum = slice_predicted[c] + slice_drawn;
+        one[c] = sum > 0 ? 2 * slice_both[c] / sum : 1;
+      }
+      if (!with_morph) one[static_cast<int>(Candidate::kMorph)] = -1;
+      if (slice_dice != nullptr) slice_dice->push_back(std::move(one));
     }
   }
   std::vector<double> dice(kCandidateCount, 0);
@@ -588,14 +605,16 @@ absl::Status ComputeLabelField(const LabelVolume& input, const Grid& out_grid,
     refine = chosen == Candidate::kRefined ? SolverMethod::kDirect
                                            : SolverMethod::kLinear;
   } else if (options.method == FillMethod::kAuto) {
+    std::vector<std::vector<double>> slices2, slices4;
     INTERSLICE_ASSIGN_OR_RETURN(
         std::vector<double> dice2,
-        ValidateCandidates(input, label, key, box, maps, options, 2, context));
+        ValidateCandidates(input, label, key, box, maps, options, 2, context,
+                           &slices2));
     std::vector<double> dice4;
     if (options.selection == AutoSelection::kGapTrend && !dice2.empty()) {
       INTERSLICE_ASSIGN_OR_RETURN(
           dice4, ValidateCandidates(input, label, key, box, maps, options, 4,
-                                    context));
+                                    context, &slices4));
     }
     chosen = Candidate::kLinear;
     if (!dice2.empty()) {
@@ -645,6 +664,18 @@ absl::Status ComputeLabelField(const LabelVolume& input, const Grid& out_grid,
           info.validation_dice_4g.emplace_back(CandidateName(c), dice4[index]);
         }
         info.validation_score.emplace_back(CandidateName(c), score[index]);
+      }
+      // Each scored slice's Dice, in the report's candidate order.
+      for (const auto& [level, all] :
+           {std::pair{&info.validation_slice_dice, &slices2},
+            std::pair{&info.validation_slice_dice_4g, &slices4}}) {
+        for (const std::vector<double>& one : *all) {
+          std::vector<double> ordered;
+          for (Candidate c : kReport) {
+            ordered.push_back(one[static_cast<int>(c)]);
+          }
+          level->push_back(std::move(ordered));
+        }
       }
     }
     refine = chosen == Candidate::kRefined ? SolverMethod::kDirect

@@ -192,6 +192,16 @@ struct LabelFillInfo {
   std::vector<std::pair<std::string, double>> validation_dice;
   std::vector<std::pair<std::string, double>> validation_dice_4g;
   std::vector<std::pair<std::string, double>> validation_score;
+  // kAuto only, with validation_dice (resp. validation_dice_4g): each scored
+  // held-out key slice's own Dice (at most 8 slices per gap), one row per
+  // slice in the order the folds scored them, each row in the candidate
+  // order above (1 where neither the drawing nor the candidate has a pixel
+  // on the slice; -1 for a candidate not tried). The pooled Dice weighs
+  // slices by their area; these say how much the ranking varies from slice
+  // to slice (the evaluation, tools/eval, writes them out). Not used by the
+  // selection.
+  std::vector<std::vector<double>> validation_slice_dice;
+  std::vector<std::vector<double>> validation_slice_dice_4g;
   // Field for meshing, on the label's box of the output grid:
   // min(f_L, (f_L - max_{M != L} f_M) / 2), positive exactly where L wins
   // the comparison (before gap closing and key-slice restoration). Empty

@@ -403,6 +403,11 @@ int Main(int argc, char** argv) {
     }
   }
   choices << "\n";
+  // Each scored held-out key slice's own validation Dice per candidate
+  // (LabelFillInfo::validation_slice_dice): how much the ranking varies from
+  // slice to slice, for studying selection rules (issue 24).
+  std::ofstream slice_rows(out_dir + "/fill_validation_slices.csv");
+  slice_rows << "k,method,label,gap,slice,copy,linear,blend,direct,morph\n";
   summary << "k,method,labels_scored,mean_dice,mean_hd95_mm,mean_msd_mm,"
              "gap_voxels,seconds,cpu_seconds\n";
   const int64_t nz = truth.grid.size[2];
@@ -468,8 +473,21 @@ int Main(int argc, char** argv) {
                 if (list->empty()) choices << ",,,,,";
               }
               choices << "\n";
+              for (const auto& [gap, rows] :
+                   {std::pair{"2g", &info.validation_slice_dice},
+                    std::pair{"4g", &info.validation_slice_dice_4g}}) {
+                for (size_t n = 0; n < rows->size(); ++n) {
+                  slice_rows << step << "," << method << "," << info.label
+                             << "," << gap << "," << n;
+                  for (double dice : (*rows)[n]) {
+                    slice_rows << absl::StrFormat(",%.4f", dice);
+                  }
+                  slice_rows << "\n";
+                }
+              }
             }
             choices.flush();
+            slice_rows.flush();
           }
         }
         seconds =

@@ -706,6 +706,64 @@ TEST(AutoFillTest, SameResultForOneTwoAndFourThreads) {
   }
 }
 
+// Each scored held-out key slice's own Dice (LabelFillInfo::
+// validation_slice_dice): at most 8 slices per gap, in the report's
+// candidate order, each in [0, 1] (the morph -1 when not tried), varying
+// from slice to slice on a ball, with the pooled Dice between their extremes
+// and not equal to the last slice's (which a running total would give).
+TEST(AutoFillTest, ValidationRecordsEachScoredSlicesDice) {
+  const LabelVolume truth = Ball(15.3, 0);
+  const std::vector<int64_t> keys = EveryNth(3, kSize);  // 14 key slices
+  FillOptions options;
+  options.key_slices = keys;
+  absl::StatusOr<FillResult> trend = FillBetweenSlices(
+      KeepSlices(truth, keys), options, ComputeContext{.threads = 1});
+  ASSERT_TRUE(trend.ok()) << trend.status();
+  const LabelFillInfo& t = trend->per_label[0];
+  // 12 inner key slices held out once at 2g, three times at 4g: 8 scored.
+  ASSERT_EQ(t.validation_slice_dice.size(), 8u);
+  ASSERT_EQ(t.validation_slice_dice_4g.size(), 8u);
+  for (const auto* rows :
+       {&t.validation_slice_dice, &t.validation_slice_dice_4g}) {
+    const auto& pooled = rows == &t.validation_slice_dice
+                             ? t.validation_dice
+                             : t.validation_dice_4g;
+    for (size_t c = 0; c < 5; ++c) {
+      double low = 2, high = -1;
+      for (const std::vector<double>& row : *rows) {
+        ASSERT_EQ(row.size(), 5u);
+        EXPECT_GE(row[c], 0) << pooled[c].first;
+        EXPECT_LE(row[c], 1) << pooled[c].first;
+        low = std::min(low, row[c]);
+        high = std::max(high, row[c]);
+      }
+      EXPECT_LT(low, high) << pooled[c].first;
+      EXPECT_GE(pooled[c].second, low) << pooled[c].first;
+      EXPECT_LE(pooled[c].second, high) << pooled[c].first;
+      EXPECT_NE(rows->back()[c], pooled[c].second) << pooled[c].first;
+    }
+  }
+  // Without the morph: its column is -1; the doubled-gap rule scores no
+  // quadrupled gap.
+  options.selection = AutoSelection::kDoubledGap;
+  options.auto_morph = false;
+  absl::StatusOr<FillResult> doubled = FillBetweenSlices(
+      KeepSlices(truth, keys), options, ComputeContext{.threads = 1});
+  ASSERT_TRUE(doubled.ok()) << doubled.status();
+  const LabelFillInfo& d = doubled->per_label[0];
+  EXPECT_TRUE(d.validation_slice_dice_4g.empty());
+  ASSERT_EQ(d.validation_slice_dice.size(), 8u);
+  for (const std::vector<double>& row : d.validation_slice_dice) {
+    EXPECT_EQ(row[4], -1);  // morph
+  }
+  // The same folds as the trend rule's, for the candidates both tried.
+  for (size_t n = 0; n < 8; ++n) {
+    for (size_t c = 0; c < 4; ++c) {
+      EXPECT_EQ(d.validation_slice_dice[n][c], t.validation_slice_dice[n][c]);
+    }
+  }
+}
+
 // What the selection saw, per rule: the doubled-gap Dice always (three or
 // more key slices), the quadrupled-gap Dice with the trend rule and six or
 // more key slices, and the score the choice was made on (the power-law
