@@ -88,6 +88,11 @@ std::optional<EnhancedIod> IodForModality(const std::string& modality) {
   return std::nullopt;
 }
 
+const char* SopClassOf(EnhancedIod iod) {
+  return iod == EnhancedIod::kCt ? UID_EnhancedCTImageStorage
+                                 : UID_EnhancedMRImageStorage;
+}
+
 absl::Status Check(const OFCondition& cond, const std::string& what) {
   if (cond.good()) return absl::OkStatus();
   return absl::InternalError(
@@ -495,9 +500,7 @@ absl::StatusOr<DerivedObjectIdentity> PlanEnhancedIntensity(
   INTERSLICE_ASSIGN_OR_RETURN(
       enhanced.dimension_organization_uid,
       DeriveDicomUid(options.uid_root, absl::StrCat(base, "/dimensions")));
-  enhanced.sop_class_uid = *iod == EnhancedIod::kCt
-                               ? UID_EnhancedCTImageStorage
-                               : UID_EnhancedMRImageStorage;
+  enhanced.sop_class_uid = SopClassOf(*iod);
   return enhanced;
 }
 
@@ -516,8 +519,7 @@ absl::Status WriteEnhancedIntensity(const DicomSeries& source,
         "modality is '",
         source.modality, "'"));
   }
-  const char* sop_class = *iod == EnhancedIod::kCt ? UID_EnhancedCTImageStorage
-                                                   : UID_EnhancedMRImageStorage;
+  const char* sop_class = SopClassOf(*iod);
   if (identity.sop_class_uid != sop_class ||
       identity.sop_instance_uids.size() != 1 ||
       identity.sop_instance_uids.front().empty() ||

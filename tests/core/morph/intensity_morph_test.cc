@@ -6,6 +6,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <functional>
 #include <random>
 #include <thread>
 #include <vector>
@@ -53,6 +54,21 @@ Grid Target(const Volume<float>& keys, int64_t slices, double dz) {
   g.size[2] = slices;
   g.spacing[2] = dz;
   return g;
+}
+
+// Two n x n key slices 2 mm apart, drawn in this order by `draw(edge_row,
+// slice)` with the edge at `first_edge_row`, then `second_edge_row`: the
+// moving-edge scenes of the pair-check tests.
+Volume<float> EdgeKeyPair(int64_t n, double first_edge_row,
+                          double second_edge_row,
+                          const std::function<void(double, float*)>& draw) {
+  Volume<float> keys;
+  keys.grid.size = {n, n, 2};
+  keys.grid.spacing = {kPixelMm, kPixelMm, 2.0};
+  keys.data.resize(2 * n * n);
+  draw(first_edge_row, keys.data.data());
+  draw(second_edge_row, keys.data.data() + n * n);
+  return keys;
 }
 
 // Registration at full resolution with enough iterations for a 64x64 test
@@ -388,16 +404,9 @@ TEST(MorphIntensityTest, CroppedPairCheckEqualsTheWholeSlicesCheck) {
         out[i + n * j] = static_cast<float>(value) + noise(random);
       }
   };
-  Volume<float> keys;
-  keys.grid.size = {n, n, 2};
-  keys.grid.spacing = {kPixelMm, kPixelMm, 2.0};
-  keys.data.resize(2 * n * n);
-  slice(170, keys.data.data());
-  slice(146, keys.data.data() + n * n);
+  const Volume<float> keys = EdgeKeyPair(n, 170, 146, slice);
   const std::vector<double> positions = {0.0, 2.0};
-  Grid target = keys.grid;
-  target.size[2] = 5;
-  target.spacing[2] = 0.5;
+  const Grid target = Target(keys, 5, 0.5);
   ComputeContext context;
   IntensityMorphOptions cropped;
   ASSERT_TRUE(cropped.crop_pair_check);
@@ -455,18 +464,11 @@ TEST(MorphIntensityTest, StaticTissueNextToALargeMotionIsNotDragged) {
         out[i + n * j] = static_cast<float>(value) + noise(random);
       }
   };
-  Volume<float> keys;
-  keys.grid.size = {n, n, 2};
-  keys.grid.spacing = {kPixelMm, kPixelMm, 2.0};
-  keys.data.resize(2 * n * n);
-  slice(64, keys.data.data());
-  slice(34, keys.data.data() + n * n);
+  const Volume<float> keys = EdgeKeyPair(n, 64, 34, slice);
   std::vector<float> truth(n * n);
   slice(49, truth.data());
   const std::vector<double> positions = {0.0, 2.0};
-  Grid target = keys.grid;
-  target.size[2] = 3;
-  target.spacing[2] = 1.0;
+  const Grid target = Target(keys, 3, 1.0);
   ComputeContext context;
   auto morphed = MorphIntensity(keys, positions, target, std::nullopt, nullptr,
                                 IntensityMorphOptions(), context);
