@@ -347,9 +347,10 @@ absl::StatusOr<StackedField> MorphLabel(const Volume<float>& maps,
 // (each one once, predicted across a gap twice the label's own); m = 4
 // keeps every 4th (each inner key slice held out 3 times, at 1/4, 1/2 and
 // 3/4 of a gap 4 times the label's own, as drop-k withholds slices). At most
-// kMaxHeldOutPerLevel held-out slices are scored, evenly spread over the
-// folds; the morph of each is registered between the kept key slices on
-// either side of it only (its trajectory over that gap). Returns the Dice
+// kMaxHeldOutPerLevel held-out slices are scored, in a few runs spread over
+// the folds (see below); the morph of each is the fill's own morph from the
+// fold's kept key slices (the cubic trajectory through its gap, whose
+// tangents come from the kept gaps on either side). Returns the Dice
 // pooled over the scored slices per candidate (kCandidates order; the
 // morph's -1 without auto_morph), or empty when the label has fewer than
 // m + 2 key slices (m = 2: 3). With `slice_dice`, also each scored slice's
@@ -379,35 +380,66 @@ absl::StatusOr<std::vector<double>> ValidateCandidates(
   g = std::max<int64_t>(1, g);
   const bool with_morph = options.auto_morph;
   // The held-out slices (fold, key index) of all folds, and the sample of
-  // at most kMaxHeldOutPerLevel of them, evenly spread, that is scored:
-  // each registration costs ~10 ms of ITK overhead whatever the box, so the
-  // morph is registered only around the scored slices.
+  // at most kMaxHeldOutPerLevel of them that is scored. Each registration
+  // costs ~10 ms of ITK overhead whatever the box, and the morph of a
+  // scored slice needs its own kept gap and the kept gaps on either side
+  // registered (see below), so the sample is made of a few runs spread
+  // evenly over the folds, each run the held-out slices of consecutive kept
+  // gaps of one fold (at least kRunSlices slices): neighbouring slices of a
+  // run share their registrations. m = 2: 4 runs of 2 slices (one per gap),
+  // 4 registrations a run; m = 4: 3 runs of one gap's 3 slices, 3 a run.
   constexpr size_t kMaxHeldOutPerLevel = 8;
+  constexpr size_t kRunSlices = 2;
   std::vector<std::vector<size_t>> held_of(m);
+  // Units: the held-out slices of one kept gap of one fold, in fold order.
+  struct HeldGap {
+    int fold = 0;
+    std::vector<size_t> slices;
+  };
+  std::vector<HeldGap> held_gaps;
   size_t all_held = 0;
   for (int fold = 0; fold < m; ++fold) {
+    bool new_gap = true;
     for (size_t s = 1; s + 1 < n; ++s) {
-      if (static_cast<int>(s % m) != fold) {
-        held_of[fold].push_back(s);
-        ++all_held;
+      if (static_cast<int>(s % m) == fold) {
+        new_gap = true;  // a kept key slice ends the gap
+        continue;
       }
+      held_of[fold].push_back(s);
+      ++all_held;
+      if (new_gap) held_gaps.push_back({fold, {}});
+      held_gaps.back().slices.push_back(s);
+      new_gap = false;
     }
   }
   if (all_held > kMaxHeldOutPerLevel) {
+    const size_t per_gap = (all_held + held_gaps.size() - 1) / held_gaps.size();
+    const size_t per_run = std::max(kRunSlices, per_gap);
+    const size_t runs = (kMaxHeldOutPerLevel + per_run - 1) / per_run;
     std::vector<std::vector<size_t>> sampled(m);
-    std::vector<size_t> picks;
-    for (size_t i = 0; i < kMaxHeldOutPerLevel; ++i) {
-      picks.push_back((2 * i + 1) * all_held / (2 * kMaxHeldOutPerLevel));
-    }
-    size_t index = 0, next = 0;
-    for (int fold = 0; fold < m; ++fold) {
-      for (size_t s : held_of[fold]) {
-        if (next < picks.size() && index == picks[next]) {
-          sampled[fold].push_back(s);
-          ++next;
+    std::vector<bool> taken(held_gaps.size(), false);
+    size_t scored = 0;
+    for (size_t r = 0; r < runs && scored < kMaxHeldOutPerLevel; ++r) {
+      size_t u = (2 * r + 1) * held_gaps.size() / (2 * runs);
+      size_t in_run = 0;
+      while (u < held_gaps.size() && !taken[u] && in_run < kRunSlices &&
+             scored < kMaxHeldOutPerLevel) {
+        taken[u] = true;
+        for (size_t s : held_gaps[u].slices) {
+          if (scored == kMaxHeldOutPerLevel) break;
+          sampled[held_gaps[u].fold].push_back(s);
+          ++scored;
+          ++in_run;
         }
-        ++index;
+        if (u + 1 == held_gaps.size() ||
+            held_gaps[u + 1].fold != held_gaps[u].fold) {
+          break;
+        }
+        ++u;
       }
+    }
+    for (std::vector<size_t>& fold_slices : sampled) {
+      std::sort(fold_slices.begin(), fold_slices.end());
     }
     held_of = std::move(sampled);
   }
@@ -441,34 +473,61 @@ absl::StatusOr<std::vector<double>> ValidateCandidates(
         StackedField linear,
         StackLinear(sub, plan, options.max_output_voxels, context));
     sub = Volume<float>();
-    // The morph of each scored slice from the kept key slices on either
-    // side of it (one registration; the trajectory of a single gap).
+    // The morph of each scored slice as the fill computes it: on the cubic
+    // trajectory through the kept key slices, whose gap around the slice
+    // takes its Catmull-Rom tangents from the kept gaps on either side. So
+    // the gaps each scored slice needs (its own and its neighbours) are
+    // registered, each once: every run of consecutive needed gaps is morphed
+    // as one stack, which gives a scored slice what the whole fold's morph
+    // would.
     std::vector<std::vector<float>> morph(held.size());
     if (with_morph) {
+      const size_t kept_gaps = kept.size() - 1;
+      std::vector<size_t> gap_of(held.size());
+      std::vector<bool> needed(kept_gaps, false);
       for (size_t h = 0; h < held.size(); ++h) {
-        const size_t s = held[h];
-        const size_t hi = *std::upper_bound(kept.begin(), kept.end(), s);
-        const size_t lo = *(std::upper_bound(kept.begin(), kept.end(), s) - 1);
-        Volume<float> pair;
-        pair.grid = maps.grid;
-        pair.grid.size[2] = 2;
-        pair.data.resize(2 * bplane);
-        std::copy(maps.data.begin() + lo * bplane,
-                  maps.data.begin() + (lo + 1) * bplane, pair.data.begin());
-        std::copy(maps.data.begin() + hi * bplane,
-                  maps.data.begin() + (hi + 1) * bplane,
-                  pair.data.begin() + bplane);
-        StackPlan pair_plan;
-        pair_plan.factor = 1;
-        pair_plan.spacing_mm = input.grid.spacing[2];
-        pair_plan.nodes = {0, (key[hi] - key[lo]) / g};
-        pair_plan.output_slices = pair_plan.nodes.back() + 1;
+        const size_t gap = static_cast<size_t>(
+            std::upper_bound(kept.begin(), kept.end(), held[h]) - kept.begin() -
+            1);
+        gap_of[h] = gap;
+        for (size_t n = gap == 0 ? 0 : gap - 1;
+             n <= std::min(kept_gaps - 1, gap + 1); ++n) {
+          needed[n] = true;
+        }
+      }
+      for (size_t first = 0; first < kept_gaps;) {
+        if (!needed[first]) {
+          ++first;
+          continue;
+        }
+        size_t last = first;  // the run's gaps: first .. last
+        while (last + 1 < kept_gaps && needed[last + 1]) ++last;
+        const size_t count = last - first + 2;  // its kept key slices
+        Volume<float> run;
+        run.grid = maps.grid;
+        run.grid.size[2] = static_cast<int64_t>(count);
+        run.data.resize(count * bplane);
+        StackPlan run_plan;
+        run_plan.factor = 1;
+        run_plan.spacing_mm = input.grid.spacing[2];
+        for (size_t c = 0; c < count; ++c) {
+          const size_t ks = kept[first + c];
+          std::copy(maps.data.begin() + ks * bplane,
+                    maps.data.begin() + (ks + 1) * bplane,
+                    run.data.begin() + c * bplane);
+          run_plan.nodes.push_back((key[ks] - key[kept[first]]) / g);
+        }
+        run_plan.output_slices = run_plan.nodes.back() + 1;
         INTERSLICE_ASSIGN_OR_RETURN(
             StackedField morphed,
-            MorphLabel(pair, pair_plan, options.max_output_voxels, context));
-        const int64_t z = (key[s] - key[lo]) / g;
-        morph[h].assign(morphed.field.data.begin() + z * bplane,
-                        morphed.field.data.begin() + (z + 1) * bplane);
+            MorphLabel(run, run_plan, options.max_output_voxels, context));
+        for (size_t h = 0; h < held.size(); ++h) {
+          if (gap_of[h] < first || gap_of[h] > last) continue;
+          const int64_t z = (key[held[h]] - key[kept[first]]) / g;
+          morph[h].assign(morphed.field.data.begin() + z * bplane,
+                          morphed.field.data.begin() + (z + 1) * bplane);
+        }
+        first = last + 1;
       }
     }
     Volume<float> refined = linear.field;

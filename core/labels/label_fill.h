@@ -16,8 +16,11 @@
 //   filter; FillOptions::auto_morph). Selection never sees withheld truth:
 //   - at the doubled gap: in two folds, every other inner key slice (first
 //     1, 3, 5, ..., then 2, 4, ...; never the first or last) is left out,
-//     each candidate fills it from the remaining key slices, giving the
-//     Dice D(2g) pooled over all held-out slices;
+//     each candidate fills it from the remaining key slices as the fill
+//     would (the morph on its cubic trajectory through the kept key
+//     slices), giving the Dice D(2g) pooled over the held-out slices (at
+//     most 8 scored per gap, in short runs of neighbouring slices spread
+//     over the folds: neighbours share the morph's registrations);
 //   - at the quadrupled gap (AutoSelection::kGapTrend, labels with >= 6 key
 //     slices): in four folds only every 4th key slice (and the first and
 //     last) is kept, the others predicted, giving D(4g);

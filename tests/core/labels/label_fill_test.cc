@@ -764,6 +764,86 @@ TEST(AutoFillTest, ValidationRecordsEachScoredSlicesDice) {
   }
 }
 
+// The morph's validation scores the morph the fill runs: a held-out key
+// slice's morph Dice is what --method morph gives on that slice when it is
+// filled from the fold's kept key slices, cubic trajectory (Catmull-Rom
+// tangents from the neighbouring gaps) included. Regression: the validation
+// registered only the two kept key slices around the slice, a morph the
+// fill never runs (straight trajectory, linear values), so it misjudged the
+// morph wherever a structure turns or swells between key slices.
+TEST(AutoFillTest, MorphValidationScoresTheFillsOwnMorph) {
+  // A disc that swells and shrinks while its centre moves along a curve,
+  // drawn on all 9 slices (the key slices; no drawn-and-empty ends at the
+  // series' edges). The doubled gap's first fold keeps slices 0, 2, 4, 6, 8
+  // and holds out 1, 3, 5, 7 (7 held-out slices in all: every one scored).
+  constexpr int64_t kSide = 24;
+  LabelVolume truth;
+  truth.grid.size = {kSide, kSide, 9};
+  truth.data.assign(truth.grid.VoxelCount(), 0);
+  for (int64_t k = 0; k < 9; ++k) {
+    const double cx = 12 + 5 * std::sin(0.5 * k),
+                 cy = 11 + 3 * std::cos(0.7 * k);
+    const double r = 5 + 2 * std::sin(0.6 * k);
+    for (int64_t j = 0; j < kSide; ++j) {
+      for (int64_t i = 0; i < kSide; ++i) {
+        if ((i - cx) * (i - cx) + (j - cy) * (j - cy) <= r * r) {
+          truth.at(i, j, k) = 1;
+        }
+      }
+    }
+  }
+  const std::vector<int64_t> kept = {0, 2, 4, 6, 8};
+  // Both fills' boxes must be the whole slice (the morph's options and its
+  // registration depend on the box): the kept slices' drawing comes within
+  // the margin (6 pixels) of every edge.
+  int64_t i0 = kSide, i1 = 0, j0 = kSide, j1 = 0;
+  for (int64_t k : kept) {
+    for (int64_t j = 0; j < kSide; ++j) {
+      for (int64_t i = 0; i < kSide; ++i) {
+        if (truth.at(i, j, k) != 1) continue;
+        i0 = std::min(i0, i), i1 = std::max(i1, i + 1);
+        j0 = std::min(j0, j), j1 = std::max(j1, j + 1);
+      }
+    }
+  }
+  ASSERT_TRUE(i0 <= 6 && j0 <= 6 && i1 >= kSide - 6 && j1 >= kSide - 6)
+      << i0 << " " << i1 << " " << j0 << " " << j1;
+
+  absl::StatusOr<FillResult> validated =
+      FillBetweenSlices(truth, FillOptions(), ComputeContext{.threads = 1});
+  ASSERT_TRUE(validated.ok()) << validated.status();
+  const std::vector<std::vector<double>>& rows =
+      validated->per_label[0].validation_slice_dice;
+  ASSERT_EQ(rows.size(), 7u);
+
+  FillOptions morph;
+  SetMethod("morph", morph);
+  morph.key_slices = kept;
+  morph.keep_fields = true;
+  absl::StatusOr<FillResult> filled = FillBetweenSlices(
+      KeepSlices(truth, kept), morph, ComputeContext{.threads = 1});
+  ASSERT_TRUE(filled.ok()) << filled.status();
+  const Volume<float>& field = filled->per_label[0].field;
+  ASSERT_EQ(field.grid.size[0], kSide);
+  ASSERT_EQ(field.grid.size[1], kSide);
+  ASSERT_EQ(field.grid.size[2], 9);
+  const std::vector<int64_t> held = {1, 3, 5, 7};
+  for (size_t h = 0; h < held.size(); ++h) {
+    int64_t both = 0, in = 0, drawn = 0;
+    for (int64_t j = 0; j < kSide; ++j) {
+      for (int64_t i = 0; i < kSide; ++i) {
+        const bool inside = field.at(i, j, held[h]) > 0;
+        const bool truth_in = truth.at(i, j, held[h]) == 1;
+        in += inside;
+        drawn += truth_in;
+        both += inside && truth_in;
+      }
+    }
+    const double dice = 2.0 * both / static_cast<double>(in + drawn);
+    EXPECT_NEAR(rows[h][4], dice, 1e-12) << "slice " << held[h];
+  }
+}
+
 // What the selection saw, per rule: the doubled-gap Dice always (three or
 // more key slices), the quadrupled-gap Dice with the trend rule and six or
 // more key slices, and the score the choice was made on (the power-law
