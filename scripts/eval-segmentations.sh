@@ -15,8 +15,9 @@
 # (TotalSegmentator's 41 and 31 labels, a clinical breast RT structure set:
 # Breast + Heart together and Heart, Lt Lung, Tumor Bed one by one, a lung
 # tumour drawn as a label map), each with nearest copy, linear stacking, the
-# paper's refinement (direct), the morph, auto and auto's rule before issue 24
-# (auto-doubled); one report with the goals table, published to docs/eval/
+# paper's refinement (direct), the morph, auto (its default rule, the
+# doubled gap) and auto with the gap-trend rule (auto-trend); one report
+# with the goals table, published to docs/eval/
 # (CSV per series in docs/eval/segmentations/). About 30 minutes on 2 cores.
 #
 # Without --labels the labels are made from the series (HU bands after a 3x3
@@ -71,7 +72,7 @@ if [ -n "$real" ]; then
     echo "eval-segmentations.sh: no prepared data in $real (scripts/prepare-fill-data.sh)" >&2
     exit 1
   fi
-  methods=copy,linear,direct,morph,auto,auto-doubled
+  methods=copy,linear,direct,morph,auto,auto-trend
   eval_bin="$build/tools/eval/interslice_fill_eval"
   run_one() {  # name, harness arguments...
     local name="$1"
@@ -98,7 +99,7 @@ if [ -n "$real" ]; then
     # The issue's timing case: the phantom's labels on 150 slices, every
     # 5th a key slice, fills timed only (3 runs, fastest).
     "$eval_bin" --series "$series" --labels "$out/phantom/truth-labels.nii.gz" \
-      --slices 150 --ks 5 --methods linear,direct,morph,auto \
+      --slices 150 --ks 5 --methods linear,direct,morph,auto,auto-trend \
       --threads "$threads" --no-score --repeat 3 --out "$out/phantom/timing" |
       tee "$out/phantom/timing.log"
     uptime | tee -a "$out/phantom/timing.log"

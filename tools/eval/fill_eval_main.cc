@@ -252,8 +252,8 @@ int Main(int argc, char** argv) {
   app.add_option("--min-voxels", min_voxels, "Smallest made label, voxels");
   app.add_option("--ks", ks_text, "Key slice steps");
   app.add_option("--methods", methods_text,
-                 "copy,linear,cg,direct,morph,auto,auto-doubled,"
-                 "auto-nomorph");
+                 "copy,linear,cg,direct,morph,auto,auto-trend,"
+                 "auto-doubled,auto-nomorph");
   int64_t slices = 0;
   app.add_option("--slices", slices,
                  "Resample the truth labels to this many slices (nearest "
@@ -434,13 +434,17 @@ int Main(int argc, char** argv) {
           FillOptions options;
           options.key_slices = keys;
           options.margin_pixels = margin;
-          // auto: the default; auto-doubled: the selection at the doubled
-          // gap only (the rule before issue 24); auto-nomorph: without the
-          // morph among the candidates.
+          // auto: the default (the selection at the doubled gap);
+          // auto-trend: the gap-trend rule (AutoSelection::kGapTrend);
+          // auto-doubled: the doubled gap whatever the default;
+          // auto-nomorph: without the morph among the candidates.
           const bool is_auto = method.rfind("auto", 0) == 0;
           options.method = is_auto ? FillMethod::kAuto : FillMethod::kSolver;
           if (method == "auto-doubled") {
             options.selection = AutoSelection::kDoubledGap;
+          }
+          if (method == "auto-trend") {
+            options.selection = AutoSelection::kGapTrend;
           }
           if (method == "auto-nomorph") options.auto_morph = false;
           options.solver.method = method == "linear" ? SolverMethod::kLinear

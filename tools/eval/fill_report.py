@@ -14,8 +14,9 @@ NAMES = {
     "cg": "paper: 15 CG iterations",
     "direct": "paper: exact minimiser",
     "morph": "morph (registration of the key slices, per label)",
-    "auto": "**auto (default)**: per-label choice, gap trend",
-    "auto-doubled": "auto, choice at the doubled gap only (before issue 24)",
+    "auto": "**auto (default)**: per-label choice at the doubled gap",
+    "auto-trend": "auto with the gap-trend rule (doubled and quadrupled gap)",
+    "auto-doubled": "auto, choice at the doubled gap",
     "auto-nomorph": "auto without the morph candidate",
 }
 
@@ -165,7 +166,8 @@ def section(out_dir, title, level, figure_name):
         lines += [h + " Candidate chosen by auto (labels per candidate)", "",
                   "(from the label's own key slices, never the withheld "
                   "truth; fill_choices.csv has each label's validation Dice "
-                  "at the doubled and quadrupled gap and its score)", "",
+                  "at the doubled gap, with auto-trend's rows also at the "
+                  "quadrupled gap, and its score)", "",
                   "| candidate | " + " | ".join("k = %d" % k for k in cks) + " |",
                   "|---|" + "---|" * len(cks)]
         for name in names:

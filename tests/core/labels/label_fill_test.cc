@@ -716,6 +716,7 @@ TEST(AutoFillTest, ValidationRecordsEachScoredSlicesDice) {
   const std::vector<int64_t> keys = EveryNth(3, kSize);  // 14 key slices
   FillOptions options;
   options.key_slices = keys;
+  options.selection = AutoSelection::kGapTrend;
   absl::StatusOr<FillResult> trend = FillBetweenSlices(
       KeepSlices(truth, keys), options, ComputeContext{.threads = 1});
   ASSERT_TRUE(trend.ok()) << trend.status();
@@ -848,12 +849,14 @@ TEST(AutoFillTest, MorphValidationScoresTheFillsOwnMorph) {
 // more key slices), the quadrupled-gap Dice with the trend rule and six or
 // more key slices, and the score the choice was made on (the power-law
 // trend of the error, or D(2g)); without auto_morph the morph is not tried.
+// The default rule is the doubled gap.
 TEST(AutoFillTest, SelectionReportsWhatItSaw) {
   const LabelVolume truth = Ball(15.3, 0);
   const std::vector<int64_t> keys = EveryNth(3, kSize);  // 14 key slices
   const LabelVolume drawn = KeepSlices(truth, keys);
   FillOptions options;
   options.key_slices = keys;
+  options.selection = AutoSelection::kGapTrend;
   absl::StatusOr<FillResult> trend =
       FillBetweenSlices(drawn, options, ComputeContext{.threads = 1});
   ASSERT_TRUE(trend.ok()) << trend.status();
@@ -905,11 +908,34 @@ TEST(AutoFillTest, SelectionReportsWhatItSaw) {
   const std::vector<int64_t> few = {0, 10, 20, 30, 40};
   options = FillOptions();
   options.key_slices = few;
+  options.selection = AutoSelection::kGapTrend;
   absl::StatusOr<FillResult> short_label = FillBetweenSlices(
       KeepSlices(truth, few), options, ComputeContext{.threads = 1});
   ASSERT_TRUE(short_label.ok());
   EXPECT_TRUE(short_label->per_label[0].validation_dice_4g.empty());
   EXPECT_EQ(short_label->per_label[0].validation_dice.size(), 5u);
+
+  // By default: the doubled gap, with the morph, whatever the key count.
+  options = FillOptions();
+  options.key_slices = keys;
+  absl::StatusOr<FillResult> by_default =
+      FillBetweenSlices(drawn, options, ComputeContext{.threads = 1});
+  ASSERT_TRUE(by_default.ok());
+  const LabelFillInfo& f = by_default->per_label[0];
+  EXPECT_TRUE(f.validation_dice_4g.empty());
+  EXPECT_TRUE(f.validation_slice_dice_4g.empty());
+  ASSERT_EQ(f.validation_score.size(), 5u);
+  best.clear();
+  best_score = -1e9;
+  for (size_t c = 0; c < 5; ++c) {
+    EXPECT_EQ(f.validation_dice[c], t.validation_dice[c]);
+    EXPECT_EQ(f.validation_score[c], f.validation_dice[c]);
+    if (f.validation_score[c].second > best_score) {
+      best_score = f.validation_score[c].second;
+      best = f.validation_score[c].first;
+    }
+  }
+  EXPECT_EQ(f.method, best);
 }
 
 TEST(LabelVolumeTest, FromFloatRejectsNonLabels) {
