@@ -915,7 +915,8 @@ TEST(AutoFillTest, SelectionReportsWhatItSaw) {
   EXPECT_TRUE(short_label->per_label[0].validation_dice_4g.empty());
   EXPECT_EQ(short_label->per_label[0].validation_dice.size(), 5u);
 
-  // By default: the doubled gap, with the morph, whatever the key count.
+  // By default: the doubled gap alone (with the morph), even with the 14
+  // key slices that give the trend rule its quadrupled gap.
   options = FillOptions();
   options.key_slices = keys;
   absl::StatusOr<FillResult> by_default =
