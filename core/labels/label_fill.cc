@@ -390,7 +390,6 @@ absl::StatusOr<std::vector<double>> ValidateCandidates(
   // 4 registrations a run; m = 4: 3 runs of one gap's 3 slices, 3 a run.
   constexpr size_t kMaxHeldOutPerLevel = 8;
   constexpr size_t kRunSlices = 2;
-  std::vector<std::vector<size_t>> held_of(m);
   // Units: the held-out slices of one kept gap of one fold, in fold order.
   struct HeldGap {
     int fold = 0;
@@ -405,18 +404,22 @@ absl::StatusOr<std::vector<double>> ValidateCandidates(
         new_gap = true;  // a kept key slice ends the gap
         continue;
       }
-      held_of[fold].push_back(s);
       ++all_held;
       if (new_gap) held_gaps.push_back({fold, {}});
       held_gaps.back().slices.push_back(s);
       new_gap = false;
     }
   }
-  if (all_held > kMaxHeldOutPerLevel) {
+  std::vector<std::vector<size_t>> held_of(m);
+  if (all_held <= kMaxHeldOutPerLevel) {
+    for (const HeldGap& gap : held_gaps) {
+      held_of[gap.fold].insert(held_of[gap.fold].end(), gap.slices.begin(),
+                               gap.slices.end());
+    }
+  } else {
     const size_t per_gap = (all_held + held_gaps.size() - 1) / held_gaps.size();
     const size_t per_run = std::max(kRunSlices, per_gap);
     const size_t runs = (kMaxHeldOutPerLevel + per_run - 1) / per_run;
-    std::vector<std::vector<size_t>> sampled(m);
     std::vector<bool> taken(held_gaps.size(), false);
     size_t scored = 0;
     for (size_t r = 0; r < runs && scored < kMaxHeldOutPerLevel; ++r) {
@@ -427,7 +430,7 @@ absl::StatusOr<std::vector<double>> ValidateCandidates(
         taken[u] = true;
         for (size_t s : held_gaps[u].slices) {
           if (scored == kMaxHeldOutPerLevel) break;
-          sampled[held_gaps[u].fold].push_back(s);
+          held_of[held_gaps[u].fold].push_back(s);
           ++scored;
           ++in_run;
         }
@@ -438,10 +441,9 @@ absl::StatusOr<std::vector<double>> ValidateCandidates(
         ++u;
       }
     }
-    for (std::vector<size_t>& fold_slices : sampled) {
+    for (std::vector<size_t>& fold_slices : held_of) {
       std::sort(fold_slices.begin(), fold_slices.end());
     }
-    held_of = std::move(sampled);
   }
   std::vector<double> both(kCandidateCount, 0), predicted(kCandidateCount, 0);
   double drawn = 0;
