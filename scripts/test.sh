@@ -152,7 +152,7 @@ if [[ ${INTERSLICE_QUICK:-0} == 1 ]]; then
 fi
 stage deployment 1800 bash scripts/test-deploy.sh
 stage "instrumented build" 2100 bash scripts/build-instrumented.sh
-# The sanitized suite took 922 s on a 2-core AMD EPYC VM and over 1850 s on
+# The sanitized suite took 922 s on a 2-core AMD EPYC VM and about 2310 s on
 # a 2-core Intel Xeon 2.5 GHz VM (plain tests 207 s there against 104 s; the
 # Orthanc pull alone 435 s): 1500 s stopped it there on a run otherwise
 # passing. 3300 s leaves room for such a machine after a warm build; the

@@ -39,6 +39,7 @@ import collections
 import csv
 import math
 import os
+import statistics
 import sys
 
 CANDIDATES = ('copy', 'linear', 'blend', 'direct', 'morph')
@@ -104,10 +105,8 @@ def prefer(base_set, z):
         if best == base:
             return base
         gains = [s[best] - s[base] for s in held_out]
-        n = len(gains)
-        mean = sum(gains) / n
-        sd = math.sqrt(sum((g - mean) ** 2 for g in gains) / (n - 1))
-        return best if mean > z * sd / math.sqrt(n) else base
+        standard_error = statistics.stdev(gains) / math.sqrt(len(gains))
+        return best if statistics.mean(gains) > z * standard_error else base
     return rule
 
 
