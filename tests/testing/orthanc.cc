@@ -10,6 +10,7 @@
 #include <string>
 #include <vector>
 
+#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "tests/testing/process.h"
 #include "tests/testing/tools.h"
@@ -106,8 +107,25 @@ absl::StatusOr<std::unique_ptr<Orthanc>> Orthanc::Start(
     config["LuaScripts"] = nlohmann::json::array({lua});
   }
   o->config_path_ = (fs::path(dir) / "orthanc.json").string();
-  std::ofstream(o->config_path_) << config.dump(2);
-  if (absl::Status s = o->Launch(); !s.ok()) return s;
+  // A port found free may be taken by another process (ctest runs two tests
+  // at once) before Orthanc binds it; then Orthanc exits at start-up saying
+  // so, and it gets two other ports. Any other start-up failure is returned.
+  absl::Status launched;
+  for (int attempt = 0; attempt < 3; ++attempt) {
+    if (attempt > 0) {
+      o->http_port_ = FreeTcpPort();
+      o->dicom_port_ = FreeTcpPort();
+      config["HttpPort"] = o->http_port_;
+      config["DicomPort"] = o->dicom_port_;
+    }
+    std::ofstream(o->config_path_, std::ios::trunc) << config.dump(2);
+    launched = o->Launch();
+    if (launched.ok() ||
+        !absl::StrContains(launched.message(), "already in use")) {
+      break;
+    }
+  }
+  if (!launched.ok()) return launched;
   return o;
 }
 

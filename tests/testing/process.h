@@ -55,7 +55,8 @@ int StopProcess(pid_t pid, double timeout_seconds);
 std::string ReadFileOrEmpty(const std::string& path);
 
 // A TCP port on 127.0.0.1 that nobody listens on right now (bound to port 0
-// and released). Another process may take it before the caller binds it:
+// and released), never one this process was given before. Another process may
+// take it before the caller binds it:
 // prefer letting the program bind port 0 and report its port (the server's
 // --port-file) where it can.
 int FreeTcpPort();
