@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
-# The instrumented build, build-instrumented/: clang with AddressSanitizer,
-# UndefinedBehaviorSanitizer (LeakSanitizer included) and libFuzzer's
-# coverage instrumentation (-fsanitize=fuzzer-no-link) on every target, the
-# gtest suite and the libFuzzer targets (tests/fuzz) in one folder. One
+# The instrumented build, build-instrumented/: clang with AddressSanitizer
+# and UndefinedBehaviorSanitizer (LeakSanitizer included) on every target and
+# libFuzzer's coverage instrumentation (-fsanitize=fuzzer-no-link) on the
+# libraries the fuzz inputs reach (tests/fuzz/CMakeLists.txt), the gtest
+# suite and the libFuzzer targets (tests/fuzz) in one folder. One
 # compile serves scripts/test-sanitizers.sh (the suite under ASan/UBSan) and
 # scripts/fuzz.sh (the fuzzers), which both call this script.
 #
