@@ -455,11 +455,11 @@ TEST_F(FillCliTest, AnonymisedSeriesKeepsOneStudyForRunAndFill) {
                 .exit_code,
             0);
   const auto run = [&](const fs::path& input, const std::string& out) {
-    const CommandResult r =
-        RunCli("run " + input.string() +
-               " --threshold 300 --method linear --intensity-method linear "
-               "--seg --mesh none --volume none --previews none --quiet --out " +
-               (dir_ / out).string());
+    const CommandResult r = RunCli(
+        "run " + input.string() +
+        " --threshold 300 --method linear --intensity-method linear "
+        "--seg --mesh none --volume none --previews none --quiet --out " +
+        (dir_ / out).string());
     EXPECT_EQ(r.exit_code, 0) << r.out;
     return StudyFrameInstance(dir_ / out / "seg.dcm");
   };
