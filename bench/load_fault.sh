@@ -12,6 +12,9 @@
 #     the worker fault hook INTERSLICE_WORKER_FAULT=abort:contour:777, which
 #     stands in for a decoder that aborts on a hostile file). Poisoned jobs
 #     must fail alone; every other job must succeed with the reference bytes.
+#     The hook exists only in a server built with
+#     -DINTERSLICE_FAULT_INJECTION=ON (server/job_worker.h): configure
+#     BUILD_DIR with it, or the poisoned jobs succeed and phase 1 says so.
 #  2. killed clients: 8 clients killed with SIGKILL mid-upload or mid-job;
 #     the server must stay healthy and keep nothing of them.
 #  3. stalled uploads: 16 streams that send only a header (and 4 that trickle

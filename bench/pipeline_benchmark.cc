@@ -5,6 +5,7 @@
 #include <filesystem>
 #include <string>
 
+#include "bench/bench_paths.h"
 #include "core/pipeline/pipeline.h"
 
 namespace interslice {
@@ -12,7 +13,7 @@ namespace {
 
 void BM_EndToEndPhantom(benchmark::State& state) {
   const std::string series =
-      std::string(INTERSLICE_SOURCE_DIR) + "/data/ct-head-phantom-thick";
+      std::string(BenchSourceDir()) + "/data/ct-head-phantom-thick";
   if (!std::filesystem::exists(series)) {
     state.SkipWithError("data/ct-head-phantom-thick is absent");
     return;

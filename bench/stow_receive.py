@@ -25,8 +25,6 @@ root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 build = sys.argv[1] if len(sys.argv) > 1 else os.path.join(root, "build")
 server = os.path.join(build, "server", "interslice-server")
 source = os.path.join(root, "..", "shared", "data", "ct-head-phantom-thin")
-if not os.path.isdir(source):
-    source = "/work/shared/data/ct-head-phantom-thin"
 n = int(os.environ.get("N", "300"))
 repeat = int(os.environ.get("REPEAT", "3"))
 if not os.path.isdir(source):

@@ -38,11 +38,14 @@ if ! clang++ -fsanitize=fuzzer,address,undefined "$probe/probe.cc" -o "$probe/pr
   exit 1
 fi
 
-# Benchmarks and evaluation tools are not tested: not built here.
+# Benchmarks and evaluation tools are not tested: not built here. Only the
+# test binaries with a test labelled `sanitized` (INTERSLICE_TEST_SELECTION);
+# the server's fault hook for the crash tests (INTERSLICE_FAULT_INJECTION).
 CC=clang CXX=clang++ cmake -S . -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
   -DINTERSLICE_BUILD_FUZZERS=ON -DINTERSLICE_SANITIZE=address,undefined \
   -DINTERSLICE_BUILD_TESTS=ON -DINTERSLICE_BUILD_BENCHMARKS=OFF \
-  -DINTERSLICE_BUILD_TOOLS=OFF >/dev/null
+  -DINTERSLICE_BUILD_TOOLS=OFF -DINTERSLICE_TEST_SELECTION=sanitized \
+  -DINTERSLICE_FAULT_INJECTION=ON -DINTERSLICE_TEST_CODE_OPTIMIZATION=-O0 >/dev/null
 targets=()
 (($#)) && targets=(--target "$@")
 cmake --build "$build" -j"$jobs" "${targets[@]}"

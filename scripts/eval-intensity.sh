@@ -33,7 +33,20 @@ publish=1
 report=intensity.md
 levels="300,-500,-100,100"
 series=()
-command_line="scripts/eval-intensity.sh $*"
+# The command line the report quotes, every absolute path in it (also the
+# DIR of NAME=DIR) relative to the repository root (../shared/data/...), so
+# that no published report names a folder of one machine
+# (tests/repo/machine_paths_test.sh keeps them out of docs/).
+repo_arg() {
+  case "$1" in
+    /*) realpath -ms --relative-to="$repo" -- "$1" ;;
+    *=/*) printf '%s=%s\n' "${1%%=/*}" \
+            "$(realpath -ms --relative-to="$repo" -- "/${1#*=/}")" ;;
+    *) printf '%s\n' "$1" ;;
+  esac
+}
+command_line="scripts/eval-intensity.sh"
+for arg in "$@"; do command_line+=" $(repo_arg "$arg")"; done
 while [ $# -gt 0 ]; do
   case "$1" in
     --out) out="$2"; shift 2 ;;
@@ -104,10 +117,13 @@ if [ "$publish" = 1 ]; then
   for r in "${runs[@]}"; do
     rm -f "$docs/intensity_$(basename "$r")"_*.png "$docs/intensity_$(basename "$r").json"
     cp "$out/intensity_$(basename "$r")"_*.png "$docs"/ 2>/dev/null || true
-    "$py" - "$r" "$docs/intensity_$(basename "$r").json" <<'PY'
-import json, sys
+    "$py" - "$r" "$docs/intensity_$(basename "$r").json" "$repo" <<'PY'
+import json, os, sys
 r = json.load(open(sys.argv[1] + "/results.json"))
 r.pop("planes", None)
+# The series folder relative to the repository root, as intensity.md names it.
+if os.path.isabs(r.get("dir", "")):
+    r["dir"] = os.path.relpath(r["dir"], sys.argv[3])
 json.dump(r, open(sys.argv[2], "w"), indent=1)
 PY
   done

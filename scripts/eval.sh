@@ -26,7 +26,20 @@ threads=0
 run=1
 publish=1
 extra=()
-command_line="scripts/eval.sh $*"
+# The command line the report quotes, every absolute path in it (also the
+# DIR of NAME=DIR) relative to the repository root (../shared/data/...), so
+# that no published report names a folder of one machine
+# (tests/repo/machine_paths_test.sh keeps them out of docs/).
+repo_arg() {
+  case "$1" in
+    /*) realpath -ms --relative-to="$repo" -- "$1" ;;
+    *=/*) printf '%s=%s\n' "${1%%=/*}" \
+            "$(realpath -ms --relative-to="$repo" -- "/${1#*=/}")" ;;
+    *) printf '%s\n' "$1" ;;
+  esac
+}
+command_line="scripts/eval.sh"
+for arg in "$@"; do command_line+=" $(repo_arg "$arg")"; done
 while [ $# -gt 0 ]; do
   case "$1" in
     --series) series="$2"; shift 2 ;;

@@ -27,9 +27,9 @@
 # next run warm.
 #
 # Container runtime: podman, else docker with a reachable daemon. When neither
-# works, ../shared/tools/container-setup.sh (relative to the repository root,
-# or /work/shared/tools/) sets podman up when present. Without a runtime the
-# test FAILS in CI (CI=true) and is SKIPPED elsewhere (exit 0, saying so);
+# works, ../shared/tools/container-setup.sh (relative to the repository root)
+# sets podman up when present. Without a runtime the test FAILS in CI
+# (CI=true) and is SKIPPED elsewhere (exit 0, saying so);
 # INTERSLICE_SKIP_DEPLOY=1 skips it on purpose. INTERSLICE_DEPLOY_FULL=1 runs
 # the demo's full 0.45 mm job (~9 GB of memory twice) instead of the 1.25 mm
 # one. BUILD_DIR (default build) holds the binaries; they are built there
@@ -83,14 +83,12 @@ find_runtime() {
 }
 find_runtime
 if [[ -z $runtime ]]; then
-  for setup in "$root/../shared/tools/container-setup.sh" /work/shared/tools/container-setup.sh; do
-    if [[ -f $setup ]]; then
-      say "no working container runtime: running $setup"
-      bash "$setup" || say "$setup failed"
-      find_runtime
-      break
-    fi
-  done
+  setup="$root/../shared/tools/container-setup.sh"
+  if [[ -f $setup ]]; then
+    say "no working container runtime: running $setup"
+    bash "$setup" || say "$setup failed"
+    find_runtime
+  fi
 fi
 if [[ -z $runtime ]]; then
   missing "no container runtime (podman or docker with a daemon and a debian:bookworm base image) could be set up"

@@ -60,6 +60,8 @@ status=0
 args=(--test-dir "$build" --output-on-failure -j"$jobs")
 [[ -z $labels ]] || args+=(-L "^($labels)\$")
 [[ -z ${STAGE_STOP_TIME:-} ]] || args+=(--stop-time "$STAGE_STOP_TIME")
+# JUnit results for scripts/test.sh's table of the slowest tests.
+[[ -z ${INTERSLICE_SANITIZED_JUNIT:-} ]] || args+=(--output-junit "$INTERSLICE_SANITIZED_JUNIT")
 ctest "${args[@]}" "$@" || status=1
 echo "sanitized suite: $((SECONDS - start)) s"
 exit "$status"

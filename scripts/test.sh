@@ -80,10 +80,19 @@ run_start=$SECONDS
 budget="${INTERSLICE_CI_BUDGET:-4800}"
 deadline=$((run_start + budget))
 times=()
+# ctest's JUnit results of this run, for the slowest tests in the summary.
+junit_plain="$root/build/ctest-plain.xml"
+junit_viewer="$root/build/ctest-viewer.xml"
+junit_sanitized="${INTERSLICE_INSTRUMENTED_BUILD_DIR:-$root/build-instrumented}/ctest-sanitized.xml"
+rm -f "$junit_plain" "$junit_viewer" "$junit_sanitized"
+export junit_plain junit_viewer INTERSLICE_SANITIZED_JUNIT="$junit_sanitized"
 summary() {
   echo "test.sh: stage times:"
   printf '  %s\n' "${times[@]}"
   echo "test.sh: total $((SECONDS - run_start)) s (budget $budget s)"
+  echo "test.sh: the 10 slowest tests:"
+  python3 scripts/slowest-tests.py 10 "plain=$junit_plain" "viewer=$junit_viewer" \
+    "sanitized=$junit_sanitized" || true
 }
 # stage NAME BUDGET_SECONDS COMMAND...: runs COMMAND in its own process group
 # with a timeout of min(BUDGET, time left); exports STAGE_STOP_TIME (a time
@@ -118,7 +127,8 @@ stage() {
 
 plain_build() {
   set -euo pipefail
-  cmake -S . -B build -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo >/dev/null
+  cmake -S . -B build -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
+    -DINTERSLICE_TEST_SELECTION=plain >/dev/null
   cmake --build build -j"$jobs"
   # Every test runs somewhere: each has the label plain or sanitized.
   local unplaced
@@ -131,11 +141,11 @@ plain_build() {
 }
 plain_tests() {
   ctest --test-dir build --output-on-failure -j"$jobs" -L '^plain$' -LE '^ohif$' \
-    --stop-time "$STAGE_STOP_TIME"
+    --stop-time "$STAGE_STOP_TIME" --output-junit "$junit_plain"
 }
 viewer_tests() {
   ctest --test-dir build --output-on-failure -j"$jobs" -L '^ohif$' \
-    --repeat until-pass:2 --stop-time "$STAGE_STOP_TIME"
+    --repeat until-pass:2 --stop-time "$STAGE_STOP_TIME" --output-junit "$junit_viewer"
 }
 
 export jobs

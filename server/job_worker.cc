@@ -84,7 +84,9 @@ std::string SignalName(int signal) {
 }
 
 // The test hook of RunJobWorker: "abort:STAGE" or "segv:STAGE", optionally
-// ":THRESHOLD" to hit only jobs with that threshold.
+// ":THRESHOLD" to hit only jobs with that threshold. Compiled in only with
+// the CMake option INTERSLICE_FAULT_INJECTION (the instrumented test build,
+// scripts/build-instrumented.sh); a shipped server reads no such variable.
 struct Fault {
   std::string kind;
   std::string stage;
@@ -92,6 +94,9 @@ struct Fault {
 };
 
 Fault ReadFault() {
+#ifndef INTERSLICE_FAULT_INJECTION
+  return {};
+#else
   const char* value = std::getenv("INTERSLICE_WORKER_FAULT");
   if (value == nullptr) return {};
   const std::vector<std::string> parts = absl::StrSplit(value, ':');
@@ -102,6 +107,7 @@ Fault ReadFault() {
     fault.threshold = threshold;
   }
   return fault;
+#endif
 }
 
 void InjectFault(const Fault& fault, const std::string& stage,

@@ -69,10 +69,12 @@ absl::StatusOr<job::JobResult> RunInWorkerProcess(
 // job's result, OK or not, was delivered). main() calls it for
 // `--job-worker`.
 //
-// Test hook: with INTERSLICE_WORKER_FAULT=abort:STAGE (or segv:STAGE) in
-// its environment the worker aborts (or dereferences null) when the job
-// reports STAGE, standing in for a crash inside a decoder; the server's
-// tests use it to show that such a crash fails one job only.
+// Test hook, compiled in only with the CMake option INTERSLICE_FAULT_INJECTION
+// (off by default; the instrumented test build turns it on): with
+// INTERSLICE_WORKER_FAULT=abort:STAGE (or segv:STAGE) in its environment the
+// worker aborts (or dereferences null) when the job reports STAGE, standing
+// in for a crash inside a decoder; the server's tests use it to show that
+// such a crash fails one job only.
 int RunJobWorker(int in_fd, int out_fd);
 
 // The same test hook where jobs run in the server process (--isolation

@@ -15,6 +15,7 @@
 #include "gtest/gtest.h"
 #include "nlohmann/json.hpp"
 #include "tests/testing/mesh_checks.h"
+#include "tests/testing/paths.h"
 #include "tests/testing/process.h"
 
 namespace interslice {
@@ -39,9 +40,9 @@ class CliTest : public ::testing::Test {
 };
 
 const std::string kSmallSeries =
-    std::string(INTERSLICE_TEST_DATA_DIR) + "/ct-thick";
-const std::string kPhantom =
-    std::string(INTERSLICE_SOURCE_DIR) + "/data/ct-head-phantom-thick";
+    std::string(::interslice::testing::TestDataDir()) + "/ct-thick";
+const std::string kPhantom = std::string(::interslice::testing::SourceDir()) +
+                             "/data/ct-head-phantom-thick";
 
 TEST_F(CliTest, HelpExitsZero) {
   const CommandResult r = RunCli("run --help");

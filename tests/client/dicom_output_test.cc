@@ -28,6 +28,7 @@
 #include "nlohmann/json.hpp"
 #include "tests/testing/cli.h"
 #include "tests/testing/dciodvfy.h"
+#include "tests/testing/paths.h"
 #include "tests/testing/process.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
@@ -47,11 +48,12 @@ using testing::CommandResult;
 using testing::RunCli;
 
 const fs::path kPhantom =
-    fs::path(INTERSLICE_SOURCE_DIR) / "data/ct-head-phantom-thick";
-const fs::path kTilt = fs::path(INTERSLICE_TEST_DATA_DIR) / "ct-tilt";
+    fs::path(::interslice::testing::SourceDir()) / "data/ct-head-phantom-thick";
+const fs::path kTilt =
+    fs::path(::interslice::testing::TestDataDir()) / "ct-tilt";
 // A Siemens XA10 Enhanced MR (6 frames, one volume).
-const fs::path kEnhancedMr =
-    fs::path(INTERSLICE_TEST_DATA_DIR) / "multiframe" / "siemens-xa10-6_1.dcm";
+const fs::path kEnhancedMr = fs::path(::interslice::testing::TestDataDir()) /
+                             "multiframe" / "siemens-xa10-6_1.dcm";
 
 class DicomOutputTest : public ::testing::Test {
  protected:

@@ -25,6 +25,7 @@
 #include "tests/core/dicom_out/dicom_test_util.h"
 #include "tests/testing/cli.h"
 #include "tests/testing/mesh_checks.h"
+#include "tests/testing/paths.h"
 #include "tests/testing/process.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
@@ -44,8 +45,8 @@ using testing::RunCli;
 // Every 2nd slice of the 5 mm series is a key slice (10 mm gaps).
 constexpr int64_t kStep = 2;
 constexpr const char* kMethod = "direct";
-const std::string kPhantom =
-    std::string(INTERSLICE_SOURCE_DIR) + "/data/ct-head-phantom-thick";
+const std::string kPhantom = std::string(::interslice::testing::SourceDir()) +
+                             "/data/ct-head-phantom-thick";
 
 class FillCliTest : public ::testing::Test {
  protected:
@@ -245,7 +246,7 @@ TEST_F(FillCliTest, BadInputGivesOneLineAndExitCodeOne) {
 TEST_F(FillCliTest, ReadsAndFillsADicomSeg) {
   const fs::path run = dir_ / "run";
   const std::string small =
-      std::string(INTERSLICE_SOURCE_DIR) + "/tests/data/ct-thick";
+      std::string(::interslice::testing::SourceDir()) + "/tests/data/ct-thick";
   CommandResult r = RunCli("run " + small +
                            " --threshold 300 --roi 200,40,0,296,136,4 "
                            "--method direct --factor 5 --seg --volume nrrd "
@@ -444,8 +445,8 @@ TEST_F(FillCliTest, AnonymisedSeriesKeepsOneStudyForRunAndFill) {
   };
   const fs::path anonymous = dir_ / "anonymous";
   const fs::path other = dir_ / "other";
-  strip(fs::path(INTERSLICE_TEST_DATA_DIR) / "ct-thick", anonymous);
-  strip(fs::path(INTERSLICE_TEST_DATA_DIR) / "ct-tilt", other);
+  strip(fs::path(::interslice::testing::TestDataDir()) / "ct-thick", anonymous);
+  strip(fs::path(::interslice::testing::TestDataDir()) / "ct-tilt", other);
   // A label map on the series' own grid: a run at factor 1 gives one.
   const fs::path labels_run = dir_ / "labels-run";
   ASSERT_EQ(RunCli("run " + anonymous.string() +
@@ -661,7 +662,7 @@ TEST_F(FillCliTest, RtStructInIsFilledFromItsPolygonsAndWrittenBack) {
 
 TEST_F(FillCliTest, SegOnAFinerGridReferencesADerivedIntensitySeries) {
   const std::string small =
-      std::string(INTERSLICE_SOURCE_DIR) + "/tests/data/ct-thick";
+      std::string(::interslice::testing::SourceDir()) + "/tests/data/ct-thick";
   absl::StatusOr<DicomSeries> series =
       ReadDicomSeries({small}, {}, ComputeContext{.threads = 1});
   ASSERT_TRUE(series.ok()) << series.status();

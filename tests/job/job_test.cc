@@ -11,6 +11,7 @@
 #include "job/options.h"
 #include "job/wire.h"
 #include "nlohmann/json.hpp"
+#include "tests/testing/paths.h"
 
 namespace interslice::job {
 namespace {
@@ -20,7 +21,8 @@ using ::testing::AllOf;
 using ::testing::Contains;
 using ::testing::HasSubstr;
 
-const std::string kSeries = std::string(INTERSLICE_TEST_DATA_DIR) + "/ct-thick";
+const std::string kSeries =
+    std::string(::interslice::testing::TestDataDir()) + "/ct-thick";
 
 fs::path FreshDir(const std::string& name) {
   const fs::path dir = fs::path(::testing::TempDir()) / ("job-test-" + name);

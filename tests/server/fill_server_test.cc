@@ -19,6 +19,7 @@
 #include "grpcpp/grpcpp.h"
 #include "interslice/v1/interslice.grpc.pb.h"
 #include "nlohmann/json.hpp"
+#include "tests/testing/paths.h"
 #include "tests/testing/process.h"
 #include "tests/testing/server_process.h"
 #include "tests/testing/temp_dir.h"
@@ -29,8 +30,9 @@ namespace {
 namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 
-const std::string kCli = INTERSLICE_CLI_PATH;
-const std::string kSeries = std::string(INTERSLICE_TEST_DATA_DIR) + "/ct-thick";
+const std::string kCli = ::interslice::testing::CliPath();
+const std::string kSeries =
+    std::string(::interslice::testing::TestDataDir()) + "/ct-thick";
 
 // A gRPC stub talking to the server.
 std::unique_ptr<v1::InterSlice::Stub> StubTo(const ServerProcess& server) {

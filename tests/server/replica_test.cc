@@ -19,6 +19,7 @@
 #include "interslice/v1/interslice.grpc.pb.h"
 #include "server/forwarding.h"
 #include "tests/testing/files.h"
+#include "tests/testing/paths.h"
 #include "tests/testing/process.h"
 #include "tests/testing/server_process.h"
 #include "tests/testing/temp_dir.h"
@@ -29,8 +30,9 @@ namespace {
 namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 
-const std::string kCli = INTERSLICE_CLI_PATH;
-const std::string kSeries = std::string(INTERSLICE_TEST_DATA_DIR) + "/ct-thick";
+const std::string kCli = ::interslice::testing::CliPath();
+const std::string kSeries =
+    std::string(::interslice::testing::TestDataDir()) + "/ct-thick";
 // Small and fast: a 96 x 96 region of the 4 slices.
 const std::vector<std::string> kSmallJob = {kSeries, "--threshold", "300",
                                             "--roi", "200,200,0,296,296,4"};

@@ -12,6 +12,7 @@
 #include "grpc/health/v1/health.grpc.pb.h"
 #include "grpcpp/grpcpp.h"
 #include "gtest/gtest.h"
+#include "tests/testing/paths.h"
 #include "tests/testing/process.h"
 #include "tests/testing/wait_for.h"
 
@@ -20,7 +21,8 @@ namespace fs = std::filesystem;
 
 ServerProcess::ServerProcess(ServerOptions options)
     : options_(std::move(options)) {
-  if (options_.binary.empty()) options_.binary = INTERSLICE_SERVER_PATH;
+  if (options_.binary.empty())
+    options_.binary = ::interslice::testing::ServerPath();
   if (options_.log.empty()) options_.log = options_.spool + ".log";
   port_file_ = options_.spool + ".port";
 }

@@ -30,8 +30,7 @@ namespace interslice::testing {
 
 struct ServerOptions {
   // The server binary; default: the build tree's interslice-server
-  // (INTERSLICE_SERVER_PATH, which tests/testing/CMakeLists.txt gives every
-  // target linking this fixture, with INTERSLICE_CLI_PATH for the client).
+  // (ServerPath(), tests/testing/paths.h).
   std::string binary;
   // --spool: where the server keeps its jobs (created by the server).
   // Required.

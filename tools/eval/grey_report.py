@@ -28,6 +28,13 @@ def load(run_dir):
     return r
 
 
+def repo_path(path):
+    """`path` relative to the repository root (e.g. ../shared/data/...), so
+    the report names no folder of one machine (as tools/eval/report.py)."""
+    repo = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", ".."))
+    return os.path.relpath(os.path.abspath(path), repo) if os.path.isabs(path) else path
+
+
 def fmt(x, digits=2):
     if x is None or (isinstance(x, float) and math.isnan(x)):
         return "-"
@@ -119,7 +126,7 @@ def main():
         "",
     ]
     for r in runs:
-        lines += [f"## {r['series']} ({r['modality']}, {r['dir']})", ""]
+        lines += [f"## {r['series']} ({r['modality']}, {repo_path(r['dir'])})", ""]
         tilt = r.get("gantry_tilt_degrees", 0)
         lines += [f"Grid (ROI) {r['grid']['size']} at {[round(s, 3) for s in r['grid']['spacing']]} mm"
                   + (f", gantry tilt {tilt:.1f} degrees (resampled by the reader)" if tilt else "")

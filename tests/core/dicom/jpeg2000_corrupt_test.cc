@@ -15,6 +15,7 @@
 #include "core/dicom/series_reader.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "tests/testing/paths.h"
 #include "tests/testing/temp_dir.h"
 
 namespace interslice {
@@ -24,7 +25,7 @@ namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 
 const fs::path kJpeg2000 =
-    fs::path(INTERSLICE_TEST_DATA_DIR) / "codecs" / "jpeg_2000.dcm";
+    fs::path(::interslice::testing::TestDataDir()) / "codecs" / "jpeg_2000.dcm";
 
 std::string ReadBytes(const fs::path& path) {
   std::ifstream in(path, std::ios::binary);

@@ -16,6 +16,7 @@
 #include "core/dicom/dicom_header.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "tests/testing/paths.h"
 #include "tests/testing/temp_dir.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
@@ -38,8 +39,8 @@ using ::testing::Not;
 
 // Philips enhanced MR: 64 frames of 64 x 64, 12 of 16 bits stored, two
 // volumes (magnitude and field map) with different per-frame rescales.
-const fs::path kPhilips = fs::path(INTERSLICE_TEST_DATA_DIR) / "multiframe" /
-                          "philips-enhanced-mr-64frames.dcm";
+const fs::path kPhilips = fs::path(::interslice::testing::TestDataDir()) /
+                          "multiframe" / "philips-enhanced-mr-64frames.dcm";
 constexpr int kPhilipsSide = 64;
 constexpr int kPhilipsFrames = 64;
 constexpr int kPlane = kPhilipsSide * kPhilipsSide;

@@ -21,6 +21,7 @@
 #include "absl/status/status.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "tests/testing/paths.h"
 #include "tests/testing/temp_dir.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
@@ -41,7 +42,8 @@ using ::testing::AllOf;
 using ::testing::HasSubstr;
 using ::testing::Not;
 
-const fs::path kThick = fs::path(INTERSLICE_TEST_DATA_DIR) / "ct-thick";
+const fs::path kThick =
+    fs::path(::interslice::testing::TestDataDir()) / "ct-thick";
 const std::vector<std::string> kThickNames = {"I10.dcm", "I20.dcm", "I30.dcm",
                                               "I40.dcm"};
 // From `dcmdump tests/data/ct-thick/I10.dcm` (and I20..I40).
@@ -192,8 +194,8 @@ TEST(ReadDicomSeriesTest, VoxelsAreStoredValueTimesSlopePlusIntercept) {
 }
 
 TEST(ReadDicomSeriesTest, ReadsTheFullThickSeries) {
-  const fs::path dir =
-      fs::path(INTERSLICE_SOURCE_DIR) / "data" / "ct-head-phantom-thick";
+  const fs::path dir = fs::path(::interslice::testing::SourceDir()) / "data" /
+                       "ct-head-phantom-thick";
   // The shipped phantom is part of the repository: absent is a broken
   // checkout, not a reason to skip.
   ASSERT_TRUE(fs::is_directory(dir)) << dir << " is absent";
@@ -575,7 +577,8 @@ TEST(ReadDicomSeriesTest, RealTiltedSeriesIsResampled) {
   // Three slices of the phantom scanned with gantry tilt -18.5 degrees
   // (header: GantryDetectorTilt -18.5, IOP 1\0\0\0\0.9483237\-0.3173047,
   // IPP z steps of 2.5 mm).
-  const fs::path dir = fs::path(INTERSLICE_TEST_DATA_DIR) / "ct-tilt";
+  const fs::path dir =
+      fs::path(::interslice::testing::TestDataDir()) / "ct-tilt";
   const auto series = Read({dir.string()});
   ASSERT_TRUE(series.ok()) << series.status();
   EXPECT_NEAR(series->gantry_tilt_degrees, 18.5, 0.05);
@@ -625,7 +628,8 @@ TEST(ReadDicomSeriesTest, OldStyleMultiFrameWithoutGeometryIsSkipped) {
   EXPECT_EQ(result.status().code(), absl::StatusCode::kNotFound);
 }
 
-const fs::path kMultiframe = fs::path(INTERSLICE_TEST_DATA_DIR) / "multiframe";
+const fs::path kMultiframe =
+    fs::path(::interslice::testing::TestDataDir()) / "multiframe";
 
 TEST(ReadDicomSeriesTest, PhilipsEnhancedHoldsTwoVolumes) {
   // 64 frames of 64 x 64: 32 positions (4 mm apart) x {magnitude, B0 field
@@ -939,8 +943,8 @@ TEST(ReadDicomSeriesTest, EncodedCopiesReadTheSameAsTheOriginal) {
 }
 
 TEST(ReadDicomSeriesTest, JpegTwoThousandDecodesThroughGdcm) {
-  const fs::path path =
-      fs::path(INTERSLICE_TEST_DATA_DIR) / "codecs" / "jpeg_2000.dcm";
+  const fs::path path = fs::path(::interslice::testing::TestDataDir()) /
+                        "codecs" / "jpeg_2000.dcm";
   const auto series = Read({path.string()});
   ASSERT_TRUE(series.ok()) << series.status();
   EXPECT_EQ(series->image.grid.size, (Index3{512, 512, 1}));
@@ -955,7 +959,8 @@ TEST(ReadDicomSeriesTest, JpegTwoThousandDecodesThroughGdcm) {
 // (3), RLE (4), JPEG lossless SV1 (5, 6), JPEG-LS lossless (7, 8), JPEG 2000
 // lossless (9).
 TEST(ReadDicomSeriesTest, AllTransferSyntaxesDecodeToTheSameVoxels) {
-  const fs::path dir = fs::path(INTERSLICE_TEST_DATA_DIR) / "transfer-syntaxes";
+  const fs::path dir =
+      fs::path(::interslice::testing::TestDataDir()) / "transfer-syntaxes";
   const auto reference = Read({(dir / "1.dcm").string()});
   ASSERT_TRUE(reference.ok()) << reference.status();
   EXPECT_EQ(reference->image.grid.size, (Index3{384, 384, 1}));
@@ -1271,10 +1276,10 @@ void EditDataset(const fs::path& src, const fs::path& dst,
 }
 
 const fs::path kJpeg2000Ct =
-    fs::path(INTERSLICE_TEST_DATA_DIR) / "codecs" / "jpeg_2000.dcm";
+    fs::path(::interslice::testing::TestDataDir()) / "codecs" / "jpeg_2000.dcm";
 // An MR slice in JPEG 2000 (GDCM takes another rescale path for MR).
-const fs::path kJpeg2000Mr =
-    fs::path(INTERSLICE_TEST_DATA_DIR) / "transfer-syntaxes" / "9.dcm";
+const fs::path kJpeg2000Mr = fs::path(::interslice::testing::TestDataDir()) /
+                             "transfer-syntaxes" / "9.dcm";
 
 // Two slices of a JPEG 2000 file, 5 mm apart along the normal, after `edit`.
 void WriteJpeg2000Pair(const fs::path& src, const fs::path& dir,
@@ -1368,8 +1373,8 @@ TEST(HardeningTest, SliceWithRescaleSlopeZeroIsAnError) {
 
 TEST(HardeningTest, FrameWithRescaleSlopeZeroIsNamedWithItsFrame) {
   TempDir dir;
-  const fs::path src = fs::path(INTERSLICE_TEST_DATA_DIR) / "multiframe" /
-                       "philips-enhanced-mr-64frames.dcm";
+  const fs::path src = fs::path(::interslice::testing::TestDataDir()) /
+                       "multiframe" / "philips-enhanced-mr-64frames.dcm";
   EditDataset(src, dir.path() / "enhanced.dcm", [](DcmDataset& ds) {
     DcmItem* frame = nullptr;
     ASSERT_TRUE(ds.findAndGetSequenceItem(DCM_PerFrameFunctionalGroupsSequence,

@@ -22,6 +22,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "tests/core/dicom_out/dicom_test_util.h"
+#include "tests/testing/paths.h"
 #include "tests/testing/temp_dir.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
@@ -42,7 +43,8 @@ namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 using ::testing::StartsWith;
 
-const fs::path kThick = fs::path(INTERSLICE_TEST_DATA_DIR) / "ct-thick";
+const fs::path kThick =
+    fs::path(::interslice::testing::TestDataDir()) / "ct-thick";
 constexpr char kTestRoot[] = "1.2.826.0.1.3680043.10.1234";
 
 // A fresh folder per test, removed afterwards.

@@ -18,6 +18,7 @@
 #include "gtest/gtest.h"
 #include "tests/core/dicom_out/dicom_test_util.h"
 #include "tests/testing/orthanc.h"
+#include "tests/testing/paths.h"
 #include "tests/testing/temp_dir.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
@@ -128,7 +129,7 @@ std::vector<uint16_t> OrthancFrame(const Orthanc& orthanc,
 
 TEST(EnhancedOrthancTest, OrthancStoresAndDecodesEveryEnhancedFrame) {
   TempDir dir;
-  const fs::path data = INTERSLICE_TEST_DATA_DIR;
+  const fs::path data = ::interslice::testing::TestDataDir();
   const Case mr = LoadCase(data / "multiframe" / "siemens-xa10-6_1.dcm");
   const Case ct = LoadCase(data / "ct-thick");
   ASSERT_EQ(mr.source.modality, "MR");

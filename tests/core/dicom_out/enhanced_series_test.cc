@@ -17,6 +17,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "tests/core/dicom_out/dicom_test_util.h"
+#include "tests/testing/paths.h"
 #include "tests/testing/temp_dir.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
@@ -70,7 +71,8 @@ Case LoadCase(const std::string& name, const std::string& volume = "") {
   DicomReadOptions read_options;
   read_options.volume = volume;
   auto series = ReadDicomSeries(
-      {(fs::path(INTERSLICE_TEST_DATA_DIR) / name).string()}, read_options, {});
+      {(fs::path(::interslice::testing::TestDataDir()) / name).string()},
+      read_options, {});
   EXPECT_TRUE(series.ok()) << series.status();
   if (!series.ok()) return c;
   c.source = *std::move(series);
@@ -221,9 +223,9 @@ TEST(EnhancedSeriesTest, TiltedCtFramesAreTheClassicImages) {
 // positions and UIDs): the classic layout is MR Image, the enhanced one
 // Enhanced MR Image, frame k = image k.
 std::string WriteMrImageSeries(const fs::path& dir) {
-  auto file = LoadDicom(
-      (fs::path(INTERSLICE_TEST_DATA_DIR) / "transfer-syntaxes" / "1.dcm")
-          .string());
+  auto file = LoadDicom((fs::path(::interslice::testing::TestDataDir()) /
+                         "transfer-syntaxes" / "1.dcm")
+                            .string());
   DcmDataset& ds = *file->getDataset();
   EXPECT_EQ(GetString(ds, DCM_SOPClassUID), UID_MRImageStorage);
   double position[3], orientation[6];

@@ -15,6 +15,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "tests/core/dicom_out/dicom_test_util.h"
+#include "tests/testing/paths.h"
 #include "tests/testing/temp_dir.h"
 
 namespace interslice {
@@ -23,7 +24,8 @@ namespace {
 namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 
-const fs::path kThick = fs::path(INTERSLICE_TEST_DATA_DIR) / "ct-thick";
+const fs::path kThick =
+    fs::path(::interslice::testing::TestDataDir()) / "ct-thick";
 
 TEST(LabelSegmentTest, DefaultsAreDistinctAndColoursConvert) {
   std::set<std::array<uint8_t, 3>> colours;
@@ -82,7 +84,8 @@ TEST(LabelSegmentTest, ReferencedImagesNeedOneInstancePerSlice) {
 TEST(LabelSegmentTest, TiltedSeriesImagesAreNotReferencedAsGridSlices) {
   QuietDicomToolkitLogging();
   absl::StatusOr<DicomSeries> tilted = ReadDicomSeries(
-      {(fs::path(INTERSLICE_TEST_DATA_DIR) / "ct-tilt").string()}, {}, {});
+      {(fs::path(::interslice::testing::TestDataDir()) / "ct-tilt").string()},
+      {}, {});
   ASSERT_TRUE(tilted.ok()) << tilted.status();
   ASSERT_NE(tilted->gantry_tilt_degrees, 0);
   EXPECT_THAT(ReferencedImagesOfSource(*tilted).status().message(),

@@ -21,6 +21,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "tests/core/dicom_out/dicom_test_util.h"
+#include "tests/testing/paths.h"
 #include "tests/testing/temp_dir.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
@@ -40,7 +41,8 @@ using testing::GetString;
 using ::testing::HasSubstr;
 using testing::LoadDicom;
 
-const fs::path kThick = fs::path(INTERSLICE_TEST_DATA_DIR) / "ct-thick";
+const fs::path kThick =
+    fs::path(::interslice::testing::TestDataDir()) / "ct-thick";
 constexpr char kCtImageStorage[] = "1.2.840.10008.5.1.4.1.1.2";
 
 class TempDir : public testing::TempDir {

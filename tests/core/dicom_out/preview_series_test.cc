@@ -12,6 +12,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "tests/core/dicom_out/dicom_test_util.h"
+#include "tests/testing/paths.h"
 #include "tests/testing/temp_dir.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
@@ -26,7 +27,8 @@ namespace fs = std::filesystem;
 using testing::GetString;
 using ::testing::HasSubstr;
 
-const fs::path kThick = fs::path(INTERSLICE_TEST_DATA_DIR) / "ct-thick";
+const fs::path kThick =
+    fs::path(::interslice::testing::TestDataDir()) / "ct-thick";
 constexpr char kTestRoot[] = "1.2.826.0.1.3680043.10.1234";
 
 class PreviewSeriesTest : public ::testing::Test {

@@ -21,6 +21,7 @@
 #include "core/volume_io/volume_io.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "tests/testing/paths.h"
 
 namespace interslice {
 namespace {
@@ -406,7 +407,7 @@ TEST_F(LabelMapIoTest, NibabelSeesTheInputsHeaderInTheOutput) {
 // labels.nii.gz comes back in the input's layout.
 TEST_F(LabelMapIoTest, FillJobKeepsTheInputLayout) {
   const std::string reference =
-      std::string(INTERSLICE_TEST_DATA_DIR) + "/ct-thick";
+      std::string(::interslice::testing::TestDataDir()) + "/ct-thick";
   absl::StatusOr<DicomSeries> series = ReadDicomSeries({reference}, {}, {});
   ASSERT_TRUE(series.ok()) << series.status();
   const Grid ref = series->image.grid;

@@ -15,6 +15,7 @@
 #include "core/volume_io/volume_io.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "tests/testing/paths.h"
 
 namespace interslice {
 namespace {
@@ -156,7 +157,7 @@ TEST_F(SegmentNamesTest, BadSidecarsAreOneLineNamingTheProblem) {
 // naming a label the map does not hold writes nothing.
 TEST_F(SegmentNamesTest, NamesReachSegAndRtstruct) {
   const std::string reference =
-      std::string(INTERSLICE_TEST_DATA_DIR) + "/ct-thick";
+      std::string(::interslice::testing::TestDataDir()) + "/ct-thick";
   absl::StatusOr<DicomSeries> series = ReadDicomSeries({reference}, {}, {});
   ASSERT_TRUE(series.ok()) << series.status();
   const Grid ref = series->image.grid;

@@ -20,6 +20,7 @@
 #include "gtest/gtest.h"
 #include "nlohmann/json.hpp"
 #include "tests/testing/dciodvfy.h"
+#include "tests/testing/paths.h"
 // osconfig.h must precede every other DCMTK header.
 #include "absl/strings/str_format.h"
 #include "dcmtk/config/osconfig.h"
@@ -34,7 +35,8 @@ namespace {
 
 namespace fs = std::filesystem;
 
-const std::string kSeries = std::string(INTERSLICE_TEST_DATA_DIR) + "/ct-thick";
+const std::string kSeries =
+    std::string(::interslice::testing::TestDataDir()) + "/ct-thick";
 
 class PipelineTest : public ::testing::Test {
  protected:
@@ -173,7 +175,7 @@ TEST_F(PipelineTest, FilesTheDicomObjectsCarryAreOmittedWhenAsked) {
 // is named for what it is: bone for CT at 300 HU, a region above the
 // threshold for MR.
 TEST_F(PipelineTest, EveryObjectOfEveryRealSeriesPassesDciodvfy) {
-  const std::string data = INTERSLICE_TEST_DATA_DIR;
+  const std::string data = ::interslice::testing::TestDataDir();
   struct Case {
     const char* name;
     std::string input;
@@ -241,7 +243,7 @@ TEST_F(PipelineTest, EveryObjectOfEveryRealSeriesPassesDciodvfy) {
 // every object valid for dciodvfy.
 TEST_F(PipelineTest, EnhancedLayoutOfAnMrSourceIsOneValidEnhancedMr) {
   JobSpec spec;
-  spec.inputs = {std::string(INTERSLICE_TEST_DATA_DIR) +
+  spec.inputs = {std::string(::interslice::testing::TestDataDir()) +
                  "/multiframe/siemens-xa10-6_1.dcm"};
   spec.lower_threshold = 100;
   spec.solver.method = SolverMethod::kLinear;
@@ -1063,7 +1065,8 @@ TEST_F(PipelineTest, RoiMmOnAnAxialSeriesIsTheVoxelBoxItCovers) {
 // contains the region, is exactly the brute-force box of the voxel centres
 // inside, and not much more.
 TEST_F(PipelineTest, RoiMmOnATiltedSeriesCoversTheRegionAndLittleMore) {
-  const std::string tilted = std::string(INTERSLICE_TEST_DATA_DIR) + "/ct-tilt";
+  const std::string tilted =
+      std::string(::interslice::testing::TestDataDir()) + "/ct-tilt";
   const HeaderGeometry g = ReadHeaderGeometry(tilted);
   ASSERT_EQ(g.offsets.size(), 3u);
   const VoxelBox region{{200, 200, 0}, {280, 280, 3}};

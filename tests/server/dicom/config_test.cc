@@ -11,6 +11,7 @@
 #include "gtest/gtest.h"
 #include "job/options.h"
 #include "job/wire.h"
+#include "tests/testing/paths.h"
 
 namespace interslice::server::dicom {
 namespace {
@@ -732,7 +733,8 @@ TEST_F(ConfigTest, FillRules) {
 // option tables of job/options.h), so that the documentation cannot drift
 // from what the parser accepts.
 TEST_F(ConfigTest, DocumentationListsEveryRuleKey) {
-  std::ifstream in(std::string(INTERSLICE_SOURCE_DIR) + "/docs/dicom-node.md");
+  std::ifstream in(std::string(::interslice::testing::SourceDir()) +
+                   "/docs/dicom-node.md");
   const std::string doc((std::istreambuf_iterator<char>(in)), {});
   ASSERT_FALSE(doc.empty());
   const size_t job_row = doc.find("| `rules[].job` |");
@@ -759,7 +761,8 @@ TEST_F(ConfigTest, DocumentationListsEveryRuleKey) {
 
 // The documented examples parse, so that they cannot rot.
 TEST_F(ConfigTest, DocumentedExamplesParse) {
-  const std::string dir = std::string(INTERSLICE_SOURCE_DIR) + "/docs/examples";
+  const std::string dir =
+      std::string(::interslice::testing::SourceDir()) + "/docs/examples";
   absl::StatusOr<PeersConfig> peers = LoadPeersConfig(dir + "/peers.yaml");
   ASSERT_TRUE(peers.ok()) << peers.status();
   EXPECT_GE(peers->peers.size(), 1u);

@@ -20,6 +20,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "tests/server/dicom/raw_pdu.h"
+#include "tests/testing/paths.h"
 
 namespace interslice::server::dicom {
 namespace {
@@ -27,8 +28,8 @@ namespace {
 namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 
-const std::string kPhantom =
-    std::string(INTERSLICE_SOURCE_DIR) + "/data/ct-head-phantom-thick";
+const std::string kPhantom = std::string(::interslice::testing::SourceDir()) +
+                             "/data/ct-head-phantom-thick";
 constexpr char kExplicitLe[] = "1.2.840.10008.1.2.1";
 constexpr char kImplicitLe[] = "1.2.840.10008.1.2";
 
@@ -62,8 +63,8 @@ class ScanTest : public ::testing::Test {
 
 TEST_F(ScanTest, EveryShippedDicomFilePasses) {
   std::vector<std::string> files = DicomFilesUnder(kPhantom);
-  for (const std::string& f :
-       DicomFilesUnder(std::string(INTERSLICE_SOURCE_DIR) + "/tests/data")) {
+  for (const std::string& f : DicomFilesUnder(
+           std::string(::interslice::testing::SourceDir()) + "/tests/data")) {
     files.push_back(f);
   }
   ASSERT_GT(files.size(), 28u);
@@ -130,7 +131,7 @@ TEST_F(ScanTest, DeflatedDataSetIsBoundedWhenInflated) {
 // an element DCMTK would read with a 4 GiB length (it allocated that much).
 // The scan must see what inflate produced before the error, and fail.
 TEST_F(ScanTest, DeflatedStreamWithADataErrorFails) {
-  std::ifstream in(std::string(INTERSLICE_SOURCE_DIR) +
+  std::ifstream in(std::string(::interslice::testing::SourceDir()) +
                        "/tests/server/dicom/fuzz_cases/deflated-data-error.bin",
                    std::ios::binary);
   const std::string input((std::istreambuf_iterator<char>(in)),

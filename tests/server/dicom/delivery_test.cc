@@ -23,6 +23,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "tests/testing/orthanc.h"
+#include "tests/testing/paths.h"
 #include "tests/testing/process.h"
 #include "tests/testing/temp_dir.h"
 #include "tests/testing/wait_for.h"
@@ -34,12 +35,13 @@ namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 using testing::Orthanc;
 
-const fs::path kThick = fs::path(INTERSLICE_TEST_DATA_DIR) / "ct-thick";
-const fs::path kPhantom =
-    fs::path(INTERSLICE_SOURCE_DIR) / "data" / "ct-head-phantom-thick";
+const fs::path kThick =
+    fs::path(::interslice::testing::TestDataDir()) / "ct-thick";
+const fs::path kPhantom = fs::path(::interslice::testing::SourceDir()) /
+                          "data" / "ct-head-phantom-thick";
 // Enhanced MR Image Storage (a SOP class the CT-only receiver refuses).
-const fs::path kEnhancedMr = fs::path(INTERSLICE_TEST_DATA_DIR) / "multiframe" /
-                             "philips-enhanced-mr-64frames.dcm";
+const fs::path kEnhancedMr = fs::path(::interslice::testing::TestDataDir()) /
+                             "multiframe" / "philips-enhanced-mr-64frames.dcm";
 
 DicomPeer PeerOf(const Orthanc& orthanc) {
   DicomPeer peer;

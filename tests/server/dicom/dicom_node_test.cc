@@ -35,6 +35,7 @@
 #include "interslice/spool/v1/record.pb.h"
 #include "tests/server/dicom/raw_pdu.h"
 #include "tests/testing/files.h"
+#include "tests/testing/paths.h"
 #include "tests/testing/process.h"
 #include "tests/testing/server_process.h"
 #include "tests/testing/temp_dir.h"
@@ -48,12 +49,12 @@ namespace fs = std::filesystem;
 namespace raw = interslice::testing;  // raw_pdu.h: PDUs byte by byte
 using ::testing::HasSubstr;
 
-const std::string kCli = INTERSLICE_CLI_PATH;
+const std::string kCli = ::interslice::testing::CliPath();
 // DCMTK's tools (Debian package dcmtk, in install-deps.sh).
 const std::string kEchoScu = "/usr/bin/echoscu";
 const std::string kStoreScu = "/usr/bin/storescu";
-const std::string kPhantom =
-    std::string(INTERSLICE_SOURCE_DIR) + "/data/ct-head-phantom-thick";
+const std::string kPhantom = std::string(::interslice::testing::SourceDir()) +
+                             "/data/ct-head-phantom-thick";
 // A small job on the phantom: a 96 x 96 region of all 28 slices.
 const char kJobYaml[] =
     "{threshold: 300, roi: [208, 208, 0, 304, 304, 28], mesh: [stl], "
@@ -940,7 +941,7 @@ TEST(DicomNodeTest, TlsWithCaCheckedCertificates) {
 TEST(DicomNodeTest, DocumentedExamplesStartAServer) {
   TempDir dir;
   const std::string examples =
-      std::string(INTERSLICE_SOURCE_DIR) + "/docs/examples";
+      std::string(::interslice::testing::SourceDir()) + "/docs/examples";
   DicomServer server(dir, "spool",
                      {"--dicom-peers", examples + "/peers.yaml", "--rules",
                       examples + "/rules.yaml", "--dicom-ae", "INTERSLICE",
@@ -1539,8 +1540,8 @@ class DicomFillTest : public ::testing::Test {
   // A 16-slice series and a binary SEG drawn on it (`interslice run --seg`
   // on a region of tests/data/ct-thick), and the in-process fill of it.
   void SetUp() override {
-    const std::string small =
-        std::string(INTERSLICE_SOURCE_DIR) + "/tests/data/ct-thick";
+    const std::string small = std::string(::interslice::testing::SourceDir()) +
+                              "/tests/data/ct-thick";
     CommandResult run =
         RunCommand({kCli, "run", small, "--threshold", "300", "--roi",
                     "200,40,0,296,136,4", "--method", "direct", "--factor", "5",
@@ -1697,7 +1698,7 @@ TEST_F(DicomFillTest, SeriesTakenByAJobRuleIsStillHeldForItsSeg) {
 
 // ---- Issue 25: a node that explains itself ------------------------------
 
-const std::string kServer = INTERSLICE_SERVER_PATH;
+const std::string kServer = ::interslice::testing::ServerPath();
 const std::string kStoreScp = "/usr/bin/storescp";
 
 // storescp answering C-ECHO as `ae` on a free port (a live peer); stopped

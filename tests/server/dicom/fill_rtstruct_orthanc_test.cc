@@ -28,6 +28,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "tests/testing/orthanc.h"
+#include "tests/testing/paths.h"
 #include "tests/testing/process.h"
 #include "tests/testing/server_process.h"
 #include "tests/testing/temp_dir.h"
@@ -45,9 +46,10 @@ namespace fs = std::filesystem;
 using ::testing::ElementsAre;
 using ::testing::HasSubstr;
 
-const std::string kCli = INTERSLICE_CLI_PATH;
+const std::string kCli = ::interslice::testing::CliPath();
 const std::string kStoreScu = "/usr/bin/storescu";  // Debian's dcmtk
-const std::string kSeries = std::string(INTERSLICE_TEST_DATA_DIR) + "/ct-thick";
+const std::string kSeries =
+    std::string(::interslice::testing::TestDataDir()) + "/ct-thick";
 // The node's fill: the RTSTRUCT's first and last slice are its key slices;
 // the slices between are filled by the exact refinement.
 const std::vector<std::string> kFill = {"--key-slices", "0,3",    "--method",

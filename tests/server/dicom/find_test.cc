@@ -16,6 +16,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
 #include "tests/testing/orthanc.h"
+#include "tests/testing/paths.h"
 #include "tests/testing/process.h"
 #include "tests/testing/server_process.h"
 #include "tests/testing/temp_dir.h"
@@ -27,10 +28,11 @@ namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 using ::testing::Not;
 
-const std::string kCli = INTERSLICE_CLI_PATH;
-const fs::path kThick = fs::path(INTERSLICE_TEST_DATA_DIR) / "ct-thick";
-const fs::path kEnhancedMr = fs::path(INTERSLICE_TEST_DATA_DIR) / "multiframe" /
-                             "philips-enhanced-mr-64frames.dcm";
+const std::string kCli = ::interslice::testing::CliPath();
+const fs::path kThick =
+    fs::path(::interslice::testing::TestDataDir()) / "ct-thick";
+const fs::path kEnhancedMr = fs::path(::interslice::testing::TestDataDir()) /
+                             "multiframe" / "philips-enhanced-mr-64frames.dcm";
 
 // The words after `kind` ("study", "series") at the start of output lines.
 std::set<std::string> Listed(const std::string& out, const std::string& kind) {

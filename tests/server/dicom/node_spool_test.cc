@@ -21,6 +21,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "tests/testing/orthanc.h"
+#include "tests/testing/paths.h"
 #include "tests/testing/process.h"
 #include "tests/testing/server_process.h"
 #include "tests/testing/temp_dir.h"
@@ -33,11 +34,13 @@ namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 using ::testing::Not;
 
-const std::string kCli = INTERSLICE_CLI_PATH;
+const std::string kCli = ::interslice::testing::CliPath();
 const std::string kStoreScu = "/usr/bin/storescu";  // Debian's dcmtk
-const std::string kSeries = std::string(INTERSLICE_TEST_DATA_DIR) + "/ct-tilt";
+const std::string kSeries =
+    std::string(::interslice::testing::TestDataDir()) + "/ct-tilt";
 const std::string kShippedRules =
-    std::string(INTERSLICE_SOURCE_DIR) + "/deploy/config/rules.yaml";
+    std::string(::interslice::testing::SourceDir()) +
+    "/deploy/config/rules.yaml";
 
 // Every regular file below `dir`: its path relative to `dir` -> bytes.
 std::map<std::string, int64_t> Files(const fs::path& dir) {

@@ -34,6 +34,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "tests/testing/orthanc.h"
+#include "tests/testing/paths.h"
 #include "tests/testing/process.h"
 #include "tests/testing/server_process.h"
 #include "tests/testing/temp_dir.h"
@@ -50,9 +51,9 @@ namespace {
 namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 
-const std::string kCli = INTERSLICE_CLI_PATH;
-const fs::path kPhantom =
-    fs::path(INTERSLICE_SOURCE_DIR) / "data" / "ct-head-phantom-thick";
+const std::string kCli = ::interslice::testing::CliPath();
+const fs::path kPhantom = fs::path(::interslice::testing::SourceDir()) /
+                          "data" / "ct-head-phantom-thick";
 // The job: bone of the phantom, one slice inserted per gap (factor 2 keeps
 // the test to seconds), every DICOM result.
 const std::vector<std::string> kJob = {"--threshold",

@@ -13,6 +13,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "tests/server/dicom/raw_pdu.h"
+#include "tests/testing/paths.h"
 
 namespace interslice::server::dicom {
 namespace {
@@ -169,7 +170,7 @@ TEST(PduGuardTest, UserInformationSubItemsMustBeWellFormed) {
   }
   // The fuzzer's input (after its mode byte).
   std::ifstream in(
-      std::string(INTERSLICE_SOURCE_DIR) +
+      std::string(::interslice::testing::SourceDir()) +
           "/tests/server/dicom/fuzz_cases/extended-negotiation-leak.bin",
       std::ios::binary);
   const std::string input((std::istreambuf_iterator<char>(in)),
@@ -324,7 +325,7 @@ TEST(PduGuardTest, DataSetsOnlyAfterACommandThatAnnouncesOne) {
   }
   // The fuzzer's input (after its mode byte).
   std::ifstream in(
-      std::string(INTERSLICE_SOURCE_DIR) +
+      std::string(::interslice::testing::SourceDir()) +
           "/tests/server/dicom/fuzz_cases/data-set-after-echo-4gib.bin",
       std::ios::binary);
   const std::string input((std::istreambuf_iterator<char>(in)),

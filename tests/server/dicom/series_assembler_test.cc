@@ -15,6 +15,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "tests/server/dicom/raw_pdu.h"
+#include "tests/testing/paths.h"
 
 namespace interslice::server::dicom {
 namespace {
@@ -22,8 +23,8 @@ namespace {
 namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 
-const std::string kPhantom =
-    std::string(INTERSLICE_SOURCE_DIR) + "/data/ct-head-phantom-thick";
+const std::string kPhantom = std::string(::interslice::testing::SourceDir()) +
+                             "/data/ct-head-phantom-thick";
 
 struct Submitted {
   std::string origin;

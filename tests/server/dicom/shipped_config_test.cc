@@ -23,6 +23,7 @@
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
 #include "absl/strings/strip.h"
+#include "tests/testing/paths.h"
 #include "tests/testing/process.h"
 #include "tests/testing/server_process.h"
 #include "tests/testing/temp_dir.h"
@@ -34,7 +35,7 @@ namespace {
 
 namespace fs = std::filesystem;
 
-const std::string kSource = INTERSLICE_SOURCE_DIR;
+const std::string kSource = ::interslice::testing::SourceDir();
 
 std::string ReadText(const std::string& path) {
   std::ifstream in(path);

@@ -24,6 +24,7 @@
 #include "server/dicom/echo.h"
 #include "tests/testing/canned_http.h"
 #include "tests/testing/orthanc.h"
+#include "tests/testing/paths.h"
 #include "tests/testing/process.h"
 #include "tests/testing/temp_dir.h"
 #include "tests/testing/wait_for.h"
@@ -44,9 +45,10 @@ using ::testing::Not;
 using testing::Orthanc;
 using testing::OrthancExtras;
 
-const fs::path kThick = fs::path(INTERSLICE_TEST_DATA_DIR) / "ct-thick";
-const fs::path kEnhancedMr = fs::path(INTERSLICE_TEST_DATA_DIR) / "multiframe" /
-                             "philips-enhanced-mr-64frames.dcm";
+const fs::path kThick =
+    fs::path(::interslice::testing::TestDataDir()) / "ct-thick";
+const fs::path kEnhancedMr = fs::path(::interslice::testing::TestDataDir()) /
+                             "multiframe" / "philips-enhanced-mr-64frames.dcm";
 
 DicomPeer WebPeer(const std::string& url) {
   DicomPeer peer;

@@ -21,6 +21,7 @@
 #include "server/dicom/retrieve.h"
 #include "tests/testing/canned_http.h"
 #include "tests/testing/orthanc.h"
+#include "tests/testing/paths.h"
 #include "tests/testing/process.h"
 #include "tests/testing/temp_dir.h"
 // osconfig.h must precede every other DCMTK header.
@@ -39,9 +40,10 @@ using testing::CannedRequest;
 using ::testing::HasSubstr;
 using testing::Orthanc;
 
-const fs::path kPhantom =
-    fs::path(INTERSLICE_SOURCE_DIR) / "data" / "ct-head-phantom-thick";
-const fs::path kThick = fs::path(INTERSLICE_TEST_DATA_DIR) / "ct-thick";
+const fs::path kPhantom = fs::path(::interslice::testing::SourceDir()) /
+                          "data" / "ct-head-phantom-thick";
+const fs::path kThick =
+    fs::path(::interslice::testing::TestDataDir()) / "ct-thick";
 
 DicomPeer WebPeer(const std::string& url) {
   DicomPeer peer;

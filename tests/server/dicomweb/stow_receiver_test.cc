@@ -19,6 +19,7 @@
 #include "server/dicom/series_assembler.h"
 #include "server/dicomweb/stow.h"
 #include "server/spool.h"
+#include "tests/testing/paths.h"
 
 namespace interslice::server::dicomweb {
 namespace {
@@ -26,8 +27,8 @@ namespace {
 namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 
-const std::string kPhantom =
-    std::string(INTERSLICE_SOURCE_DIR) + "/data/ct-head-phantom-thick";
+const std::string kPhantom = std::string(::interslice::testing::SourceDir()) +
+                             "/data/ct-head-phantom-thick";
 const char kType[] =
     "multipart/related; type=\"application/dicom\"; boundary=XyZ-boundary";
 

@@ -23,6 +23,7 @@
 #include "nlohmann/json.hpp"
 #include "server/dicom/delivery.h"
 #include "tests/testing/orthanc.h"
+#include "tests/testing/paths.h"
 #include "tests/testing/process.h"
 #include "tests/testing/server_process.h"
 #include "tests/testing/temp_dir.h"
@@ -37,8 +38,8 @@ namespace {
 
 namespace fs = std::filesystem;
 
-const std::string kPhantom =
-    std::string(INTERSLICE_SOURCE_DIR) + "/data/ct-head-phantom-thick";
+const std::string kPhantom = std::string(::interslice::testing::SourceDir()) +
+                             "/data/ct-head-phantom-thick";
 const char kBoundary[] = "round-trip-boundary";
 
 std::string ReadBytes(const std::string& path) {

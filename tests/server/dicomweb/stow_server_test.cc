@@ -20,6 +20,7 @@
 #include "gtest/gtest.h"
 #include "nlohmann/json.hpp"
 #include "server/status_page.h"
+#include "tests/testing/paths.h"
 #include "tests/testing/process.h"
 #include "tests/testing/server_process.h"
 #include "tests/testing/temp_dir.h"
@@ -31,10 +32,10 @@ namespace {
 namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 
-const std::string kPhantom =
-    std::string(INTERSLICE_SOURCE_DIR) + "/data/ct-head-phantom-thick";
+const std::string kPhantom = std::string(::interslice::testing::SourceDir()) +
+                             "/data/ct-head-phantom-thick";
 const std::string kSmallSeries =
-    std::string(INTERSLICE_SOURCE_DIR) + "/tests/data/ct-tilt";
+    std::string(::interslice::testing::SourceDir()) + "/tests/data/ct-tilt";
 const char kType[] =
     "Content-Type: multipart/related; type=\"application/dicom\"; "
     "boundary=stow-test-boundary";
@@ -378,8 +379,9 @@ TEST(StowHttpsTest, HttpsIsServedOrRefusedWithItsReason) {
     EXPECT_THAT(available.message(), HasSubstr("docs/dicomweb.md, \"HTTPS\""));
     EXPECT_THAT(available.message(),
                 HasSubstr("docs/examples/stunnel-https.conf"));
-    EXPECT_TRUE(fs::is_regular_file(std::string(INTERSLICE_SOURCE_DIR) +
-                                    "/docs/examples/stunnel-https.conf"));
+    EXPECT_TRUE(
+        fs::is_regular_file(std::string(::interslice::testing::SourceDir()) +
+                            "/docs/examples/stunnel-https.conf"));
     GTEST_SKIP() << "no HTTPS here: " << available.message();
   }
   ASSERT_TRUE(server.Start());
