@@ -11,6 +11,7 @@
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "absl/strings/string_view.h"
 #include "core/dicom/series_reader.h"
 #include "core/dicom_out/dicom_writer.h"
 #include "core/geometry/volume.h"
@@ -18,10 +19,16 @@
 #include "dcmtk/dcmdata/dcxfer.h"
 
 class DcmFileFormat;
+class OFCondition;
 class DcmItem;
 class DcmSegmentation;
 
 namespace interslice::dicom_out_internal {
+
+// OK when `condition` is good, else INTERNAL "<object>: cannot <what>: <DCMTK's
+// text>" (`object` names the object being written, e.g. "RTSTRUCT").
+absl::Status CheckDcmtk(const OFCondition& condition, absl::string_view object,
+                        absl::string_view what);
 
 // Purpose of reference for source images (DICOM CID 7202).
 inline constexpr char kSourceImagePurposeCode[] = "121322";

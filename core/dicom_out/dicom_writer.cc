@@ -56,6 +56,13 @@ std::string MeshConventionNote(const DicomSeries& source) {
 
 namespace dicom_out_internal {
 
+absl::Status CheckDcmtk(const OFCondition& condition, absl::string_view object,
+                        absl::string_view what) {
+  if (condition.good()) return absl::OkStatus();
+  return absl::InternalError(
+      absl::StrCat(object, ": cannot ", what, ": ", condition.text()));
+}
+
 absl::Status ValidateOutputGrid(const DicomSeries& source, const Grid& grid,
                                 size_t voxel_count, const char* what) {
   if (absl::Status status = grid.Validate(); !status.ok()) {

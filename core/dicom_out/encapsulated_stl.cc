@@ -40,10 +40,8 @@ std::string BaseName(const std::string& path) {
   return std::filesystem::path(path).filename().string();
 }
 
-absl::Status Check(const OFCondition& cond, const char* what) {
-  if (cond.good()) return absl::OkStatus();
-  return absl::InternalError(
-      absl::StrCat("Encapsulated STL: cannot ", what, ": ", cond.text()));
+absl::Status CheckStl(const OFCondition& cond, absl::string_view what) {
+  return dicom_out_internal::CheckDcmtk(cond, "Encapsulated STL", what);
 }
 
 // SourceInstanceSequence (Encapsulated Document module, type 1C: the
@@ -105,9 +103,9 @@ absl::Status WriteEncapsulatedStl(const DicomSeries& source,
     }
   }
   INTERSLICE_RETURN_IF_ERROR(
-      Check(ds.putAndInsertUint32(DCM_EncapsulatedDocumentLength,
-                                  static_cast<Uint32>(st.st_size)),
-            "set EncapsulatedDocumentLength"));
+      CheckStl(ds.putAndInsertUint32(DCM_EncapsulatedDocumentLength,
+                                     static_cast<Uint32>(st.st_size)),
+               "set EncapsulatedDocumentLength"));
 
   // Patient, study, frame of reference: the source's.
   CopyPatientStudyFrameOfReference(src, identity, ds);
@@ -155,9 +153,9 @@ absl::Status WriteEncapsulatedStl(const DicomSeries& source,
 
   // Manufacturing 3D Model: vertices are millimetres.
   INTERSLICE_RETURN_IF_ERROR(
-      Check(DcmCodec::insertCodeSequence(&ds, DCM_MeasurementUnitsCodeSequence,
-                                         "UCUM", "mm", "mm"),
-            "set MeasurementUnitsCodeSequence"));
+      CheckStl(DcmCodec::insertCodeSequence(
+                   &ds, DCM_MeasurementUnitsCodeSequence, "UCUM", "mm", "mm"),
+               "set MeasurementUnitsCodeSequence"));
 
   return SaveFileAtomically(file, path);
 }

@@ -93,10 +93,8 @@ const char* SopClassOf(EnhancedIod iod) {
                                  : UID_EnhancedMRImageStorage;
 }
 
-absl::Status Check(const OFCondition& cond, const std::string& what) {
-  if (cond.good()) return absl::OkStatus();
-  return absl::InternalError(
-      absl::StrCat("enhanced intensity: cannot ", what, ": ", cond.text()));
+absl::Status CheckEnhanced(const OFCondition& cond, absl::string_view what) {
+  return dicom_out_internal::CheckDcmtk(cond, "enhanced intensity", what);
 }
 
 // Body Part Examined -> the SNOMED CT anatomic region of PS3.16 Annex L
@@ -239,11 +237,11 @@ absl::StatusOr<std::unique_ptr<FrameGroups>> MakeFrameGroups(
   }
   // One stack, frames in order along the normal (PS3.3 C.7.6.16.2.2.4).
   INTERSLICE_RETURN_IF_ERROR(
-      Check(groups->content.setStackID("1"), "set the stack ID"));
-  INTERSLICE_RETURN_IF_ERROR(Check(
+      CheckEnhanced(groups->content.setStackID("1"), "set the stack ID"));
+  INTERSLICE_RETURN_IF_ERROR(CheckEnhanced(
       groups->content.setInStackPositionNumber(static_cast<Uint32>(k + 1)),
       "set the in-stack position"));
-  INTERSLICE_RETURN_IF_ERROR(Check(
+  INTERSLICE_RETURN_IF_ERROR(CheckEnhanced(
       groups->content.setDimensionIndexValues(static_cast<Uint32>(k + 1), 0),
       "set the dimension index"));
 
@@ -270,32 +268,32 @@ absl::StatusOr<std::unique_ptr<FrameGroups>> MakeFrameGroups(
   }
   if (!referable.empty()) {
     DerivationImageItem* item = nullptr;
-    INTERSLICE_RETURN_IF_ERROR(
-        Check(groups->derivation.addDerivationImageItem(
-                  CodeSequenceMacro("113085", "DCM", "Spatial resampling"),
-                  derivation_text.c_str(), item),
-              "add the derivation image"));
+    INTERSLICE_RETURN_IF_ERROR(CheckEnhanced(
+        groups->derivation.addDerivationImageItem(
+            CodeSequenceMacro("113085", "DCM", "Spatial resampling"),
+            derivation_text.c_str(), item),
+        "add the derivation image"));
     for (int64_t s : referable) {
       SourceImageItem* source_item = new SourceImageItem();
       source_item->getPurposeOfReferenceCode().set(
           kSourceImagePurposeCode, "DCM", kSourceImagePurposeMeaning);
-      INTERSLICE_RETURN_IF_ERROR(Check(
+      INTERSLICE_RETURN_IF_ERROR(CheckEnhanced(
           source_item->getImageSOPInstanceReference().setReferencedSOPClassUID(
               source.sop_class_uid.c_str()),
           "reference a source image"));
       INTERSLICE_RETURN_IF_ERROR(
-          Check(source_item->getImageSOPInstanceReference()
-                    .setReferencedSOPInstanceUID(
-                        source.slices[s].sop_instance_uid.c_str()),
-                "reference a source image"));
+          CheckEnhanced(source_item->getImageSOPInstanceReference()
+                            .setReferencedSOPInstanceUID(
+                                source.slices[s].sop_instance_uid.c_str()),
+                        "reference a source image"));
       if (IsFrameOfMultiFrameInstance(source, s)) {
         // A multi-frame source (an enhanced CT/MR): slice s is one frame of
         // its instance.
-        INTERSLICE_RETURN_IF_ERROR(
-            Check(source_item->getImageSOPInstanceReference()
-                      .addReferencedFrameNumber(
-                          static_cast<Uint16>(source.slices[s].frame + 1)),
-                  "reference a source frame"));
+        INTERSLICE_RETURN_IF_ERROR(CheckEnhanced(
+            source_item->getImageSOPInstanceReference()
+                .addReferencedFrameNumber(
+                    static_cast<Uint16>(source.slices[s].frame + 1)),
+            "reference a source frame"));
       }
       item->getSourceImageItems().push_back(source_item);
     }
@@ -407,25 +405,25 @@ void PutMrImageDescription(const MrImageDescription& d, DcmItem& to) {
 absl::Status ConvertToEnhancedMr(const MrImageDescription& d, DcmItem& ds) {
   DcmItem* shared = nullptr;
   DcmItem* type = nullptr;
-  INTERSLICE_RETURN_IF_ERROR(Check(
+  INTERSLICE_RETURN_IF_ERROR(CheckEnhanced(
       ds.findAndGetSequenceItem(DCM_SharedFunctionalGroupsSequence, shared, 0),
       "find the shared functional groups"));
-  INTERSLICE_RETURN_IF_ERROR(Check(
+  INTERSLICE_RETURN_IF_ERROR(CheckEnhanced(
       shared->findOrCreateSequenceItem(DCM_MRImageFrameTypeSequence, type, 0),
       "create the MR image frame type"));
   INTERSLICE_RETURN_IF_ERROR(
-      Check(type->putAndInsertString(DCM_FrameType, kDerivedFrameType),
-            "set the frame type"));
+      CheckEnhanced(type->putAndInsertString(DCM_FrameType, kDerivedFrameType),
+                    "set the frame type"));
   PutMrImageDescription(d, *type);
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(ds.putAndInsertString(DCM_ApplicableSafetyStandardAgency,
-                                  d.applicable_safety_standard_agency.c_str()),
-            "set the applicable safety standard agency"));
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(ds.putAndInsertString(DCM_SOPClassUID, UID_EnhancedMRImageStorage),
-            "set the SOP class"));
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(ds.putAndInsertString(DCM_Modality, "MR"), "set the modality"));
+  INTERSLICE_RETURN_IF_ERROR(CheckEnhanced(
+      ds.putAndInsertString(DCM_ApplicableSafetyStandardAgency,
+                            d.applicable_safety_standard_agency.c_str()),
+      "set the applicable safety standard agency"));
+  INTERSLICE_RETURN_IF_ERROR(CheckEnhanced(
+      ds.putAndInsertString(DCM_SOPClassUID, UID_EnhancedMRImageStorage),
+      "set the SOP class"));
+  INTERSLICE_RETURN_IF_ERROR(CheckEnhanced(
+      ds.putAndInsertString(DCM_Modality, "MR"), "set the modality"));
   PutMrImageDescription(d, ds);
   return absl::OkStatus();
 }
@@ -437,14 +435,14 @@ absl::Status AddCtFunctionalGroups(DcmItem& src,
                                    const DicomWriteOptions& options,
                                    EctEnhancedCT& ct) {
   FGCTImageFrameType frame_type;
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(frame_type.setFrameType(kDerivedFrameType), "set the frame type"));
+  INTERSLICE_RETURN_IF_ERROR(CheckEnhanced(
+      frame_type.setFrameType(kDerivedFrameType), "set the frame type"));
   frame_type.setPixelPresentation(FGCTImageFrameType::E_PixelPres_Monochrome);
   frame_type.setVolumetricProperties(FGCTImageFrameType::E_VolProp_Volume);
   frame_type.setVolumeBasedCalculationTechnique(
       FGCTImageFrameType::DT_VolBasedCalcTechnique_None);
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(ct.addForAllFrames(frame_type), "add the CT image frame type"));
+  INTERSLICE_RETURN_IF_ERROR(CheckEnhanced(ct.addForAllFrames(frame_type),
+                                           "add the CT image frame type"));
 
   // The irradiation event: the source's (the frames show what it
   // irradiated), else one derived for this object.
@@ -462,10 +460,10 @@ absl::Status AddCtFunctionalGroups(DcmItem& src,
   }
   FGIrradiationEventIdentification irradiation;
   INTERSLICE_RETURN_IF_ERROR(
-      Check(irradiation.setIrradiationEventUID(irradiation_event),
-            "set the irradiation event UID"));
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(ct.addForAllFrames(irradiation), "add the irradiation event"));
+      CheckEnhanced(irradiation.setIrradiationEventUID(irradiation_event),
+                    "set the irradiation event UID"));
+  INTERSLICE_RETURN_IF_ERROR(CheckEnhanced(ct.addForAllFrames(irradiation),
+                                           "add the irradiation event"));
 
   return absl::OkStatus();
 }
@@ -579,7 +577,7 @@ absl::Status WriteEnhancedIntensity(const DicomSeries& source,
   const IODEnhGeneralEquipmentModule::EquipmentInfo equipment(
       "interslice", "interslice", "0", options.software_version.c_str());
   EctEnhancedCT* raw = nullptr;
-  INTERSLICE_RETURN_IF_ERROR(Check(
+  INTERSLICE_RETURN_IF_ERROR(CheckEnhanced(
       EctEnhancedCT::create(
           raw, static_cast<Uint16>(ny), static_cast<Uint16>(nx),
           encoding.is_signed ? OFTrue : OFFalse, EctTypes::E_ImageType1_Derived,
@@ -593,22 +591,23 @@ absl::Status WriteEnhancedIntensity(const DicomSeries& source,
   // Identity; patient and study are copied from the source after encoding.
   const std::string date = CurrentDate();
   const std::string time = CurrentTime();
-  INTERSLICE_RETURN_IF_ERROR(Check(
+  INTERSLICE_RETURN_IF_ERROR(CheckEnhanced(
       object->getStudy().setStudyInstanceUID(
           (identity.study_instance_uid.empty() ? source.study_instance_uid
                                                : identity.study_instance_uid)
               .c_str()),
       "set StudyInstanceUID"));
   INTERSLICE_RETURN_IF_ERROR(
-      Check(object->getFrameOfReference().setFrameOfReferenceUID(
-                (identity.frame_of_reference_uid.empty()
-                     ? source.frame_of_reference_uid
-                     : identity.frame_of_reference_uid)
-                    .c_str()),
-            "set FrameOfReferenceUID"));
-  INTERSLICE_RETURN_IF_ERROR(Check(object->getSeries().setSeriesInstanceUID(
-                                       identity.series_instance_uid.c_str()),
-                                   "set SeriesInstanceUID"));
+      CheckEnhanced(object->getFrameOfReference().setFrameOfReferenceUID(
+                        (identity.frame_of_reference_uid.empty()
+                             ? source.frame_of_reference_uid
+                             : identity.frame_of_reference_uid)
+                            .c_str()),
+                    "set FrameOfReferenceUID"));
+  INTERSLICE_RETURN_IF_ERROR(
+      CheckEnhanced(object->getSeries().setSeriesInstanceUID(
+                        identity.series_instance_uid.c_str()),
+                    "set SeriesInstanceUID"));
   object->getSeries().setSeriesNumber(
       std::to_string(identity.series_number).c_str());
   object->getSeries().setSeriesDescription(
@@ -616,25 +615,25 @@ absl::Status WriteEnhancedIntensity(const DicomSeries& source,
   object->getSeries().setSeriesDate(date.c_str());
   object->getSeries().setSeriesTime(time.c_str());
   INTERSLICE_RETURN_IF_ERROR(
-      Check(object->getSOPCommon().setSOPInstanceUID(
-                identity.sop_instance_uids.front().c_str()),
-            "set SOPInstanceUID"));
+      CheckEnhanced(object->getSOPCommon().setSOPInstanceUID(
+                        identity.sop_instance_uids.front().c_str()),
+                    "set SOPInstanceUID"));
   object->getIODMultiFrameFGModule().setContentDate(date.c_str());
   object->getIODMultiFrameFGModule().setContentTime(time.c_str());
 
   // Shared functional groups.
   FGPixelMeasures measures;
   INTERSLICE_RETURN_IF_ERROR(
-      Check(measures.setPixelSpacing(
-                absl::StrCat(FormatDecimalString(grid.spacing[1]), "\\",
-                             FormatDecimalString(grid.spacing[0]))
-                    .c_str()),
-            "set the pixel spacing"));
+      CheckEnhanced(measures.setPixelSpacing(
+                        absl::StrCat(FormatDecimalString(grid.spacing[1]), "\\",
+                                     FormatDecimalString(grid.spacing[0]))
+                            .c_str()),
+                    "set the pixel spacing"));
   const std::string slice_spacing = FormatDecimalString(grid.spacing[2]);
   measures.setSliceThickness(slice_spacing.c_str());
   measures.setSpacingBetweenSlices(slice_spacing.c_str());
   INTERSLICE_RETURN_IF_ERROR(
-      Check(object->addForAllFrames(measures), "add pixel measures"));
+      CheckEnhanced(object->addForAllFrames(measures), "add pixel measures"));
   const Vec3 row = grid.Axis(0), col = grid.Axis(1);
   std::unique_ptr<FGPlaneOrientationPatient> orientation(
       FGPlaneOrientationPatient::createMinimal(
@@ -648,8 +647,8 @@ absl::Status WriteEnhancedIntensity(const DicomSeries& source,
     return absl::InternalError(
         "enhanced intensity: cannot create the plane orientation");
   }
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(object->addForAllFrames(*orientation), "add plane orientation"));
+  INTERSLICE_RETURN_IF_ERROR(CheckEnhanced(
+      object->addForAllFrames(*orientation), "add plane orientation"));
 
   // The classic layout's rescale ("HU" for CT; "US" for MR, whose classic
   // images carry it only when it is not the identity): stored values map to
@@ -660,38 +659,40 @@ absl::Status WriteEnhancedIntensity(const DicomSeries& source,
           ? FGPixelValueTransformation::E_PixelValTrans_CT
           : FGPixelValueTransformation::E_PixelValTrans_Normal);
   INTERSLICE_RETURN_IF_ERROR(
-      Check(transformation.setRescaleIntercept(
-                FormatDecimalString(encoding.intercept).c_str()),
-            "set the rescale intercept"));
+      CheckEnhanced(transformation.setRescaleIntercept(
+                        FormatDecimalString(encoding.intercept).c_str()),
+                    "set the rescale intercept"));
   INTERSLICE_RETURN_IF_ERROR(
-      Check(transformation.setRescaleSlope(
-                FormatDecimalString(encoding.slope).c_str()),
-            "set the rescale slope"));
+      CheckEnhanced(transformation.setRescaleSlope(
+                        FormatDecimalString(encoding.slope).c_str()),
+                    "set the rescale slope"));
+  INTERSLICE_RETURN_IF_ERROR(CheckEnhanced(
+      transformation.setRescaleType(encoding.rescale_type.c_str()),
+      "set the rescale type"));
   INTERSLICE_RETURN_IF_ERROR(
-      Check(transformation.setRescaleType(encoding.rescale_type.c_str()),
-            "set the rescale type"));
-  INTERSLICE_RETURN_IF_ERROR(Check(object->addForAllFrames(transformation),
-                                   "add the pixel value transformation"));
+      CheckEnhanced(object->addForAllFrames(transformation),
+                    "add the pixel value transformation"));
 
   FGFrameVOILUT voi;
   INTERSLICE_RETURN_IF_ERROR(
-      Check(voi.setWindowCenter(window_text.centers.c_str()),
-            "set the window centre"));
-  INTERSLICE_RETURN_IF_ERROR(Check(
+      CheckEnhanced(voi.setWindowCenter(window_text.centers.c_str()),
+                    "set the window centre"));
+  INTERSLICE_RETURN_IF_ERROR(CheckEnhanced(
       voi.setWindowWidth(window_text.widths.c_str()), "set the window width"));
   INTERSLICE_RETURN_IF_ERROR(
-      Check(object->addForAllFrames(voi), "add the frame VOI LUT"));
+      CheckEnhanced(object->addForAllFrames(voi), "add the frame VOI LUT"));
 
   const AnatomicRegion region = RegionOf(src);
   FGFrameAnatomy anatomy;
   // Unpaired: the region is named as a whole, neither side (the source's
   // laterality, if any, is of the study, not of these frames).
   anatomy.setLaterality(FGFrameAnatomy::LATERALITY_UNPAIRED);
-  INTERSLICE_RETURN_IF_ERROR(Check(anatomy.getAnatomy().getAnatomicRegion().set(
-                                       region.code, "SCT", region.meaning),
-                                   "set the anatomic region"));
   INTERSLICE_RETURN_IF_ERROR(
-      Check(object->addForAllFrames(anatomy), "add the frame anatomy"));
+      CheckEnhanced(anatomy.getAnatomy().getAnatomicRegion().set(
+                        region.code, "SCT", region.meaning),
+                    "set the anatomic region"));
+  INTERSLICE_RETURN_IF_ERROR(
+      CheckEnhanced(object->addForAllFrames(anatomy), "add the frame anatomy"));
 
   if (*iod == EnhancedIod::kCt) {
     INTERSLICE_RETURN_IF_ERROR(
@@ -700,7 +701,7 @@ absl::Status WriteEnhancedIntensity(const DicomSeries& source,
 
   // One dimension: the position along the normal.
   IODMultiframeDimensionModule& dimensions = object->getDimensions();
-  INTERSLICE_RETURN_IF_ERROR(Check(
+  INTERSLICE_RETURN_IF_ERROR(CheckEnhanced(
       dimensions.addDimensionIndex(
           DCM_ImagePositionPatient, identity.dimension_organization_uid.c_str(),
           DCM_PlanePositionSequence, "ImagePositionPatient"),
@@ -737,7 +738,8 @@ absl::Status WriteEnhancedIntensity(const DicomSeries& source,
       }
       added = typed->addFrame(stored.data(), stored.size(), per_frame);
     }
-    INTERSLICE_RETURN_IF_ERROR(Check(added, absl::StrCat("add frame ", k + 1)));
+    INTERSLICE_RETURN_IF_ERROR(
+        CheckEnhanced(added, absl::StrCat("add frame ", k + 1)));
   }
   if (static_cast<int64_t>(object->getNumberOfFrames()) != nz) {
     return absl::InternalError(
@@ -747,7 +749,7 @@ absl::Status WriteEnhancedIntensity(const DicomSeries& source,
 
   DcmFileFormat file;
   DcmDataset& ds = *file.getDataset();
-  INTERSLICE_RETURN_IF_ERROR(Check(object->writeDataset(ds), "encode"));
+  INTERSLICE_RETURN_IF_ERROR(CheckEnhanced(object->writeDataset(ds), "encode"));
   if (*iod == EnhancedIod::kMr) {
     INTERSLICE_RETURN_IF_ERROR(ConvertToEnhancedMr(mr_description, ds));
   }

@@ -92,10 +92,9 @@ constexpr int64_t kMaxFrames = 65535;
 // Float Pixel Data (OF) has a 32-bit length field, 0xFFFFFFFF reserved.
 constexpr uint64_t kMaxPixelDataBytes = 0xFFFFFFFEull;
 
-absl::Status Check(const OFCondition& cond, const char* what) {
-  if (cond.good()) return absl::OkStatus();
-  return absl::InternalError(
-      absl::StrCat("DICOM Parametric Map: cannot ", what, ": ", cond.text()));
+absl::Status CheckParametricMap(const OFCondition& cond,
+                                absl::string_view what) {
+  return dicom_out_internal::CheckDcmtk(cond, "DICOM Parametric Map", what);
 }
 
 // Beyond CheckReferencedSeries: the SOP class, if given, is the Parametric
@@ -205,10 +204,10 @@ absl::Status FillFrameAnatomy(DcmItem& src, FGFrameAnatomy& anatomy) {
       }
     }
   }
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(anatomy.getAnatomy().getAnatomicRegion().set(
-                code.c_str(), scheme.c_str(), meaning.substr(0, 64).c_str()),
-            "set the anatomic region"));
+  INTERSLICE_RETURN_IF_ERROR(CheckParametricMap(
+      anatomy.getAnatomy().getAnatomicRegion().set(
+          code.c_str(), scheme.c_str(), meaning.substr(0, 64).c_str()),
+      "set the anatomic region"));
 
   FGFrameAnatomy::LATERALITY laterality = FGFrameAnatomy::LATERALITY_UNPAIRED;
   for (const DcmTagKey& tag :
@@ -221,7 +220,8 @@ absl::Status FillFrameAnatomy(DcmItem& src, FGFrameAnatomy& anatomy) {
       break;
     }
   }
-  return Check(anatomy.setLaterality(laterality), "set the laterality");
+  return CheckParametricMap(anatomy.setLaterality(laterality),
+                            "set the laterality");
 }
 
 // Real World Value Mapping (C.7.6.16.2.11): stored value = distance in mm.
@@ -235,30 +235,30 @@ absl::Status FillRealWorldValueMapping(const ValueRange& range,
   auto owned = std::make_unique<FGRealWorldValueMapping::RWVMItem>();
   FGRealWorldValueMapping::RWVMItem& item = *owned;
   rwvm.getRealWorldValueMapping().push_back(owned.release());  // rwvm owns it
+  INTERSLICE_RETURN_IF_ERROR(CheckParametricMap(
+      item.setDoubleFloatRealWorldValueFirstValueMapped(range.min),
+      "set the first value mapped"));
+  INTERSLICE_RETURN_IF_ERROR(CheckParametricMap(
+      item.setDoubleFloatRealWorldValueLastValueMapped(range.max),
+      "set the last value mapped"));
+  INTERSLICE_RETURN_IF_ERROR(CheckParametricMap(
+      item.setRealWorldValueIntercept(0.0), "set the intercept"));
   INTERSLICE_RETURN_IF_ERROR(
-      Check(item.setDoubleFloatRealWorldValueFirstValueMapped(range.min),
-            "set the first value mapped"));
+      CheckParametricMap(item.setRealWorldValueSlope(1.0), "set the slope"));
   INTERSLICE_RETURN_IF_ERROR(
-      Check(item.setDoubleFloatRealWorldValueLastValueMapped(range.max),
-            "set the last value mapped"));
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(item.setRealWorldValueIntercept(0.0), "set the intercept"));
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(item.setRealWorldValueSlope(1.0), "set the slope"));
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(item.setLUTLabel(kLutLabel), "set the LUT label"));
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(item.setLUTExplanation(kLutExplanation), "set the explanation"));
+      CheckParametricMap(item.setLUTLabel(kLutLabel), "set the LUT label"));
+  INTERSLICE_RETURN_IF_ERROR(CheckParametricMap(
+      item.setLUTExplanation(kLutExplanation), "set the explanation"));
   // Units from CID 7181 (UCUM), as Table A.75-2 asks.
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(item.getMeasurementUnitsCode().set("mm", "UCUM", "millimeter"),
-            "set the units"));
+  INTERSLICE_RETURN_IF_ERROR(CheckParametricMap(
+      item.getMeasurementUnitsCode().set("mm", "UCUM", "millimeter"),
+      "set the units"));
   // What the quantity is (Quantity Definition Sequence, CID 9000 / 7180):
   // (Quantity) = (Distance), so that a reader need not parse the label.
   auto quantity = std::make_unique<ContentItemMacro>();
   INTERSLICE_RETURN_IF_ERROR(
-      Check(quantity->setValueType(ContentItemMacro::VT_CODE),
-            "set the quantity value type"));
+      CheckParametricMap(quantity->setValueType(ContentItemMacro::VT_CODE),
+                         "set the quantity value type"));
   quantity->getEntireConceptNameCodeSequence().push_back(
       new CodeSequenceMacro("246205007", "SCT", "Quantity"));
   quantity->getEntireConceptCodeSequence().push_back(
@@ -318,14 +318,14 @@ absl::Status WriteDistanceMap(const DicomSeries& source,
           static_cast<Uint16>(ny), static_cast<Uint16>(nx), equipment, content,
           kImageFlavor, kDerivedPixelContrast, DPMTypes::CQ_RESEARCH);
   if (const OFCondition* cond = OFget<OFCondition>(&created)) {
-    return Check(*cond, "create the map");
+    return CheckParametricMap(*cond, "create the map");
   }
   DPMParametricMapIOD& map = *OFget<DPMParametricMapIOD>(&created);
   // DCMTK's default is YES, which is right: the surface a distance map
   // describes can be rendered into a recognisable face.
   INTERSLICE_RETURN_IF_ERROR(
-      Check(map.setRecognizableVisualFeatures(DPMTypes::RVF_YES),
-            "set RecognizableVisualFeatures"));
+      CheckParametricMap(map.setRecognizableVisualFeatures(DPMTypes::RVF_YES),
+                         "set RecognizableVisualFeatures"));
 
   // Identity. Patient/study data are copied into the written dataset below;
   // the type 1 UIDs are set here too so that DCMTK does not invent them.
@@ -337,41 +337,43 @@ absl::Status WriteDistanceMap(const DicomSeries& source,
                                               : identity.frame_of_reference_uid;
   if (!study.empty()) {
     INTERSLICE_RETURN_IF_ERROR(
-        Check(map.getStudy().setStudyInstanceUID(study.c_str()),
-              "set StudyInstanceUID"));
+        CheckParametricMap(map.getStudy().setStudyInstanceUID(study.c_str()),
+                           "set StudyInstanceUID"));
   }
   if (!frame_of_reference.empty()) {
     INTERSLICE_RETURN_IF_ERROR(
-        Check(map.getFrameOfReference().setFrameOfReferenceUID(
-                  frame_of_reference.c_str()),
-              "set FrameOfReferenceUID"));
+        CheckParametricMap(map.getFrameOfReference().setFrameOfReferenceUID(
+                               frame_of_reference.c_str()),
+                           "set FrameOfReferenceUID"));
   }
-  INTERSLICE_RETURN_IF_ERROR(Check(map.getSeries().setSeriesInstanceUID(
-                                       identity.series_instance_uid.c_str()),
-                                   "set SeriesInstanceUID"));
   INTERSLICE_RETURN_IF_ERROR(
-      Check(map.getSeries().setSeriesDescription(
-                identity.series_description.substr(0, 64).c_str()),
-            "set SeriesDescription"));
+      CheckParametricMap(map.getSeries().setSeriesInstanceUID(
+                             identity.series_instance_uid.c_str()),
+                         "set SeriesInstanceUID"));
+  INTERSLICE_RETURN_IF_ERROR(
+      CheckParametricMap(map.getSeries().setSeriesDescription(
+                             identity.series_description.substr(0, 64).c_str()),
+                         "set SeriesDescription"));
   map.getSeries().setSeriesDate(CurrentDate().c_str());
   map.getSeries().setSeriesTime(CurrentTime().c_str());
-  INTERSLICE_RETURN_IF_ERROR(Check(map.getSOPCommon().setSOPInstanceUID(
-                                       identity.sop_instance_uids[0].c_str()),
-                                   "set SOPInstanceUID"));
+  INTERSLICE_RETURN_IF_ERROR(
+      CheckParametricMap(map.getSOPCommon().setSOPInstanceUID(
+                             identity.sop_instance_uids[0].c_str()),
+                         "set SOPInstanceUID"));
 
   // Shared functional groups (Table A.75-2).
   FGPixelMeasures measures;
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(measures.setPixelSpacing(
-                absl::StrCat(FormatDecimalString(grid.spacing[1]), "\\",
-                             FormatDecimalString(grid.spacing[0]))
-                    .c_str()),
-            "set PixelSpacing"));
+  INTERSLICE_RETURN_IF_ERROR(CheckParametricMap(
+      measures.setPixelSpacing(
+          absl::StrCat(FormatDecimalString(grid.spacing[1]), "\\",
+                       FormatDecimalString(grid.spacing[0]))
+              .c_str()),
+      "set PixelSpacing"));
   measures.setSliceThickness(FormatDecimalString(grid.spacing[2]).c_str());
   measures.setSpacingBetweenSlices(
       FormatDecimalString(grid.spacing[2]).c_str());
   INTERSLICE_RETURN_IF_ERROR(
-      Check(map.addForAllFrames(measures), "add pixel measures"));
+      CheckParametricMap(map.addForAllFrames(measures), "add pixel measures"));
 
   const Vec3 row = grid.Axis(0), col = grid.Axis(1);
   std::unique_ptr<FGPlaneOrientationPatient> orientation(
@@ -386,49 +388,51 @@ absl::Status WriteDistanceMap(const DicomSeries& source,
     return absl::InternalError(
         "DICOM Parametric Map: cannot create plane orientation");
   }
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(map.addForAllFrames(*orientation), "add plane orientation"));
+  INTERSLICE_RETURN_IF_ERROR(CheckParametricMap(
+      map.addForAllFrames(*orientation), "add plane orientation"));
 
   FGFrameAnatomy anatomy;
   INTERSLICE_RETURN_IF_ERROR(FillFrameAnatomy(src, anatomy));
   INTERSLICE_RETURN_IF_ERROR(
-      Check(map.addForAllFrames(anatomy), "add frame anatomy"));
+      CheckParametricMap(map.addForAllFrames(anatomy), "add frame anatomy"));
 
   // Float pixels are the values themselves: the Identity Pixel Value
   // Transformation (slope 1, intercept 0) is mandatory (Table A.75-2); the
   // meaning and unit are in the Real World Value Mapping.
   FGPixelValueTransformation identity_transform;
   identity_transform.setUseAsIdentityPixelValueTransformation();
-  INTERSLICE_RETURN_IF_ERROR(Check(map.addForAllFrames(identity_transform),
-                                   "add the identity transformation"));
+  INTERSLICE_RETURN_IF_ERROR(
+      CheckParametricMap(map.addForAllFrames(identity_transform),
+                         "add the identity transformation"));
 
   FGRealWorldValueMapping rwvm;
   INTERSLICE_RETURN_IF_ERROR(FillRealWorldValueMapping(range, rwvm));
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(map.addForAllFrames(rwvm), "add real world value mapping"));
+  INTERSLICE_RETURN_IF_ERROR(CheckParametricMap(
+      map.addForAllFrames(rwvm), "add real world value mapping"));
 
   const double max_abs = std::max(std::abs(static_cast<double>(range.min)),
                                   std::abs(static_cast<double>(range.max)));
   FGFrameVOILUT voi;
-  INTERSLICE_RETURN_IF_ERROR(Check(
+  INTERSLICE_RETURN_IF_ERROR(CheckParametricMap(
       voi.setCenterWidthExplanation(
           0.0, std::clamp(2 * max_abs, kMinWindowWidthMm, kMaxWindowWidthMm),
           "SURFACE"),
       "set the window"));
-  INTERSLICE_RETURN_IF_ERROR(Check(map.addForAllFrames(voi), "add the window"));
+  INTERSLICE_RETURN_IF_ERROR(
+      CheckParametricMap(map.addForAllFrames(voi), "add the window"));
 
   FGParametricMapFrameType frame_type;
-  INTERSLICE_RETURN_IF_ERROR(Check(
+  INTERSLICE_RETURN_IF_ERROR(CheckParametricMap(
       frame_type.setFrameType(absl::StrCat("DERIVED\\PRIMARY\\", kImageFlavor,
                                            "\\", kDerivedPixelContrast)
                                   .c_str()),
       "set the frame type"));
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(map.addForAllFrames(frame_type), "add the frame type"));
+  INTERSLICE_RETURN_IF_ERROR(CheckParametricMap(map.addForAllFrames(frame_type),
+                                                "add the frame type"));
 
   // One dimension: where along the normal (the index of
   // ImagePositionPatient), so frame k + 1 has index k + 1 (C.7.6.17).
-  INTERSLICE_RETURN_IF_ERROR(Check(
+  INTERSLICE_RETURN_IF_ERROR(CheckParametricMap(
       map.getIODMultiframeDimensionModule().addDimensionIndex(
           DCM_ImagePositionPatient, identity.dimension_organization_uid.c_str(),
           DCM_PlanePositionSequence, "ImagePositionPatient"),
@@ -465,25 +469,25 @@ absl::Status WriteDistanceMap(const DicomSeries& source,
           "DICOM Parametric Map: cannot create plane position");
     }
     FGFrameContent frame_content;
-    INTERSLICE_RETURN_IF_ERROR(Check(
+    INTERSLICE_RETURN_IF_ERROR(CheckParametricMap(
         frame_content.setDimensionIndexValues(static_cast<Uint32>(k + 1), 0),
         "set the dimension index"));
 
     ImageSOPInstanceReferenceMacro reference;
-    INTERSLICE_RETURN_IF_ERROR(Check(
+    INTERSLICE_RETURN_IF_ERROR(CheckParametricMap(
         reference.setReferencedSOPClassUID(referenced.sop_class_uid.c_str()),
         "set the referenced SOP class"));
     // Image k of a classic series, or frame k + 1 of the enhanced instance.
     const dicom_out_internal::SliceImageReference image =
         dicom_out_internal::ReferenceSliceImage(referenced, k);
-    INTERSLICE_RETURN_IF_ERROR(Check(
+    INTERSLICE_RETURN_IF_ERROR(CheckParametricMap(
         reference.setReferencedSOPInstanceUID(image.sop_instance_uid.c_str()),
         "set the referenced SOP instance"));
     if (image.frame_number > 0) {
-      INTERSLICE_RETURN_IF_ERROR(
-          Check(reference.addReferencedFrameNumber(
-                    static_cast<Uint16>(image.frame_number)),
-                "reference the frame of the enhanced intensity image"));
+      INTERSLICE_RETURN_IF_ERROR(CheckParametricMap(
+          reference.addReferencedFrameNumber(
+              static_cast<Uint16>(image.frame_number)),
+          "reference the frame of the enhanced intensity image"));
     }
     OFVector<ImageSOPInstanceReferenceMacro> references;
     references.push_back(reference);
@@ -500,9 +504,9 @@ absl::Status WriteDistanceMap(const DicomSeries& source,
     per_frame.push_back(position.get());
     per_frame.push_back(&frame_content);
     per_frame.push_back(derivation.get());
-    INTERSLICE_RETURN_IF_ERROR(
-        Check(frames->addFrame(frame.data(), frame_pixels, per_frame),
-              "add a frame"));
+    INTERSLICE_RETURN_IF_ERROR(CheckParametricMap(
+        frames->addFrame(frame.data(), frame_pixels, per_frame),
+        "add a frame"));
   }
   // addFrame does nothing (and reports success) for an empty frame or group
   // list; make sure every slice became a frame.
@@ -514,7 +518,8 @@ absl::Status WriteDistanceMap(const DicomSeries& source,
 
   DcmFileFormat file;
   DcmDataset& ds = *file.getDataset();
-  INTERSLICE_RETURN_IF_ERROR(Check(map.writeDataset(ds), "encode"));
+  INTERSLICE_RETURN_IF_ERROR(
+      CheckParametricMap(map.writeDataset(ds), "encode"));
   // writeDataset copied every frame into the dataset's Float Pixel Data; the
   // map's own frames (one output volume) are not needed for saving, which
   // with the fsync is the longest part. Destroying the map here keeps one

@@ -30,10 +30,8 @@ using dicom_out_internal::LoadSourceHeader;
 using dicom_out_internal::SaveFileAtomically;
 using dicom_out_internal::ValidateOutputGrid;
 
-absl::Status Check(const OFCondition& cond, const std::string& what) {
-  if (cond.good()) return absl::OkStatus();
-  return absl::InternalError(
-      absl::StrCat("RTSTRUCT: cannot ", what, ": ", cond.text()));
+absl::Status CheckRtStruct(const OFCondition& cond, absl::string_view what) {
+  return dicom_out_internal::CheckDcmtk(cond, "RTSTRUCT", what);
 }
 
 // The SOP Class a referenced study is named by (DICOM PS3.3 C.8.8.5: the
@@ -99,16 +97,16 @@ absl::Status WriteRtStructureSet(const DicomSeries& source, const Grid& grid,
 
   // DRTStructureSetIOD is large (its own note): keep it off the stack.
   auto rt = std::make_unique<DRTStructureSetIOD>();
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(rt->setSOPClassUID(UID_RTStructureSetStorage), "set SOPClassUID"));
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(rt->setSOPInstanceUID(identity.sop_instance_uids.front().c_str()),
-            "set SOPInstanceUID"));
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(rt->setStudyInstanceUID(study.c_str()), "set StudyInstanceUID"));
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(rt->setSeriesInstanceUID(identity.series_instance_uid.c_str()),
-            "set SeriesInstanceUID"));
+  INTERSLICE_RETURN_IF_ERROR(CheckRtStruct(
+      rt->setSOPClassUID(UID_RTStructureSetStorage), "set SOPClassUID"));
+  INTERSLICE_RETURN_IF_ERROR(CheckRtStruct(
+      rt->setSOPInstanceUID(identity.sop_instance_uids.front().c_str()),
+      "set SOPInstanceUID"));
+  INTERSLICE_RETURN_IF_ERROR(CheckRtStruct(
+      rt->setStudyInstanceUID(study.c_str()), "set StudyInstanceUID"));
+  INTERSLICE_RETURN_IF_ERROR(CheckRtStruct(
+      rt->setSeriesInstanceUID(identity.series_instance_uid.c_str()),
+      "set SeriesInstanceUID"));
   rt->setModality("RTSTRUCT");
   rt->setSeriesNumber(std::to_string(identity.series_number).c_str());
   rt->setSeriesDescription(identity.series_description.substr(0, 64).c_str());
@@ -125,26 +123,26 @@ absl::Status WriteRtStructureSet(const DicomSeries& source, const Grid& grid,
 
   // Referenced frame of reference -> study -> series -> every image.
   DRTReferencedFrameOfReferenceSequence::Item* for_item = nullptr;
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(rt->getReferencedFrameOfReferenceSequence().addItem(for_item),
-            "add the referenced frame of reference"));
+  INTERSLICE_RETURN_IF_ERROR(CheckRtStruct(
+      rt->getReferencedFrameOfReferenceSequence().addItem(for_item),
+      "add the referenced frame of reference"));
   for_item->setFrameOfReferenceUID(frame.c_str());
   DRTRTReferencedStudySequence::Item* study_item = nullptr;
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(for_item->getRTReferencedStudySequence().addItem(study_item),
-            "add the referenced study"));
+  INTERSLICE_RETURN_IF_ERROR(CheckRtStruct(
+      for_item->getRTReferencedStudySequence().addItem(study_item),
+      "add the referenced study"));
   study_item->setReferencedSOPClassUID(kStudyComponentClass);
   study_item->setReferencedSOPInstanceUID(study.c_str());
   DRTRTReferencedSeriesSequence::Item* series_item = nullptr;
-  INTERSLICE_RETURN_IF_ERROR(
-      Check(study_item->getRTReferencedSeriesSequence().addItem(series_item),
-            "add the referenced series"));
+  INTERSLICE_RETURN_IF_ERROR(CheckRtStruct(
+      study_item->getRTReferencedSeriesSequence().addItem(series_item),
+      "add the referenced series"));
   series_item->setSeriesInstanceUID(referenced.series_instance_uid.c_str());
   for (const std::string& uid : referenced.sop_instance_uids) {
     DRTContourImageSequence::Item* image = nullptr;
     INTERSLICE_RETURN_IF_ERROR(
-        Check(series_item->getContourImageSequence().addItem(image),
-              "add a referenced image"));
+        CheckRtStruct(series_item->getContourImageSequence().addItem(image),
+                      "add a referenced image"));
     image->setReferencedSOPClassUID(referenced.sop_class_uid.c_str());
     image->setReferencedSOPInstanceUID(uid.c_str());
   }
@@ -154,8 +152,8 @@ absl::Status WriteRtStructureSet(const DicomSeries& source, const Grid& grid,
     const std::string name =
         r.roi.label.empty() ? absl::StrCat("Label ", number) : r.roi.label;
     DRTStructureSetROISequence::Item* roi = nullptr;
-    INTERSLICE_RETURN_IF_ERROR(
-        Check(rt->getStructureSetROISequence().addItem(roi), "add an ROI"));
+    INTERSLICE_RETURN_IF_ERROR(CheckRtStruct(
+        rt->getStructureSetROISequence().addItem(roi), "add an ROI"));
     roi->setROINumber(number.c_str());
     roi->setReferencedFrameOfReferenceUID(frame.c_str());
     roi->setROIName(name.substr(0, 64).c_str());
@@ -163,7 +161,7 @@ absl::Status WriteRtStructureSet(const DicomSeries& source, const Grid& grid,
     roi->setROIGenerationDescription("interslice fill between key slices");
 
     DRTROIContourSequence::Item* contours = nullptr;
-    INTERSLICE_RETURN_IF_ERROR(Check(
+    INTERSLICE_RETURN_IF_ERROR(CheckRtStruct(
         rt->getROIContourSequence().addItem(contours), "add an ROI contour"));
     contours->setReferencedROINumber(number.c_str());
     const std::array<uint8_t, 3> rgb = SegmentRgb(r.roi);
@@ -173,7 +171,7 @@ absl::Status WriteRtStructureSet(const DicomSeries& source, const Grid& grid,
     for (const auto& [k, polygons] : r.slices) {
       for (const auto& polygon : polygons) {
         DRTContourSequence::Item* contour = nullptr;
-        INTERSLICE_RETURN_IF_ERROR(Check(
+        INTERSLICE_RETURN_IF_ERROR(CheckRtStruct(
             contours->getContourSequence().addItem(contour), "add a contour"));
         contour->setContourNumber(std::to_string(++contour_number).c_str());
         contour->setContourGeometricType("CLOSED_PLANAR");
@@ -188,13 +186,13 @@ absl::Status WriteRtStructureSet(const DicomSeries& source, const Grid& grid,
             values.push_back(FormatDecimalString(p[c]));
         }
         INTERSLICE_RETURN_IF_ERROR(
-            Check(contour->setContourData(absl::StrJoin(values, "\\").c_str(),
-                                          OFFalse),
-                  "set ContourData"));
+            CheckRtStruct(contour->setContourData(
+                              absl::StrJoin(values, "\\").c_str(), OFFalse),
+                          "set ContourData"));
         DRTContourImageSequence::Item* image = nullptr;
         INTERSLICE_RETURN_IF_ERROR(
-            Check(contour->getContourImageSequence().addItem(image),
-                  "add a contour image"));
+            CheckRtStruct(contour->getContourImageSequence().addItem(image),
+                          "add a contour image"));
         image->setReferencedSOPClassUID(referenced.sop_class_uid.c_str());
         image->setReferencedSOPInstanceUID(
             referenced.sop_instance_uids[static_cast<size_t>(k)].c_str());
@@ -203,8 +201,8 @@ absl::Status WriteRtStructureSet(const DicomSeries& source, const Grid& grid,
 
     DRTRTROIObservationsSequence::Item* observation = nullptr;
     INTERSLICE_RETURN_IF_ERROR(
-        Check(rt->getRTROIObservationsSequence().addItem(observation),
-              "add an ROI observation"));
+        CheckRtStruct(rt->getRTROIObservationsSequence().addItem(observation),
+                      "add an ROI observation"));
     observation->setObservationNumber(number.c_str());
     observation->setReferencedROINumber(number.c_str());
     observation->setRTROIInterpretedType("");
@@ -213,7 +211,7 @@ absl::Status WriteRtStructureSet(const DicomSeries& source, const Grid& grid,
 
   DcmFileFormat file;
   DcmDataset& ds = *file.getDataset();
-  INTERSLICE_RETURN_IF_ERROR(Check(rt->write(ds), "encode"));
+  INTERSLICE_RETURN_IF_ERROR(CheckRtStruct(rt->write(ds), "encode"));
   CopyPatientStudyFrameOfReference(src, identity, ds);
   return SaveFileAtomically(file, path);
 }

@@ -156,7 +156,7 @@ std::string FailureText(const nlohmann::json& failed_item) {
 }
 
 // One STOW-RS request for `files` (sizes known).
-absl::StatusOr<dicom::StoreResult> StowRequest(
+absl::StatusOr<dicom::StoreResult> PostStowBatch(
     const dicom::DicomPeer& peer, const std::vector<std::string>& files,
     const std::vector<int64_t>& sizes, const dicom::DeliveryOptions& options) {
   const std::string what = absl::StrCat("STOW-RS to ", dicom::PeerLabel(peer));
@@ -306,7 +306,7 @@ absl::StatusOr<dicom::StoreResult> StowFiles(
   auto work = [&] {
     for (size_t b = next++; b < batches.size(); b = next++) {
       results[b] =
-          StowRequest(peer, batches[b].files, batches[b].sizes, options);
+          PostStowBatch(peer, batches[b].files, batches[b].sizes, options);
       // After a transport failure the other requests would most likely
       // fail too: stop taking new ones (the queue retries everything).
       if (!results[b].ok() &&
