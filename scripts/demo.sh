@@ -8,8 +8,13 @@ root="$(cd "$(dirname "$0")/.." && pwd)"
 cd "$root"
 
 bash scripts/install-deps.sh
-cmake -S . -B build -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo >/dev/null
-cmake --build build -j"$(nproc)"
+# build/ is configured exactly as the test suite configures it
+# (scripts/test.sh), so that the suite reuses what is built here; only the
+# two programs the demo runs are built now, and the suite builds its tests
+# next in the same folder.
+cmake -S . -B build -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
+  -DINTERSLICE_TEST_SELECTION=plain >/dev/null
+cmake --build build -j"$(nproc)" --target interslice interslice-server
 
 out="${1:-$root/out/phantom}"
 job=(data/ct-head-phantom-thick --threshold 300 --method direct

@@ -143,10 +143,11 @@ seeds_stow_body() {
   done
 }
 
-status=0
-summary=()
-for target in "${targets[@]}"; do
-  dir="$work/$target"
+# run_target TARGET: seeds, then the fuzzer for $seconds s; its summary line
+# goes to $dir/summary, and the exit status is the fuzzer's verdict.
+run_target() {
+  local target="$1"
+  local dir="$work/$target"
   rm -rf "$dir/seeds"
   mkdir -p "$dir/corpus" "$dir/crashes"
   case "$target" in
@@ -157,9 +158,9 @@ for target in "${targets[@]}"; do
     multipart_fuzzer) seeds_multipart "$dir/seeds" ;;
     stow_body_fuzzer) seeds_stow_body "$dir/seeds" ;;
   esac
-  log="$dir/last-run.log"
+  local log="$dir/last-run.log" started="$dir/started" rc
   echo "fuzz: $target for $seconds s (log: ${log#$root/})"
-  touch "$probe/started"
+  touch "$started"
   set +e
   # The test suite's suppressions (tools/sanitizers/: GDCM's JPEG 2000
   # codec leaks libopenjp2 objects on undecodable frames; ITK's scanline
@@ -172,18 +173,18 @@ for target in "${targets[@]}"; do
       >"$log" 2>&1
   rc=$?
   set -e
+  local runs rate line
   runs="$(sed -n 's/^stat::number_of_executed_units: *//p' "$log" | tail -1)"
   rate="$(sed -n 's/^stat::average_exec_per_sec: *//p' "$log" | tail -1)"
   line="$target: ${runs:-?} executions in $seconds s (${rate:-?} exec/s), exit $rc"
   if [ $rc -ne 0 ]; then
-    status=1
     line="$line: FAILED, input kept in ${dir#$root/}/crashes/"
     # The report with its stacks (the CI log is all that is left of a fresh
     # clone's run), at most 80 lines from the first error.
     awk '/^==[0-9]+==ERROR|runtime error/ {on=1} on {print; if (++n >= 80) exit}' "$log" >&2 || true
     # And the input itself when it is small, so that it can be reproduced
     # from the log alone: base64 -d > input && <target> input.
-    find "$dir/crashes" -type f -newer "$probe/started" -print0 |
+    find "$dir/crashes" -type f -newer "$started" -print0 |
     while IFS= read -r -d '' artifact; do
       if [ "$(stat -c %s "$artifact")" -le 16384 ]; then
         echo "fuzz: $(basename "$artifact") (base64): $(base64 -w0 "$artifact")" >&2
@@ -191,6 +192,33 @@ for target in "${targets[@]}"; do
     done
   fi
   echo "fuzz: $line"
+  echo "$line" >"$dir/summary"
+  return $rc
+}
+
+# The targets run INTERSLICE_FUZZ_PARALLEL at a time (default: the CPUs,
+# capped at 2): each fuzzer is one process on one core, so each still gets
+# its $seconds of a core, and the stage takes half the wall time on 2 cores.
+parallel="${INTERSLICE_FUZZ_PARALLEL:-$(( $(nproc) < 2 ? 1 : 2 ))}"
+for target in "${targets[@]}"; do
+  rm -f "$work/$target/summary"
+  while [ "$(jobs -rp | wc -l)" -ge "$parallel" ]; do
+    wait -n || true
+  done
+  run_target "$target" &
+done
+wait || true
+# The verdict from each target's summary line (a target whose line is
+# missing did not finish: a failure too).
+status=0
+summary=()
+for target in "${targets[@]}"; do
+  if [ -s "$work/$target/summary" ]; then
+    line="$(cat "$work/$target/summary")"
+  else
+    line="$target: FAILED, no result (the run did not finish)"
+  fi
+  [[ $line == *", exit 0" ]] || status=1
   summary+=("$line")
 done
 echo "fuzz: summary (total $(($(date +%s) - start)) s)"

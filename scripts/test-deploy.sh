@@ -397,6 +397,9 @@ if [[ ${INTERSLICE_DEPLOY_FROM_SOURCE:-1} == 1 ]]; then
     mkdir -p "$host_cache"
     cache=(-v "$host_cache:/ccache" --build-arg CCACHE_DIR=/ccache)
   fi
+  # Built at this checkout's path, where build/ was compiled: ccache's
+  # direct mode then hits the unity sources too (deploy/Dockerfile).
+  cache+=(--build-arg "SOURCE_DIR=$root")
   "${build[@]}" -f deploy/Dockerfile "${cache[@]}" -t "$source_image" . >"$work/source.log" 2>&1 || {
     tail -n 50 "$work/source.log"; say "FAILED: building deploy/Dockerfile (from source)"; exit 1; }
   say "from source: deploy/Dockerfile built in $((SECONDS - t)) s" \
