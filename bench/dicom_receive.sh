@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Receiving speed of the DICOM listener (server/dicom/storage_scp.h), with
+# Receiving speed of the DICOM listener (server/net/dimse/storage_scp.h), with
 # DCMTK's storescu on loopback: instances per second over one association
 # and over four at once (the shipped phantom, 28 slices of 532 KiB, sent
 # N times per association), and the time from the last instance to the job

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The outbox's send rate (server/dicom/delivery.h StoreFiles, through
+# The outbox's send rate (server/node/outbox.h StoreFiles, through
 # build/bench/interslice_dicom_store_bench) to DCMTK's storescp and to
 # Debian's Orthanc, each started with and without TCP_NODELAY=1 (their own
 # Nagle setting), for three senders run in turn (interleaved, REPEAT rounds):

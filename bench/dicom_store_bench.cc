@@ -1,4 +1,4 @@
-// The outbox's C-STORE path (server/dicom/delivery.h StoreFiles) timed on
+// The outbox's C-STORE path (server/node/outbox.h StoreFiles) timed on
 // its own, for bench/dicom_store.sh: every DICOM file under DIR (COPIES
 // times) sent to one peer over --associations associations at once, REPEAT
 // times; one line per run with the instances per second. --nagle-on leaves
@@ -16,11 +16,15 @@
 
 #include "CLI/CLI.hpp"
 #include "core/dicom/series_reader.h"
-#include "server/dicom/delivery.h"
-#include "server/dicom/scu.h"
+#include "server/net/dicomweb/dicomweb_peer.h"
+#include "server/net/dimse/dimse_peer.h"
+#include "server/net/dimse/scu.h"
+#include "server/node/outbox.h"
 
 int main(int argc, char** argv) {
-  namespace dicom = interslice::server::dicom;
+  namespace node = interslice::server::node;
+  namespace dimse = interslice::server::dimse;
+  namespace dicomweb = interslice::server::dicomweb;
   std::string dir, host = "127.0.0.1", ae = "STORESCP", url;
   int port = 0, associations = 1, repeat = 1, copies = 1;
   bool nagle_on = false;
@@ -46,9 +50,9 @@ int main(int argc, char** argv) {
   if (nagle_on) {
     ::unsetenv("TCP_NODELAY");
   } else {
-    dicom::DisableNagleOnOutgoingAssociations();
+    dimse::DisableNagleOnOutgoingAssociations();
   }
-  dicom::DicomPeer peer;
+  node::DicomPeer peer;
   peer.name = "bench";
   peer.ae_title = ae;
   peer.host = host;
@@ -57,24 +61,30 @@ int main(int argc, char** argv) {
   if (!url.empty()) {
     peer = {};
     peer.name = "bench";
-    peer.type = dicom::PeerType::kDicomWeb;
+    peer.type = node::PeerType::kDicomWeb;
     peer.web.url = url;
     peer.max_associations = associations;
   } else if (port <= 0) {
     std::fprintf(stderr, "--port or --url is required\n");
     return 1;
   }
-  dicom::DeliveryOptions options;
-  options.calling_ae_title = "INTERSLICE";
-  const std::vector<std::string> one = dicom::ListDicomFiles(dir);
+  // The peer's client as the server makes it (server/app/server.cc).
+  node::PeerClientSettings settings;
+  settings.calling_ae_title = "INTERSLICE";
+  std::unique_ptr<node::PeerClient> client;
+  if (peer.type == node::PeerType::kDicomWeb) {
+    client = std::make_unique<dicomweb::DicomWebPeerClient>(peer, settings);
+  } else {
+    client = std::make_unique<dimse::DimsePeerClient>(peer, settings);
+  }
+  const std::vector<std::string> one = node::ListDicomFiles(dir);
   std::vector<std::string> files;
   for (int c = 0; c < copies; ++c) {
     files.insert(files.end(), one.begin(), one.end());
   }
   for (int r = 0; r < repeat; ++r) {
     const auto t0 = std::chrono::steady_clock::now();
-    absl::StatusOr<dicom::StoreResult> result =
-        dicom::StoreFiles(peer, files, options);
+    absl::StatusOr<node::StoreResult> result = client->Store(files);
     const double s =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - t0)
             .count();

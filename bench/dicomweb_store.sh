@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# STOW-RS against C-STORE: the outbox's send rate (server/dicom/delivery.h
+# STOW-RS against C-STORE: the outbox's send rate (server/node/outbox.h
 # StoreFiles, through build/bench/interslice_dicom_store_bench) to one
 # Debian Orthanc on loopback that has both doors open (its DICOM port and its
 # DICOMweb plugin; TCP_NODELAY=1 for its DCMTK side), senders interleaved

@@ -13,7 +13,7 @@
 #     stands in for a decoder that aborts on a hostile file). Poisoned jobs
 #     must fail alone; every other job must succeed with the reference bytes.
 #     The hook exists only in a server built with
-#     -DINTERSLICE_FAULT_INJECTION=ON (server/job_worker.h): configure
+#     -DINTERSLICE_FAULT_INJECTION=ON (server/engine/job_worker.h): configure
 #     BUILD_DIR with it, or the poisoned jobs succeed and phase 1 says so.
 #  2. killed clients: 8 clients killed with SIGKILL mid-upload or mid-job;
 #     the server must stay healthy and keep nothing of them.

@@ -4,7 +4,7 @@
 
 #include <string>
 
-#include "server/status_page.h"
+#include "server/net/http/status_page.h"
 
 namespace interslice::server {
 namespace {

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""STOW-RS intake (server/dicomweb/stow.h): a 300-instance series in one
+"""STOW-RS intake (server/net/dicomweb/stow.h): a 300-instance series in one
 STOW-RS request to interslice-server on loopback, and the time from the
 request's start to its job's start with complete_on_release (issue 27's goal:
 <= 3 s). The series is ../shared/data/ct-head-phantom-thin (140 slices of

@@ -98,8 +98,8 @@ absl::StatusOr<Connection> Connection::Open(const ConnectionOptions& options) {
   grpc::ChannelArguments args;
   // Fail fast rather than retrying a dead address for the whole deadline.
   args.SetInt(GRPC_ARG_ENABLE_RETRIES, 0);
-  // Replicas answer for each other's jobs (server/forwarding.h), so every
-  // call may go to any address of the target: spread them, and skip the
+  // Replicas answer for each other's jobs (server/net/grpc/forwarding.h), so
+  // every call may go to any address of the target: spread them, and skip the
   // addresses that are down.
   args.SetLoadBalancingPolicyName("round_robin");
   // A replica that restarts is used again within a second or so.

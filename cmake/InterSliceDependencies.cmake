@@ -68,10 +68,10 @@ if(INTERSLICE_BUILD_SERVER)
   find_package(Protobuf REQUIRED)
   find_package(gRPC CONFIG REQUIRED)
   find_package(prometheus-cpp CONFIG REQUIRED)
-  # The status page's HTTP listener (server/status_page.cc): the civetweb
+  # The status page's HTTP listener (server/net/http/status_page.cc): the civetweb
   # prometheus-cpp's /metrics already runs on (docs/DESIGN.md).
   find_package(civetweb CONFIG REQUIRED)
-  # The DICOM node's peers and rules files (server/dicom/config.cc).
+  # The DICOM node's peers and rules files (server/node/peers_config.cc, rules.cc).
   find_package(yaml-cpp CONFIG REQUIRED)
   pkg_check_modules(RE2 REQUIRED IMPORTED_TARGET re2)
 endif()

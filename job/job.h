@@ -90,7 +90,7 @@ class JobKind {
                                 int64_t max_output_voxels) = 0;
 
   // For a job whose DICOM objects are all it delivers (a DICOM node's job
-  // that sends its results to PACS peers, server/spool.h
+  // that sends its results to PACS peers, server/engine/spool.h
   // DeliversOnlyDicomToPeers): files whose content those objects carry are
   // not written (core/pipeline JobSpec::omit_files_dicom_objects_carry).
   // Kinds that write no such files ignore it.

@@ -38,9 +38,9 @@ packages=(
   python3-nibabel
   # the OHIF viewer test (tests/viewer/ohif_test.mjs) drives Debian's chromium
   # headless (puppeteer-core, no browser download); the status page test
-  # (tests/server/server_test.cc) renders in it and checks codes with curl
+  # (tests/server/app/server_test.cc) renders in it and checks codes with curl
   chromium curl
-  # the HTTPS deployment test (tests/server/dicomweb/https_proxy_test.sh):
+  # the HTTPS deployment test (tests/server/net/dicomweb/https_proxy_test.sh):
   # stunnel terminates TLS in front of the loopback HTTP listener
   # (docs/dicomweb.md, "HTTPS"); operators install their own proxy
   stunnel4

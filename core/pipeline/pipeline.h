@@ -115,8 +115,8 @@ struct JobSpec {
   // Encapsulated STL is written, mask.<ext> with the SEG, distance.<ext>
   // with the distance map; surface-coordinates.txt only beside a mesh file.
   // For a job whose DICOM objects are all it delivers (the DICOM node's jobs
-  // that send to PACS peers, server/spool.h): the 2.7 million triangles of
-  // the CT phantom's surface.stl (133 MB) are then never formatted and
+  // that send to PACS peers, server/engine/spool.h): the 2.7 million triangles
+  // of the CT phantom's surface.stl (133 MB) are then never formatted and
   // written. Default false: every requested format is written.
   bool omit_files_dicom_objects_carry = false;
   //   DICOM objects (see core/dicom_out/dicom_writer.h and

@@ -28,10 +28,10 @@
 #include <thread>
 
 #include "core/dicom/series_reader.h"
-#include "server/dicom/association.h"
-#include "server/dicom/connection_gate.h"
-#include "server/dicom/dataset_scan.h"
-#include "server/dicom/series_assembler.h"
+#include "server/net/dimse/association.h"
+#include "server/net/dimse/connection_gate.h"
+#include "server/node/dataset_scan.h"
+#include "server/node/series_assembler.h"
 #include "spdlog/spdlog.h"
 
 namespace {
@@ -95,7 +95,7 @@ void FuzzDataset(const uint8_t* data, size_t size) {
   const std::string syntax = kSyntaxes[data[0] % 4];
   Spool spool;
   std::unique_ptr<SeriesAssembler> assembler = spool.Open();
-  const uint64_t id = assembler->BeginAssociation("FUZZ", "INTERSLICE");
+  const uint64_t id = assembler->BeginTransfer("FUZZ", "INTERSLICE");
   const std::string staged = assembler->StagingPath();
   {
     std::ofstream out(staged, std::ios::binary);
@@ -103,7 +103,7 @@ void FuzzDataset(const uint8_t* data, size_t size) {
   }
   // Scanned here too, to check what AddInstance takes against the limits.
   absl::StatusOr<DatasetScanResult> scan = ScanPart10File(staged);
-  absl::StatusOr<std::string> key = assembler->AddInstance(id, staged);
+  absl::StatusOr<std::string> key = assembler->AddInstance(id, staged, -1);
   if (key.ok()) {
     Check(scan.ok());
     Check(scan->deepest <= DatasetScanLimits().max_depth);
@@ -111,7 +111,7 @@ void FuzzDataset(const uint8_t* data, size_t size) {
         (spool.root / "dicom-in" / "series" / *key).string();
     (void)ReadSeriesFacts(dir);
   }
-  assembler->EndAssociation(id, true);
+  assembler->EndTransfer(id, true);
 }
 
 void FuzzConnection(const uint8_t* data, size_t size) {

@@ -1,4 +1,4 @@
-// libFuzzer target for MultipartParser (server/dicomweb/multipart.h), the
+// libFuzzer target for MultipartParser (server/net/dicomweb/multipart.h), the
 // streaming parser of WADO-RS responses (and, later, STOW-RS bodies).
 //
 // Input: one mode byte, one chunk-size byte, then the body (boundary
@@ -15,7 +15,7 @@
 #include <string>
 #include <vector>
 
-#include "server/dicomweb/multipart.h"
+#include "server/net/dicomweb/multipart.h"
 
 namespace {
 

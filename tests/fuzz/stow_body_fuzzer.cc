@@ -1,4 +1,4 @@
-// STOW-RS body parser (server/dicomweb/stow_body.h) on arbitrary bytes. The
+// STOW-RS body parser (server/net/dicomweb/stow_body.h) on arbitrary bytes. The
 // first byte picks the boundary's length (1-70, taken from the next bytes,
 // mapped into RFC 2046's characters), the next the size of each read; the
 // rest is the body. The sink checks that bytes arrive only inside a part.
@@ -7,7 +7,7 @@
 #include <cstdlib>
 #include <string>
 
-#include "server/dicomweb/stow_body.h"
+#include "server/net/dicomweb/stow_body.h"
 
 namespace {
 

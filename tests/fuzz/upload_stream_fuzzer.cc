@@ -1,5 +1,5 @@
-// libFuzzer target for UploadStream (server/upload_stream.h), the validator
-// of Interpolate and Submit upload streams.
+// libFuzzer target for UploadStream (server/net/grpc/upload_stream.h), the
+// validator of Interpolate and Submit upload streams.
 //
 // Input: one mode byte, then records of a 2-byte little-endian length and
 // that many bytes, each parsed as an interslice.v1.UploadRequest (bytes
@@ -19,8 +19,8 @@
 #include "core/common/sha256.h"
 #include "google/protobuf/stubs/logging.h"
 #include "interslice/v1/interslice.pb.h"
-#include "server/log_safe.h"
-#include "server/upload_stream.h"
+#include "server/base/log_safe.h"
+#include "server/net/grpc/upload_stream.h"
 
 namespace {
 

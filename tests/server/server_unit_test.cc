@@ -12,13 +12,14 @@
 #include <vector>
 
 #include "nlohmann/json.hpp"
-#include "server/audit.h"
-#include "server/auth.h"
-#include "server/job_worker.h"
-#include "server/log_safe.h"
-#include "server/status_map.h"
-#include "server/status_page.h"
-#include "server/upload_guard.h"
+#include "server/base/audit.h"
+#include "server/base/log_safe.h"
+#include "server/base/redact.h"
+#include "server/engine/job_worker.h"
+#include "server/net/grpc/auth.h"
+#include "server/net/grpc/status_map.h"
+#include "server/net/grpc/upload_guard.h"
+#include "server/net/http/status_page.h"
 #include "tests/testing/temp_dir.h"
 #include "tests/testing/wait_for.h"
 

@@ -22,7 +22,7 @@ const char* CliPath();
 // The `interslice-server` binary of this build folder; empty in a build
 // without the server (INTERSLICE_BUILD_SERVER=OFF).
 const char* ServerPath();
-// tests/server/slow_proxy.py: a TCP proxy that delays the first bytes.
+// tests/server/app/slow_proxy.py: a TCP proxy that delays the first bytes.
 std::string SlowProxyPath();
 
 }  // namespace interslice::testing

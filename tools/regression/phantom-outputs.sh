@@ -9,21 +9,26 @@
 #                listener, the rule's job, its results fetched
 #
 #   tools/regression/phantom-outputs.sh BUILD_DIR OUT_DIR
+#   tools/regression/phantom-outputs.sh --hash OUT_DIR   (the manifest again)
 #
-# Writes OUT_DIR/manifest.txt ("<sha256>  <door>/<file>", sorted). DICOM files
-# carry the time they were written (InstanceCreation/Content date and time):
-# they are hashed after those elements are set to fixed values (dcmodify on a
-# copy), everything else byte for byte. Compare two manifests with diff.
+# Writes OUT_DIR/manifest.txt ("<sha256>  <door>/<file>", sorted). What
+# changes from run to run is left out of the hashes: DICOM files carry the
+# times they were written (InstanceCreation, Content, Series and Secondary
+# Capture date and time), hashed after those elements are set to fixed
+# values (dcmodify on a copy); a report.json is hashed without its timings,
+# memory and thread figures, and with its paths relative to the output
+# folder. Everything else byte for byte. Compare two manifests with diff.
 set -euo pipefail
 root="$(cd "$(dirname "$0")/../.." && pwd)"
-build="$(cd "${1:?usage: $0 BUILD_DIR OUT_DIR}" && pwd)"
-out="${2:?usage: $0 BUILD_DIR OUT_DIR}"
-cli="$build/client/interslice"
-server_bin="$build/server/interslice-server"
+mode=run
+if [[ ${1:-} == --hash ]]; then
+  mode=hash
+  out="$(cd "${2:?usage: $0 --hash OUT_DIR}" && pwd)"
+else
+  build="$(cd "${1:?usage: $0 BUILD_DIR OUT_DIR}" && pwd)"
+  out="${2:?usage: $0 BUILD_DIR OUT_DIR}"
+fi
 phantom="$root/data/ct-head-phantom-thick"
-rm -rf "$out"
-mkdir -p "$out"
-out="$(cd "$out" && pwd)"
 work="$(mktemp -d)"
 server_pid=""
 cleanup() {
@@ -31,6 +36,57 @@ cleanup() {
   rm -rf "$work"
 }
 trap cleanup EXIT
+
+hash_outputs() {  # hash_outputs OUT_DIR: writes OUT_DIR/manifest.txt
+  local out="$1"
+  local stamp=(-m "(0008,0012)=20000101" -m "(0008,0013)=000000"
+               -m "(0008,0023)=20000101" -m "(0008,0033)=000000"
+               -m "(0008,0021)=20000101" -m "(0008,0031)=000000"
+               -m "(0018,1012)=20000101" -m "(0018,1014)=000000")
+  (
+    cd "$out"
+    find . -type f ! -name manifest.txt | sort | while IFS= read -r f; do
+      f="${f#./}"
+      if [[ $(head -c 132 "$f" | tail -c 4) == DICM ]]; then
+        cp "$f" "$work/normalised.dcm"
+        dcmodify -q -nb -imt "${stamp[@]}" "$work/normalised.dcm"
+        echo "$(sha256sum <"$work/normalised.dcm" | cut -c1-64)  $f"
+      elif [[ $f == */report.json ]]; then
+        echo "$(python3 - "$f" "$out/$(dirname "$f")" <<'PY'
+import hashlib, json, sys
+folder = sys.argv[2].rstrip("/") + "/"
+def strip(v, key=""):
+    if isinstance(v, dict):
+        return {k: strip(x, k) for k, x in v.items()
+                if key != "stages" and
+                not any(w in k for w in ("seconds", "time", "rss", "threads"))}
+    if isinstance(v, list):
+        return [strip(x) for x in v]
+    if isinstance(v, str) and v.startswith(folder):
+        return v[len(folder):]
+    return v
+print(hashlib.sha256(json.dumps(strip(json.load(open(sys.argv[1]))),
+                                sort_keys=True).encode()).hexdigest())
+PY
+)  $f"
+      else
+        echo "$(sha256sum <"$f" | cut -c1-64)  $f"
+      fi
+    done
+  ) >"$work/manifest.txt"
+  mv "$work/manifest.txt" "$out/manifest.txt"
+  echo "phantom-outputs: $(wc -l <"$out/manifest.txt") files in $out/manifest.txt"
+}
+
+if [[ $mode == hash ]]; then
+  hash_outputs "$out"
+  exit 0
+fi
+cli="$build/client/interslice"
+server_bin="$build/server/interslice-server"
+rm -rf "$out"
+mkdir -p "$out"
+out="$(cd "$out" && pwd)"
 
 job=("$phantom" --threshold 300 --method direct --mesh stl,ply --volume nii,nrrd
      --output-series intensity,distance,mask --previews png,dicom --quiet)
@@ -95,36 +151,4 @@ done
 "$cli" fetch "$id" --server "127.0.0.1:$port" --out "$out/node" >/dev/null
 stop_server
 
-echo "phantom-outputs: hashing"
-stamp=(-m "(0008,0012)=20000101" -m "(0008,0013)=000000" -m "(0008,0023)=20000101"
-       -m "(0008,0033)=000000")
-(
-  cd "$out"
-  find . -type f ! -name manifest.txt | sort | while IFS= read -r f; do
-    f="${f#./}"
-    if [[ $(head -c 132 "$f" | tail -c 4) == DICM ]]; then
-      cp "$f" "$work/normalised.dcm"
-      dcmodify -q -nb -imt "${stamp[@]}" "$work/normalised.dcm"
-      echo "$(sha256sum <"$work/normalised.dcm" | cut -c1-64)  $f"
-    elif [[ $f == */report.json ]]; then
-      # Reports carry times and the process's memory: compared without them.
-      echo "$(python3 - "$f" <<'PY'
-import hashlib, json, sys
-def strip(v):
-    if isinstance(v, dict):
-        return {k: strip(x) for k, x in v.items()
-                if not any(w in k for w in ("seconds", "time", "rss", "threads"))}
-    if isinstance(v, list):
-        return [strip(x) for x in v]
-    return v
-print(hashlib.sha256(json.dumps(strip(json.load(open(sys.argv[1]))),
-                                sort_keys=True).encode()).hexdigest())
-PY
-)  $f"
-    else
-      echo "$(sha256sum <"$f" | cut -c1-64)  $f"
-    fi
-  done
-) >"$work/manifest.txt"
-mv "$work/manifest.txt" "$out/manifest.txt"
-echo "phantom-outputs: $(wc -l <"$out/manifest.txt") files in $out/manifest.txt"
+hash_outputs "$out"

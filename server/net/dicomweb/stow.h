@@ -1,0 +1,112 @@
+// The STOW-RS origin server (DICOM PS3.18 10.5, "Store Instances"): one
+// request is one association's worth of instances for the DICOM node's
+// series assembly (server/node/series_assembler.h), so that the rules,
+// limits, quota and completeness contract of the DIMSE listener apply to
+// instances that arrive by HTTP too. docs/dicomweb.md describes it.
+//
+// Contract of Handle() (the HTTP server, server/net/http/status_page.cc, routes
+// POST /dicomweb/studies and /dicomweb/studies/{study} here after it
+// authenticated the caller):
+// - Before a byte of the body is read: Content-Type not multipart/related
+//   (or a `type` other than application/dicom) -> 415; a malformed one ->
+//   400; Content-Length above max_body_bytes -> 413; the spool quota has no
+//   room for Content-Length (or none at all) -> 507. Nothing is stored.
+// - Otherwise BeginTransfer(calling = "STOW:" + identity ("STOW" for the
+//   anonymous user of a server without tokens), called = called_ae): the
+//   rules see those AE titles. Each part is written straight to a staging
+//   file as it arrives (never the whole body in memory), then checked (the
+//   bounded scan, its header's UIDs; with a study in the path, an instance
+//   of another study is refused with 0xA900, PS3.4 B.2.3 "does not match")
+//   and handed to AddInstance. A part refused gets a Failure Reason: 0xA700
+//   out of resources (quota, per-series or per-instance limit, full disk),
+//   0xC000 cannot understand (not application/dicom, not Part 10 DICOM, no
+//   UIDs), 0x0110 processing failure (anything else).
+// - EndTransfer(released) with released = the body was parsed to its
+//   close delimiter, within max_body_bytes, and no part was refused: so a
+//   malformed or cut-off body, or one refused instance, leaves every series
+//   the request stored into INCOMPLETE (it makes no job until a later
+//   request re-sends it whole; series_assembler.h).
+// - The answer (PS3.18 10.5.3, application/dicom+json: one data set with
+//   ReferencedSOPSequence (0008,1199) and FailedSOPSequence (0008,1198)):
+//   200 every part stored; 202 some stored, some failed; 409 none stored
+//   (at least one part); 507 none stored and the spool quota refused one;
+//   400 a malformed body (with the parser's reason) or no part at all; 413
+//   a body that passed max_body_bytes while it arrived (chunked).
+// - Audit "stow.received" (identity, source, count = instances stored,
+//   detail = stored/refused counts and whether the body was complete); no
+//   UIDs in logs, audit or error texts (the response names the instances'
+//   SOP UIDs to the caller who sent them).
+#ifndef INTERSLICE_SERVER_NET_DICOMWEB_STOW_H_
+#define INTERSLICE_SERVER_NET_DICOMWEB_STOW_H_
+
+#include <cstdint>
+#include <functional>
+#include <string>
+#include <string_view>
+
+namespace interslice::server {
+class AuditLog;
+class Spool;
+namespace node {
+class Intake;
+}  // namespace node
+}  // namespace interslice::server
+
+namespace interslice::server::dicomweb {
+
+// PS3.18 10.5.3 / PS3.4 B.2.3 failure reasons used here.
+inline constexpr int kFailureOutOfResources = 0xA700;
+inline constexpr int kFailureDoesNotMatch = 0xA900;
+inline constexpr int kFailureCannotUnderstand = 0xC000;
+inline constexpr int kFailureProcessing = 0x0110;
+
+struct StowOptions {
+  std::string called_ae = "INTERSLICE";  // the AE title rules see as called
+  // The largest body taken (0: the assembler's bytes per series).
+  int64_t max_body_bytes = 0;
+  // Bytes read from the connection at a time.
+  size_t read_chunk_bytes = 64 * 1024;
+};
+
+struct StowRequest {
+  std::string identity;  // the authenticated caller ("" = anonymous)
+  std::string source;    // its address, for the audit trail
+  std::string content_type;
+  std::string study_uid;        // from /studies/{study}; "" for /studies
+  int64_t content_length = -1;  // -1: not given (chunked)
+  // Reads up to `size` body bytes: > 0 read, 0 at the end, < 0 an error
+  // (a timeout, the client gone).
+  std::function<int64_t(char* buffer, size_t size)> read;
+};
+
+struct StowResponse {
+  int status = 500;
+  std::string content_type = "text/plain";
+  std::string body;
+  int64_t stored = 0, failed = 0;
+  bool released = false;  // what EndTransfer was told
+};
+
+class StowReceiver {
+ public:
+  // All must outlive the receiver; `spool` and `audit` may be null.
+  StowReceiver(StowOptions options, node::Intake* assembler, Spool* spool,
+               AuditLog* audit);
+  StowResponse Handle(const StowRequest& request) const;
+  int64_t max_body_bytes() const { return max_body_bytes_; }
+
+ private:
+  const StowOptions options_;
+  node::Intake* const assembler_;
+  Spool* const spool_;
+  AuditLog* const audit_;
+  int64_t max_body_bytes_;
+};
+
+// Whether `uid` may be a UID in a path (PS3.5 9.1: digits and dots, at most
+// 64 characters, no empty component).
+bool IsUidPathSegment(std::string_view uid);
+
+}  // namespace interslice::server::dicomweb
+
+#endif  // INTERSLICE_SERVER_NET_DICOMWEB_STOW_H_
