@@ -1,7 +1,7 @@
 // Private to core/morph: the sampling and value-tangent helpers that the
 // distance-map morph (morph.cc) and the grey-value morph
-// (intensity_morph.cc) share, so both carry values along a trajectory the
-// same way.
+// (intensity_morph.cc, intensity_morph_write.cc) share, so both carry values
+// along a trajectory the same way.
 #ifndef INTERSLICE_CORE_MORPH_MORPH_INTERNAL_H_
 #define INTERSLICE_CORE_MORPH_MORPH_INTERNAL_H_
 

@@ -1,6 +1,6 @@
 // The one place where the evaluation harness calls the core pipeline stages
 // contour -> stack -> solve (the same calls, in the same order, as
-// core/pipeline/pipeline.cc). If the stacking API changes (e.g. to
+// core/pipeline/pipeline_stages.cc). If the stacking API changes (e.g. to
 // position-based stacking), only reconstruct.cc needs to follow.
 #ifndef INTERSLICE_TOOLS_EVAL_RECONSTRUCT_H_
 #define INTERSLICE_TOOLS_EVAL_RECONSTRUCT_H_
