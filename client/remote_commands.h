@@ -2,7 +2,9 @@
 // submit / watch / fetch / cancel / list (detached jobs), info and health,
 // find (what a DICOM peer of the server holds), kept list / kept rerun (the
 // series the server's DICOM listener holds, run again against its rules).
-// Errors are one line on stderr and exit code 1.
+// Errors are one line on stderr and exit code 1. Each subcommand lives in
+// client/remote/ (its options and what it does); this class registers them
+// and runs the one that was parsed.
 #ifndef INTERSLICE_CLIENT_REMOTE_COMMANDS_H_
 #define INTERSLICE_CLIENT_REMOTE_COMMANDS_H_
 
@@ -10,6 +12,14 @@
 
 #include "client/fill_command.h"
 #include "client/grpc_channel.h"
+#include "client/remote/cancel_command.h"
+#include "client/remote/fetch_command.h"
+#include "client/remote/fill_remote_command.h"
+#include "client/remote/find_command.h"
+#include "client/remote/interpolate_submit_commands.h"
+#include "client/remote/kept_commands.h"
+#include "client/remote/list_command.h"
+#include "client/remote/watch_command.h"
 #include "client/run_command.h"
 
 namespace CLI {
@@ -37,27 +47,16 @@ class RemoteCommands {
   int ExecuteFill();
 
  private:
+  // Every subcommand binds its connection options here: only one is parsed.
   ConnectionOptions connection_;
-  RunArguments run_args_;
-  double deadline_seconds_ = 0;
-  std::string label_;
-  std::string job_id_;
-  bool wait_deliveries_ = false;
-  std::string out_;
-  std::string report_;
-  bool all_ = false;
-  bool quiet_ = false;
-  bool fill_submit_ = false;
-  // find: the peer and the keys.
-  std::string find_peer_;
-  std::string find_patient_id_;
-  std::string find_study_date_;
-  std::string find_modality_;
-  std::string find_accession_;
-  int find_max_studies_ = 0;
-  // kept rerun: one series, or every one without a job.
-  std::string kept_id_;
-  bool kept_all_unmatched_ = false;
+  remote::RemoteJobArguments remote_job_args_;  // interpolate and submit
+  remote::WatchArguments watch_args_;
+  remote::FetchArguments fetch_args_;
+  remote::CancelArguments cancel_args_;
+  remote::ListArguments list_args_;
+  remote::FindArguments find_args_;
+  remote::KeptRerunArguments kept_rerun_args_;
+  remote::FillRemoteArguments fill_remote_args_;
   CLI::App* interpolate_ = nullptr;
   CLI::App* submit_ = nullptr;
   CLI::App* watch_ = nullptr;
@@ -67,7 +66,6 @@ class RemoteCommands {
   CLI::App* info_ = nullptr;
   CLI::App* health_ = nullptr;
   CLI::App* find_ = nullptr;
-  CLI::App* kept_ = nullptr;
   CLI::App* kept_list_ = nullptr;
   CLI::App* kept_rerun_ = nullptr;
   CLI::App* fill_ = nullptr;
