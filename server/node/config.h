@@ -105,6 +105,12 @@ struct SeriesFacts {
   // The first instance is a DICOM SEG or RTSTRUCT (a segmentation drawn on
   // another series): only fill rules match it.
   bool segmentation = false;
+  std::string manufacturer;   // (0008,0070)
+  std::string image_type;     // (0008,0008), values joined by '\'
+  std::string sop_class_uid;  // (0008,0016)
+  // Made by interslice: Manufacturer and Manufacturer's Model Name both
+  // "interslice", as every object the node writes says (core/dicom_out).
+  bool own_result = false;
   std::string calling_ae;
   std::string called_ae;
 };
@@ -113,18 +119,33 @@ struct SeriesFacts {
 // body_part, AE titles) ignores case and surrounding spaces; the regular
 // expressions (RE2 syntax, e.g. "(?i)head") are searched anywhere in the
 // value (partial match). A range criterion fails when the value is unknown.
+//
+// The node's own results (SeriesFacts::own_result: a PACS routing rule, or a
+// second "send every series" of README, sending them back) match only a
+// rule that asks for them with own_results: true (issue 39: results of
+// results); own_results: true matches nothing else.
 struct RuleMatch {
   std::optional<std::string> modality, body_part, calling_ae, called_ae;
   std::shared_ptr<const re2::RE2> series_description, protocol_name;
   std::optional<ValueRange> slice_thickness_mm, slice_spacing_mm, slice_count;
+  // Image Type (its values joined by '\', e.g. "DERIVED\SECONDARY") and
+  // Manufacturer as regular expressions; SOP Class UIDs, any of them.
+  std::shared_ptr<const re2::RE2> image_type, manufacturer;
+  std::vector<std::string> sop_classes;
+  bool own_results = false;
   bool Matches(const SeriesFacts& facts) const;
-  // The first criterion (in the order above) that does not hold, as one
-  // phrase naming it and, for modality, body part, AE titles and the
-  // numeric ranges, the series' value ("modality is 'MR', not 'CT'"); a
-  // regular expression's value is never shown (free text may identify a
-  // patient). Empty when the match holds. The series' values are raw:
-  // callers that log it pass it through LogSafe.
+  // The first criterion (in the order above, the own-results guard first)
+  // that does not hold, as one phrase naming it and, for modality, body
+  // part, AE titles, SOP class and the numeric ranges, the series' value
+  // ("modality is 'MR', not 'CT'"); a regular expression's value is never
+  // shown (free text may identify a patient). Empty when the match holds.
+  // The series' values are raw: callers that log it pass it through
+  // LogSafe.
   std::string FirstFailure(const SeriesFacts& facts) const;
+  // The criteria as written, without the own-results guard (how a rule's
+  // `exclude` reads them): empty when every criterion holds.
+  std::string CriteriaFailure(const SeriesFacts& facts) const;
+  bool empty() const { return Describe() == "every series"; }
   // The criteria as written, "modality CT, called_ae INTERSLICE", or
   // "every series".
   std::string Describe() const;
@@ -133,6 +154,10 @@ struct RuleMatch {
 struct Rule {
   std::string name;  // as written, or "#<index>" when the file gives none
   RuleMatch match;
+  // Series this rule does not take although `match` holds: those for which
+  // every criterion of `exclude` holds (the same keys as match, e.g.
+  // {image_type: "DERIVED"}, {manufacturer: "(?i)acme"}); never empty.
+  std::optional<RuleMatch> exclude;
   // The job: the job layer's options (job/options.h: the keys are the
   // command line's option names with '_' for '-'), mapped and checked
   // exactly as every door maps them, with the same defaults (so mesh: stl

@@ -199,7 +199,7 @@ absl::StatusOr<std::vector<KeptRerun>> SeriesAssembler::RerunAllUnmatched() {
 
 void SeriesAssembler::SweepUnmatched() {
   std::error_code ec;
-  const int64_t now_ms = UnixMillisNow();
+  const int64_t now_ms = options_.clock->UnixMillis();
   for (const auto& entry :
        fs::directory_iterator(fs::path(options_.root) / "unmatched", ec)) {
     const std::string name = entry.path().filename().string();

@@ -44,25 +44,27 @@ using yaml_fields::SameText;
 
 namespace {
 
-absl::StatusOr<RuleMatch> ParseMatch(const YAML::Node& node,
-                                     const Context& ctx) {
+// `section`: "match" or "exclude" (the key the mapping is under).
+absl::StatusOr<RuleMatch> ParseMatch(const YAML::Node& node, const Context& ctx,
+                                     const std::string& section) {
   RuleMatch match;
   if (!node) return match;  // no criteria: matches every series
   if (!node.IsMap()) {
-    return ctx.Error("match",
+    return ctx.Error(section,
                      absl::StrCat("expected a mapping, got ", KindName(node)));
   }
-  absl::Status keys =
-      CheckKeys(node, ctx, "match",
-                {"modality", "series_description", "protocol_name", "body_part",
-                 "slice_thickness", "slice_spacing", "slice_count",
-                 "calling_ae", "called_ae"});
+  absl::Status keys = CheckKeys(
+      node, ctx, section,
+      {"modality", "series_description", "protocol_name", "body_part",
+       "slice_thickness", "slice_spacing", "slice_count", "calling_ae",
+       "called_ae", "image_type", "manufacturer", "sop_class", "own_results"});
   if (!keys.ok()) return keys;
+  const std::string prefix = section + ".";
   auto text = [&](const char* key,
                   std::optional<std::string>* out) -> absl::Status {
     if (!node[key]) return absl::OkStatus();
     absl::StatusOr<std::string> v =
-        GetString(node[key], ctx, absl::StrCat("match.", key));
+        GetString(node[key], ctx, absl::StrCat(prefix, key));
     if (!v.ok()) return v.status();
     *out = std::string(absl::StripAsciiWhitespace(*v));
     return absl::OkStatus();
@@ -70,7 +72,7 @@ absl::StatusOr<RuleMatch> ParseMatch(const YAML::Node& node,
   auto regex = [&](const char* key,
                    std::shared_ptr<const re2::RE2>* out) -> absl::Status {
     if (!node[key]) return absl::OkStatus();
-    const std::string field = absl::StrCat("match.", key);
+    const std::string field = absl::StrCat(prefix, key);
     absl::StatusOr<std::string> v = GetString(node[key], ctx, field);
     if (!v.ok()) return v.status();
     re2::RE2::Options options;
@@ -87,7 +89,7 @@ absl::StatusOr<RuleMatch> ParseMatch(const YAML::Node& node,
                    std::optional<ValueRange>* out) -> absl::Status {
     if (!node[key]) return absl::OkStatus();
     absl::StatusOr<ValueRange> v =
-        GetRange(node[key], ctx, absl::StrCat("match.", key));
+        GetRange(node[key], ctx, absl::StrCat(prefix, key));
     if (!v.ok()) return v.status();
     *out = *v;
     return absl::OkStatus();
@@ -96,6 +98,8 @@ absl::StatusOr<RuleMatch> ParseMatch(const YAML::Node& node,
        {text("modality", &match.modality), text("body_part", &match.body_part),
         regex("series_description", &match.series_description),
         regex("protocol_name", &match.protocol_name),
+        regex("image_type", &match.image_type),
+        regex("manufacturer", &match.manufacturer),
         range("slice_thickness", &match.slice_thickness_mm),
         range("slice_spacing", &match.slice_spacing_mm),
         range("slice_count", &match.slice_count)}) {
@@ -105,13 +109,35 @@ absl::StatusOr<RuleMatch> ParseMatch(const YAML::Node& node,
                           std::pair{"called_ae", &match.called_ae}}) {
     if (!node[key]) continue;
     absl::StatusOr<std::string> v =
-        GetString(node[key], ctx, absl::StrCat("match.", key));
+        GetString(node[key], ctx, absl::StrCat(prefix, key));
     if (!v.ok()) return v.status();
     absl::StatusOr<std::string> ae = NormalizeAeTitle(*v);
     if (!ae.ok()) {
-      return ctx.Error(absl::StrCat("match.", key), ae.status().message());
+      return ctx.Error(absl::StrCat(prefix, key), ae.status().message());
     }
     *out = *ae;
+  }
+  if (node["sop_class"]) {
+    absl::StatusOr<std::vector<std::string>> uids =
+        GetStringList(node["sop_class"], ctx, prefix + "sop_class");
+    if (!uids.ok()) return uids.status();
+    for (const std::string& uid : *uids) {
+      const std::string trimmed(absl::StripAsciiWhitespace(uid));
+      if (trimmed.empty() || trimmed.size() > 64 ||
+          trimmed.find_first_not_of("0123456789.") != std::string::npos) {
+        return ctx.Error(prefix + "sop_class",
+                         absl::StrCat("'", trimmed,
+                                      "' is not a SOP Class UID (digits and "
+                                      "dots, e.g. 1.2.840.10008.5.1.4.1.1.2)"));
+      }
+      match.sop_classes.push_back(trimmed);
+    }
+  }
+  if (node["own_results"]) {
+    absl::StatusOr<bool> v =
+        GetBool(node["own_results"], ctx, prefix + "own_results");
+    if (!v.ok()) return v.status();
+    match.own_results = *v;
   }
   return match;
 }
@@ -317,6 +343,17 @@ std::string RangeFailure(const char* criterion,
 }  // namespace
 
 std::string RuleMatch::FirstFailure(const SeriesFacts& f) const {
+  if (f.own_result && !own_results) {
+    return "made by interslice (its own result; only a rule with "
+           "match.own_results: true takes those)";
+  }
+  if (own_results && !f.own_result) {
+    return "not made by interslice (the rule takes own_results only)";
+  }
+  return CriteriaFailure(f);
+}
+
+std::string RuleMatch::CriteriaFailure(const SeriesFacts& f) const {
   if (modality && !SameText(*modality, f.modality)) {
     return TextFailure("modality", f.modality, *modality);
   }
@@ -355,6 +392,19 @@ std::string RuleMatch::FirstFailure(const SeriesFacts& f) const {
     return RangeFailure("slice_count", static_cast<double>(f.slice_count),
                         *slice_count);
   }
+  if (image_type && !re2::RE2::PartialMatch(f.image_type, *image_type)) {
+    return absl::StrCat("image_type does not match /", image_type->pattern(),
+                        "/");
+  }
+  if (manufacturer && !re2::RE2::PartialMatch(f.manufacturer, *manufacturer)) {
+    return absl::StrCat("manufacturer does not match /",
+                        manufacturer->pattern(), "/");
+  }
+  if (!sop_classes.empty() && std::find(sop_classes.begin(), sop_classes.end(),
+                                        f.sop_class_uid) == sop_classes.end()) {
+    return absl::StrCat("sop_class is '", f.sop_class_uid, "', not one of ",
+                        absl::StrJoin(sop_classes, ", "));
+  }
   return "";
 }
 
@@ -387,6 +437,18 @@ std::string RuleMatch::Describe() const {
   if (slice_count) {
     parts.push_back(absl::StrCat("slice_count ", RangeText(*slice_count)));
   }
+  if (image_type) {
+    parts.push_back(absl::StrCat("image_type /", image_type->pattern(), "/"));
+  }
+  if (manufacturer) {
+    parts.push_back(
+        absl::StrCat("manufacturer /", manufacturer->pattern(), "/"));
+  }
+  if (!sop_classes.empty()) {
+    parts.push_back(
+        absl::StrCat("sop_class ", absl::StrJoin(sop_classes, "|")));
+  }
+  if (own_results) parts.push_back("own_results");
   if (parts.empty()) return "every series";
   return absl::StrJoin(parts, ", ");
 }
@@ -396,7 +458,9 @@ const Rule* RuleSet::FirstMatch(const SeriesFacts& facts) const {
     // Fill rules are for segmentations only, and segmentations for fill
     // rules only: a SEG is never thresholded, a CT never read as labels.
     if (rule.job.has_fill() != facts.segmentation) continue;
-    if (rule.match.Matches(facts)) return &rule;
+    if (!rule.match.Matches(facts)) continue;
+    if (rule.exclude && rule.exclude->CriteriaFailure(facts).empty()) continue;
+    return &rule;
   }
   return nullptr;
 }
@@ -412,6 +476,10 @@ std::string RuleSet::ExplainNoMatch(const SeriesFacts& facts) const {
       why = "a job rule (not for segmentations)";
     } else {
       why = rule.match.FirstFailure(facts);
+      if (why.empty() && rule.exclude &&
+          rule.exclude->CriteriaFailure(facts).empty()) {
+        why = absl::StrCat("excluded by exclude: ", rule.exclude->Describe());
+      }
       if (why.empty()) why = "matches";
     }
     reasons.push_back(absl::StrCat("rule '", rule.name, "': ", why));
@@ -466,9 +534,9 @@ absl::StatusOr<RuleSet> LoadRulesFile(const std::string& path,
       return ctx.Error("",
                        absl::StrCat("expected a mapping, got ", KindName(r)));
     }
-    keys = CheckKeys(
-        r, ctx, "",
-        {"name", "match", "job", "fill", "send_to", "complete_on_release"});
+    keys = CheckKeys(r, ctx, "",
+                     {"name", "match", "exclude", "job", "fill", "send_to",
+                      "complete_on_release"});
     if (!keys.ok()) return keys;
     if (r["name"]) {
       if (!r["name"].IsScalar()) {
@@ -480,9 +548,19 @@ absl::StatusOr<RuleSet> LoadRulesFile(const std::string& path,
         return ctx.Error("name", "another rule has this name");
       }
     }
-    absl::StatusOr<RuleMatch> match = ParseMatch(r["match"], ctx);
+    absl::StatusOr<RuleMatch> match = ParseMatch(r["match"], ctx, "match");
     if (!match.ok()) return match.status();
     rule.match = *std::move(match);
+    if (r["exclude"]) {
+      absl::StatusOr<RuleMatch> exclude =
+          ParseMatch(r["exclude"], ctx, "exclude");
+      if (!exclude.ok()) return exclude.status();
+      if (exclude->empty()) {
+        return ctx.Error("exclude",
+                         "no criterion: it would exclude every series");
+      }
+      rule.exclude = *std::move(exclude);
+    }
     if (r["job"] && r["fill"]) {
       return ctx.Error("fill",
                        "a rule has either a job (series) or a fill "

@@ -94,7 +94,7 @@ absl::Status SeriesAssembler::Recover() {
     }
     fs::remove_all(entry.path(), ec);
   }
-  const auto now = std::chrono::steady_clock::now();
+  const auto now = options_.clock->Now();
   int recovered = 0, interrupted = 0;
   for (const auto& entry :
        fs::directory_iterator(fs::path(options_.root) / "series", ec)) {
@@ -202,7 +202,8 @@ void SeriesAssembler::MarkIncomplete(const std::string& key, Pending& p,
   p.release_requested = false;
   if (p.incomplete.has_value()) return;
   p.incomplete = reason;
-  nlohmann::json j = {{"reason", reason}, {"since_unix_ms", UnixMillisNow()}};
+  nlohmann::json j = {{"reason", reason},
+                      {"since_unix_ms", options_.clock->UnixMillis()}};
   if (absl::Status s = WriteFileAtomically(
           (fs::path(SeriesDir(key)) / kIncompleteFile).string(),
           j.dump(-1, ' ', false, nlohmann::json::error_handler_t::replace));
@@ -310,9 +311,18 @@ absl::StatusOr<std::string> SeriesAssembler::AddInstance(
   }
   const std::string key = Key(called_ae, ids.study_uid, ids.series_uid);
   const std::string dir = SeriesDir(key);
-  const std::string target =
-      (fs::path(dir) / InstanceName(ids.sop_instance_uid)).string();
+  const std::string name = InstanceName(ids.sop_instance_uid);
+  const std::string target = (fs::path(dir) / name).string();
   absl::Status synced = FsyncFile(staged);
+  // A re-sent instance: is its content what the series holds already? Read
+  // here, outside the lock every transfer needs (issue 39: only new content
+  // can complete an incomplete series).
+  bool same_as_held = false;
+  if (fs::exists(target, ec)) {
+    absl::StatusOr<std::string> held_hash = DatasetSha256(target);
+    absl::StatusOr<std::string> new_hash = DatasetSha256(staged);
+    same_as_held = held_hash.ok() && new_hash.ok() && *held_hash == *new_hash;
+  }
 
   std::lock_guard<std::mutex> lock(mu_);
   Association& a = associations_[association];
@@ -403,8 +413,11 @@ absl::StatusOr<std::string> SeriesAssembler::AddInstance(
   FsyncPath(dir, true);
   if (replaced && spool_ != nullptr) spool_->Release(replaced_bytes);
   if (!replaced) ++series->instances;
+  Contribution& contribution = a.contributed[key];
+  contribution.instances.insert(name);
+  if (!replaced || !same_as_held) contribution.brought_new = true;
   series->bytes += size - replaced_bytes;
-  series->last_arrival = std::chrono::steady_clock::now();
+  series->last_arrival = options_.clock->Now();
   series->release_requested = false;
   return key;
 }
@@ -450,15 +463,11 @@ void SeriesAssembler::EndTransfer(uint64_t association, bool released) {
                                 : "its association ended without a normal "
                                   "release (aborted, cut off or lost)");
       } else if (p.incomplete.has_value() && association > p.incomplete_after) {
-        // A transfer that began after the series became incomplete stored
-        // into it and ended well: the sender completed it.
-        std::error_code ec;
-        fs::remove(fs::path(dir) / kIncompleteFile, ec);
-        spdlog::info(
-            "dicom: a series from {} -> {} ({} instance(s)) is complete again "
-            "after a later transfer of it",
-            LogSafe(p.calling_ae), LogSafe(p.called_ae), p.instances);
-        p.incomplete.reset();
+        const auto contributed = a.contributed.find(key);
+        ResumeIfCompleted(key, p,
+                          contributed != a.contributed.end()
+                              ? contributed->second
+                              : Contribution{});
       }
       if (clean && p.open.empty() && !p.incomplete.has_value()) {
         p.release_requested = true;
@@ -470,9 +479,39 @@ void SeriesAssembler::EndTransfer(uint64_t association, bool released) {
   if (any) cv_.notify_all();
 }
 
+void SeriesAssembler::ResumeIfCompleted(const std::string& key, Pending& p,
+                                        const Contribution& contribution) {
+  // A transfer that began after the series became incomplete stored into
+  // it and ended whole. It completed the series if it brought what the
+  // series lacked, or re-sent all of it; re-sending some of what is held
+  // proves nothing (see "Completeness" in series_assembler.h).
+  const bool whole_series =
+      static_cast<int64_t>(contribution.instances.size()) >= p.instances;
+  if (!contribution.brought_new && !whole_series) {
+    if (metrics_ != nullptr)
+      metrics_->DicomEvent("series_resend_not_completing");
+    spdlog::warn(
+        "dicom: a series from {} -> {} ({} instance(s)) stays incomplete: a "
+        "later transfer re-sent {} instance(s) it already held, unchanged, "
+        "and nothing it lacked",
+        LogSafe(p.calling_ae), LogSafe(p.called_ae), p.instances,
+        contribution.instances.size());
+    return;
+  }
+  std::error_code ec;
+  fs::remove(fs::path(SeriesDir(key)) / kIncompleteFile, ec);
+  spdlog::info(
+      "dicom: a series from {} -> {} ({} instance(s)) is complete again "
+      "after a later transfer of it ({})",
+      LogSafe(p.calling_ae), LogSafe(p.called_ae), p.instances,
+      contribution.brought_new ? "it brought what the series lacked"
+                               : "it re-sent every instance");
+  p.incomplete.reset();
+}
+
 int SeriesAssembler::CompleteStableSeries() {
   const std::shared_ptr<const RuleSet> rules = this->rules();
-  const auto now = std::chrono::steady_clock::now();
+  const auto now = options_.clock->Now();
   const auto stable =
       std::chrono::duration_cast<std::chrono::steady_clock::duration>(
           std::chrono::duration<double>(rules->stable_seconds));
@@ -530,7 +569,7 @@ int SeriesAssembler::CompleteStableSeries() {
 }
 
 void SeriesAssembler::DropStaleIncomplete() {
-  const auto now = std::chrono::steady_clock::now();
+  const auto now = options_.clock->Now();
   const auto wait =
       std::chrono::duration<double>(options_.unmatched_retention_seconds);
   std::vector<std::pair<std::string, Pending>> dropped;
@@ -567,7 +606,7 @@ void SeriesAssembler::Loop() {
     if (stopping_) break;
     lock.unlock();
     CompleteStableSeries();
-    const auto now = std::chrono::steady_clock::now();
+    const auto now = options_.clock->Now();
     if (now - last_sweep_ > std::chrono::seconds(1)) {
       last_sweep_ = now;
       SweepUnmatched();

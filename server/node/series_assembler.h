@@ -30,13 +30,19 @@
 //   DICOM, disk full while it arrived) taints every series its association
 //   stored into. A series with an open-<n> file at start-up was being
 //   received when the server stopped: incomplete.
-// - An incomplete series never makes a job. It waits for its missing part:
-//   an association that begins after it became incomplete, stores into it
-//   and is released normally with nothing refused makes it complete again
-//   (a sender's retry of the whole series, or of what was missing). If no
-//   instance of it arrives for unmatched_retention_seconds it is dropped:
-//   logged (AE titles, instance count, reason; no patient data), counted
-//   (series_incomplete_dropped) and deleted.
+// - An incomplete series never makes a job. It waits for its missing part
+//   (issue 39): a transfer that begins after it became incomplete, stores
+//   into it and ends whole with nothing refused makes it complete again
+//   only if it brought something the series did not hold (an instance it
+//   lacked, or other content for one it held: the sender's retry of what
+//   was missing), or re-sent every instance the series holds (the sender's
+//   retry of the whole series). A transfer that only re-sends, unchanged,
+//   some of what the series already holds proves nothing about the missing
+//   part: the series stays incomplete (logged, counted as
+//   series_resend_not_completing). If no instance of it arrives for
+//   unmatched_retention_seconds it is dropped: logged (AE titles, instance
+//   count, reason; no patient data), counted (series_incomplete_dropped)
+//   and deleted.
 // - A complete series makes its job when no association that stored into
 //   it is still open and either no instance arrived for the rule set's
 //   stable_seconds, or (rule complete_on_release) the last such
@@ -112,6 +118,7 @@
 
 #include "absl/status/statusor.h"
 #include "interslice/v1/interslice.pb.h"
+#include "server/base/clock.h"
 #include "server/node/config.h"
 #include "server/node/dataset_scan.h"
 #include "server/node/intake.h"
@@ -136,6 +143,9 @@ struct AssemblerOptions {
   // How often the stable wait is checked (tests shorten the rule set's
   // stable_seconds, not this).
   std::chrono::milliseconds poll_interval{200};
+  // What the waits (stable, retention) are measured by; a test may move
+  // its own (tests/testing/fake_clock.h) and call CompleteStableSeries.
+  const Clock* clock = Clock::Real();
   // Whether the job `job_id` ended without results (failed or cancelled).
   // A series re-sent unchanged after such a job makes its job again: a
   // re-send is how a PACS operator retries. After any other job (queued,
@@ -294,11 +304,19 @@ class SeriesAssembler : public Intake {
     // or not given): a late instance of another one is refused.
     std::string held_frame_of_reference;
   };
+  // What one transfer stored into one series: the instances (file names),
+  // and whether any of them was new to the series (an instance it did not
+  // hold, or held with other content).
+  struct Contribution {
+    std::set<std::string> instances;
+    bool brought_new = false;
+  };
   struct Association {
     std::string calling_ae, called_ae;
     std::set<std::string> series;   // keys stored into
     std::set<std::string> refused;  // keys of which an instance was refused
     bool tainted = false;           // an instance of unknown series refused
+    std::map<std::string, Contribution> contributed;  // by series key
   };
 
   SeriesAssembler(const AssemblerOptions& options, RuleSet rules, Spool* spool,
@@ -329,6 +347,11 @@ class SeriesAssembler : public Intake {
   // of the same series is deleted.
   void KeepUnmatched(const std::string& key, const std::string& dir,
                      const std::string& job_id = "");
+  // With mu_ held: a whole transfer that began after the series became
+  // incomplete ended; makes it complete again if `contribution` completed
+  // it (see "Completeness").
+  void ResumeIfCompleted(const std::string& key, Pending& pending,
+                         const Contribution& contribution);
   // With mu_ held: marks the series incomplete (persisted) unless it is.
   void MarkIncomplete(const std::string& key, Pending& pending,
                       const std::string& reason);

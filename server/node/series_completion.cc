@@ -42,6 +42,9 @@ void SeriesAssembler::Complete(const std::string& key, const Pending& p,
   const std::string from =
       absl::StrCat(LogSafe(p.calling_ae), " -> ", LogSafe(p.called_ae));
   if (rule == nullptr) {
+    if (facts.own_result && metrics_ != nullptr) {
+      metrics_->DicomEvent("own_results_not_run");
+    }
     KeepUnmatched(key, dir);
     spdlog::warn(
         "dicom: no rule of rule set {} matched a series from {} ({} "
@@ -93,7 +96,7 @@ void SeriesAssembler::PutBack(const std::string& key, const Pending& p,
   const std::string back = SeriesDir(key);
   if (!fs::exists(back, ec) && ::rename(dir.c_str(), back.c_str()) == 0) {
     Pending again = p;
-    again.last_arrival = std::chrono::steady_clock::now();
+    again.last_arrival = options_.clock->Now();
     again.release_requested = false;
     pending_[key] = again;
   } else {
@@ -131,9 +134,10 @@ void SeriesAssembler::KeepUnmatched(const std::string& key,
     std::ofstream(fs::path(dir) / "job") << job_id << "\n";
   }
   const std::string previous = NewestHeld(key);
-  const std::string kept = (fs::path(options_.root) / "unmatched" /
-                            absl::StrCat(key, "-", UnixMillisNow()))
-                               .string();
+  const std::string kept =
+      (fs::path(options_.root) / "unmatched" /
+       absl::StrCat(key, "-", options_.clock->UnixMillis()))
+          .string();
   fs::rename(dir, kept, ec);
   if (ec) return;
   // The older copy is a subset of this one (its instances were carried
@@ -195,7 +199,7 @@ std::string SeriesAssembler::CompleteFill(const std::string& key,
   }
   if (held.empty()) {
     Pending again = p;
-    const auto now = std::chrono::steady_clock::now();
+    const auto now = options_.clock->Now();
     if (!again.waiting_since) {
       again.waiting_since = now;
       spdlog::info(

@@ -5,6 +5,7 @@
 #include <filesystem>
 #include <fstream>
 
+#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "core/common/sha256.h"
 #include "nlohmann/json.hpp"
@@ -205,6 +206,13 @@ SeriesFacts ReadSeriesFacts(const std::string& dir) {
       facts.segmentation = sop_class == UID_SegmentationStorage ||
                            sop_class == UID_RTStructureSetStorage;
       facts.modality = GetString(ds, DCM_Modality);
+      facts.sop_class_uid = sop_class;
+      facts.manufacturer = GetString(ds, DCM_Manufacturer);
+      facts.image_type = GetString(ds, DCM_ImageType);
+      facts.own_result =
+          absl::EqualsIgnoreCase(facts.manufacturer, "interslice") &&
+          absl::EqualsIgnoreCase(GetString(ds, DCM_ManufacturerModelName),
+                                 "interslice");
       facts.series_description = GetString(ds, DCM_SeriesDescription);
       facts.protocol_name = GetString(ds, DCM_ProtocolName);
       facts.body_part = GetString(ds, DCM_BodyPartExamined);

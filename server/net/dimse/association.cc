@@ -11,6 +11,7 @@
 #include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+#include "absl/strings/strip.h"
 #include "core/dicom/series_reader.h"
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcuid.h"
@@ -497,8 +498,12 @@ class AssociationScp : public DcmThreadSCP {
       absl::StatusOr<ReceivedInstance> received =
           ReadReceivedInstance(staged, received_, impl_->intake->scan_limits());
       if (received.ok()) {
-        if (std::shared_ptr<PendingMoves::Move> move = moves->Find(
-                calling_, received->ids.study_uid, received->ids.series_uid)) {
+        std::shared_ptr<PendingMoves::Move> move = moves->Find(
+            calling_, received->ids.study_uid, received->ids.series_uid);
+        // Once its move has ended, only an instance that says it is one of
+        // our C-MOVE's sub-operations belongs to it (a late one, refused);
+        // a push of the same series is an ordinary transfer.
+        if (move != nullptr && (!move->ended() || SaysOurMove(request))) {
           return StoreForMove(std::move(move), staged, received->size, request,
                               info);
         }
@@ -522,6 +527,17 @@ class AssociationScp : public DcmThreadSCP {
     spdlog::warn("dicom: instance from {} refused: {}", LogSafe(calling_),
                  LogSafe(key.status().message()));
     return Refuse(STATUS_STORE_Error_CannotUnderstand, request, info);
+  }
+
+  // The C-STORE request names a C-MOVE of ours as its origin: its Move
+  // Originator AE Title (PS3.7 9.1.1.1) is one of the AE titles we call as
+  // (our C-MOVEs call as the first).
+  bool SaysOurMove(const T_DIMSE_C_StoreRQ& request) const {
+    if ((request.opts & O_STORE_MOVEORIGINATORAETITLE) == 0) return false;
+    const std::string originator(absl::StripAsciiWhitespace(
+        request.MoveOriginatorApplicationEntityTitle));
+    const std::vector<std::string>& ours = impl_->options.ae_titles;
+    return std::find(ours.begin(), ours.end(), originator) != ours.end();
   }
 
   OFCondition StoreForMove(std::shared_ptr<PendingMoves::Move> move,

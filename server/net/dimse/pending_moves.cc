@@ -91,6 +91,11 @@ absl::Status PendingMoves::Move::error() {
   return error_;
 }
 
+bool PendingMoves::Move::ended() {
+  std::lock_guard<std::mutex> lock(mu_);
+  return closed_;
+}
+
 void PendingMoves::Move::RemoveKept() {
   std::lock_guard<std::mutex> lock(mu_);
   for (const std::string& path : kept_) ::unlink(path.c_str());

@@ -23,7 +23,12 @@
 // - A move that ended (Close) stays in the registry as closed for
 //   kClosedGrace: instances of it that arrive late (after a timeout or a
 //   failure) are refused (FAILED_PRECONDITION), never handed to the rules.
-//   Registering the same key again replaces it.
+//   The listener takes an instance as one of an ended move only when its
+//   C-STORE request says it is a C-MOVE sub-operation of ours (its Move
+//   Originator AE Title is ours); any other instance of the same series is
+//   an ordinary transfer (issue 39: a PACS's push of a series just pulled
+//   was refused for the grace period). Registering the same key again
+//   replaces it.
 // - The retriever waits (WaitSettled) until every association that stored
 //   into the move has ended and at least the expected count arrived, or a
 //   deadline.
@@ -79,6 +84,8 @@ class PendingMoves {
     absl::Status error();
     // Deletes the files the move kept (a failed move leaves nothing).
     void RemoveKept();
+    // Whether the move has ended (Close).
+    bool ended();
 
    private:
     friend class PendingMoves;

@@ -27,6 +27,7 @@
 #include "core/volume_io/volume_io.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "tests/testing/made_elsewhere.h"
 #include "tests/testing/orthanc.h"
 #include "tests/testing/paths.h"
 #include "tests/testing/process.h"
@@ -132,6 +133,9 @@ TEST(FillRtStructOrthancTest,
       300);
   ASSERT_EQ(made.exit_code, 0) << made.err;
   const std::string rtstruct = (root / "made" / "rtstruct.dcm").string();
+  // It stands for a person's RTSTRUCT: the node takes its own results only
+  // when a rule asks (issue 39).
+  ASSERT_TRUE(MarkAsMadeElsewhere(rtstruct).ok());
   auto input = Load(rtstruct);
   const std::map<std::string, std::string> input_rois =
       Rois(*input->getDataset());

@@ -519,6 +519,24 @@ TEST_F(OrthancEndToEndTest, PullByMoveEqualsPullByGetAndNeverReachesRules) {
   }
   EXPECT_EQ(jobs, 2) << list.out;
 
+  // Issue 39, finding 5: Orthanc's push of the same series after the move
+  // ended was refused for ten minutes (0xC000, "the C-MOVE this instance
+  // belongs to has ended"). Its C-STOREs name no C-MOVE of ours: an
+  // ordinary transfer, which the rule makes its job of.
+  auto studies = orthanc_->GetJson("/studies");
+  ASSERT_TRUE(studies.ok() && studies->size() == 1u);
+  auto pushed = orthanc_->PostJson("/modalities/interslice/store",
+                                   std::string((*studies)[0]));
+  ASSERT_TRUE(pushed.ok()) << pushed.status() << orthanc_->log();
+  EXPECT_THAT(server->Log(), ::testing::Not(HasSubstr("has ended")));
+  ASSERT_TRUE(WaitFor(
+      [&] {
+        return server->Log().find("made by rule every-ct") != std::string::npos;
+      },
+      std::chrono::seconds(60)))
+      << server->Log();
+  EXPECT_THAT(server->Log(), HasSubstr("(28 instance(s))"));
+
   // A series Orthanc lacks: the job fails, naming the peer, nothing found.
   const std::string missing =
       Submit(*server,

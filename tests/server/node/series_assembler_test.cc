@@ -15,6 +15,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "tests/server/net/dimse/raw_pdu.h"
+#include "tests/testing/fake_clock.h"
 #include "tests/testing/paths.h"
 
 namespace interslice::server::node {
@@ -723,6 +724,25 @@ TEST_F(AssemblerTest, RerunThatCannotBeSubmittedKeepsTheSeries) {
   ASSERT_TRUE(all.ok()) << all.status();
   ASSERT_EQ(all->size(), 1u);
   EXPECT_EQ((*all)[0].job_id, "job1");
+  ASSERT_EQ(submitted_.size(), 1u);
+  EXPECT_EQ(submitted_[0].files, 3);
+}
+
+// The stable wait is measured by the clock the assembler is given: a test
+// moves it instead of sleeping (tests/testing/fake_clock.h).
+TEST_F(AssemblerTest, StableWaitIsMeasuredByTheGivenClock) {
+  testing::FakeClock clock;
+  AssemblerOptions options;
+  options.clock = &clock;
+  std::unique_ptr<SeriesAssembler> a = Open(Rules("CT", 30), options);
+  ASSERT_NE(a, nullptr);
+  Send(*a, 0, 3);
+  EXPECT_EQ(a->CompleteStableSeries(), 0);
+  clock.Advance(std::chrono::seconds(29));
+  EXPECT_EQ(a->CompleteStableSeries(), 0);
+  EXPECT_TRUE(submitted_.empty());
+  clock.Advance(std::chrono::seconds(2));
+  EXPECT_EQ(a->CompleteStableSeries(), 1);
   ASSERT_EQ(submitted_.size(), 1u);
   EXPECT_EQ(submitted_[0].files, 3);
 }

@@ -35,6 +35,7 @@
 #include "interslice/spool/v1/record.pb.h"
 #include "tests/server/net/dimse/raw_pdu.h"
 #include "tests/testing/files.h"
+#include "tests/testing/made_elsewhere.h"
 #include "tests/testing/paths.h"
 #include "tests/testing/process.h"
 #include "tests/testing/server_process.h"
@@ -1135,6 +1136,121 @@ TEST(DicomEdgeTest, SenderKilledMidSeriesMakesNoJobUntilItIsComplete) {
   EXPECT_THAT(server.Log(), HasSubstr("is complete again"));
 }
 
+// Issue 39, finding 1: a transfer cut half-way, then one instance of it
+// stored again, byte for byte the same, in a clean association: the log
+// said "is complete again after a later transfer of it" and a job ran on
+// half the series. A re-sent instance proves nothing about the missing
+// part: the series stays incomplete, and the remainder completes it.
+TEST(DicomEdgeTest, ReSentInstanceNeverCompletesAnIncompleteSeries) {
+  TempDir dir;
+  DicomServer server(
+      dir, "spool",
+      {"--dicom-peers", WritePeers(dir), "--rules", WriteRules(dir, 1, true)});
+  ASSERT_TRUE(server.up()) << server.Log();
+  const std::vector<std::string> files = PhantomFiles();
+  int stored = 0;
+  const int fd = StorePartOfSeries(server, files, 14, &stored);
+  ASSERT_GE(fd, 0) << server.Log();
+  ASSERT_EQ(stored, 14) << server.Log();
+  ::close(fd);
+  ASSERT_TRUE(WaitUntil(
+      [&] { return server.Log().find("is incomplete") != std::string::npos; },
+      30))
+      << server.Log();
+  // One instance of it again, unchanged, in an association released
+  // normally; then another one.
+  for (const int i : {0, 5}) {
+    CommandResult again = StoreScu(server, {}, {files[i]});
+    ASSERT_EQ(again.exit_code, 0) << again.err;
+  }
+  ASSERT_TRUE(WaitUntil(
+      [&] {
+        return server.Metric(
+                   "interslice_dicom_events_total{event=\""
+                   "series_resend_not_completing\"}") == 2;
+      },
+      30))
+      << server.Log();
+  // Well past the stable wait (1 s): still no job.
+  std::this_thread::sleep_for(std::chrono::seconds(3));
+  EXPECT_TRUE(server.Jobs().empty()) << server.Log();
+  EXPECT_THAT(server.Log(), ::testing::Not(HasSubstr("is complete again")));
+  // The remainder: one job, of all 28.
+  CommandResult rest = StoreScu(
+      server, {}, std::vector<std::string>(files.begin() + 14, files.end()));
+  ASSERT_EQ(rest.exit_code, 0) << rest.err;
+  ASSERT_TRUE(WaitUntil([&] { return !server.Jobs().empty(); }, 60))
+      << server.Log();
+  EXPECT_EQ(server.Jobs().size(), 1u);
+  EXPECT_THAT(server.Log(), HasSubstr("(28 instance(s))"));
+  EXPECT_THAT(server.Log(), HasSubstr("is complete again"));
+}
+
+// Issue 39, finding 4: the node's own results sent back to it (a PACS
+// routing rule, or README's "send every series" run a second time) were
+// processed again as a new source: results of results. They make no job
+// unless a rule asks for them with own_results: true.
+TEST(DicomEdgeTest, OwnResultsSentBackMakeNoJobUnlessARuleAsks) {
+  TempDir dir;
+  CommandResult made = RunCommand(
+      {kCli, "run",
+       std::string(::interslice::testing::SourceDir()) + "/tests/data/ct-thick",
+       "--threshold", "300", "--method", "linear", "--output-series",
+       "intensity", "--mesh", "none", "--volume", "none", "--previews", "none",
+       "--quiet", "--out", dir / "results"},
+      300);
+  ASSERT_EQ(made.exit_code, 0) << made.err;
+  std::vector<std::string> results;
+  for (const auto& e :
+       fs::directory_iterator(dir / "results/series-intensity")) {
+    results.push_back(e.path().string());
+  }
+  ASSERT_FALSE(results.empty());
+  const std::string job =
+      "{threshold: 300, method: linear, mesh: none, volume: [nii], "
+      "previews: none}";
+  const std::string rules = dir / "own.yaml";
+  WriteFile(rules, absl::StrCat("stable_seconds: 0.5\nrules:\n"
+                                "  - name: any-ct\n"
+                                "    match: {modality: CT}\n"
+                                "    job: ",
+                                job, "\n"));
+  {
+    DicomServer server(dir, "spool",
+                       {"--dicom-peers", WritePeers(dir), "--rules", rules});
+    ASSERT_TRUE(server.up()) << server.Log();
+    ASSERT_EQ(StoreScu(server, {}, results).exit_code, 0);
+    ASSERT_TRUE(WaitUntil(
+        [&] {
+          return server.Metric(
+                     "interslice_dicom_events_total{event=\""
+                     "own_results_not_run\"}") == 1;
+        },
+        30))
+        << server.Log();
+    EXPECT_TRUE(server.Jobs().empty()) << server.Log();
+    EXPECT_THAT(server.Log(), HasSubstr("made by interslice (its own result"));
+  }
+  // A rule that asks for them takes them (and only them: the CT rule
+  // before it still does not).
+  WriteFile(rules, absl::StrCat("stable_seconds: 0.5\nrules:\n"
+                                "  - name: any-ct\n"
+                                "    match: {modality: CT}\n"
+                                "    job: ",
+                                job,
+                                "\n  - name: results-again\n"
+                                "    match: {own_results: true}\n"
+                                "    job: ",
+                                job, "\n"));
+  DicomServer again(dir, "spool2",
+                    {"--dicom-peers", WritePeers(dir), "--rules", rules});
+  ASSERT_TRUE(again.up()) << again.Log();
+  ASSERT_EQ(StoreScu(again, {}, results).exit_code, 0);
+  ASSERT_TRUE(WaitUntil([&] { return !again.Jobs().empty(); }, 60))
+      << again.Log();
+  EXPECT_THAT(again.Log(), HasSubstr("made by rule results-again"));
+}
+
 // Finding 2, the server's side: killed while an association stores into a
 // series, it finds the series incomplete after the restart.
 TEST(DicomEdgeTest, ServerKilledMidAssociationLeavesTheSeriesIncomplete) {
@@ -1560,6 +1676,12 @@ class DicomFillTest : public ::testing::Test {
     std::sort(series_.begin(), series_.end());
     ASSERT_EQ(series_.size(), 16u);
     seg_ = dir_ / "run/seg.dcm";
+    // They stand for a scanner's series and a person's SEG: the node takes
+    // its own results only when a rule asks (issue 39).
+    for (const std::string& file : series_) {
+      ASSERT_TRUE(MarkAsMadeElsewhere(file).ok()) << file;
+    }
+    ASSERT_TRUE(MarkAsMadeElsewhere(seg_).ok());
     CommandResult local = RunCommand(
         {kCli, "fill", seg_, "--reference", dir_ / "run/series-intensity",
          "--key-slices", "0-15:5", "--method", "direct", "--volume", "nrrd",
