@@ -18,8 +18,9 @@ KeptSubcommands RegisterKept(CLI::App& app, KeptRerunArguments& rerun_args,
   KeptSubcommands subcommands;
   subcommands.list = kept->add_subcommand(
       "list",
-      "One line per kept series: id, since, AE titles, modality, instances, "
-      "UIDs, why it is kept");
+      "One line per series the node holds: id, state (receiving, "
+      "incomplete, kept) and since when, AE titles, modality, instances, "
+      "UIDs, why it is held");
   AddConnectionOptions(*subcommands.list, connection);
   subcommands.rerun = kept->add_subcommand(
       "rerun",
@@ -51,10 +52,13 @@ int RunKeptList(const Connection& connection) {
       stub->ListKept(&context, v1::ListKeptRequest(), &response);
   if (!s.ok()) return Fail(DescribeRpcError(s, connection.address()));
   for (const v1::ListKeptResponse::Series& k : response.series()) {
+    // Servers before issue 39 listed kept series only, without a state.
+    const std::string state = k.state().empty() ? "kept" : k.state();
     std::printf(
-        "%s  kept %s  %s -> %s  %s  %lld instance(s)  study %s  series %s  "
+        "%s  %s %s  %s -> %s  %s  %lld instance(s)  study %s  series %s  "
         "%s\n",
-        Printable(k.id()).c_str(), UtcTime(k.kept_since_unix_ms()).c_str(),
+        Printable(k.id()).c_str(), Printable(state).c_str(),
+        UtcTime(k.kept_since_unix_ms()).c_str(),
         Printable(k.calling_ae()).c_str(), Printable(k.called_ae()).c_str(),
         k.modality().empty() ? "?" : Printable(k.modality()).c_str(),
         static_cast<long long>(k.instance_count()),

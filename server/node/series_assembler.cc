@@ -126,9 +126,13 @@ absl::Status SeriesAssembler::Recover() {
     // The waits start over: the server cannot know how long it was down,
     // and a sender may still be retrying.
     p.last_arrival = now;
+    p.first_arrival_unix_ms = options_.clock->UnixMillis();
     std::ifstream incomplete(entry.path() / kIncompleteFile);
     nlohmann::json k = nlohmann::json::parse(incomplete, nullptr, false);
-    if (k.is_object()) p.incomplete = k.value("reason", "incomplete");
+    if (k.is_object()) {
+      p.incomplete = k.value("reason", "incomplete");
+      p.incomplete_since_unix_ms = k.value("since_unix_ms", int64_t{0});
+    }
     if (const std::string held = NewestHeld(key); !held.empty()) {
       p.held_frame_of_reference = HeldFrameOfReference(held);
     }
@@ -202,8 +206,9 @@ void SeriesAssembler::MarkIncomplete(const std::string& key, Pending& p,
   p.release_requested = false;
   if (p.incomplete.has_value()) return;
   p.incomplete = reason;
+  p.incomplete_since_unix_ms = options_.clock->UnixMillis();
   nlohmann::json j = {{"reason", reason},
-                      {"since_unix_ms", options_.clock->UnixMillis()}};
+                      {"since_unix_ms", p.incomplete_since_unix_ms}};
   if (absl::Status s = WriteFileAtomically(
           (fs::path(SeriesDir(key)) / kIncompleteFile).string(),
           j.dump(-1, ' ', false, nlohmann::json::error_handler_t::replace));
@@ -257,6 +262,7 @@ absl::Status SeriesAssembler::StartSeries(const std::string& key, Pending& p,
     return absl::ResourceExhaustedError(s.message());
   }
   p.called_ae = a.called_ae;
+  p.first_arrival_unix_ms = options_.clock->UnixMillis();
   p.calling_ae = a.calling_ae;
   // The series was complete before (its job made, or no rule matched) and
   // is held: the next job takes those instances too.

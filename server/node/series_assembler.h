@@ -164,15 +164,21 @@ using JobSubmitter = std::function<absl::StatusOr<std::string>(
     const v1::JobSpec& spec, const std::string& files_dir,
     const std::string& origin, const std::string& segmentation_file)>;
 
-// A complete series held in unmatched/, as ListKept reports it.
+// A series the node holds, as ListKept reports it: complete and kept in
+// unmatched/ (state "kept"), or still in series/: waiting for its
+// completion ("receiving") or for its missing part ("incomplete").
 struct KeptSeries {
-  std::string id;  // the folder's name, <key>-<unix ms>: opaque
+  std::string state = "kept";  // kept | receiving | incomplete
+  std::string id;              // the folder's name, <key>-<unix ms>: opaque
   std::string calling_ae, called_ae, modality;
   int64_t instances = 0;
+  // Kept: since it was kept; receiving: since its first instance arrived;
+  // incomplete: since it became incomplete.
   int64_t kept_since_unix_ms = 0;
   std::string job_id;  // the job made of it; empty: none
   // "job <id> made", or "no rule matched; the rules now: " and, per rule,
-  // its first failing criterion (RuleSet::ExplainNoMatch). No UIDs.
+  // its first failing criterion (RuleSet::ExplainNoMatch); for a series in
+  // series/, why it waits (the reason it is incomplete). No UIDs.
   std::string why;
   // Of its first instance: for admins only, never logged.
   std::string study_uid, series_uid;
@@ -261,8 +267,9 @@ class SeriesAssembler : public Intake {
 
   int pending_series();
 
-  // Blocking (reads every header of every held series). The held series,
-  // oldest first; `why` is explained against the rules in force now.
+  // Blocking (reads every header of every held series). The series in
+  // series/ (receiving, incomplete), then the held ones, oldest first;
+  // `why` is explained against the rules in force now.
   std::vector<KeptSeries> ListKept();
   // Blocking. Runs the kept series `id` (KeptSeries::id) again: matched
   // against the rules in force now and, when a rule matches, made into its
@@ -297,6 +304,10 @@ class SeriesAssembler : public Intake {
     // Instances taken over from the held copy of the series (its job was
     // made or no rule matched it) when it grew later.
     int64_t carried = 0;
+    // Unix ms: its first instance arrived (in this process's view: since
+    // the restart for a series received before it); it became incomplete.
+    int64_t first_arrival_unix_ms = 0;
+    int64_t incomplete_since_unix_ms = 0;
     // A segmentation waiting for its referenced series: since when (the
     // first try); unset otherwise.
     std::optional<std::chrono::steady_clock::time_point> waiting_since;

@@ -50,7 +50,7 @@ def functions(lines):
             in_block_comment = True
         # A definition starts at namespace or class depth: its signature may
         # span lines; the line ending in "{" closes the parameter list.
-        if SIGNATURE_END.search(code) and depth <= 2:
+        if SIGNATURE_END.search(code):
             # Find the signature's start (the line with the name and "(").
             # Back to the line that opens the parameter list: where the
             # parentheses read so far balance.

@@ -274,8 +274,11 @@ class GuardedLayer : public DcmTransportLayer {
 // ended. DcmThreadSCP runs the DCMTK association state machine.
 class AssociationScp : public DcmThreadSCP {
  public:
-  AssociationScp(AssociationRunner::Impl* impl, std::string source)
-      : impl_(impl), source_(std::move(source)) {}
+  AssociationScp(AssociationRunner::Impl* impl, std::string source,
+                 std::function<void()> release_slot)
+      : impl_(impl),
+        source_(std::move(source)),
+        release_slot_(std::move(release_slot)) {}
   ~AssociationScp() override {
     if (association_ != 0) {
       impl_->intake->EndTransfer(association_, false);
@@ -395,7 +398,17 @@ class AssociationScp : public DcmThreadSCP {
             : "");
   }
 
-  void notifyReleaseRequest() override { released_ = true; }
+  // The association's end begins: its place in the per-source count is
+  // free before the release is acknowledged (the sender may associate again
+  // the moment it reads the answer).
+  void notifyReleaseRequest() override {
+    released_ = true;
+    FreeSlot();
+  }
+  void notifyAbortRequest() override { FreeSlot(); }
+  void FreeSlot() {
+    if (release_slot_) release_slot_();
+  }
 
   // Called while a data set streams in: the bytes so far. An instance
   // larger than a whole series may be is cut off here, by aborting the
@@ -572,6 +585,7 @@ class AssociationScp : public DcmThreadSCP {
 
   AssociationRunner::Impl* const impl_;
   const std::string source_;
+  const std::function<void()> release_slot_;
   std::vector<std::shared_ptr<PendingMoves::Move>> moves_;
   std::string calling_, called_;
   const T_ASC_Parameters* params_ = nullptr;
@@ -721,7 +735,7 @@ void AssociationRunner::Serve(ReadyConnection connection) {
     }
     return;
   }
-  AssociationScp scp(&impl, source);
+  AssociationScp scp(&impl, source, connection.release_slot);
   scp.setSharedConfig(impl.config);
   // Negotiation (our checks are called back), then the DIMSE loop; the
   // association is dropped when `scp` goes.

@@ -147,6 +147,11 @@ struct ReadyConnection {
   std::unique_ptr<PduGuard> guard;
   std::shared_ptr<ConnectionWatch> watch;  // registered with the gate
   int64_t request_deadline_ms = 0;
+  // Frees the connection's place in the listener's per-source count; called
+  // as soon as the association's end begins (release request, abort), so
+  // that a sender at its limit may associate again at once, and again when
+  // the worker is done (only the first call counts). Empty: nothing to free.
+  std::function<void()> release_slot;
 };
 
 enum class Handoff { kTaken, kBusy, kSourceBusy };

@@ -268,6 +268,11 @@ absl::Status PduGuard::FeedCommand(const unsigned char* data, size_t n) {
           data_set_type_[data_set_type_fill_++] = data[i];
         }
       }
+      if (element_ == 0x0000) {  // CommandGroupLength (UL): keep its value
+        for (uint64_t i = 0; i < take && group_length_fill_ < 4; ++i) {
+          group_length_[group_length_fill_++] = data[i];
+        }
+      }
       element_left_ -= take;
       data += take;
       n -= static_cast<size_t>(take);
@@ -316,6 +321,13 @@ absl::Status PduGuard::FeedCommand(const unsigned char* data, size_t n) {
       if (length != 2) return Fail("a CommandDataSetType that is not a US");
       data_set_type_fill_ = 0;
     }
+    if (element == 0x0000) {
+      if (length != 4 || command_elements_ != 1) {
+        return Fail("a CommandGroupLength that is not the first element, a UL");
+      }
+      group_length_given_ = true;
+      group_length_fill_ = 0;
+    }
     element_left_ = length;
   }
   return absl::OkStatus();
@@ -324,6 +336,17 @@ absl::Status PduGuard::FeedCommand(const unsigned char* data, size_t n) {
 absl::Status PduGuard::EndCommand() {
   if (element_header_fill_ != 0 || element_left_ != 0) {
     return Fail("a command set ends inside an element");
+  }
+  if (group_length_given_) {
+    // The CommandGroupLength element itself is 12 bytes (tag, length,
+    // value); what follows it is what it counts.
+    const uint64_t said = Le32(group_length_);
+    if (command_bytes_ != 12 + said) {
+      return Fail(absl::StrCat("a command set whose CommandGroupLength says ",
+                               said, " bytes follow it, but ",
+                               command_bytes_ - 12, " do"));
+    }
+    group_length_given_ = false;
   }
   command_bytes_ = 0;
   command_elements_ = 0;

@@ -21,7 +21,10 @@
 //    made of elements DCMTK's dictionary knows as command elements, with
 //    defined lengths, at most max_command_bytes and 64 elements: no
 //    sequence can appear in one, and no element longer than a command set
-//    may be (DCMTK allocates the declared length first);
+//    may be (DCMTK allocates the declared length first); a command set that
+//    gives its CommandGroupLength (0000,0000) must hold exactly that many
+//    bytes after it when its last fragment ends (issue 39: one that lied
+//    held an association slot until the DIMSE timeout);
 //  - a data-set PDV only after a command whose CommandDataSetType
 //    (0000,0800) announces one (PS3.7 9.3: not 0x0101), on that command's
 //    presentation context, until its last fragment. Data-set fragments
@@ -103,6 +106,11 @@ class PduGuard {
   uint64_t element_left_ = 0;
   uint64_t command_bytes_ = 0;
   int command_elements_ = 0;
+  // CommandGroupLength (0000,0000) as it streams in, and the command set's
+  // bytes when it has arrived whole (12: the element itself).
+  unsigned char group_length_[4] = {};
+  int group_length_fill_ = 0;
+  bool group_length_given_ = false;
   // CommandDataSetType (0000,0800) of the command being read, as it
   // streams in (0x0101: no data set follows), and its context.
   uint16_t element_ = 0;

@@ -3,8 +3,10 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <atomic>
 #include <condition_variable>
 #include <deque>
+#include <functional>
 #include <map>
 #include <mutex>
 #include <thread>
@@ -62,6 +64,15 @@ struct StorageScp::Impl {
       return Handoff::kSourceBusy;
     }
     ++mine;
+    // Freed once, at the association's end or when its worker is done,
+    // whichever comes first (issue 39: a sender at its limit that
+    // associated again at once was refused while the worker cleaned up).
+    auto freed = std::make_shared<std::atomic<bool>>(false);
+    c.release_slot = [this, source = c.source, freed] {
+      if (freed->exchange(true)) return;
+      std::lock_guard<std::mutex> slot_lock(mu);
+      if (--per_source[source] <= 0) per_source.erase(source);
+    };
     queue.push_back(std::move(c));
     cv.notify_one();
     return Handoff::kTaken;
@@ -76,11 +87,11 @@ struct StorageScp::Impl {
       if (queue.empty()) return;  // stopping, nothing left
       ReadyConnection c = std::move(queue.front());
       queue.pop_front();
-      const std::string source = c.source;
+      const std::function<void()> release_slot = c.release_slot;
       lock.unlock();
       runner->Serve(std::move(c));
+      release_slot();
       lock.lock();
-      if (--per_source[source] <= 0) per_source.erase(source);
     }
   }
 };

@@ -1140,6 +1140,7 @@ grpc::ServerUnaryReactor* InterSliceService::ListKept(
       s->set_job_id(std::move(k.job_id));
       s->set_study_instance_uid(std::move(k.study_uid));
       s->set_series_instance_uid(std::move(k.series_uid));
+      s->set_state(std::move(k.state));
     }
     AuditEvent listed;
     listed.event = "kept.listed";

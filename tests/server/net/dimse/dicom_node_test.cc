@@ -1175,6 +1175,13 @@ TEST(DicomEdgeTest, ReSentInstanceNeverCompletesAnIncompleteSeries) {
   std::this_thread::sleep_for(std::chrono::seconds(3));
   EXPECT_TRUE(server.Jobs().empty()) << server.Log();
   EXPECT_THAT(server.Log(), ::testing::Not(HasSubstr("is complete again")));
+  // Finding 7: the operator sees it, with why and how much of it arrived.
+  CommandResult kept =
+      RunCommand(Cat({kCli, "kept", "list"}, server.Client()), 60);
+  ASSERT_EQ(kept.exit_code, 0) << kept.err;
+  EXPECT_THAT(kept.out, HasSubstr("  incomplete "));
+  EXPECT_THAT(kept.out, HasSubstr("14 instance(s)"));
+  EXPECT_THAT(kept.out, HasSubstr("without a normal release"));
   // The remainder: one job, of all 28.
   CommandResult rest = StoreScu(
       server, {}, std::vector<std::string>(files.begin() + 14, files.end()));
@@ -1249,6 +1256,54 @@ TEST(DicomEdgeTest, OwnResultsSentBackMakeNoJobUnlessARuleAsks) {
   ASSERT_TRUE(WaitUntil([&] { return !again.Jobs().empty(); }, 60))
       << again.Log();
   EXPECT_THAT(again.Log(), HasSubstr("made by rule results-again"));
+}
+
+// Issue 39, finding 7: a sender at its per-source limit that associated
+// again the moment its release was answered was refused ("local limit
+// exceeded"): its place was freed only after the worker had cleaned up.
+// It is freed as the release begins.
+TEST(DicomEdgeTest, SenderAtItsLimitMayAssociateAgainAtOnce) {
+  TempDir dir;
+  DicomServer server(
+      dir, "spool",
+      {"--dicom-peers", WritePeers(dir), "--rules", WriteRules(dir, 600, false),
+       "--dicom-max-associations-per-source", "1"});
+  ASSERT_TRUE(server.up()) << server.Log();
+  const std::vector<std::string> files = PhantomFiles();
+  for (int i = 0; i < 12; ++i) {
+    CommandResult store = StoreScu(server, {}, {files[i]});
+    ASSERT_EQ(store.exit_code, 0)
+        << "store " << i << ": " << store.err << server.Log();
+  }
+  EXPECT_EQ(server.Refused("associations_per_source"), 0) << server.Log();
+}
+
+// Issue 39, finding 7: a command set whose CommandGroupLength lies about
+// its length held an association slot for the whole DIMSE timeout (60 s).
+// It is cut as soon as its last fragment has arrived.
+TEST(DicomEdgeTest, LyingCommandSetIsCutAtOnce) {
+  TempDir dir;
+  DicomServer server(dir, "spool", {"--dicom-peers", WritePeers(dir)});
+  ASSERT_TRUE(server.up()) << server.Log();
+  const int fd = RawAssociate(std::stoi(server.port()));
+  ASSERT_GE(fd, 0) << server.Log();
+  std::string command = raw::CEchoRq(1);
+  command[8] = static_cast<char>(static_cast<unsigned char>(command[8]) + 40);
+  const auto t0 = std::chrono::steady_clock::now();
+  raw::SendAll(fd, raw::PData(3, true, true, command));
+  // No answer: the connection is closed (perhaps after an A-ABORT).
+  std::optional<raw::Pdu> answer = raw::ReadPdu(fd, 30);
+  EXPECT_TRUE(!answer.has_value() || answer->type == 0x07);
+  const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0)
+          .count();
+  ::close(fd);
+  EXPECT_LT(seconds, 20) << "held until a timeout";
+  EXPECT_TRUE(
+      WaitUntil([&] { return server.Refused("protocol_violation") >= 1; }, 10))
+      << server.Log();
+  EXPECT_THAT(server.Log(), HasSubstr("CommandGroupLength says"));
+  EXPECT_EQ(Echo(server).exit_code, 0) << server.Log();
 }
 
 // Finding 2, the server's side: killed while an association stores into a

@@ -211,6 +211,32 @@ TEST(PduGuardTest, CommandSetsCannotNest) {
   EXPECT_LE(fed, 2048u);
 }
 
+// Issue 39, finding 7: a command set whose CommandGroupLength says more
+// (or fewer) bytes than it holds held its association until the DIMSE
+// timeout. It is cut when its last fragment ends.
+TEST(PduGuardTest, CommandSetMustHoldWhatItsGroupLengthSays) {
+  const std::string echo = raw::CEchoRq(1);
+  for (const int lie : {+40, -2}) {
+    SCOPED_TRACE(lie);
+    std::string command = echo;
+    // The group length's value: bytes 8-11 of the command set.
+    uint32_t said = static_cast<unsigned char>(command[8]) |
+                    (static_cast<unsigned char>(command[9]) << 8);
+    said = static_cast<uint32_t>(static_cast<int64_t>(said) + lie);
+    command[8] = static_cast<char>(said & 0xFF);
+    command[9] = static_cast<char>((said >> 8) & 0xFF);
+    PduGuard guard;
+    ASSERT_TRUE(FeedAll(guard, Request()).ok());
+    const absl::Status s = FeedAll(guard, raw::PData(1, true, true, command));
+    ASSERT_FALSE(s.ok());
+    EXPECT_THAT(std::string(s.message()), HasSubstr("CommandGroupLength says"));
+  }
+  // The honest command passes.
+  PduGuard guard;
+  ASSERT_TRUE(FeedAll(guard, Request()).ok());
+  EXPECT_TRUE(FeedAll(guard, raw::PData(1, true, true, echo)).ok());
+}
+
 TEST(PduGuardTest, CommandElementsMustBeKnownAndDefined) {
   struct Case {
     const char* what;
