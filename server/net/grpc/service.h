@@ -113,7 +113,7 @@ class InterSliceService final : public v1::InterSlice::CallbackService {
   // starts; outlives the service's calls.
   void set_peers(const node::PeerRegistry* peers) { peers_ = peers; }
 
-  // Shared with the reactors (service.cc).
+  // Shared with the reactors (service_upload.cc, service_jobs.cc).
   const ServiceOptions& options() const { return options_; }
   JobManager* manager() const { return manager_; }
   Spool* spool() const { return spool_; }
