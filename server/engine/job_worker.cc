@@ -121,20 +121,17 @@ void InjectFault(const Fault& fault, const std::string& stage,
   }
 }
 
-}  // namespace
+// A worker process just started: its pid, the write end of its stdin and
+// the read end of its stdout.
+struct SpawnedWorker {
+  pid_t pid = -1;
+  int to_child = -1;
+  int from_child = -1;
+};
 
-absl::StatusOr<job::JobResult> RunInWorkerProcess(
-    const spool::v1::WorkerRequest& request, const ComputeContext& context,
-    const WorkerOptions& options, WorkerOutcome* outcome,
-    const std::function<void(const job::SourceSeries&)>& on_source) {
-  WorkerOutcome local;
-  WorkerOutcome& out = outcome != nullptr ? *outcome : local;
-  out = WorkerOutcome{};
-  // A worker that dies while we write its request must not take the server
-  // down with SIGPIPE: the write then just fails.
-  static std::once_flag ignore_sigpipe;
-  std::call_once(ignore_sigpipe, [] { ::signal(SIGPIPE, SIG_IGN); });
-
+// Starts the job worker (options.executable --job-worker) with a pipe on its
+// stdin and one on its stdout; UNAVAILABLE when it cannot.
+absl::StatusOr<SpawnedWorker> SpawnWorker(const WorkerOptions& options) {
   int to_child[2], from_child[2];
   if (::pipe2(to_child, O_CLOEXEC) != 0) {
     return absl::UnavailableError(absl::StrCat(
@@ -183,72 +180,104 @@ absl::StatusOr<job::JobResult> RunInWorkerProcess(
     return absl::UnavailableError(absl::StrCat(
         "cannot start a job worker process: ", std::strerror(spawned)));
   }
+  return SpawnedWorker{pid, to_child[1], from_child[0]};
+}
 
-  // The request, then end of input. A worker that is already gone makes
-  // the write fail; its exit status says why below.
-  WriteFrame(to_child[1], request);
-  ::close(to_child[1]);
-
+// What the server heard from a worker (its result, whether its output did
+// not parse) and which signals it sent it.
+struct WorkerExchange {
   bool have_result = false;
   spool::v1::WorkerResult result;
   bool protocol_error = false;
   bool sent_term = false, sent_kill = false;
   std::chrono::steady_clock::time_point term_time;
+};
+
+// Cancellation and deadlines: SIGTERM once the job is cancelled, SIGKILL
+// when the worker has not ended options.kill_grace later.
+void SignalWorkerIfCancelled(pid_t pid, const ComputeContext& context,
+                             const WorkerOptions& options,
+                             WorkerExchange& exchange) {
+  if (!exchange.sent_term && !context.CheckCancelled().ok()) {
+    ::kill(pid, SIGTERM);
+    exchange.sent_term = true;
+    exchange.term_time = std::chrono::steady_clock::now();
+  }
+  if (exchange.sent_term && !exchange.sent_kill &&
+      std::chrono::steady_clock::now() - exchange.term_time >
+          options.kill_grace) {
+    ::kill(pid, SIGKILL);
+    exchange.sent_kill = true;
+  }
+}
+
+// One event from the worker: progress to context.progress, the source
+// series to `on_source`, or the result into `exchange`.
+void HandleWorkerEvent(
+    const std::string& frame, const ComputeContext& context,
+    const std::function<void(const job::SourceSeries&)>& on_source,
+    WorkerOutcome& out, WorkerExchange& exchange) {
+  spool::v1::WorkerEvent event;
+  if (!event.ParseFromString(frame)) {
+    exchange.protocol_error = true;
+    return;
+  }
+  if (event.has_progress()) {
+    const spool::v1::WorkerProgress& p = event.progress();
+    out.last_stage = p.stage();
+    context.Report({.stage = p.stage(),
+                    .fraction = p.fraction(),
+                    .iteration = p.iteration(),
+                    .relative_residual = p.relative_residual(),
+                    .energy = p.energy()});
+  } else if (event.has_result()) {
+    exchange.result = event.result();
+    exchange.have_result = true;
+  } else if (event.has_source() && on_source) {
+    const spool::v1::WorkerSource& w = event.source();
+    on_source({.study_instance_uid = w.study_instance_uid(),
+               .series_instance_uid = w.series_instance_uid(),
+               .modality = w.modality(),
+               .instance_count = w.instance_count()});
+  }
+}
+
+// Reads the worker's events from `from_child` until its output ends (or
+// does not parse: then the worker is killed), signalling it meanwhile when
+// the job is cancelled.
+void ReadWorkerEvents(
+    pid_t pid, int from_child, const ComputeContext& context,
+    const WorkerOptions& options,
+    const std::function<void(const job::SourceSeries&)>& on_source,
+    WorkerOutcome& out, WorkerExchange& exchange) {
   std::string buffer;
   char chunk[65536];
   for (;;) {
-    if (!sent_term && !context.CheckCancelled().ok()) {
-      ::kill(pid, SIGTERM);
-      sent_term = true;
-      term_time = std::chrono::steady_clock::now();
-    }
-    if (sent_term && !sent_kill &&
-        std::chrono::steady_clock::now() - term_time > options.kill_grace) {
-      ::kill(pid, SIGKILL);
-      sent_kill = true;
-    }
-    pollfd fd{from_child[0], POLLIN, 0};
+    SignalWorkerIfCancelled(pid, context, options, exchange);
+    pollfd fd{from_child, POLLIN, 0};
     const int ready = ::poll(&fd, 1, 100);
     if (ready < 0 && errno != EINTR) break;
     if (ready <= 0) continue;
-    const ssize_t n = ::read(from_child[0], chunk, sizeof(chunk));
+    const ssize_t n = ::read(from_child, chunk, sizeof(chunk));
     if (n < 0 && (errno == EINTR || errno == EAGAIN)) continue;
     if (n <= 0) break;  // end of the worker's output
     buffer.append(chunk, static_cast<size_t>(n));
     std::vector<std::string> frames;
     if (!TakeFrames(buffer, frames)) {
-      protocol_error = true;
+      exchange.protocol_error = true;
       ::kill(pid, SIGKILL);
-      sent_kill = true;
+      exchange.sent_kill = true;
       break;
     }
     for (const std::string& frame : frames) {
-      spool::v1::WorkerEvent event;
-      if (!event.ParseFromString(frame)) {
-        protocol_error = true;
-        continue;
-      }
-      if (event.has_progress()) {
-        const spool::v1::WorkerProgress& p = event.progress();
-        out.last_stage = p.stage();
-        context.Report({.stage = p.stage(),
-                        .fraction = p.fraction(),
-                        .iteration = p.iteration(),
-                        .relative_residual = p.relative_residual(),
-                        .energy = p.energy()});
-      } else if (event.has_result()) {
-        result = event.result();
-        have_result = true;
-      } else if (event.has_source() && on_source) {
-        const spool::v1::WorkerSource& w = event.source();
-        on_source({.study_instance_uid = w.study_instance_uid(),
-                   .series_instance_uid = w.series_instance_uid(),
-                   .modality = w.modality(),
-                   .instance_count = w.instance_count()});
-      }
+      HandleWorkerEvent(frame, context, on_source, out, exchange);
     }
   }
-  ::close(from_child[0]);
+}
+
+// Waits for the worker to end: its exit code or signal, whether that is a
+// crash (a signal the server did not send) and its peak RSS, into `out`.
+void ReapWorker(pid_t pid, const WorkerExchange& exchange, WorkerOutcome& out) {
   int status = 0;
   struct rusage usage {};
   while (::wait4(pid, &status, 0, &usage) < 0 && errno == EINTR) {
@@ -257,26 +286,38 @@ absl::StatusOr<job::JobResult> RunInWorkerProcess(
   if (WIFEXITED(status)) out.exit_code = WEXITSTATUS(status);
   if (WIFSIGNALED(status)) {
     out.signal = WTERMSIG(status);
-    const bool ours = (sent_term && out.signal == SIGTERM) ||
-                      (sent_kill && out.signal == SIGKILL);
+    const bool ours = (exchange.sent_term && out.signal == SIGTERM) ||
+                      (exchange.sent_kill && out.signal == SIGKILL);
     out.crashed = !ours;
   }
+}
 
-  if (have_result && !out.crashed) {
-    const absl::Status status(static_cast<absl::StatusCode>(result.code()),
-                              result.message());
-    if (!status.ok()) return status;
-    job::JobResult made;
-    for (const spool::v1::WorkerStage& s : result.stages()) {
-      made.stages.push_back({s.stage(), s.seconds()});
-    }
-    for (const spool::v1::WorkerArtifact& a : result.artifacts()) {
-      made.artifacts.push_back({a.kind(), a.path(), a.size_bytes()});
-    }
-    made.warnings.assign(result.warnings().begin(), result.warnings().end());
-    made.report_json = result.report_json();
-    made.peak_rss_bytes = out.peak_rss_bytes;
-    return made;
+// The job's result as the worker reported it: its error, or what it made.
+absl::StatusOr<job::JobResult> JobResultFromWorker(
+    const spool::v1::WorkerResult& result, int64_t peak_rss_bytes) {
+  const absl::Status status(static_cast<absl::StatusCode>(result.code()),
+                            result.message());
+  if (!status.ok()) return status;
+  job::JobResult made;
+  for (const spool::v1::WorkerStage& s : result.stages()) {
+    made.stages.push_back({s.stage(), s.seconds()});
+  }
+  for (const spool::v1::WorkerArtifact& a : result.artifacts()) {
+    made.artifacts.push_back({a.kind(), a.path(), a.size_bytes()});
+  }
+  made.warnings.assign(result.warnings().begin(), result.warnings().end());
+  made.report_json = result.report_json();
+  made.peak_rss_bytes = peak_rss_bytes;
+  return made;
+}
+
+// How the job ended, from what the worker sent and how it ended: its
+// result, or why there is none (a crash, a protocol error, cancellation).
+absl::StatusOr<job::JobResult> WorkerJobResult(const WorkerExchange& exchange,
+                                               const ComputeContext& context,
+                                               const WorkerOutcome& out) {
+  if (exchange.have_result && !out.crashed) {
+    return JobResultFromWorker(exchange.result, out.peak_rss_bytes);
   }
   if (out.crashed) {
     return absl::InternalError(absl::StrFormat(
@@ -286,7 +327,7 @@ absl::StatusOr<job::JobResult> RunInWorkerProcess(
         out.last_stage.empty() ? "start" : out.last_stage,
         out.signal == SIGKILL ? ", or the worker ran out of memory" : ""));
   }
-  if (protocol_error && context.CheckCancelled().ok()) {
+  if (exchange.protocol_error && context.CheckCancelled().ok()) {
     // Stopped by us because its output did not parse, not cancelled: say
     // so (this once read "the job was cancelled", which sent people
     // looking for a client that never cancelled anything).
@@ -296,14 +337,44 @@ absl::StatusOr<job::JobResult> RunInWorkerProcess(
         "this job failed",
         out.last_stage.empty() ? "start" : out.last_stage));
   }
-  if (sent_term || sent_kill) {
+  if (exchange.sent_term || exchange.sent_kill) {
     absl::Status cancelled = context.CheckCancelled();
     return cancelled.ok() ? absl::CancelledError("the job was cancelled")
                           : cancelled;
   }
   return absl::InternalError(absl::StrFormat(
       "the job's worker process ended without a result (exit code %d%s)",
-      out.exit_code, protocol_error ? ", protocol error" : ""));
+      out.exit_code, exchange.protocol_error ? ", protocol error" : ""));
+}
+
+}  // namespace
+
+absl::StatusOr<job::JobResult> RunInWorkerProcess(
+    const spool::v1::WorkerRequest& request, const ComputeContext& context,
+    const WorkerOptions& options, WorkerOutcome* outcome,
+    const std::function<void(const job::SourceSeries&)>& on_source) {
+  WorkerOutcome local;
+  WorkerOutcome& out = outcome != nullptr ? *outcome : local;
+  out = WorkerOutcome{};
+  // A worker that dies while we write its request must not take the server
+  // down with SIGPIPE: the write then just fails.
+  static std::once_flag ignore_sigpipe;
+  std::call_once(ignore_sigpipe, [] { ::signal(SIGPIPE, SIG_IGN); });
+
+  absl::StatusOr<SpawnedWorker> worker = SpawnWorker(options);
+  if (!worker.ok()) return worker.status();
+
+  // The request, then end of input. A worker that is already gone makes
+  // the write fail; its exit status says why below.
+  WriteFrame(worker->to_child, request);
+  ::close(worker->to_child);
+
+  WorkerExchange exchange;
+  ReadWorkerEvents(worker->pid, worker->from_child, context, options, on_source,
+                   out, exchange);
+  ::close(worker->from_child);
+  ReapWorker(worker->pid, exchange, out);
+  return WorkerJobResult(exchange, context, out);
 }
 
 void InjectTestFault(const std::string& stage, float threshold) {
