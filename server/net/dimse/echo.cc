@@ -5,6 +5,7 @@
 #include "dcmtk/dcmnet/diutil.h"
 #include "dcmtk/dcmnet/scu.h"
 #include "dcmtk/dcmtls/tlslayer.h"
+#include "server/net/dimse/associate.h"
 #include "server/net/dimse/scu.h"
 #include "server/net/dimse/tls.h"
 
@@ -41,23 +42,7 @@ absl::Status EchoPeer(const DicomPeer& peer,
   absl::StatusOr<DicomTlsLayer> tls_or = TlsLayerFor(peer, tls_files);
   if (!tls_or.ok()) return tls_or.status();
   DicomTlsLayer tls = *std::move(tls_or);
-  cond = scu.initNetwork();
-  if (cond.bad()) {
-    return absl::InternalError(
-        absl::StrCat("cannot initialise the network: ", cond.text()));
-  }
-  if (tls != nullptr) {
-    cond = scu.useSecureConnection(tls.get());
-    if (cond.bad()) {
-      return absl::InternalError(absl::StrCat(
-          "cannot use TLS with ", PeerLabel(peer), ": ", cond.text()));
-    }
-  }
-  cond = scu.negotiateAssociation();
-  if (cond.bad()) {
-    return absl::UnavailableError(absl::StrCat(
-        "cannot associate with ", PeerLabel(peer), ": ", cond.text()));
-  }
+  if (absl::Status s = Associate(scu, peer, tls); !s.ok()) return s;
   cond = scu.sendECHORequest(0);
   scu.releaseAssociation();
   if (cond.bad()) {

@@ -9,6 +9,7 @@
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "server/net/dimse/associate.h"
 #include "server/net/dimse/scu.h"
 #include "server/net/dimse/tls.h"
 #include "server/node/peer.h"
@@ -137,23 +138,7 @@ absl::StatusOr<FindResult> FindStudiesAndSeries(const DicomPeer& peer,
   // again before each association (without it the second one failed with
   // "ASC Caller passed in a NULL key").
   auto associate = [&]() -> absl::Status {
-    OFCondition c = scu.initNetwork();
-    if (c.bad()) {
-      return absl::InternalError(
-          absl::StrCat("cannot initialise the network: ", c.text()));
-    }
-    if (tls != nullptr) {
-      c = scu.useSecureConnection(tls.get());
-      if (c.bad()) {
-        return absl::InternalError(absl::StrCat(
-            "cannot use TLS with ", PeerLabel(peer), ": ", c.text()));
-      }
-    }
-    c = scu.negotiateAssociation();
-    if (c.bad()) {
-      return absl::UnavailableError(absl::StrCat(
-          "cannot associate with ", PeerLabel(peer), ": ", c.text()));
-    }
+    if (absl::Status s = Associate(scu, peer, tls); !s.ok()) return s;
     pc = scu.findPresentationContextID(
         UID_FINDStudyRootQueryRetrieveInformationModel, "");
     if (pc == 0) {

@@ -17,6 +17,7 @@
 #include "core/dicom/series_reader.h"
 #include "server/base/log_safe.h"
 #include "server/net/dimse/pending_moves.h"
+#include "server/net/dimse/associate.h"
 #include "server/net/dimse/scu.h"
 #include "server/net/dimse/tls.h"
 #include "server/node/dataset_scan.h"
@@ -67,30 +68,6 @@ class RetrieveScu : public DcmSCU {
   // Protected in DcmSCU (3.6.7); dcmtls' TLS layer goes in through it.
   using DcmSCU::useSecureConnection;
 };
-
-// The network, TLS when the peer uses it, and the association (the
-// presentation contexts added before). `tls` must outlive the association.
-absl::Status Associate(RetrieveScu& scu, const DicomPeer& peer,
-                       const DicomTlsLayer& tls) {
-  OFCondition cond = scu.initNetwork();
-  if (cond.bad()) {
-    return absl::InternalError(
-        absl::StrCat("cannot initialise the network: ", cond.text()));
-  }
-  if (tls != nullptr) {
-    cond = scu.useSecureConnection(tls.get());
-    if (cond.bad()) {
-      return absl::InternalError(absl::StrCat(
-          "cannot use TLS with ", PeerLabel(peer), ": ", cond.text()));
-    }
-  }
-  cond = scu.negotiateAssociation();
-  if (cond.bad()) {
-    return absl::UnavailableError(absl::StrCat(
-        "cannot associate with ", PeerLabel(peer), ": ", cond.text()));
-  }
-  return absl::OkStatus();
-}
 
 // C-GET with the sub-operations' instances written durably into a folder,
 // within the limits.

@@ -12,6 +12,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "core/dicom/series_reader.h"
+#include "server/net/dimse/associate.h"
 #include "server/net/dimse/scu.h"
 #include "server/net/dimse/tls.h"
 // osconfig.h must precede every other DCMTK header.
@@ -91,18 +92,7 @@ absl::StatusOr<StoreResult> StoreFilesSequentially(
     return absl::InternalError(
         absl::StrCat("cannot propose presentation contexts: ", cond.text()));
   }
-  cond = scu.initNetwork();
-  if (cond.bad()) {
-    return absl::InternalError(
-        absl::StrCat("cannot initialise the network: ", cond.text()));
-  }
-  if (tls != nullptr) {
-    cond = scu.useSecureConnection(tls.get());
-    if (cond.bad()) {
-      return absl::InternalError(absl::StrCat(
-          "cannot use TLS with ", PeerLabel(peer), ": ", cond.text()));
-    }
-  }
+  if (absl::Status s = OpenNetwork(scu, peer, tls); !s.ok()) return s;
   // One association per group of at most 128 presentation contexts
   // (DcmStorageSCU groups them); bounded so that a peer that accepts an
   // association but no context cannot keep us here.
@@ -129,10 +119,7 @@ absl::StatusOr<StoreResult> StoreFilesSequentially(
     // What is left was refused in an earlier round's negotiation and the
     // peer accepts none of it now either: counted as refused below.
     if (round > 0 && cond == NET_EC_NoAcceptablePresentationContexts) break;
-    if (cond.bad()) {
-      return absl::UnavailableError(absl::StrCat(
-          "cannot associate with ", PeerLabel(peer), ": ", cond.text()));
-    }
+    if (cond.bad()) return AssociationError(peer, cond);
     cond = scu.sendSOPInstances();
     scu.releaseAssociation();
     if (cond.bad() && cond != NET_EC_NoSOPInstancesToSend) {
