@@ -17,7 +17,7 @@
 #include "server/base/audit.h"
 #include "server/base/log_safe.h"
 #include "server/engine/spool.h"
-#include "server/net/dicomweb/stow_body.h"
+#include "server/net/dicomweb/multipart.h"
 #include "server/node/dataset_scan.h"
 #include "server/node/intake.h"
 #include "server/node/received_instance.h"
@@ -39,8 +39,8 @@ std::string GetString(DcmItem* item, const DcmTagKey& tag) {
 }
 
 // Writes each application/dicom part to a staging file and hands it to the
-// assembler when it ends (StowPartSink of stow_body.h).
-class StagingSink : public StowPartSink {
+// assembler when it ends (the MultipartSink of multipart.h).
+class StagingSink : public MultipartSink {
  public:
   StagingSink(node::Intake* assembler, Spool* spool, uint64_t association,
               std::string fallback_type, std::string study_uid)
@@ -311,7 +311,7 @@ StowResponse StowReceiver::Handle(const StowRequest& request) const {
       assembler_->BeginTransfer(identity, options_.called_ae);
   StagingSink sink(assembler_, spool_, association, type->type,
                    request.study_uid);
-  StowBodyParser parser(type->boundary, &sink);
+  MultipartParser parser(type->boundary, StowRequestMultipart(), &sink);
   std::vector<char> buffer(options_.read_chunk_bytes);
   int64_t total = 0;
   absl::Status parsed = absl::OkStatus();
