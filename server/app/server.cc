@@ -11,8 +11,10 @@
 #include <cstdio>
 #include <fstream>
 #include <memory>
+#include <optional>
 #include <sstream>
 #include <stop_token>
+#include <string_view>
 #include <thread>
 #include <utility>
 
@@ -34,6 +36,7 @@
 #include "server/net/dimse/storage_scp.h"
 #include "server/net/grpc/forwarding.h"
 #include "server/net/grpc/service.h"
+#include "server/net/http/http_handler.h"
 #include "server/net/http/status_page.h"
 #include "server/node/outbox.h"
 #include "server/node/peer_registry.h"
@@ -71,6 +74,28 @@ int ReadCgroupCpuLimit() {
   }
   return 0;
 }
+
+// /dicomweb on a server without a DICOM node: 404 before authentication,
+// saying what would serve STOW-RS.
+class StowNotServed : public HttpRequestHandler {
+ public:
+  std::string_view name() const override { return "STOW-RS"; }
+  std::optional<HttpServerResponse> Screen(std::string_view,
+                                           std::string_view) const override {
+    return Answer();
+  }
+  HttpServerResponse Serve(const HttpServerRequest&) const override {
+    return Answer();
+  }
+
+ private:
+  static HttpServerResponse Answer() {
+    return {.status = 404,
+            .body =
+                "not found: STOW-RS is served with the DICOM node "
+                "(--dicom-listen)\n"};
+  }
+};
 
 // The running daemon: every part, started in order by Start() and stopped
 // in reverse by the drain and the destructor. The members are declared in
@@ -138,8 +163,10 @@ class ServerRuntime {
   std::unique_ptr<Forwarder> forwarder_;
   std::unique_ptr<grpc::Server> grpc_server_;
   int grpc_port_ = 0;
-  // The status page and STOW-RS: stopped before what they read.
+  // The status page and the handler of its /dicomweb route (STOW-RS, or
+  // a 404 without a DICOM node): stopped before what they read.
   std::unique_ptr<dicomweb::StowReceiver> stow_;
+  std::unique_ptr<HttpRequestHandler> stow_not_served_;
   std::unique_ptr<StatusServer> status_page_;
 };
 
@@ -492,8 +519,11 @@ absl::Status ServerRuntime::StartHttp() {
   const ServerOptions& o = options_;
   if (assembler_ != nullptr && !o.status_listen.empty()) {
     stow_ = std::make_unique<dicomweb::StowReceiver>(
-        dicomweb::StowOptions{.called_ae = CallingAeTitle(o),
-                              .max_body_bytes = o.stow_max_body_bytes},
+        dicomweb::StowOptions{
+            .called_ae = CallingAeTitle(o),
+            .max_body_bytes = o.stow_max_body_bytes,
+            .refuse_anonymous =
+                !page_auth_->tokens_required() && !o.tls_client_ca.empty()},
         assembler_.get(), spool_.get(), audit_.get());
   }
   if (o.status_listen.empty()) {
@@ -503,16 +533,19 @@ absl::Status ServerRuntime::StartHttp() {
     }
     return absl::OkStatus();
   }
+  const HttpRequestHandler* dicomweb = stow_.get();
+  if (dicomweb == nullptr) {
+    stow_not_served_ = std::make_unique<StowNotServed>();
+    dicomweb = stow_not_served_.get();
+  }
   absl::StatusOr<std::unique_ptr<StatusServer>> started = StatusServer::Start(
       {.listen = o.status_listen,
        .max_connections = o.http_max_connections,
        .request_timeout_seconds = o.http_request_timeout_seconds,
-       .stow_token_required =
-           !page_auth_->tokens_required() && !o.tls_client_ca.empty(),
        .tls_certificate = o.http_tls_cert,
        .tls_private_key = o.http_tls_key},
       [this] { return Snapshot(); }, page_auth_.get(), audit_.get(),
-      stow_.get());
+      {{.prefix = "/dicomweb", .handler = dicomweb}});
   if (!started.ok()) return started.status();
   status_page_ = *std::move(started);
   spdlog::info("status page on {} (port {}, {}){}{}", o.status_listen,

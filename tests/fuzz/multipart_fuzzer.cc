@@ -1,5 +1,7 @@
-// libFuzzer target for MultipartParser (server/net/dicomweb/multipart.h), the
-// streaming parser of WADO-RS responses (and, later, STOW-RS bodies).
+// libFuzzer target for MultipartParser (server/net/dicomweb/multipart.h) in
+// its WADO-RS response configuration (WadoResponseMultipart: strict CRLF,
+// Content-Length checked, limits); stow_body_fuzzer.cc fuzzes the STOW-RS
+// request configuration of the same parser.
 //
 // Input: one mode byte, one chunk-size byte, then the body (boundary
 // "frontier"). Mode bit 0: tiny limits (parts of 64 bytes, 4 parts, 256
@@ -13,15 +15,18 @@
 #include <cstddef>
 #include <cstdint>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include "server/net/dicomweb/multipart.h"
 
 namespace {
 
-using interslice::server::dicomweb::MultipartCallbacks;
 using interslice::server::dicomweb::MultipartLimits;
 using interslice::server::dicomweb::MultipartParser;
+using interslice::server::dicomweb::MultipartSink;
+using interslice::server::dicomweb::PartHeaders;
+using interslice::server::dicomweb::WadoResponseMultipart;
 
 void Check(bool condition) {
   if (!condition) __builtin_trap();
@@ -33,35 +38,46 @@ struct Outcome {
   std::vector<bool> ended;
 };
 
+// Collects the parts into an Outcome, checking the sink's contract.
+class CollectingSink : public MultipartSink {
+ public:
+  CollectingSink(Outcome* out, const MultipartLimits& limits)
+      : out_(out), limits_(limits) {}
+  absl::Status BeginPart(const PartHeaders&) override {
+    Check(!in_part_);
+    in_part_ = true;
+    out_->parts.emplace_back();
+    out_->ended.push_back(false);
+    return absl::OkStatus();
+  }
+  absl::Status PartBytes(std::string_view data) override {
+    Check(in_part_ && !data.empty());
+    out_->parts.back().append(data.data(), data.size());
+    Check(static_cast<int64_t>(out_->parts.back().size()) <=
+          limits_.max_part_bytes);
+    return absl::OkStatus();
+  }
+  absl::Status EndPart() override {
+    Check(in_part_);
+    in_part_ = false;
+    out_->ended.back() = true;
+    return absl::OkStatus();
+  }
+
+ private:
+  Outcome* const out_;
+  const MultipartLimits limits_;
+  bool in_part_ = false;
+};
+
 Outcome Parse(const std::string& body, size_t chunk,
               const MultipartLimits& limits) {
   Outcome out;
-  bool in_part = false;
-  MultipartCallbacks callbacks;
-  callbacks.on_part_begin = [&](const auto&) {
-    Check(!in_part);
-    in_part = true;
-    out.parts.emplace_back();
-    out.ended.push_back(false);
-    return absl::OkStatus();
-  };
-  callbacks.on_part_data = [&](absl::string_view data) {
-    Check(in_part);
-    out.parts.back().append(data.data(), data.size());
-    Check(static_cast<int64_t>(out.parts.back().size()) <=
-          limits.max_part_bytes);
-    return absl::OkStatus();
-  };
-  callbacks.on_part_end = [&] {
-    Check(in_part);
-    in_part = false;
-    out.ended.back() = true;
-    return absl::OkStatus();
-  };
-  MultipartParser parser("frontier", limits, callbacks);
+  CollectingSink sink(&out, limits);
+  MultipartParser parser("frontier", WadoResponseMultipart(limits), &sink);
   absl::Status status;
   for (size_t at = 0; at < body.size() && status.ok(); at += chunk) {
-    status = parser.Feed(absl::string_view(body).substr(at, chunk));
+    status = parser.Feed(std::string_view(body).substr(at, chunk));
   }
   if (status.ok()) status = parser.Finish();
   if (!status.ok()) {

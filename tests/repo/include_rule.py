@@ -46,6 +46,11 @@ RULES = [
     ("doors-apart", ["server/net/dicomweb/"],
      [r"^server/net/dimse/"],
      "net/dimse and net/dicomweb never include each other"),
+    ("http-knows-no-door", ["server/net/http/"],
+     [r"^server/net/dicomweb/"],
+     "net/http is the listener: the DICOMweb door plugs into it through "
+     "its route interface (server/net/http/http_handler.h), never the other "
+     "way"),
     ("dimse-only-in-net-dimse", ["core/", "job/", "client/", "server/"],
      [r"^dcmtk/(dcmnet|dcmtls)/"],
      "DCMTK's network headers (dcmnet, dcmtls) only in server/net/dimse/"),

@@ -1,24 +1,33 @@
 // Unit tests of the server library's pure parts.
+#include <arpa/inet.h>
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
+#include <unistd.h>
 
 #include <atomic>
 #include <chrono>
 #include <filesystem>
 #include <fstream>
 #include <mutex>
+#include <optional>
 #include <string>
+#include <string_view>
 #include <thread>
 #include <vector>
 
+#include "absl/strings/str_cat.h"
 #include "nlohmann/json.hpp"
 #include "server/base/audit.h"
+#include "server/base/identity.h"
 #include "server/base/log_safe.h"
 #include "server/base/redact.h"
 #include "server/engine/job_worker.h"
 #include "server/net/grpc/auth.h"
 #include "server/net/grpc/status_map.h"
 #include "server/net/grpc/upload_guard.h"
+#include "server/net/http/http_handler.h"
 #include "server/net/http/status_page.h"
 #include "tests/testing/temp_dir.h"
 #include "tests/testing/wait_for.h"
@@ -206,6 +215,126 @@ TEST(StatusPageTest, EscapesEverythingAndHasNoScript) {
 
 // Regression: a worker whose output does not parse was stopped and reported
 // as "the job was cancelled" although nobody cancelled it.
+// A route of the HTTP listener (server/net/http/http_handler.h) that
+// refuses /hook/nope unauthenticated and echoes what Serve gets.
+class EchoHandler : public HttpRequestHandler {
+ public:
+  std::string_view name() const override { return "echo"; }
+  std::optional<HttpServerResponse> Screen(
+      std::string_view method, std::string_view path) const override {
+    screened.fetch_add(1);
+    if (path == "/hook/nope") {
+      return HttpServerResponse{.status = 404, .body = "no\n"};
+    }
+    return std::nullopt;
+  }
+  HttpServerResponse Serve(const HttpServerRequest& request) const override {
+    std::string body;
+    char buffer[3];  // small reads: the body streams
+    for (int64_t n; (n = request.read(buffer, sizeof(buffer))) > 0;) {
+      body.append(buffer, static_cast<size_t>(n));
+    }
+    return {
+        .status = 202,
+        .content_type = "text/x-echo",
+        .body = absl::StrCat(request.method, " ", request.path, " ",
+                             request.identity, " ", request.header("x-test"),
+                             " ", request.content_length, " ", body, "\n"),
+        .extra_headers = "X-Echo: yes\r\n"};
+  }
+  mutable std::atomic<int> screened{0};
+};
+
+// One HTTP/1.1 exchange over a plain socket: the whole answer (the server
+// closes the connection after it).
+std::string Exchange(int port, const std::string& request) {
+  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  address.sin_port = htons(static_cast<uint16_t>(port));
+  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  std::string answer;
+  if (::connect(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address)) ==
+          0 &&
+      ::send(fd, request.data(), request.size(), MSG_NOSIGNAL) ==
+          static_cast<ssize_t>(request.size())) {
+    char buffer[4096];
+    for (ssize_t n; (n = ::recv(fd, buffer, sizeof(buffer), 0)) > 0;) {
+      answer.append(buffer, static_cast<size_t>(n));
+    }
+  }
+  ::close(fd);
+  return answer;
+}
+
+TEST(StatusServerTest, RoutesAreScreenedAuthenticatedAndServed) {
+  testing::TempDir dir;
+  const std::string audit_path = dir.path() / "audit.jsonl";
+  absl::StatusOr<std::unique_ptr<AuditLog>> audit =
+      AuditLog::Open({.path = audit_path});
+  ASSERT_TRUE(audit.ok()) << audit.status();
+  const Authenticator auth({{.name = "alice", .token = "tok-alice"}}, {});
+  EchoHandler echo;
+  absl::StatusOr<std::unique_ptr<StatusServer>> server = StatusServer::Start(
+      {.listen = "127.0.0.1:0"}, [] { return StatusSnapshot(); }, &auth,
+      audit->get(), {{.prefix = "/hook", .handler = &echo}});
+  ASSERT_TRUE(server.ok()) << server.status();
+  const int port = (*server)->port();
+  const std::string kToken = "Authorization: Bearer tok-alice\r\n";
+
+  // Served: method, path, identity, headers and the body in small reads.
+  std::string answer =
+      Exchange(port, "POST /hook/a HTTP/1.1\r\nHost: x\r\n" + kToken +
+                         "X-Test: hi\r\nContent-Length: 5\r\n\r\nhello");
+  EXPECT_THAT(answer, ::testing::StartsWith("HTTP/1.1 202 Accepted\r\n"));
+  EXPECT_THAT(answer, HasSubstr("Content-Type: text/x-echo\r\n"));
+  EXPECT_THAT(answer, HasSubstr("X-Echo: yes\r\n"));
+  EXPECT_THAT(answer, HasSubstr("\r\n\r\nPOST /hook/a alice hi 5 hello\n"));
+  // The prefix itself is the route's; a HEAD answer has no body.
+  answer =
+      Exchange(port, "HEAD /hook HTTP/1.1\r\nHost: x\r\n" + kToken + "\r\n");
+  EXPECT_THAT(answer, ::testing::StartsWith("HTTP/1.1 202 Accepted\r\n"));
+  EXPECT_THAT(answer, ::testing::EndsWith("\r\n\r\n"));
+  // Screened before authentication: no token needed to be told 404.
+  answer = Exchange(port, "GET /hook/nope HTTP/1.1\r\nHost: x\r\n\r\n");
+  EXPECT_THAT(answer, ::testing::StartsWith("HTTP/1.1 404 Not Found\r\n"));
+  EXPECT_THAT(answer, ::testing::EndsWith("\r\n\r\nno\n"));
+  // No or a wrong token: 401 with a challenge and an audit record; the
+  // handler is not served.
+  answer = Exchange(port,
+                    "POST /hook/a HTTP/1.1\r\nHost: x\r\nAuthorization: "
+                    "Bearer wrong\r\nContent-Length: 1\r\n\r\nx");
+  EXPECT_THAT(answer, ::testing::StartsWith("HTTP/1.1 401 Unauthorized\r\n"));
+  EXPECT_THAT(answer, HasSubstr("WWW-Authenticate: Basic"));
+  EXPECT_THAT(answer, Not(HasSubstr("POST /hook/a")));
+  // Paths that only start like the prefix are not the route's.
+  answer =
+      Exchange(port, "GET /hookx HTTP/1.1\r\nHost: x\r\n" + kToken + "\r\n");
+  EXPECT_THAT(answer, HasSubstr("the status page is /status"));
+  EXPECT_EQ(echo.screened.load(), 4);
+  server->reset();
+  (*audit)->Flush();
+  const std::vector<std::string> lines = ReadLines(audit_path);
+  ASSERT_EQ(lines.size(), 1u);
+  EXPECT_EQ(nlohmann::json::parse(lines[0])["detail"],
+            "echo: missing or wrong token");
+
+  // Routes need a handler and a prefix "/name".
+  for (const HttpRoute& bad :
+       std::vector<HttpRoute>{{.prefix = "/hook/", .handler = &echo},
+                              {.prefix = "hook", .handler = &echo},
+                              {.prefix = "/", .handler = &echo},
+                              {.prefix = "/hook", .handler = nullptr}}) {
+    EXPECT_EQ(StatusServer::Start({.listen = "127.0.0.1:0"},
+                                  [] { return StatusSnapshot(); }, &auth,
+                                  nullptr, {bad})
+                  .status()
+                  .code(),
+              absl::StatusCode::kInvalidArgument)
+        << bad.prefix;
+  }
+}
+
 TEST(JobWorkerTest, UnreadableWorkerOutputIsAProtocolErrorNotACancellation) {
   testing::TempDir dir;
   const std::filesystem::path worker = dir.path() / "garbling-worker.sh";

@@ -9,6 +9,7 @@
 #include <memory>
 #include <optional>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include "absl/status/status.h"
@@ -85,13 +86,13 @@ absl::StatusOr<nlohmann::json> Qido(const node::DicomPeer& peer,
 }
 
 // Writes each part of a WADO-RS answer to its own file in `dest`.
-class PartWriter {
+class PartWriter : public MultipartSink {
  public:
   PartWriter(std::string dest, int64_t expected, int64_t max_bytes)
       : dest_(std::move(dest)), expected_(expected), max_bytes_(max_bytes) {}
-  ~PartWriter() { Abandon(); }
+  ~PartWriter() override { Abandon(); }
 
-  absl::Status Begin(const std::map<std::string, std::string>& headers) {
+  absl::Status BeginPart(const PartHeaders& headers) override {
     if (instances_ + 1 > expected_) {
       return absl::FailedPreconditionError(absl::StrCat(
           "the peer sends more instances than its QIDO-RS answer listed (",
@@ -115,7 +116,7 @@ class PartWriter {
     return absl::OkStatus();
   }
 
-  absl::Status Data(absl::string_view data) {
+  absl::Status PartBytes(std::string_view data) override {
     if (bytes_ + static_cast<int64_t>(data.size()) > max_bytes_) {
       return absl::ResourceExhaustedError(
           absl::StrCat("the series on the peer is larger than ", max_bytes_,
@@ -134,7 +135,7 @@ class PartWriter {
     return absl::OkStatus();
   }
 
-  absl::Status End() {
+  absl::Status EndPart() override {
     const bool synced = ::fsync(fd_) == 0;
     ::close(fd_);
     fd_ = -1;
@@ -239,18 +240,10 @@ absl::StatusOr<node::RetrieveResult> RetrieveSeriesWeb(
   MultipartLimits part_limits;
   part_limits.max_part_bytes = limits.max_bytes;
   // One more than listed, so that the extra part is reported as the lie it
-  // is (PartWriter::Begin) rather than as a limit.
+  // is (PartWriter::BeginPart) rather than as a limit.
   part_limits.max_parts = expected + 1;
   part_limits.max_total_bytes =
       limits.max_bytes + (expected + 1) * kPartOverheadBytes;
-  MultipartCallbacks callbacks;
-  callbacks.on_part_begin = [&](const auto& headers) {
-    return writer.Begin(headers);
-  };
-  callbacks.on_part_data = [&](absl::string_view data) {
-    return writer.Data(data);
-  };
-  callbacks.on_part_end = [&] { return writer.End(); };
   std::optional<MultipartParser> parser;
   // Not multipart (an error page, HTML): counted and dropped (never kept),
   // up to a bound past which the answer is refused.
@@ -261,7 +254,7 @@ absl::StatusOr<node::RetrieveResult> RetrieveSeriesWeb(
       absl::StatusOr<std::string> boundary =
           MultipartBoundary(request.content_type());
       if (boundary.ok()) {
-        parser.emplace(*boundary, part_limits, callbacks);
+        parser.emplace(*boundary, WadoResponseMultipart(part_limits), &writer);
       } else {
         not_multipart = true;
       }
@@ -276,7 +269,7 @@ absl::StatusOr<node::RetrieveResult> RetrieveSeriesWeb(
       }
       return true;
     }
-    absl::Status s = parser->Feed(absl::string_view(data, n));
+    absl::Status s = parser->Feed(std::string_view(data, n));
     if (!s.ok()) {
       request.SetAbortStatus(
           absl::Status(s.code(), absl::StrCat(what, ": ", s.message())));

@@ -17,7 +17,7 @@
 #include "server/base/audit.h"
 #include "server/base/log_safe.h"
 #include "server/engine/spool.h"
-#include "server/net/dicomweb/stow_body.h"
+#include "server/net/dicomweb/multipart.h"
 #include "server/node/dataset_scan.h"
 #include "server/node/intake.h"
 #include "server/node/received_instance.h"
@@ -39,8 +39,8 @@ std::string GetString(DcmItem* item, const DcmTagKey& tag) {
 }
 
 // Writes each application/dicom part to a staging file and hands it to the
-// assembler when it ends (StowPartSink of stow_body.h).
-class StagingSink : public StowPartSink {
+// assembler when it ends (the MultipartSink of multipart.h).
+class StagingSink : public MultipartSink {
  public:
   StagingSink(node::Intake* assembler, Spool* spool, uint64_t association,
               std::string fallback_type, std::string study_uid)
@@ -236,6 +236,17 @@ std::string ResponseJson(const std::vector<PartOutcome>& outcomes) {
 
 }  // namespace
 
+std::optional<std::string> StowStudyOfPath(std::string_view path) {
+  constexpr std::string_view kStudies = "/dicomweb/studies";
+  if (path == kStudies) return std::string();
+  if (path.size() > kStudies.size() + 1 &&
+      path.substr(0, kStudies.size() + 1) == "/dicomweb/studies/") {
+    const std::string_view study = path.substr(kStudies.size() + 1);
+    if (IsUidPathSegment(study)) return std::string(study);
+  }
+  return std::nullopt;
+}
+
 bool IsUidPathSegment(std::string_view uid) {
   if (uid.empty() || uid.size() > 64) return false;
   // Components are non-empty runs of digits between dots.
@@ -251,6 +262,43 @@ bool IsUidPathSegment(std::string_view uid) {
     }
   }
   return !empty_component;
+}
+
+std::optional<HttpServerResponse> StowReceiver::Screen(
+    std::string_view method, std::string_view path) const {
+  if (!StowStudyOfPath(path).has_value()) {
+    return HttpServerResponse{
+        .status = 404,
+        .body =
+            "not found: STOW-RS is POST /dicomweb/studies or "
+            "/dicomweb/studies/{StudyInstanceUID}\n"};
+  }
+  if (method != "POST") {
+    return HttpServerResponse{.status = 405,
+                              .body = "STOW-RS takes POST only\n",
+                              .extra_headers = "Allow: POST\r\n"};
+  }
+  return std::nullopt;
+}
+
+HttpServerResponse StowReceiver::Serve(const HttpServerRequest& request) const {
+  if (request.identity.empty() && options_.refuse_anonymous) {
+    return {.status = 403,
+            .body =
+                "this server authenticates by client certificate, which "
+                "its HTTP listener does not check: STOW-RS needs a token "
+                "(--auth-token-file)\n"};
+  }
+  const StowResponse response =
+      Handle({.identity = request.identity,
+              .source = request.source,
+              .content_type = request.header("Content-Type"),
+              .study_uid = StowStudyOfPath(request.path).value_or(""),
+              .content_length = request.content_length,
+              .read = request.read});
+  return {.status = response.status,
+          .content_type = response.content_type,
+          .body = response.body};
 }
 
 StowReceiver::StowReceiver(StowOptions options, node::Intake* assembler,
@@ -311,7 +359,7 @@ StowResponse StowReceiver::Handle(const StowRequest& request) const {
       assembler_->BeginTransfer(identity, options_.called_ae);
   StagingSink sink(assembler_, spool_, association, type->type,
                    request.study_uid);
-  StowBodyParser parser(type->boundary, &sink);
+  MultipartParser parser(type->boundary, StowRequestMultipart(), &sink);
   std::vector<char> buffer(options_.read_chunk_bytes);
   int64_t total = 0;
   absl::Status parsed = absl::OkStatus();

@@ -4,9 +4,22 @@
 // limits, quota and completeness contract of the DIMSE listener apply to
 // instances that arrive by HTTP too. docs/dicomweb.md describes it.
 //
-// Contract of Handle() (the HTTP server, server/net/http/status_page.cc, routes
-// POST /dicomweb/studies and /dicomweb/studies/{study} here after it
-// authenticated the caller):
+// As a route of the HTTP listener (HttpRequestHandler of
+// server/net/http/http_handler.h; server/app/ gives it the prefix
+// /dicomweb):
+// - Screen, before authentication: POST /dicomweb/studies and
+//   /dicomweb/studies/{study} (a UID, IsUidPathSegment) go on; any other
+//   path under /dicomweb is 404 (traversal, a malformed UID, /series, ...),
+//   any other method on these 405 (Allow: POST).
+// - Serve, once the listener authenticated the caller: any identity that
+//   may submit jobs may store (every token's; the anonymous user of a
+//   server without tokens, unless refuse_anonymous: a server that
+//   authenticates gRPC callers by client certificate only answers 403, since
+//   the HTTP listener checks no client certificates; neither logged nor
+//   audited). Then Handle() with the request's identity, source,
+//   Content-Type, Content-Length, study and body.
+//
+// Contract of Handle():
 // - Before a byte of the body is read: Content-Type not multipart/related
 //   (or a `type` other than application/dicom) -> 415; a malformed one ->
 //   400; Content-Length above max_body_bytes -> 413; the spool quota has no
@@ -41,8 +54,11 @@
 
 #include <cstdint>
 #include <functional>
+#include <optional>
 #include <string>
 #include <string_view>
+
+#include "server/net/http/http_handler.h"
 
 namespace interslice::server {
 class AuditLog;
@@ -66,6 +82,9 @@ struct StowOptions {
   int64_t max_body_bytes = 0;
   // Bytes read from the connection at a time.
   size_t read_chunk_bytes = 64 * 1024;
+  // The anonymous user (a server without tokens) gets 403: set when the
+  // server authenticates gRPC callers by client certificate only.
+  bool refuse_anonymous = false;
 };
 
 struct StowRequest {
@@ -87,13 +106,19 @@ struct StowResponse {
   bool released = false;  // what EndTransfer was told
 };
 
-class StowReceiver {
+class StowReceiver : public HttpRequestHandler {
  public:
   // All must outlive the receiver; `spool` and `audit` may be null.
   StowReceiver(StowOptions options, node::Intake* assembler, Spool* spool,
                AuditLog* audit);
   StowResponse Handle(const StowRequest& request) const;
   int64_t max_body_bytes() const { return max_body_bytes_; }
+
+  // HttpRequestHandler, for the prefix /dicomweb.
+  std::string_view name() const override { return "STOW-RS"; }
+  std::optional<HttpServerResponse> Screen(
+      std::string_view method, std::string_view path) const override;
+  HttpServerResponse Serve(const HttpServerRequest& request) const override;
 
  private:
   const StowOptions options_;
@@ -106,6 +131,10 @@ class StowReceiver {
 // Whether `uid` may be a UID in a path (PS3.5 9.1: digits and dots, at most
 // 64 characters, no empty component).
 bool IsUidPathSegment(std::string_view uid);
+
+// The study of a STOW-RS path: "" for /dicomweb/studies, the UID of
+// /dicomweb/studies/{study}; nullopt for any other path.
+std::optional<std::string> StowStudyOfPath(std::string_view path);
 
 }  // namespace interslice::server::dicomweb
 

@@ -22,7 +22,6 @@
 #include "server/base/audit.h"
 #include "server/base/identity.h"
 #include "server/base/log_safe.h"
-#include "server/net/dicomweb/stow.h"
 #include "spdlog/spdlog.h"
 
 namespace interslice::server {
@@ -265,8 +264,7 @@ struct StatusServer::Impl {
   std::function<StatusSnapshot()> snapshot;
   const Authenticator* auth = nullptr;
   AuditLog* audit = nullptr;
-  const dicomweb::StowReceiver* stow = nullptr;
-  bool stow_token_required = false;
+  std::vector<HttpRoute> routes;
   std::string tls_certificate, tls_private_key;
   std::string tls_error;  // why init_ssl failed
   mg_context* context = nullptr;
@@ -340,71 +338,62 @@ const char* ReasonPhrase(int code) {
   }
 }
 
-// POST /dicomweb/studies[/{study}] (STOW-RS, server/net/dicomweb/stow.h).
-int HandleDicomweb(StatusServer::Impl& impl, mg_connection* connection,
-                   const std::string& method, const std::string& uri,
-                   const std::string& source) {
-  constexpr std::string_view kStudies = "/dicomweb/studies";
-  std::string study;
-  bool found = false;
-  if (uri == kStudies) {
-    found = true;
-  } else if (uri.size() > kStudies.size() + 1 &&
-             uri.compare(0, kStudies.size() + 1, "/dicomweb/studies/") == 0) {
-    study = uri.substr(kStudies.size() + 1);
-    found = dicomweb::IsUidPathSegment(study);
-  }
-  if (!found || impl.stow == nullptr) {
-    Reply(connection, 404, "Not Found", "text/plain",
-          impl.stow == nullptr
-              ? "not found: STOW-RS is served with the DICOM node "
-                "(--dicom-listen)\n"
-              : "not found: STOW-RS is POST /dicomweb/studies or "
-                "/dicomweb/studies/{StudyInstanceUID}\n",
-          method == "HEAD");
-    return 404;
-  }
-  if (method != "POST") {
-    Reply(connection, 405, "Method Not Allowed", "text/plain",
-          "STOW-RS takes POST only\n", method == "HEAD", "Allow: POST\r\n");
-    return 405;
+void Reply(mg_connection* connection, const HttpServerResponse& response,
+           bool head) {
+  Reply(connection, response.status, ReasonPhrase(response.status),
+        response.content_type.c_str(), response.body, head,
+        response.extra_headers.c_str());
+}
+
+// Whether `route` takes `path`: its prefix, or a path under it.
+bool RouteTakes(const HttpRoute& route, const std::string& path) {
+  return path.compare(0, route.prefix.size(), route.prefix) == 0 &&
+         (path.size() == route.prefix.size() ||
+          path[route.prefix.size()] == '/');
+}
+
+// A request for a route's handler (http_handler.h): screened, then
+// authenticated, then served.
+int HandleRoute(StatusServer::Impl& impl, const HttpRoute& route,
+                mg_connection* connection, const std::string& method,
+                const std::string& uri, const std::string& source) {
+  const bool head = method == "HEAD";
+  if (std::optional<HttpServerResponse> early =
+          route.handler->Screen(method, uri);
+      early.has_value()) {
+    Reply(connection, *early, head);
+    return early->status;
   }
   const std::optional<std::string> identity = Identify(*impl.auth, connection);
   if (!identity.has_value()) {
     Reply(connection, 401, "Unauthorized", "text/plain",
           "a token is needed: Authorization: Bearer TOKEN, or HTTP Basic "
           "with the token as password\n",
-          false, "WWW-Authenticate: Basic realm=\"interslice\"\r\n");
+          head, "WWW-Authenticate: Basic realm=\"interslice\"\r\n");
     if (impl.audit != nullptr) {
       impl.audit->Record({.event = "auth.refused",
                           .outcome = AuditOutcome::kMinorFailure,
                           .source = source,
-                          .detail = "STOW-RS: missing or wrong token"});
+                          .detail = std::string(route.handler->name()) +
+                                    ": missing or wrong token"});
     }
     return 401;
   }
-  if (identity->empty() && impl.stow_token_required) {
-    Reply(connection, 403, "Forbidden", "text/plain",
-          "this server authenticates by client certificate, which its HTTP "
-          "listener does not check: STOW-RS needs a token "
-          "(--auth-token-file)\n",
-          false);
-    return 403;
-  }
   const mg_request_info* request = mg_get_request_info(connection);
-  const char* content_type = mg_get_header(connection, "Content-Type");
-  dicomweb::StowRequest stow_request{
-      .identity = *identity,
-      .source = source,
-      .content_type = content_type != nullptr ? content_type : "",
-      .study_uid = study,
-      .content_length = request->content_length,
-      .read = [connection](char* buffer, size_t size) -> int64_t {
-        return mg_read(connection, buffer, size);
-      }};
-  const dicomweb::StowResponse response = impl.stow->Handle(stow_request);
-  Reply(connection, response.status, ReasonPhrase(response.status),
-        response.content_type.c_str(), response.body, false);
+  const HttpServerResponse response = route.handler->Serve(
+      {.method = method,
+       .path = uri,
+       .identity = *identity,
+       .source = source,
+       .content_length = request->content_length,
+       .header = [connection](const std::string& name) -> std::string {
+         const char* value = mg_get_header(connection, name.c_str());
+         return value != nullptr ? value : "";
+       },
+       .read = [connection](char* buffer, size_t size) -> int64_t {
+         return mg_read(connection, buffer, size);
+       }});
+  Reply(connection, response, head);
   return response.status;
 }
 
@@ -417,8 +406,10 @@ int HandleRequest(mg_connection* connection, void* data) {
       request->local_uri != nullptr ? request->local_uri : "";
   const std::string source =
       absl::StrCat(request->remote_addr, ":", request->remote_port);
-  if (uri == "/dicomweb" || uri.rfind("/dicomweb/", 0) == 0) {
-    return HandleDicomweb(*impl, connection, method, uri, source);
+  for (const HttpRoute& route : impl->routes) {
+    if (RouteTakes(route, uri)) {
+      return HandleRoute(*impl, route, connection, method, uri, source);
+    }
   }
   const bool head = method == "HEAD";
   const bool json = uri == "/status.json";
@@ -547,7 +538,7 @@ absl::Status HttpTlsAvailable() {
 absl::StatusOr<std::unique_ptr<StatusServer>> StatusServer::Start(
     const StatusServerOptions& options,
     std::function<StatusSnapshot()> snapshot, const Authenticator* auth,
-    AuditLog* audit, const dicomweb::StowReceiver* stow) {
+    AuditLog* audit, std::vector<HttpRoute> routes) {
   if (options.listen.empty() || options.listen.find(':') == std::string::npos) {
     return absl::InvalidArgumentError(
         absl::StrCat("--status-listen: expected HOST:PORT, got '",
@@ -558,14 +549,20 @@ absl::StatusOr<std::unique_ptr<StatusServer>> StatusServer::Start(
     return absl::InvalidArgumentError(
         "the status page needs 1-64 connections and a positive timeout");
   }
+  for (const HttpRoute& route : routes) {
+    if (route.handler == nullptr || route.prefix.size() < 2 ||
+        route.prefix.front() != '/' || route.prefix.back() == '/') {
+      return absl::InvalidArgumentError(
+          "an HTTP route needs a handler and a prefix \"/name\"");
+    }
+  }
   std::unique_ptr<StatusServer> server(new StatusServer());
   server->impl_ = std::make_unique<Impl>();
   Impl& impl = *server->impl_;
   impl.snapshot = std::move(snapshot);
   impl.auth = auth;
   impl.audit = audit;
-  impl.stow = stow;
-  impl.stow_token_required = options.stow_token_required;
+  impl.routes = std::move(routes);
   const bool tls = !options.tls_certificate.empty();
   if (tls != !options.tls_private_key.empty()) {
     return absl::InvalidArgumentError(

@@ -22,14 +22,12 @@
 // - Bounded: at most kMaxJobsShown jobs (the newest), each string escaped;
 //   requests time out after request_timeout_seconds; at most
 //   max_connections requests are served at once.
-// - The same listener serves STOW-RS (server/net/dicomweb/stow.h,
-//   docs/dicomweb.md) when Start() is given a receiver: POST
-//   /dicomweb/studies and /dicomweb/studies/{study}. Any identity that may
-//   submit jobs may store (every token's; the anonymous user of a server
-//   without tokens, unless stow_token_required: a server that authenticates
-//   gRPC callers by client certificate only answers 403, since the HTTP
-//   listener checks no client certificates). Other paths under /dicomweb:
-//   404; other methods: 405. Without a receiver, /dicomweb is 404.
+// - The same listener serves the routes Start() is given (http_handler.h):
+//   each handler serves its path prefix (server/app/ gives STOW-RS,
+//   server/net/dicomweb/stow.h, the prefix /dicomweb). The listener screens
+//   and authenticates those requests (any valid token, or the anonymous user
+//   of a server without tokens: the handler decides what an identity may do)
+//   and writes the handler's answers.
 // - HTTPS when tls_certificate (PEM, the chain) and tls_private_key (PEM)
 //   are given: civetweb with OpenSSL, TLS 1.2 or newer; the same port then
 //   speaks TLS only. INVALID_ARGUMENT names a file that cannot be loaded or
@@ -47,6 +45,7 @@
 
 #include "absl/status/statusor.h"
 #include "interslice/v1/interslice.pb.h"
+#include "server/net/http/http_handler.h"
 
 namespace interslice::server {
 
@@ -82,10 +81,6 @@ struct StatusSnapshot {
 std::string RenderStatusHtml(const StatusSnapshot& snapshot);
 std::string RenderStatusJson(const StatusSnapshot& snapshot);
 
-namespace dicomweb {
-class StowReceiver;
-}
-
 // Whether the civetweb and OpenSSL libraries found at run time can serve
 // HTTPS: civetweb built with TLS, libssl.so loadable, and every function
 // civetweb takes from it by name present. UNIMPLEMENTED with the reason
@@ -100,11 +95,10 @@ struct StatusServerOptions {
   // nothing for this long, are cut off (civetweb's request_timeout_ms: the
   // slow-loris bound for headers, which arrive before any authentication).
   // A body that trickles (a byte within every timeout) is not cut by
-  // civetweb's blocking reads: only an authenticated STOW-RS client can
-  // hold a connection that way, and at most max_connections are served.
+  // civetweb's blocking reads: only an authenticated client of a route
+  // that reads bodies (STOW-RS) can hold a connection that way, and at most
+  // max_connections are served.
   double request_timeout_seconds = 10;
-  // See above (STOW-RS).
-  bool stow_token_required = false;
   // HTTPS: both, or neither.
   std::string tls_certificate, tls_private_key;
 };
@@ -112,14 +106,17 @@ struct StatusServerOptions {
 class StatusServer {
  public:
   // Starts listening. `snapshot` is called per request (on civetweb's
-  // threads, never a gRPC reactor); `auth` decides who may see the page;
-  // `audit` (may be null) records each view. All must outlive the server.
+  // threads, never a gRPC reactor); `auth` decides who may see the page and
+  // authenticates the routes' callers; `audit` (may be null) records each
+  // view and each refused token; `routes` serve their paths (each prefix
+  // "/name" without a trailing slash, each handler not null; the first
+  // route that takes a path serves it). All must outlive the server.
   // UNAVAILABLE when the address cannot be bound, INVALID_ARGUMENT for bad
-  // options.
+  // options or routes.
   static absl::StatusOr<std::unique_ptr<StatusServer>> Start(
       const StatusServerOptions& options,
       std::function<StatusSnapshot()> snapshot, const Authenticator* auth,
-      AuditLog* audit, const dicomweb::StowReceiver* stow = nullptr);
+      AuditLog* audit, std::vector<HttpRoute> routes = {});
   ~StatusServer();
   StatusServer(const StatusServer&) = delete;
   StatusServer& operator=(const StatusServer&) = delete;

@@ -3,8 +3,10 @@
 // lie or cut a hostile or broken peer can send, each a clean error.
 #include "server/net/dicomweb/multipart.h"
 
+#include <functional>
 #include <map>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include "absl/strings/str_cat.h"
@@ -24,6 +26,27 @@ struct Parsed {
   int ended = 0;
 };
 
+// The parser's sink as three callbacks (any may be empty).
+struct MultipartCallbacks : MultipartSink {
+  std::function<absl::Status(const PartHeaders&)> on_part_begin;
+  std::function<absl::Status(std::string_view)> on_part_data;
+  std::function<absl::Status()> on_part_end;
+  absl::Status BeginPart(const PartHeaders& h) override {
+    return on_part_begin ? on_part_begin(h) : absl::OkStatus();
+  }
+  absl::Status PartBytes(std::string_view d) override {
+    return on_part_data ? on_part_data(d) : absl::OkStatus();
+  }
+  absl::Status EndPart() override {
+    return on_part_end ? on_part_end() : absl::OkStatus();
+  }
+};
+
+// The parser as the WADO-RS client (pull.cc) configures it.
+MultipartParser WadoParser(MultipartLimits limits, MultipartSink* sink) {
+  return MultipartParser("frontier", WadoResponseMultipart(limits), sink);
+}
+
 Parsed Parse(const std::string& body, size_t chunk,
              MultipartLimits limits = {}) {
   Parsed out;
@@ -33,7 +56,7 @@ Parsed Parse(const std::string& body, size_t chunk,
     out.data.emplace_back();
     return absl::OkStatus();
   };
-  callbacks.on_part_data = [&](absl::string_view d) {
+  callbacks.on_part_data = [&](std::string_view d) {
     out.data.back().append(d.data(), d.size());
     return absl::OkStatus();
   };
@@ -41,9 +64,9 @@ Parsed Parse(const std::string& body, size_t chunk,
     ++out.ended;
     return absl::OkStatus();
   };
-  MultipartParser parser("frontier", limits, callbacks);
+  MultipartParser parser = WadoParser(limits, &callbacks);
   for (size_t at = 0; at < body.size() && out.status.ok(); at += chunk) {
-    out.status = parser.Feed(absl::string_view(body).substr(at, chunk));
+    out.status = parser.Feed(std::string_view(body).substr(at, chunk));
   }
   if (out.status.ok()) out.status = parser.Finish();
   return out;
@@ -157,7 +180,8 @@ TEST(MultipartTest, MalformedFraming) {
                   .status.message(),
               HasSubstr("has no colon"));
   // An error stays: the parser refuses more input after it.
-  MultipartParser parser("frontier", {}, {});
+  MultipartCallbacks none;
+  MultipartParser parser = WadoParser({}, &none);
   EXPECT_FALSE(parser.Feed("--frontierX\r\n").ok());
   EXPECT_FALSE(parser.Feed(Part("a") + kEnd).ok());
   EXPECT_FALSE(parser.Finish().ok());
@@ -170,7 +194,7 @@ TEST(MultipartTest, CallbackErrorsStopTheParser) {
     return ++parts > 1 ? absl::FailedPreconditionError("enough")
                        : absl::OkStatus();
   };
-  MultipartParser parser("frontier", {}, callbacks);
+  MultipartParser parser = WadoParser({}, &callbacks);
   const absl::Status s = parser.Feed(Part("a") + Part("b") + kEnd);
   EXPECT_EQ(s.code(), absl::StatusCode::kFailedPrecondition);
   EXPECT_EQ(parts, 2);

@@ -1,10 +1,11 @@
-#include "server/net/dicomweb/stow_body.h"
-
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
 #include <string>
+#include <string_view>
 #include <vector>
+
+#include "server/net/dicomweb/multipart.h"
 
 namespace interslice::server::dicomweb {
 namespace {
@@ -18,7 +19,7 @@ struct Part {
   std::string bytes;
   bool ended = false;
 };
-class CollectingSink : public StowPartSink {
+class CollectingSink : public MultipartSink {
  public:
   absl::Status BeginPart(const PartHeaders& headers) override {
     parts.push_back({headers, "", false});
@@ -44,11 +45,25 @@ std::vector<std::string> Bodies(const CollectingSink& sink) {
   return out;
 }
 
+// The limits these tests vary in the STOW-RS configuration of the parser.
+struct StowBodyLimits {
+  int64_t max_part_header_bytes = 16 * 1024;
+  int64_t max_parts = 100000;
+};
+
+// The parser as the STOW-RS receiver (stow.cc) configures it.
+MultipartParser StowParser(const std::string& boundary, MultipartSink* sink,
+                           StowBodyLimits limits = {}) {
+  MultipartOptions options = StowRequestMultipart(limits.max_parts);
+  options.limits.max_header_bytes = limits.max_part_header_bytes;
+  return MultipartParser(boundary, options, sink);
+}
+
 // Feeds `body` in pieces of `piece` bytes (0: whole) and finishes.
 absl::Status Parse(const std::string& body, CollectingSink& sink,
                    size_t piece = 0, const std::string& boundary = "b0und",
                    StowBodyLimits limits = {}) {
-  StowBodyParser parser(boundary, &sink, limits);
+  MultipartParser parser = StowParser(boundary, &sink, limits);
   if (piece == 0) piece = body.size() + 1;
   for (size_t i = 0; i < body.size(); i += piece) {
     if (absl::Status s = parser.Feed(std::string_view(body).substr(i, piece));
@@ -95,7 +110,7 @@ TEST(StowBodyTest, DelimiterSplitAcrossReadsAnywhere) {
   }
   for (size_t cut = 1; cut < body.size(); ++cut) {
     CollectingSink sink;
-    StowBodyParser parser("b0und", &sink);
+    MultipartParser parser = StowParser("b0und", &sink);
     ASSERT_TRUE(parser.Feed(body.substr(0, cut)).ok()) << cut;
     ASSERT_TRUE(parser.Feed(body.substr(cut)).ok()) << cut;
     ASSERT_TRUE(parser.Finish().ok()) << cut;
@@ -174,7 +189,7 @@ TEST(StowBodyTest, PartCountIsBounded) {
 // A large part streams through: the parser never holds more than one read
 // and a delimiter's worth (the sink sees many small pieces).
 TEST(StowBodyTest, LargePartStreamsInPieces) {
-  class CountingSink : public StowPartSink {
+  class CountingSink : public MultipartSink {
    public:
     absl::Status BeginPart(const PartHeaders&) override {
       return absl::OkStatus();
@@ -188,7 +203,7 @@ TEST(StowBodyTest, LargePartStreamsInPieces) {
     absl::Status EndPart() override { return absl::OkStatus(); }
     size_t calls = 0, largest = 0, total = 0;
   } sink;
-  StowBodyParser parser("b0und", &sink);
+  MultipartParser parser = StowParser("b0und", &sink);
   ASSERT_TRUE(parser.Feed("--b0und\r\n\r\n").ok());
   const std::string chunk(4096, 'z');
   for (int i = 0; i < 1000; ++i) ASSERT_TRUE(parser.Feed(chunk).ok());
@@ -200,7 +215,7 @@ TEST(StowBodyTest, LargePartStreamsInPieces) {
 }
 
 TEST(StowBodyTest, SinkErrorStopsTheParse) {
-  class FailingSink : public StowPartSink {
+  class FailingSink : public MultipartSink {
    public:
     absl::Status BeginPart(const PartHeaders&) override {
       return absl::ResourceExhaustedError("no room");
@@ -210,7 +225,7 @@ TEST(StowBodyTest, SinkErrorStopsTheParse) {
     }
     absl::Status EndPart() override { return absl::OkStatus(); }
   } sink;
-  StowBodyParser parser("b0und", &sink);
+  MultipartParser parser = StowParser("b0und", &sink);
   EXPECT_EQ(parser.Feed("--b0und\r\n\r\nx\r\n--b0und--").code(),
             absl::StatusCode::kResourceExhausted);
   EXPECT_FALSE(parser.Finish().ok());
