@@ -23,6 +23,16 @@
 #  E. the server killed during a delivery to Orthanc, restarted: the
 #     delivery resumes, its attempt count includes the killed one, Orthanc
 #     holds one derived series.
+#  G. (issue 39, finding 1) a series' transfer killed midway, then one of
+#     its instances stored again unchanged in a clean association: no job
+#     (the series stays incomplete); then the whole series: one job of 28.
+#  H. (finding 2) a STOW-RS body whole but one byte short of its
+#     Content-Length, the client waiting: 400, no job.
+#  I. (finding 3) a series by STOW-RS one instance per request (28 requests,
+#     single-part bodies) under a rule with complete_on_release: one job, of
+#     28 instances.
+#  J. (finding 4) the node's own results (a job's derived series) sent back
+#     to it: no job.
 #  F. a spool on a 6 MB tmpfs (unshare -m, needs root or user namespaces):
 #     every instance answered (success or 0xA700), the association kept.
 # Every loop is bounded; loopback only.
@@ -71,6 +81,11 @@ YAML
 cat >"$work/rules.yaml" <<YAML
 stable_seconds: 1
 rules:
+  - name: stow
+    match: {modality: CT, calling_ae: STOW}
+    complete_on_release: true
+    job: {threshold: 300, roi: [208, 208, 0, 304, 304, 28], factor: 4,
+          output_series: [intensity], mesh: none, volume: none}
   - name: ct
     match: {modality: CT, slice_count: {min: 20}}
     complete_on_release: true
@@ -79,10 +94,24 @@ rules:
     send_to: [orthanc]
 YAML
 
+# Copies of the phantom as series of their own (other Study and Series
+# UIDs, the same for every file of a copy), for phases G and I.
+relabel() {  # name study-uid series-uid
+  mkdir -p "$work/$1"
+  cp "${phantom[@]}" "$work/$1/"
+  dcmodify -nb -m "(0020,000d)=$2" -m "(0020,000e)=$3" "$work/$1"/*.dcm >/dev/null 2>&1
+}
+relabel cut 1.2.826.0.1.3680043.10.1039.1 1.2.826.0.1.3680043.10.1039.2
+relabel stow 1.2.826.0.1.3680043.10.1039.3 1.2.826.0.1.3680043.10.1039.4
+cut_series=("$work"/cut/*.dcm)
+stow_series=("$work"/stow/*.dcm)
+
 crashes=0
+hport=$(free_port)
 start_server() {  # extra flags
   rm -f "$work/port"
   "$server" --listen 127.0.0.1:0 --metrics-listen 127.0.0.1:0 \
+    --http-listen "127.0.0.1:$hport" \
     --spool "$work/spool" --port-file "$work/port" --workers 1 --drain-grace 5 \
     --dicom-listen 127.0.0.1:0 --dicom-peers "$work/peers.yaml" \
     --rules "$work/rules.yaml" --dicom-acse-timeout 5 --delivery-retry 0.5 \
@@ -217,6 +246,75 @@ start_server
 for _ in $(seq 1200); do grep -q "job=$job delivered" "$work/server.log" && break; sleep 0.1; done
 echo "  killed 2 s into the delivery; after the restart: $(grep "job=$job delivered" "$work/server.log" | tail -1 | sed 's/^[^ ]* [^ ]* dicom: //; s/^[^ ]* [^ ]* //')"
 
+jobs_by() { grep -c "made by rule $1 " "$work/server.log"; }
+event() { metric "interslice_dicom_events_total{event=\"$1\"}"; }
+
+echo "== G. a transfer killed midway, then one of its instances re-sent unchanged"
+made=$(jobs_made) before_resend=$(event series_resend_not_completing)
+storescu -aec INTERSLICE 127.0.0.1 "$dport" "${cut_series[@]}" >/dev/null 2>&1 &
+sender=$!
+sleep "$(awk -v w="$whole" 'BEGIN{printf "%.2f", w / 4 / 2}')"  # half of 28
+kill -9 "$sender" 2>/dev/null; wait "$sender" 2>/dev/null
+sleep 0.5
+store "${cut_series[0]}" >/dev/null 2>&1 || echo "  the re-send failed"
+sleep 3  # three stable waits
+alive "cut transfer"
+echo "  jobs made after the cut and the unchanged re-send: $(($(jobs_made) - made)) (series_resend_not_completing +$(($(event series_resend_not_completing) - before_resend)))"
+store "${cut_series[@]}" >/dev/null 2>&1 || echo "  the whole re-send failed"
+wait_jobs $((made + 1)) || echo "  no job after the whole re-send"
+sleep 2
+echo "  after the whole series was sent: $(($(jobs_made) - made)) job(s): $(grep "made by rule" "$work/server.log" | tail -1 | sed 's/.*for a series from //')"
+
+echo "== H. a STOW-RS body one byte short of its Content-Length, the client waiting"
+made=$(jobs_made)
+h_answer=$(python3 - "$hport" "${stow_series[@]:0:3}" <<'PY'
+import socket, sys
+port, files = int(sys.argv[1]), sys.argv[2:]
+body = b""
+for f in files:
+    body += b"--b\r\nContent-Type: application/dicom\r\n\r\n" + open(f, "rb").read() + b"\r\n"
+body += b"--b--\r\n"
+s = socket.create_connection(("127.0.0.1", port))
+s.sendall(b"POST /dicomweb/studies HTTP/1.1\r\nHost: x\r\n"
+          b"Content-Type: multipart/related; type=\"application/dicom\"; boundary=b\r\n"
+          b"Content-Length: %d\r\n\r\n" % (len(body) + 1) + body)
+s.settimeout(60)
+answer = b""
+while True:
+    try:
+        chunk = s.recv(65536)
+    except socket.timeout:
+        break
+    if not chunk:
+        break
+    answer += chunk
+print(answer.split(b"\r\n", 1)[0].decode(errors="replace"))
+PY
+)
+sleep 3
+alive "short STOW body"
+echo "  answer: ${h_answer:-none}; jobs made since: $(($(jobs_made) - made))"
+
+echo "== I. a series by STOW-RS, one instance per request (complete_on_release)"
+made=$(jobs_by stow)
+codes=()
+for f in "${stow_series[@]}"; do
+  codes+=("$(curl -s -o /dev/null -w '%{http_code}' -H 'Content-Type: application/dicom' --data-binary "@$f" "http://127.0.0.1:$hport/dicomweb/studies")")
+done
+for _ in $(seq 100); do [[ $(jobs_by stow) -gt $made ]] && break; sleep 0.1; done
+sleep 3  # more stable waits: no second job
+alive "STOW per instance"
+echo "  28 requests answered: $(printf '%s\n' "${codes[@]}" | sort | uniq -c | awk '{printf "%s x%s ", $2, $1}'); jobs made: $(($(jobs_by stow) - made)): $(grep "made by rule stow " "$work/server.log" | tail -1 | sed 's/.*for a series from //')"
+
+echo "== J. the node's own results sent back to it"
+made=$(jobs_made) before_own=$(event own_results_not_run)
+own_job=$(grep "made by rule ct " "$work/server.log" | tail -1 | sed 's/.*job=\([^ ]*\) .*/\1/')
+own=("$work"/spool/jobs/"$own_job"/out/*.dcm)
+store "${own[@]}" >/dev/null 2>&1 || echo "  sending the results back failed"
+sleep 3
+alive "own results"
+echo "  ${#own[@]} result instances of job $own_job sent back: jobs made $(($(jobs_made) - made)), own_results_not_run +$(($(event own_results_not_run) - before_own))"
+
 echo "== F. a spool on a 6 MB tmpfs"
 if unshare -m true 2>/dev/null; then
   mkdir -p "$work/small"
@@ -240,7 +338,9 @@ sleep 2
 partial=$(grep "made by rule" "$work/server.log" | grep -vc "(28 instance(s)")
 echo "server crashes: $crashes"
 echo "jobs made: $(jobs_made), of a partial series: $partial"
-echo "derived series in Orthanc: $(orthanc_series) (one source series: duplicates $(($(orthanc_series) - 1))), instances $(orthanc_instances)"
+# Two source series reach the `ct` rule, whose results go to Orthanc: the
+# phantom (phases B-E) and its copy of phase G.
+echo "derived series in Orthanc: $(orthanc_series) (two source series: duplicates $(($(orthanc_series) - 2))), instances $(orthanc_instances)"
 # A-C opened 281 connections that must be refused or cut: the nested
 # command (1), garbage (20 + 20), 4 GiB requests (20), half-open (200),
 # slow requests (20). The nested data set's association is not refused.

@@ -510,6 +510,14 @@ StatusSnapshot ServerRuntime::Snapshot() {
       s.rules.push_back(
           {.name = r.name, .match = r.match.Describe(), .send_to = r.send_to});
     }
+    for (const node::KeptSeries& k : assembler_->WaitingSeries()) {
+      s.series.push_back({.state = k.state,
+                          .calling_ae = k.calling_ae,
+                          .called_ae = k.called_ae,
+                          .instances = k.instances,
+                          .since_unix_ms = k.kept_since_unix_ms,
+                          .why = k.why});
+    }
   }
   return s;
 }
@@ -523,7 +531,8 @@ absl::Status ServerRuntime::StartHttp() {
             .called_ae = CallingAeTitle(o),
             .max_body_bytes = o.stow_max_body_bytes,
             .refuse_anonymous =
-                !page_auth_->tokens_required() && !o.tls_client_ca.empty()},
+                !page_auth_->tokens_required() && !o.tls_client_ca.empty(),
+            .metrics = &metrics_},
         assembler_.get(), spool_.get(), audit_.get());
   }
   if (o.status_listen.empty()) {
@@ -543,7 +552,8 @@ absl::Status ServerRuntime::StartHttp() {
        .max_connections = o.http_max_connections,
        .request_timeout_seconds = o.http_request_timeout_seconds,
        .tls_certificate = o.http_tls_cert,
-       .tls_private_key = o.http_tls_key},
+       .tls_private_key = o.http_tls_key,
+       .metrics = &metrics_},
       [this] { return Snapshot(); }, page_auth_.get(), audit_.get(),
       {{.prefix = "/dicomweb", .handler = dicomweb}});
   if (!started.ok()) return started.status();

@@ -87,6 +87,7 @@ const char* AtnaEventFor(const std::string& event) {
       {"kept.listed", "110112 Query"},
       {"kept.rerun", "110103 DICOM Instances Accessed"},
       {"status.viewed", "110112 Query"},
+      {"find.queried", "110112 Query"},
       {"delivery.delivered", "110104 DICOM Instances Transferred"},
       {"delivery.failed", "110104 DICOM Instances Transferred"},
       {"association.accepted", "110102 Begin Transferring DICOM Instances"},

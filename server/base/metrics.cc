@@ -70,9 +70,30 @@ Metrics::Metrics() : registry_(std::make_shared<prometheus::Registry>()) {
         "series_incomplete", "series_incomplete_dropped",
         "presentation_contexts_refused", "config_reload_refused",
         "instances_moved", "series_resent_unchanged",
-        "instances_other_frame_of_reference"}) {
+        "instances_other_frame_of_reference", "series_resend_not_completing",
+        "own_results_not_run"}) {
     dicom_->Add({{"event", event}});
   }
+  http_requests_ = &prometheus::BuildCounter()
+                        .Name("interslice_http_requests_total")
+                        .Help(
+                            "Requests the HTTP listener answered, by route "
+                            "(status, STOW-RS) and HTTP status code")
+                        .Register(*registry_);
+  stow_instances_ = &prometheus::BuildCounter()
+                         .Name("interslice_stow_instances_total")
+                         .Help(
+                             "Instances STOW-RS requests carried, by outcome "
+                             "(stored, refused)")
+                         .Register(*registry_);
+  for (const char* outcome : {"stored", "refused"}) {
+    stow_instances_->Add({{"outcome", outcome}});
+  }
+  stow_body_bytes_ = &prometheus::BuildCounter()
+                          .Name("interslice_stow_body_bytes_total")
+                          .Help("STOW-RS request body bytes read")
+                          .Register(*registry_)
+                          .Add({});
   dicom_refused_ =
       &prometheus::BuildCounter()
            .Name("interslice_dicom_connections_refused_total")
@@ -108,6 +129,17 @@ void Metrics::DicomPeerReachable(const std::string& peer, bool reachable) {
 void Metrics::DicomConnectionRefused(const std::string& reason) {
   dicom_refused_->Add({{"reason", reason}}).Increment();
 }
+
+void Metrics::HttpRequest(const std::string& route, int code) {
+  http_requests_->Add({{"route", route}, {"code", std::to_string(code)}})
+      .Increment();
+}
+
+void Metrics::StowInstances(const std::string& outcome, double n) {
+  stow_instances_->Add({{"outcome", outcome}}).Increment(n);
+}
+
+void Metrics::StowBodyBytes(double n) { stow_body_bytes_->Increment(n); }
 
 void Metrics::DicomEvent(const std::string& event, double n) {
   dicom_->Add({{"event", event}}).Increment(n);

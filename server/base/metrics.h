@@ -55,6 +55,15 @@ class Metrics {
   // interslice_dicom_config_generation: 1 at start, +1 per SIGHUP reload
   // of the peers and rules files that was taken (a refused one leaves it).
   void DicomConfigGeneration(int generation);
+  // The HTTP listener: interslice_http_requests_total{route, code}, route
+  // "status" (the status page, /metrics is not on it) or a route handler's
+  // name ("STOW-RS"), code the HTTP status answered.
+  void HttpRequest(const std::string& route, int code);
+  // STOW-RS: interslice_stow_instances_total{outcome} ("stored",
+  // "refused") and interslice_stow_body_bytes_total (request body bytes
+  // read, whole or not).
+  void StowInstances(const std::string& outcome, double n);
+  void StowBodyBytes(double n);
 
  private:
   std::shared_ptr<prometheus::Registry> registry_;
@@ -71,6 +80,9 @@ class Metrics {
   prometheus::Family<prometheus::Counter>* dicom_refused_;
   prometheus::Family<prometheus::Gauge>* dicom_peer_reachable_;
   prometheus::Gauge* dicom_config_generation_;
+  prometheus::Family<prometheus::Counter>* http_requests_;
+  prometheus::Family<prometheus::Counter>* stow_instances_;
+  prometheus::Counter* stow_body_bytes_;
   int port_ = 0;
 };
 

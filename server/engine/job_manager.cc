@@ -27,7 +27,11 @@ void AuditJob(AuditLog* audit, const std::shared_ptr<Job>& job,
   e.event = event;
   e.outcome = outcome;
   e.identity = job->owner();
-  e.source = job->Snapshot(false).origin();
+  const v1::JobStatus status = job->Snapshot(false);
+  e.source = status.origin();
+  // The peer the job pulls its series from (spec.pacs_source; issue 39: the
+  // trail did not say where a job's images came from).
+  e.peer = status.source().pacs_peer();
   e.job = job->id();
   e.detail = detail;
   audit->Record(std::move(e));

@@ -13,8 +13,9 @@
 
 namespace interslice::server::job_manager_internal {
 
-// One audit record about `job` (its owner, and its origin when the DICOM
-// node made it); nothing without an audit trail.
+// One audit record about `job` (its owner, its origin when the DICOM node
+// made it, and as `peer` the DICOM peer it pulls its series from, if any);
+// nothing without an audit trail.
 void AuditJob(AuditLog* audit, const std::shared_ptr<Job>& job,
               const char* event, AuditOutcome outcome,
               const std::string& detail);

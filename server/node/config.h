@@ -40,6 +40,7 @@
 //             seg: true, mesh: [stl]}
 //       send_to: [orthanc]            # peer names; optional
 //       complete_on_release: false    # optional; see Rule
+//       complete_on_request: false    # optional; see Rule
 //     - name: fill-seg                # a SEG or RTSTRUCT arrives: fill it
 //       match: {modality: SEG}
 //       fill: {method: direct, labels: [1, 2], mesh: [stl], volume: [nii]}
@@ -172,8 +173,16 @@ struct Rule {
   v1::JobSpec job;
   std::vector<std::string> send_to;
   // true: the series is complete as soon as the association that sent it
-  // releases normally (no stable wait); false: only after stable_seconds.
+  // releases normally (no stable wait): it assumes the sender sends a whole
+  // series in one association (a PACS's C-MOVE or "send series" does; a
+  // sender that spreads a series over associations makes one job per
+  // association). false: only after stable_seconds. DIMSE only.
   bool complete_on_release = false;
+  // true: the series is complete as soon as a STOW-RS request that stored
+  // into it ends whole: one job per request (MONAI Deploy's gateway makes
+  // one workflow per request). false (the default): a series is grouped
+  // across requests and completes stable_seconds after its last one.
+  bool complete_on_request = false;
 };
 
 struct RuleSet {

@@ -15,11 +15,20 @@
 
 #include <cstdint>
 #include <string>
+#include <vector>
 
 #include "absl/status/statusor.h"
 #include "server/node/dataset_scan.h"
 
 namespace interslice::server::node {
+
+// The door a transfer comes through. It decides what a transfer that ended
+// whole proves about a series (docs/dicom-node.md, "Completeness"): an
+// association may hold a whole series (a rule's complete_on_release), a
+// STOW-RS request is only part of a sender's upload (clients send one
+// instance or a few per request), so a rule must opt into one job per
+// request (complete_on_request).
+enum class Door { kAssociation, kStowRequest };
 
 class Intake {
  public:
@@ -28,7 +37,7 @@ class Intake {
   // A transfer begins: an association was accepted (calling and called AE
   // titles) or a request authenticated (its sender's name, and the AE title
   // the request stores as). Returns its id for the calls below.
-  virtual uint64_t BeginTransfer(const std::string& calling_ae,
+  virtual uint64_t BeginTransfer(Door door, const std::string& calling_ae,
                                  const std::string& called_ae) = 0;
 
   // A fresh path for an instance about to be received; the door writes the
@@ -45,7 +54,9 @@ class Intake {
   // success. `received_bytes`: the data set's bytes as they arrived (-1:
   // unknown). RESOURCE_EXHAUSTED for limits, quota and a full disk;
   // INVALID_ARGUMENT for an instance that is not well-formed or lacks its
-  // UIDs. Every refusal makes what the instance belonged to incomplete.
+  // UIDs; UNIMPLEMENTED for a SOP class the node does not store
+  // (StorableSopClass). Every refusal makes what the instance belonged to
+  // incomplete.
   // Returns the key of the series it joined.
   virtual absl::StatusOr<std::string> AddInstance(uint64_t transfer,
                                                   const std::string& staged,
@@ -62,6 +73,12 @@ class Intake {
   // lost, timed out, the server stopping).
   virtual void EndTransfer(uint64_t transfer, bool whole) = 0;
 };
+
+// The storage SOP classes the node takes (UIDs), the same at every door:
+// the DIMSE listener offers exactly these, STOW-RS refuses any other
+// instance (Failure Reason 0x0122), AddInstance refuses any other.
+const std::vector<std::string>& StorableSopClasses();
+bool StorableSopClass(const std::string& sop_class_uid);
 
 }  // namespace interslice::server::node
 

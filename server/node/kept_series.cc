@@ -26,35 +26,46 @@ namespace interslice::server::node {
 
 namespace fs = std::filesystem;
 
+std::vector<KeptSeries> SeriesAssembler::WaitingSeries() {
+  std::vector<KeptSeries> waiting;
+  std::lock_guard<std::mutex> lock(mu_);
+  for (const auto& [key, p] : pending_) {
+    KeptSeries k;
+    k.id = key;
+    k.state = p.incomplete.has_value() ? "incomplete" : "receiving";
+    k.calling_ae = p.calling_ae;
+    k.called_ae = p.called_ae;
+    k.instances = p.instances;
+    k.kept_since_unix_ms = p.incomplete.has_value() ? p.incomplete_since_unix_ms
+                                                    : p.first_arrival_unix_ms;
+    k.why =
+        p.incomplete.has_value()
+            ? absl::StrCat("incomplete: ", *p.incomplete,
+                           "; it waits for its missing part")
+            : (p.open.empty() ? "waits for its stable time" : "being received");
+    waiting.push_back(std::move(k));
+  }
+  waiting.insert(waiting.end(), recently_dropped_.begin(),
+                 recently_dropped_.end());
+  std::sort(waiting.begin(), waiting.end(),
+            [](const KeptSeries& a, const KeptSeries& b) {
+              return std::tie(a.kept_since_unix_ms, a.id) <
+                     std::tie(b.kept_since_unix_ms, b.id);
+            });
+  return waiting;
+}
+
 std::vector<KeptSeries> SeriesAssembler::ListKept() {
   const std::shared_ptr<const RuleSet> rules = this->rules();
   std::vector<KeptSeries> kept;
   std::error_code ec;
-  // The series still in series/: waiting for completion, or incomplete
-  // (issue 39: an operator saw neither). Their facts are read outside the
-  // lock; one that completes meanwhile is simply no longer listed here.
-  std::vector<KeptSeries> waiting;
-  {
-    std::lock_guard<std::mutex> lock(mu_);
-    for (const auto& [key, p] : pending_) {
-      KeptSeries k;
-      k.id = key;
-      k.state = p.incomplete.has_value() ? "incomplete" : "receiving";
-      k.calling_ae = p.calling_ae;
-      k.called_ae = p.called_ae;
-      k.instances = p.instances;
-      k.kept_since_unix_ms = p.incomplete.has_value()
-                                 ? p.incomplete_since_unix_ms
-                                 : p.first_arrival_unix_ms;
-      k.why = p.incomplete.has_value()
-                  ? absl::StrCat("incomplete: ", *p.incomplete,
-                                 "; it waits for its missing part")
-                  : (p.open.empty() ? "waits for its stable time"
-                                    : "being received");
-      waiting.push_back(std::move(k));
-    }
-  }
+  // The series still in series/ (waiting for completion, or incomplete) and
+  // the ones dropped as incomplete lately (issue 39: an operator saw none
+  // of them). Their facts are read outside the lock; one that completes
+  // meanwhile is simply no longer listed here.
+  std::vector<KeptSeries> waiting = WaitingSeries();
   for (KeptSeries& k : waiting) {
+    if (k.state == "dropped") continue;  // its folder is gone
     const std::vector<std::string> files = DicomFiles(SeriesDir(k.id));
     if (!files.empty()) {
       const InstanceIds ids = ReadInstanceIds(files.front());
@@ -63,11 +74,6 @@ std::vector<KeptSeries> SeriesAssembler::ListKept() {
       k.modality = ReadSeriesFacts(SeriesDir(k.id)).modality;
     }
   }
-  std::sort(waiting.begin(), waiting.end(),
-            [](const KeptSeries& a, const KeptSeries& b) {
-              return std::tie(a.kept_since_unix_ms, a.id) <
-                     std::tie(b.kept_since_unix_ms, b.id);
-            });
   for (const auto& entry :
        fs::directory_iterator(fs::path(options_.root) / "unmatched", ec)) {
     const std::string id = entry.path().filename().string();

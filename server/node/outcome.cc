@@ -31,4 +31,19 @@ std::string CStoreStatusText(uint16_t status) {
   return absl::StrFormat("Unknown Status: 0x%x", status);
 }
 
+uint16_t StoreStatusOfRefusal(const absl::Status& refusal) {
+  switch (refusal.code()) {
+    case absl::StatusCode::kOk:
+      return 0x0000;
+    case absl::StatusCode::kResourceExhausted:
+      return kStoreOutOfResources;
+    case absl::StatusCode::kUnimplemented:
+      return kStoreSopClassNotSupported;
+    case absl::StatusCode::kInvalidArgument:
+      return kStoreCannotUnderstand;
+    default:
+      return kStoreProcessingFailure;
+  }
+}
+
 }  // namespace interslice::server::node

@@ -68,6 +68,7 @@ absl::StatusOr<ReceivedInstance> ReadReceivedInstance(
     out.ids.study_uid = GetString(ds, DCM_StudyInstanceUID);
     out.ids.series_uid = GetString(ds, DCM_SeriesInstanceUID);
     out.ids.sop_instance_uid = GetString(ds, DCM_SOPInstanceUID);
+    out.ids.sop_class_uid = GetString(ds, DCM_SOPClassUID);
     out.ids.frame_of_reference_uid = GetString(ds, DCM_FrameOfReferenceUID);
   }
   if (out.ids.series_uid.empty() || out.ids.sop_instance_uid.empty()) {

@@ -19,6 +19,7 @@ namespace interslice::server::node {
 // The identity of a received instance (from its header).
 struct InstanceIds {
   std::string study_uid, series_uid, sop_instance_uid;
+  std::string sop_class_uid;           // empty when not given
   std::string frame_of_reference_uid;  // empty when not given
 };
 

@@ -536,7 +536,7 @@ absl::StatusOr<RuleSet> LoadRulesFile(const std::string& path,
     }
     keys = CheckKeys(r, ctx, "",
                      {"name", "match", "exclude", "job", "fill", "send_to",
-                      "complete_on_release"});
+                      "complete_on_release", "complete_on_request"});
     if (!keys.ok()) return keys;
     if (r["name"]) {
       if (!r["name"].IsScalar()) {
@@ -610,6 +610,12 @@ absl::StatusOr<RuleSet> LoadRulesFile(const std::string& path,
           GetBool(r["complete_on_release"], ctx, "complete_on_release");
       if (!v.ok()) return v.status();
       rule.complete_on_release = *v;
+    }
+    if (r["complete_on_request"]) {
+      absl::StatusOr<bool> v =
+          GetBool(r["complete_on_request"], ctx, "complete_on_request");
+      if (!v.ok()) return v.status();
+      rule.complete_on_request = *v;
     }
     set.rules.push_back(std::move(rule));
   }

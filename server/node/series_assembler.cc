@@ -189,11 +189,13 @@ std::string SeriesAssembler::StagingPath() {
       .string();
 }
 
-uint64_t SeriesAssembler::BeginTransfer(const std::string& calling_ae,
+uint64_t SeriesAssembler::BeginTransfer(Door door,
+                                        const std::string& calling_ae,
                                         const std::string& called_ae) {
   std::lock_guard<std::mutex> lock(mu_);
   const uint64_t id = ++next_association_;
   Association& a = associations_[id];
+  a.door = door;
   a.calling_ae = calling_ae;
   a.called_ae = called_ae;
   return id;
@@ -285,6 +287,25 @@ absl::Status SeriesAssembler::StartSeries(const std::string& key, Pending& p,
   return absl::OkStatus();
 }
 
+absl::Status SeriesAssembler::MarkTransferOpen(const std::string& key,
+                                               Pending& p, uint64_t transfer,
+                                               Association& a) {
+  // While the transfer stores into the series, a file says so: a restart
+  // then knows the transfer was interrupted.
+  if (p.open.count(transfer) > 0) return absl::OkStatus();
+  const std::string marker =
+      (fs::path(SeriesDir(key)) / absl::StrCat(kOpenPrefix, transfer)).string();
+  const int fd = ::open(marker.c_str(), O_CREAT | O_WRONLY | O_CLOEXEC, 0600);
+  if (fd < 0) {
+    return absl::ResourceExhaustedError(
+        "the disk is full: cannot record a transfer in progress");
+  }
+  ::close(fd);
+  p.open.insert(transfer);
+  a.series.insert(key);
+  return absl::OkStatus();
+}
+
 absl::StatusOr<std::string> SeriesAssembler::AddInstance(
     uint64_t association, const std::string& staged, int64_t received_bytes) {
   std::error_code ec;
@@ -345,6 +366,15 @@ absl::StatusOr<std::string> SeriesAssembler::AddInstance(
     return status;
   };
   if (!synced.ok()) return refuse(synced);
+  // The same SOP classes at every door (intake.h): the DIMSE listener
+  // negotiates only these; a STOW-RS part may be anything. Its series (if
+  // the node has one of that key) misses it; other series of the transfer
+  // do not.
+  if (!StorableSopClass(ids.sop_class_uid)) {
+    return refuse(absl::UnimplementedError(
+        "the node does not store instances of this SOP class (it takes CT "
+        "and MR images, SEG and RTSTRUCT)"));
+  }
   const bool fresh = it == pending_.end();
   // A late instance of a held series (see "Another frame of reference").
   const std::string held = fresh ? NewestHeld(key) : "";
@@ -389,21 +419,10 @@ absl::StatusOr<std::string> SeriesAssembler::AddInstance(
     }
     series = &(pending_[key] = candidate);
   }
-  // While the association stores into the series, a file says so: a
-  // restart then knows the transfer was interrupted.
-  const bool first_of_association = series->open.count(association) == 0;
-  if (first_of_association) {
-    const std::string marker =
-        (fs::path(dir) / absl::StrCat(kOpenPrefix, association)).string();
-    const int fd = ::open(marker.c_str(), O_CREAT | O_WRONLY | O_CLOEXEC, 0600);
-    if (fd < 0) {
-      if (spool_ != nullptr) spool_->Release(size);
-      return refuse(absl::ResourceExhaustedError(
-          "the disk is full: cannot record a transfer in progress"));
-    }
-    ::close(fd);
-    series->open.insert(association);
-    a.series.insert(key);
+  if (absl::Status s = MarkTransferOpen(key, *series, association, a);
+      !s.ok()) {
+    if (spool_ != nullptr) spool_->Release(size);
+    return refuse(s);
   }
   int64_t replaced_bytes = 0;
   const bool replaced = fs::exists(target, ec);
@@ -464,10 +483,15 @@ void SeriesAssembler::EndTransfer(uint64_t association, bool released) {
       }
       const bool clean = released && !a.tainted && a.refused.count(key) == 0;
       if (!clean) {
-        MarkIncomplete(key, p,
-                       released ? "an instance of it was refused"
-                                : "its association ended without a normal "
-                                  "release (aborted, cut off or lost)");
+        MarkIncomplete(
+            key, p,
+            released ? "an instance of it was refused"
+            : a.door == Door::kAssociation
+                ? "its association ended without a normal release (aborted, "
+                  "cut off or lost)"
+                : "a STOW-RS request into it did not arrive whole (a body "
+                  "short of its Content-Length, cut off, malformed or too "
+                  "large)");
       } else if (p.incomplete.has_value() && association > p.incomplete_after) {
         const auto contributed = a.contributed.find(key);
         ResumeIfCompleted(key, p,
@@ -477,6 +501,7 @@ void SeriesAssembler::EndTransfer(uint64_t association, bool released) {
       }
       if (clean && p.open.empty() && !p.incomplete.has_value()) {
         p.release_requested = true;
+        p.released_through = a.door;
         any = true;
       }
       FsyncPath(dir, true);
@@ -538,15 +563,23 @@ int SeriesAssembler::CompleteStableSeries() {
         continue;
       }
       if (!stable_over) {
-        // Released normally before the stable wait ended: only a rule with
-        // complete_on_release cuts the wait short. The files are all there
-        // (and passed the bounded scan), so their headers are read now.
+        // Its last transfer ended whole before the stable wait ended: only
+        // a rule that says that transfer held the whole series cuts the
+        // wait short: complete_on_release for an association,
+        // complete_on_request for a STOW-RS request (a request is only part
+        // of an upload unless the rule says otherwise; issue 39). The files
+        // are all there (and passed the bounded scan), so their headers
+        // are read now.
         SeriesFacts facts = ReadSeriesFacts(SeriesDir(it->first));
         facts.calling_ae = p.calling_ae;
         facts.called_ae = p.called_ae;
         const Rule* rule = rules->FirstMatch(facts);
         p.release_requested = false;
-        if (rule == nullptr || !rule->complete_on_release) {
+        const bool transfer_held_series =
+            rule != nullptr && (p.released_through == Door::kAssociation
+                                    ? rule->complete_on_release
+                                    : rule->complete_on_request);
+        if (!transfer_held_series) {
           ++it;
           continue;
         }
@@ -592,6 +625,21 @@ void SeriesAssembler::DropStaleIncomplete() {
       fs::remove_all(SeriesDir(it->first), ec);
       if (spool_ != nullptr) spool_->Release(p.bytes);
       dropped.emplace_back(it->first, p);
+      KeptSeries gone;
+      gone.state = "dropped";
+      gone.id = it->first;
+      gone.calling_ae = p.calling_ae;
+      gone.called_ae = p.called_ae;
+      gone.instances = p.instances;
+      gone.kept_since_unix_ms = options_.clock->UnixMillis();
+      gone.why = absl::StrCat(
+          "dropped as incomplete (", p.incomplete.value_or(""),
+          ") after receiving nothing for ",
+          options_.unmatched_retention_seconds, " s; no job was made of it");
+      recently_dropped_.push_back(std::move(gone));
+      while (recently_dropped_.size() > kRecentlyDroppedKept) {
+        recently_dropped_.pop_front();
+      }
       it = pending_.erase(it);
     }
   }

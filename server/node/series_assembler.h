@@ -43,10 +43,16 @@
 //   unmatched_retention_seconds it is dropped: logged (AE titles, instance
 //   count, reason; no patient data), counted (series_incomplete_dropped)
 //   and deleted.
-// - A complete series makes its job when no association that stored into
-//   it is still open and either no instance arrived for the rule set's
-//   stable_seconds, or (rule complete_on_release) the last such
-//   association was released normally.
+// - A complete series makes its job when no transfer that stored into it
+//   is still open and either no instance arrived for the rule set's
+//   stable_seconds, or the last such transfer ended whole and the first
+//   matching rule says that transfer held the whole series: an association
+//   released normally, with complete_on_release; a STOW-RS request, with
+//   complete_on_request (issue 39: a client may post one instance per
+//   request, so by default a series is grouped across requests and
+//   completes after the stable wait, whatever complete_on_release says).
+// - Every instance is of a storable SOP class (intake.h,
+//   StorableSopClasses): another is refused (UNIMPLEMENTED) at every door.
 // - After its job is made the series is held in unmatched/ for the
 //   retention time. Instances of it that arrive later join the held ones
 //   (hard links) in a new series folder, so that the next job is made on
@@ -106,6 +112,7 @@
 #include <chrono>
 #include <condition_variable>
 #include <cstdint>
+#include <deque>
 #include <functional>
 #include <map>
 #include <memory>
@@ -166,14 +173,16 @@ using JobSubmitter = std::function<absl::StatusOr<std::string>(
 
 // A series the node holds, as ListKept reports it: complete and kept in
 // unmatched/ (state "kept"), or still in series/: waiting for its
-// completion ("receiving") or for its missing part ("incomplete").
+// completion ("receiving") or for its missing part ("incomplete"); or one
+// of the last series dropped as incomplete ("dropped": its files are gone,
+// it is listed until the server restarts or 64 newer ones were dropped).
 struct KeptSeries {
-  std::string state = "kept";  // kept | receiving | incomplete
+  std::string state = "kept";  // kept | receiving | incomplete | dropped
   std::string id;              // the folder's name, <key>-<unix ms>: opaque
   std::string calling_ae, called_ae, modality;
   int64_t instances = 0;
   // Kept: since it was kept; receiving: since its first instance arrived;
-  // incomplete: since it became incomplete.
+  // incomplete: since it became incomplete; dropped: since it was dropped.
   int64_t kept_since_unix_ms = 0;
   std::string job_id;  // the job made of it; empty: none
   // "job <id> made", or "no rule matched; the rules now: " and, per rule,
@@ -225,7 +234,7 @@ class SeriesAssembler : public Intake {
   }
   // A fresh path under incoming/.
   std::string StagingPath() override;
-  uint64_t BeginTransfer(const std::string& calling_ae,
+  uint64_t BeginTransfer(Door door, const std::string& calling_ae,
                          const std::string& called_ae) override;
 
   // Blocking. Takes the received file at `staged` (deleted in every case)
@@ -268,9 +277,13 @@ class SeriesAssembler : public Intake {
   int pending_series();
 
   // Blocking (reads every header of every held series). The series in
-  // series/ (receiving, incomplete), then the held ones, oldest first;
-  // `why` is explained against the rules in force now.
+  // series/ (receiving, incomplete) and the last ones dropped, then the
+  // held ones, each group oldest first; `why` is explained against the
+  // rules in force now.
   std::vector<KeptSeries> ListKept();
+  // Cheap (no file is read; no modality, no UIDs): the series in series/
+  // and the last ones dropped, oldest first. For the status page.
+  std::vector<KeptSeries> WaitingSeries();
   // Blocking. Runs the kept series `id` (KeptSeries::id) again: matched
   // against the rules in force now and, when a rule matches, made into its
   // job exactly as a series that just completed (Complete's path). No rule
@@ -294,9 +307,11 @@ class SeriesAssembler : public Intake {
     std::chrono::steady_clock::time_point last_arrival;
     // Associations storing into it now.
     std::set<uint64_t> open;
-    // The last association to end was released normally with nothing
-    // refused (complete_on_release may complete it).
+    // The last transfer to end ended whole with nothing refused, through
+    // `released_through` (complete_on_release, for an association, or
+    // complete_on_request, for a STOW-RS request, may complete it).
     bool release_requested = false;
+    Door released_through = Door::kAssociation;
     // Incomplete (see above): why, and the newest association id at that
     // moment (only a later association can make it complete again).
     std::optional<std::string> incomplete;
@@ -323,6 +338,7 @@ class SeriesAssembler : public Intake {
     bool brought_new = false;
   };
   struct Association {
+    Door door = Door::kAssociation;
     std::string calling_ae, called_ae;
     std::set<std::string> series;   // keys stored into
     std::set<std::string> refused;  // keys of which an instance was refused
@@ -363,6 +379,11 @@ class SeriesAssembler : public Intake {
   // it (see "Completeness").
   void ResumeIfCompleted(const std::string& key, Pending& pending,
                          const Contribution& contribution);
+  // With mu_ held: the first instance of `transfer` in the series: its
+  // open-<n> file, and the transfer counted as storing into it.
+  // RESOURCE_EXHAUSTED when the file cannot be made (a full disk).
+  absl::Status MarkTransferOpen(const std::string& key, Pending& pending,
+                                uint64_t transfer, Association& association);
   // With mu_ held: marks the series incomplete (persisted) unless it is.
   void MarkIncomplete(const std::string& key, Pending& pending,
                       const std::string& reason);
@@ -386,6 +407,9 @@ class SeriesAssembler : public Intake {
   std::condition_variable cv_;
   std::map<std::string, Pending> pending_;
   std::map<uint64_t, Association> associations_;
+  // The last series dropped as incomplete (WaitingSeries), newest last.
+  static constexpr size_t kRecentlyDroppedKept = 64;
+  std::deque<KeptSeries> recently_dropped_;
   uint64_t next_association_ = 0;
   uint64_t next_staging_ = 0;
   uint64_t next_completion_ = 0;

@@ -37,7 +37,8 @@
 namespace {
 
 namespace fs = std::filesystem;
-using namespace interslice::server::dicom;
+using namespace interslice::server::dimse;
+using namespace interslice::server::node;
 
 void Check(bool condition) {
   if (!condition) __builtin_trap();
@@ -95,7 +96,8 @@ void FuzzDataset(const uint8_t* data, size_t size) {
   const std::string syntax = kSyntaxes[data[0] % 4];
   Spool spool;
   std::unique_ptr<SeriesAssembler> assembler = spool.Open();
-  const uint64_t id = assembler->BeginTransfer("FUZZ", "INTERSLICE");
+  const uint64_t id =
+      assembler->BeginTransfer(Door::kAssociation, "FUZZ", "INTERSLICE");
   const std::string staged = assembler->StagingPath();
   {
     std::ofstream out(staged, std::ios::binary);

@@ -213,6 +213,37 @@ TEST(StatusPageTest, EscapesEverythingAndHasNoScript) {
   EXPECT_EQ(json["peers"][0]["ae_title"], "ORTHANC");
 }
 
+// Issue 39, finding 7: series waiting for completion, incomplete or
+// dropped were on neither the kept list nor the page.
+TEST(StatusPageTest, ShowsSeriesArrivingIncompleteAndDropped) {
+  StatusSnapshot s = SnapshotWithTwoJobs();
+  s.series.push_back({.state = "receiving",
+                      .calling_ae = "MODALITY",
+                      .called_ae = "INTERSLICE",
+                      .instances = 12,
+                      .since_unix_ms = 1764129600000,
+                      .why = "being received"});
+  s.series.push_back({.state = "incomplete",
+                      .calling_ae = "STOW:<b>",
+                      .called_ae = "INTERSLICE",
+                      .instances = 3,
+                      .since_unix_ms = 1764129600000,
+                      .why = "incomplete: a STOW-RS request into it did not "
+                             "arrive whole"});
+  s.series.push_back(
+      {.state = "dropped", .calling_ae = "PACS", .instances = 7});
+  const std::string html = RenderStatusHtml(s);
+  EXPECT_THAT(html, HasSubstr("Series arriving (3, 2 incomplete or dropped)"));
+  EXPECT_THAT(html, HasSubstr("<td>incomplete</td><td>STOW:&lt;b&gt;</td>"
+                              "<td>INTERSLICE</td><td>3</td>"));
+  EXPECT_THAT(html, HasSubstr("did not arrive whole"));
+  const nlohmann::json json = nlohmann::json::parse(RenderStatusJson(s));
+  ASSERT_EQ(json["series"].size(), 3u);
+  EXPECT_EQ(json["series"][1]["state"], "incomplete");
+  EXPECT_EQ(json["series"][1]["instances"], 3);
+  EXPECT_EQ(json["series"][2]["state"], "dropped");
+}
+
 // Regression: a worker whose output does not parse was stopped and reported
 // as "the job was cancelled" although nobody cancelled it.
 // A route of the HTTP listener (server/net/http/http_handler.h) that

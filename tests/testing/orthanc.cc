@@ -92,6 +92,15 @@ absl::StatusOr<std::unique_ptr<Orthanc>> Orthanc::Start(
     }
     config["Plugins"] = nlohmann::json::array({plugin});
     config["DicomWeb"] = {{"Enable", true}, {"Root", "/dicom-web/"}};
+    nlohmann::json servers = nlohmann::json::object();
+    for (const OrthancExtras::DicomWebServer& server :
+         extras.dicomweb_servers) {
+      servers[server.name] =
+          server.user.empty() ? nlohmann::json::array({server.url})
+                              : nlohmann::json::array(
+                                    {server.url, server.user, server.password});
+    }
+    if (!servers.empty()) config["DicomWeb"]["Servers"] = servers;
   }
   if (!extras.users.empty()) {
     config["AuthenticationEnabled"] = true;

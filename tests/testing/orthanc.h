@@ -46,6 +46,14 @@ struct OrthancExtras {
   std::vector<std::pair<std::string, std::string>> users;
   // A Lua script (text) Orthanc runs, e.g. a ReceivedInstanceFilter.
   std::string lua_script;
+  // DICOMweb servers Orthanc's plugin may send to (with `dicomweb`):
+  // POST /dicom-web/servers/{name}/stow {"Resources": [...]} makes Orthanc
+  // a STOW-RS client of `url` (HTTP basic with user and password when
+  // given).
+  struct DicomWebServer {
+    std::string name, url, user, password;
+  };
+  std::vector<DicomWebServer> dicomweb_servers;
 };
 
 class Orthanc {

@@ -507,9 +507,10 @@ absl::StatusOr<std::string> MultipartBoundary(absl::string_view content_type) {
   }
   for (const auto& [name, value] : parts) {
     if (name != "boundary") continue;
-    if (value.empty() || value.size() > 70) {
+    if (value.empty() || value.size() > kMaxBoundaryChars) {
       return absl::InvalidArgumentError(
-          "the multipart boundary is empty or longer than 70 characters");
+          absl::StrCat("the multipart boundary is empty or longer than ",
+                       kMaxBoundaryChars, " characters"));
     }
     return value;
   }
@@ -532,12 +533,18 @@ absl::StatusOr<StowContentType> ParseStowContentType(
   }
   const std::vector<std::string_view> pieces = SplitParameters(content_type);
   const std::string media = MediaTypeOf(pieces[0]);
+  StowContentType result;
+  if (media == "application/dicom") {
+    result.single_part = true;
+    result.type = media;
+    return result;
+  }
   if (media != "multipart/related") {
     return absl::UnimplementedError(absl::StrCat(
-        "STOW-RS takes multipart/related; type=\"application/dicom\", not ",
+        "STOW-RS takes multipart/related; type=\"application/dicom\" (or "
+        "one instance as application/dicom), not ",
         media.empty() ? "an empty Content-Type" : media));
   }
-  StowContentType result;
   bool has_boundary = false;
   for (size_t i = 1; i < pieces.size(); ++i) {
     const std::string_view piece = StripView(pieces[i]);
@@ -561,12 +568,13 @@ absl::StatusOr<StowContentType> ParseStowContentType(
     return absl::InvalidArgumentError(
         "multipart/related without a boundary parameter");
   }
-  if (result.boundary.empty() || result.boundary.size() > 70 ||
+  if (result.boundary.empty() || result.boundary.size() > kMaxBoundaryChars ||
       result.boundary.back() == ' ' ||
       !std::all_of(result.boundary.begin(), result.boundary.end(),
                    IsBoundaryChar)) {
     return absl::InvalidArgumentError(
-        "the boundary must be 1-70 characters of RFC 2046's set");
+        absl::StrCat("the boundary must be 1-", kMaxBoundaryChars,
+                     " characters of RFC 2046's set"));
   }
   if (!result.type.empty() && result.type != "application/dicom") {
     return absl::UnimplementedError(

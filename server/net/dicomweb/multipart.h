@@ -183,25 +183,35 @@ class MultipartParser {
   absl::Status error_;
 };
 
+// The longest multipart boundary taken. RFC 2046 5.1.1 says at most 70
+// characters, but real DICOMweb clients send longer ones (Orthanc's
+// DICOMweb plugin: 73; issue 39): a receiver is liberal in what it accepts
+// up to a bound that still caps what a delimiter search holds.
+inline constexpr size_t kMaxBoundaryChars = 256;
+
 // The boundary parameter of a multipart Content-Type header value
 // ('multipart/related; type="application/dicom"; boundary=abc'), unquoted;
 // INVALID_ARGUMENT when the type is not multipart/related or the boundary
-// is missing, empty or longer than 70 characters (RFC 2046).
+// is missing, empty or longer than kMaxBoundaryChars.
 absl::StatusOr<std::string> MultipartBoundary(absl::string_view content_type);
 
 // The value of the `type` parameter ("application/dicom"), or empty.
 std::string MultipartRootType(absl::string_view content_type);
 
 struct StowContentType {
-  std::string boundary;
+  bool single_part = false;  // Content-Type: application/dicom
+  std::string boundary;      // multipart only
   std::string type;  // the `type` parameter, lower case ("" when absent)
 };
 
-// A STOW-RS request's Content-Type: multipart/related with a boundary (1-70
-// characters of RFC 2046's set) and, when it has a `type` parameter,
-// type="application/dicom" (PS3.18 10.5.1.1: only Part 10 instances are
-// accepted here, no metadata+bulk data). INVALID_ARGUMENT for a malformed
-// value (-> 400), UNIMPLEMENTED for another media type (-> 415).
+// A STOW-RS request's Content-Type: multipart/related with a boundary (1 to
+// kMaxBoundaryChars characters of RFC 2046's set) and, when it has a `type`
+// parameter, type="application/dicom" (PS3.18 10.5.1.1: only Part 10
+// instances are accepted here, no metadata+bulk data); or application/dicom
+// alone: a single-part body, one Part 10 instance (`single_part`; Orthanc's
+// and dcm4che's clients send one instance so, PS3.18 8.7.3.5 names the
+// media type). INVALID_ARGUMENT for a malformed value (-> 400),
+// UNIMPLEMENTED for another media type (-> 415).
 absl::StatusOr<StowContentType> ParseStowContentType(
     std::string_view content_type);
 

@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <cerrno>
+#include <memory>
 #include <optional>
 #include <utility>
 #include <vector>
@@ -16,10 +17,12 @@
 #include "nlohmann/json.hpp"
 #include "server/base/audit.h"
 #include "server/base/log_safe.h"
+#include "server/base/metrics.h"
 #include "server/engine/spool.h"
 #include "server/net/dicomweb/multipart.h"
 #include "server/node/dataset_scan.h"
 #include "server/node/intake.h"
+#include "server/node/outcome.h"
 #include "server/node/received_instance.h"
 #include "spdlog/spdlog.h"
 
@@ -146,14 +149,8 @@ class StagingSink : public MultipartSink {
       ++stored_;
       return absl::OkStatus();
     }
-    const int reason =
-        key.status().code() == absl::StatusCode::kResourceExhausted
-            ? kFailureOutOfResources
-        : key.status().code() == absl::StatusCode::kInvalidArgument
-            ? kFailureCannotUnderstand
-            : kFailureProcessing;
     // AddInstance already marked what the instance belonged to.
-    outcome.failure = reason;
+    outcome.failure = node::StoreStatusOfRefusal(key.status());
     ++failed_;
     last_reason_ = std::string(key.status().message());
     return absl::OkStatus();
@@ -355,11 +352,30 @@ StowResponse StowReceiver::Handle(const StowRequest& request) const {
                         "later");
   }
 
-  const uint64_t association =
-      assembler_->BeginTransfer(identity, options_.called_ae);
+  const uint64_t association = assembler_->BeginTransfer(
+      node::Door::kStowRequest, identity, options_.called_ae);
   StagingSink sink(assembler_, spool_, association, type->type,
                    request.study_uid);
-  MultipartParser parser(type->boundary, StowRequestMultipart(), &sink);
+  // A multipart body goes through the parser; a single-part body (Content-
+  // Type application/dicom) is one part, its bytes the instance.
+  std::unique_ptr<MultipartParser> parser;
+  if (!type->single_part) {
+    parser = std::make_unique<MultipartParser>(type->boundary,
+                                               StowRequestMultipart(), &sink);
+  }
+  bool single_part_begun = false;
+  auto feed = [&](std::string_view bytes) -> absl::Status {
+    if (parser != nullptr) return parser->Feed(bytes);
+    if (!single_part_begun) {
+      single_part_begun = true;
+      if (absl::Status s = sink.BeginPart({}); !s.ok()) return s;
+    }
+    return sink.PartBytes(bytes);
+  };
+  auto finish = [&]() -> absl::Status {
+    if (parser != nullptr) return parser->Finish();
+    return single_part_begun ? sink.EndPart() : absl::OkStatus();
+  };
   std::vector<char> buffer(options_.read_chunk_bytes);
   int64_t total = 0;
   absl::Status parsed = absl::OkStatus();
@@ -376,11 +392,17 @@ StowResponse StowReceiver::Handle(const StowRequest& request) const {
       too_large = true;
       break;
     }
-    parsed =
-        parser.Feed(std::string_view(buffer.data(), static_cast<size_t>(n)));
+    parsed = feed(std::string_view(buffer.data(), static_cast<size_t>(n)));
     if (!parsed.ok()) break;
   }
-  if (parsed.ok() && !too_large && !cut) parsed = parser.Finish();
+  // The body ended before the bytes its Content-Length promised (issue 39,
+  // finding 2: the client still waiting when the server's read timed out):
+  // whatever the parser made of it, the request did not arrive whole.
+  const bool short_body = !cut && !too_large && parsed.ok() &&
+                          request.content_length >= 0 &&
+                          total < request.content_length;
+  if (short_body) cut = true;
+  if (parsed.ok() && !too_large && !cut) parsed = finish();
   sink.Discard();
   StowResponse r;
   r.failed = sink.failed();
@@ -388,12 +410,23 @@ StowResponse StowReceiver::Handle(const StowRequest& request) const {
   r.released = parsed.ok() && !too_large && !cut && sink.failed() == 0;
   assembler_->EndTransfer(association, r.released);
 
+  if (options_.metrics != nullptr) {
+    options_.metrics->StowBodyBytes(static_cast<double>(total));
+    options_.metrics->StowInstances("stored", static_cast<double>(r.stored));
+    options_.metrics->StowInstances("refused", static_cast<double>(r.failed));
+  }
   std::string detail =
       absl::StrCat(r.stored, " instance(s) kept, ", r.failed, " refused");
   if (too_large) {
     r.status = 413;
     r.body = absl::StrCat("the body passed the limit of ", max_body_bytes_,
                           " bytes per request; what arrived is incomplete\n");
+  } else if (short_body) {
+    r.status = 400;
+    r.body = absl::StrCat("the body ended after ", total, " of the ",
+                          request.content_length,
+                          " bytes its Content-Length promised; what arrived "
+                          "is incomplete\n");
   } else if (cut) {
     r.status = 400;
     r.body = "the body did not arrive whole (timeout or connection lost)\n";

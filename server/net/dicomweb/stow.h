@@ -1,8 +1,10 @@
 // The STOW-RS origin server (DICOM PS3.18 10.5, "Store Instances"): one
-// request is one association's worth of instances for the DICOM node's
-// series assembly (server/node/series_assembler.h), so that the rules,
-// limits, quota and completeness contract of the DIMSE listener apply to
-// instances that arrive by HTTP too. docs/dicomweb.md describes it.
+// request is one transfer into the node's intake (server/node/intake.h,
+// Door::kStowRequest), so that the rules, limits, quota, SOP classes and
+// completeness model of the DIMSE listener apply to instances that arrive
+// by HTTP too; a series is grouped across requests (a rule's
+// complete_on_request makes one job per request). docs/dicomweb.md
+// describes it.
 //
 // As a route of the HTTP listener (HttpRequestHandler of
 // server/net/http/http_handler.h; server/app/ gives it the prefix
@@ -20,8 +22,10 @@
 //   Content-Type, Content-Length, study and body.
 //
 // Contract of Handle():
-// - Before a byte of the body is read: Content-Type not multipart/related
-//   (or a `type` other than application/dicom) -> 415; a malformed one ->
+// - Before a byte of the body is read: Content-Type neither
+//   multipart/related (with no `type` or type application/dicom) nor
+//   application/dicom (a single-part body: one instance) -> 415; a
+//   malformed one (e.g. a boundary longer than kMaxBoundaryChars, 256) ->
 //   400; Content-Length above max_body_bytes -> 413; the spool quota has no
 //   room for Content-Length (or none at all) -> 507. Nothing is stored.
 // - Otherwise BeginTransfer(calling = "STOW:" + identity ("STOW" for the
@@ -32,13 +36,17 @@
 //   of another study is refused with 0xA900, PS3.4 B.2.3 "does not match")
 //   and handed to AddInstance. A part refused gets a Failure Reason: 0xA700
 //   out of resources (quota, per-series or per-instance limit, full disk),
-//   0xC000 cannot understand (not application/dicom, not Part 10 DICOM, no
-//   UIDs), 0x0110 processing failure (anything else).
-// - EndTransfer(released) with released = the body was parsed to its
-//   close delimiter, within max_body_bytes, and no part was refused: so a
-//   malformed or cut-off body, or one refused instance, leaves every series
-//   the request stored into INCOMPLETE (it makes no job until a later
-//   request re-sends it whole; series_assembler.h).
+//   0x0122 SOP class not supported (not one of node::StorableSopClasses,
+//   which the DIMSE listener negotiates), 0xC000 cannot understand (not
+//   application/dicom, not Part 10 DICOM, no UIDs), 0x0110 processing
+//   failure (anything else): node::StoreStatusOfRefusal.
+// - EndTransfer(whole) with whole = the body was parsed to its close
+//   delimiter (a single-part body: to its end), within max_body_bytes, held
+//   every byte its Content-Length promised, and no part was refused: so a
+//   malformed, short or cut-off body, or one refused instance, leaves every
+//   series the request stored into INCOMPLETE (it makes no job until the
+//   missing part arrives; series_assembler.h). A body shorter than its
+//   Content-Length is 400 whatever the parser made of it.
 // - The answer (PS3.18 10.5.3, application/dicom+json: one data set with
 //   ReferencedSOPSequence (0008,1199) and FailedSOPSequence (0008,1198)):
 //   200 every part stored; 202 some stored, some failed; 409 none stored
@@ -59,9 +67,11 @@
 #include <string_view>
 
 #include "server/net/http/http_handler.h"
+#include "server/node/outcome.h"
 
 namespace interslice::server {
 class AuditLog;
+class Metrics;
 class Spool;
 namespace node {
 class Intake;
@@ -70,11 +80,13 @@ class Intake;
 
 namespace interslice::server::dicomweb {
 
-// PS3.18 10.5.3 / PS3.4 B.2.3 failure reasons used here.
-inline constexpr int kFailureOutOfResources = 0xA700;
-inline constexpr int kFailureDoesNotMatch = 0xA900;
-inline constexpr int kFailureCannotUnderstand = 0xC000;
-inline constexpr int kFailureProcessing = 0x0110;
+// PS3.18 10.5.3 / PS3.4 B.2.3 failure reasons used here (node/outcome.h).
+inline constexpr int kFailureOutOfResources = node::kStoreOutOfResources;
+inline constexpr int kFailureDoesNotMatch = node::kStoreDoesNotMatch;
+inline constexpr int kFailureCannotUnderstand = node::kStoreCannotUnderstand;
+inline constexpr int kFailureProcessing = node::kStoreProcessingFailure;
+inline constexpr int kFailureSopClassNotSupported =
+    node::kStoreSopClassNotSupported;
 
 struct StowOptions {
   std::string called_ae = "INTERSLICE";  // the AE title rules see as called
@@ -85,6 +97,9 @@ struct StowOptions {
   // The anonymous user (a server without tokens) gets 403: set when the
   // server authenticates gRPC callers by client certificate only.
   bool refuse_anonymous = false;
+  // Counts instances stored and refused, and body bytes
+  // (Metrics::StowInstances, StowBodyBytes); may be null.
+  Metrics* metrics = nullptr;
 };
 
 struct StowRequest {

@@ -31,6 +31,7 @@
 #include "server/net/dimse/tls.h"
 #include "server/node/config.h"
 #include "server/node/intake.h"
+#include "server/node/outcome.h"
 #include "server/node/received_instance.h"
 #include "spdlog/spdlog.h"
 
@@ -372,7 +373,8 @@ class AssociationScp : public DcmThreadSCP {
 
   void notifyAssociationAcknowledge() override {
     impl_->Count("associations");
-    association_ = impl_->intake->BeginTransfer(calling_, called_);
+    association_ = impl_->intake->BeginTransfer(node::Door::kAssociation,
+                                                calling_, called_);
     auto* params = const_cast<T_ASC_Parameters*>(params_);
     const int refused = ASC_countPresentationContexts(params) -
                         ASC_countAcceptedPresentationContexts(params);
@@ -532,14 +534,11 @@ class AssociationScp : public DcmThreadSCP {
       return sendSTOREResponse(info.presentationContextID, request,
                                STATUS_Success);
     }
-    if (key.status().code() == absl::StatusCode::kResourceExhausted) {
-      spdlog::warn("dicom: instance from {} refused (out of resources): {}",
-                   LogSafe(calling_), LogSafe(key.status().message()));
-      return Refuse(STATUS_STORE_Refused_OutOfResources, request, info);
-    }
-    spdlog::warn("dicom: instance from {} refused: {}", LogSafe(calling_),
+    const uint16_t status = node::StoreStatusOfRefusal(key.status());
+    spdlog::warn("dicom: instance from {} refused ({}): {}", LogSafe(calling_),
+                 node::CStoreStatusText(status),
                  LogSafe(key.status().message()));
-    return Refuse(STATUS_STORE_Error_CannotUnderstand, request, info);
+    return Refuse(status, request, info);
   }
 
   // The C-STORE request names a C-MOVE of ours as its origin: its Move
@@ -569,10 +568,7 @@ class AssociationScp : public DcmThreadSCP {
     }
     spdlog::warn("dicom: instance of a C-MOVE from {} refused: {}",
                  LogSafe(calling_), LogSafe(kept.message()));
-    return Refuse(kept.code() == absl::StatusCode::kResourceExhausted
-                      ? STATUS_STORE_Refused_OutOfResources
-                      : STATUS_STORE_Error_CannotUnderstand,
-                  request, info);
+    return Refuse(node::StoreStatusOfRefusal(kept), request, info);
   }
 
   // The association ends: the moves it stored into stop waiting for it.
@@ -656,7 +652,7 @@ absl::StatusOr<std::unique_ptr<AssociationRunner>> AssociationRunner::Create(
       }
     }
   }
-  for (const std::string& sop : AcceptedStorageSopClasses()) {
+  for (const std::string& sop : node::StorableSopClasses()) {
     OFCondition cond =
         cfg.addPresentationContext(sop.c_str(), storage_syntaxes);
     if (cond.bad()) {

@@ -25,19 +25,6 @@ namespace interslice::server::dimse {
 
 using node::PeersConfig;
 
-std::vector<std::string> AcceptedStorageSopClasses() {
-  // SEG and RTSTRUCT: segmentations drawn on a series held in the spool;
-  // rules with `fill` make fill jobs of them (series_assembler.h).
-  return {UID_CTImageStorage,
-          UID_EnhancedCTImageStorage,
-          UID_LegacyConvertedEnhancedCTImageStorage,
-          UID_MRImageStorage,
-          UID_EnhancedMRImageStorage,
-          UID_LegacyConvertedEnhancedMRImageStorage,
-          UID_SegmentationStorage,
-          UID_RTStructureSetStorage};
-}
-
 struct StorageScp::Impl {
   StorageScpOptions options;
   std::unique_ptr<RefusalLog> refusals;

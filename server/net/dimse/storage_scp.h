@@ -102,9 +102,6 @@ class StorageScp {
   std::unique_ptr<Impl> impl_;
 };
 
-// The storage SOP classes offered (UIDs), in the order offered.
-std::vector<std::string> AcceptedStorageSopClasses();
-
 }  // namespace interslice::server::dimse
 
 #endif  // INTERSLICE_SERVER_NET_DIMSE_STORAGE_SCP_H_

@@ -12,6 +12,7 @@
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
 #include "server/base/audit.h"
 #include "server/base/log_safe.h"
 #include "server/base/redact.h"
@@ -33,26 +34,45 @@ grpc::ServerUnaryReactor* InterSliceService::Find(
     reactor->Finish(ToGrpcStatus(caller.status()));
     return reactor;
   }
+  // Every query is audited (issue 39: none was): who asked which peer, with
+  // which keys (their names, never their values: a patient ID is PHI), and
+  // what came back (counts) or why nothing did.
+  std::vector<std::string> keys;
+  if (!request->patient_id().empty()) keys.push_back("patient_id");
+  if (!request->study_date().empty()) keys.push_back("study_date");
+  if (!request->modality().empty()) keys.push_back("modality");
+  if (!request->accession_number().empty()) keys.push_back("accession_number");
+  AuditEvent audited;
+  audited.event = "find.queried";
+  audited.identity = caller->identity;
+  audited.source = context->peer();
+  audited.peer = request->peer();
+  audited.detail =
+      absl::StrCat("keys: ", keys.empty() ? "none" : absl::StrJoin(keys, ", "));
+  auto refuse = [&](grpc::Status status) {
+    audited.outcome = AuditOutcome::kMinorFailure;
+    absl::StrAppend(&audited.detail, "; refused: ", status.error_message());
+    Audit(std::move(audited));
+    reactor->Finish(status);
+    return reactor;
+  };
   // A PACS's index lists every patient's studies: not any one caller's.
   if (!caller->admin && !caller->identity.empty()) {
-    reactor->Finish(grpc::Status(
+    return refuse(grpc::Status(
         grpc::PERMISSION_DENIED,
         "Find lists a DICOM peer's studies: admin identities only"));
-    return reactor;
   }
   std::shared_ptr<node::PeerClient> peer;
   if (peers_ != nullptr) peer = peers_->Find(request->peer());
   if (peer == nullptr) {
-    reactor->Finish(ToGrpcStatus(absl::InvalidArgumentError(
-        absl::StrCat("peer: unknown DICOM peer \"", request->peer(),
+    return refuse(ToGrpcStatus(absl::InvalidArgumentError(
+        absl::StrCat("peer: unknown DICOM peer \"", LogSafe(request->peer()),
                      "\" (see the server's --dicom-peers file)"))));
-    return reactor;
   }
   node::FindQuery query{request->patient_id(), request->study_date(),
                         request->modality(), request->accession_number()};
   if (absl::Status s = node::CheckFindQuery(query); !s.ok()) {
-    reactor->Finish(ToGrpcStatus(s));
-    return reactor;
+    return refuse(ToGrpcStatus(s));
   }
   const auto cap = [](int32_t asked, int fallback, int most) {
     if (asked <= 0) return fallback;
@@ -63,13 +83,13 @@ grpc::ServerUnaryReactor* InterSliceService::Find(
   limits.max_series = cap(request->max_series(), 1000, 10000);
   if (dicom_queries_in_flight_.fetch_add(1) >= kMaxDicomQueries) {
     dicom_queries_in_flight_.fetch_sub(1);
-    reactor->Finish(grpc::Status(
+    return refuse(grpc::Status(
         grpc::RESOURCE_EXHAUSTED,
         absl::StrCat("already ", kMaxDicomQueries,
                      " DICOM queries in progress; try again shortly")));
-    return reactor;
   }
-  dicom_queries_->Post([this, reactor, response, peer, query, limits] {
+  dicom_queries_->Post([this, reactor, response, peer, query, limits,
+                        audited = std::move(audited)]() mutable {
     const auto started = std::chrono::steady_clock::now();
     absl::StatusOr<node::FindResult> found = peer->Find(query, limits);
     dicom_queries_in_flight_.fetch_sub(1);
@@ -80,6 +100,10 @@ grpc::ServerUnaryReactor* InterSliceService::Find(
       spdlog::info("find on peer {} failed after {:.2f} s: {}",
                    LogSafe(peer->name()), seconds,
                    RedactPhi(found.status().message()));
+      audited.outcome = AuditOutcome::kSeriousFailure;
+      absl::StrAppend(&audited.detail,
+                      "; failed: ", RedactPhi(found.status().message()));
+      Audit(std::move(audited));
       reactor->Finish(ToGrpcStatus(found.status()));
       return;
     }
@@ -109,6 +133,11 @@ grpc::ServerUnaryReactor* InterSliceService::Find(
     spdlog::info("find on peer {}: {} study(ies), {} series{} in {:.2f} s",
                  LogSafe(peer->name()), response->studies_size(), series,
                  found->truncated ? " (truncated at the caps)" : "", seconds);
+    audited.count = response->studies_size();
+    absl::StrAppend(&audited.detail, "; ", response->studies_size(),
+                    " study(ies), ", series, " series",
+                    found->truncated ? " (truncated)" : "");
+    Audit(std::move(audited));
     reactor->Finish(grpc::Status::OK);
   });
   return reactor;

@@ -22,6 +22,7 @@
 #include "server/base/audit.h"
 #include "server/base/identity.h"
 #include "server/base/log_safe.h"
+#include "server/base/metrics.h"
 #include "spdlog/spdlog.h"
 
 namespace interslice::server {
@@ -183,6 +184,24 @@ std::string RenderStatusHtml(const StatusSnapshot& s) {
   }
   out += "</table>";
 
+  int incomplete = 0;
+  for (const StatusSeries& x : s.series) {
+    if (x.state != "receiving") ++incomplete;
+  }
+  absl::StrAppend(&out, "<h2 id=\"series\">Series arriving (", s.series.size(),
+                  ", ", incomplete,
+                  " incomplete or dropped)</h2><table><tr><th>state</th><th>"
+                  "from</th><th>to</th><th>instances</th><th>since</th><th>"
+                  "why</th></tr>");
+  for (const StatusSeries& x : s.series) {
+    absl::StrAppend(
+        &out, "<tr class=\"", x.state == "receiving" ? "queued" : "failed",
+        "\"><td>", Html(x.state), "</td><td>", Html(x.calling_ae), "</td><td>",
+        Html(x.called_ae), "</td><td>", x.instances, "</td><td>",
+        FormatTime(x.since_unix_ms), "</td><td>", Html(x.why), "</td></tr>");
+  }
+  out += "</table>";
+
   const std::map<std::string, PeerLoad> load = LoadPerPeer(s);
   absl::StrAppend(&out, "<h2 id=\"peers\">DICOM peers (", s.peers.size(),
                   ")</h2><table><tr><th>name</th><th>AE title</th><th>address"
@@ -242,6 +261,16 @@ std::string RenderStatusJson(const StatusSnapshot& s) {
                     {"deliveries", std::move(d)}});
   }
   j["jobs"] = std::move(jobs);
+  nlohmann::ordered_json series = nlohmann::ordered_json::array();
+  for (const StatusSeries& x : s.series) {
+    series.push_back({{"state", x.state},
+                      {"calling_ae", LogSafe(x.calling_ae)},
+                      {"called_ae", LogSafe(x.called_ae)},
+                      {"instances", x.instances},
+                      {"since_unix_ms", x.since_unix_ms},
+                      {"why", LogSafe(x.why)}});
+  }
+  j["series"] = std::move(series);
   nlohmann::ordered_json peers = nlohmann::ordered_json::array();
   for (const StatusPeer& p : s.peers) {
     peers.push_back({{"name", p.name},
@@ -262,6 +291,7 @@ std::string RenderStatusJson(const StatusSnapshot& s) {
 
 struct StatusServer::Impl {
   std::function<StatusSnapshot()> snapshot;
+  Metrics* metrics = nullptr;
   const Authenticator* auth = nullptr;
   AuditLog* audit = nullptr;
   std::vector<HttpRoute> routes;
@@ -397,6 +427,12 @@ int HandleRoute(StatusServer::Impl& impl, const HttpRoute& route,
   return response.status;
 }
 
+int ServeStatusPage(StatusServer::Impl* impl, mg_connection* connection,
+                    const std::string& method, const std::string& uri,
+                    const std::string& source);
+
+// civetweb's handler for every path: a route's, or the status page's;
+// counted by route and status (issue 39: HTTP traffic was not in /metrics).
 int HandleRequest(mg_connection* connection, void* data) {
   auto* impl = static_cast<StatusServer::Impl*>(data);
   const mg_request_info* request = mg_get_request_info(connection);
@@ -408,9 +444,22 @@ int HandleRequest(mg_connection* connection, void* data) {
       absl::StrCat(request->remote_addr, ":", request->remote_port);
   for (const HttpRoute& route : impl->routes) {
     if (RouteTakes(route, uri)) {
-      return HandleRoute(*impl, route, connection, method, uri, source);
+      const int code =
+          HandleRoute(*impl, route, connection, method, uri, source);
+      if (impl->metrics != nullptr) {
+        impl->metrics->HttpRequest(std::string(route.handler->name()), code);
+      }
+      return code;
     }
   }
+  const int code = ServeStatusPage(impl, connection, method, uri, source);
+  if (impl->metrics != nullptr) impl->metrics->HttpRequest("status", code);
+  return code;
+}
+
+int ServeStatusPage(StatusServer::Impl* impl, mg_connection* connection,
+                    const std::string& method, const std::string& uri,
+                    const std::string& source) {
   const bool head = method == "HEAD";
   const bool json = uri == "/status.json";
   if (uri != "/" && uri != "/status" && !json) {
@@ -442,6 +491,15 @@ int HandleRequest(mg_connection* connection, void* data) {
           "the status page shows every job: admin identities only "
           "(--admin-identity)\n",
           head);
+    // A known caller asking for what it may not see (issue 39: it left no
+    // trace).
+    if (impl->audit != nullptr) {
+      impl->audit->Record({.event = "status.viewed",
+                           .outcome = AuditOutcome::kMinorFailure,
+                           .identity = *identity,
+                           .source = source,
+                           .detail = "refused: not an admin identity"});
+    }
     return 403;
   }
   const StatusSnapshot snapshot = impl->snapshot();
@@ -560,6 +618,7 @@ absl::StatusOr<std::unique_ptr<StatusServer>> StatusServer::Start(
   server->impl_ = std::make_unique<Impl>();
   Impl& impl = *server->impl_;
   impl.snapshot = std::move(snapshot);
+  impl.metrics = options.metrics;
   impl.auth = auth;
   impl.audit = audit;
   impl.routes = std::move(routes);

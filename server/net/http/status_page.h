@@ -50,6 +50,7 @@
 namespace interslice::server {
 
 class Authenticator;
+class Metrics;
 class AuditLog;
 
 inline constexpr int kMaxJobsShown = 5000;
@@ -65,6 +66,16 @@ struct StatusRule {
   std::vector<std::string> send_to;
 };
 
+// A series the DICOM node is receiving, holds incomplete, or dropped as
+// incomplete lately (issue 39: an operator saw none of them). No UIDs.
+struct StatusSeries {
+  std::string state;  // receiving | incomplete | dropped
+  std::string calling_ae, called_ae;
+  int64_t instances = 0;
+  int64_t since_unix_ms = 0;
+  std::string why;
+};
+
 // What one page shows, taken at one moment.
 struct StatusSnapshot {
   std::string version;
@@ -72,6 +83,7 @@ struct StatusSnapshot {
   std::vector<v1::JobStatus> jobs;  // any order; shown newest first
   std::vector<StatusPeer> peers;
   std::vector<StatusRule> rules;
+  std::vector<StatusSeries> series;  // oldest first
   std::string rules_file;
   int64_t spool_used_bytes = 0, spool_quota_bytes = 0;
   int queued = 0, running = 0;
@@ -101,6 +113,8 @@ struct StatusServerOptions {
   double request_timeout_seconds = 10;
   // HTTPS: both, or neither.
   std::string tls_certificate, tls_private_key;
+  // Counts every request answered (Metrics::HttpRequest); may be null.
+  Metrics* metrics = nullptr;
 };
 
 class StatusServer {

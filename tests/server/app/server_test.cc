@@ -1014,6 +1014,20 @@ TEST(ServerTest, StatusPageShowsEveryJobToAdminsOnly) {
                 .first,
             404);
 
+  // Find on a peer is audited whatever its outcome (issue 39, finding 7):
+  // refused for a non-admin, failed for the unreachable peer; the keys by
+  // name only.
+  const CommandResult find_as_alice =
+      Cli(Cat(Cat({"find", "--pacs", "pacs", "--modality", "CT"}, as_alice),
+              server.ServerFlag()));
+  EXPECT_NE(find_as_alice.exit_code, 0);
+  std::ofstream(dir / "ops") << "tok-ops\n";
+  const CommandResult find_as_ops =
+      Cli(Cat({"find", "--pacs", "pacs", "--patient-id", "P123", "--token-file",
+               dir / "ops"},
+              server.ServerFlag()));
+  EXPECT_NE(find_as_ops.exit_code, 0);  // nothing listens on port 1
+
   // A real browser renders it (and the screenshot in docs/ comes from the
   // same command): chromium's DOM holds both jobs' rows.
   CommandResult browser = RunCommand(
@@ -1034,6 +1048,12 @@ TEST(ServerTest, StatusPageShowsEveryJobToAdminsOnly) {
       trail,
       HasSubstr("\"event\":\"status.viewed\",\"atna\":\"110112 Query\""));
   EXPECT_THAT(trail, HasSubstr("\"identity\":\"ops\""));
+  // The non-admin's refused view is in the trail too (issue 39).
+  EXPECT_THAT(trail, HasSubstr("refused: not an admin identity"));
+  EXPECT_THAT(trail, HasSubstr("\"event\":\"find.queried\""));
+  EXPECT_THAT(trail, HasSubstr("keys: modality; refused: Find lists"));
+  EXPECT_THAT(trail, HasSubstr("keys: patient_id; failed: "));
+  EXPECT_THAT(trail, ::testing::Not(HasSubstr("P123")));
 }
 
 TEST(ServerTest, PatientDataNeverReachesLogsOrErrors) {

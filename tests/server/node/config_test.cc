@@ -343,6 +343,7 @@ TEST_F(ConfigTest, FullRulesFile) {
             "          energy_units: mm}\n"
             "    send_to: [orthanc, ws]\n"
             "    complete_on_release: true\n"
+            "    complete_on_request: true\n"
             "  - match: {modality: MR}\n"
             "    job: {threshold: 100, method: cg, iterations: 20,\n"
             "          tolerance: 0.001, factor: 3, mesh: 'stl,obj',\n"
@@ -354,6 +355,7 @@ TEST_F(ConfigTest, FullRulesFile) {
   const Rule& bone = set->rules[0];
   EXPECT_EQ(bone.name, "ct-bone");
   EXPECT_TRUE(bone.complete_on_release);
+  EXPECT_TRUE(bone.complete_on_request);
   EXPECT_THAT(bone.send_to, ElementsAre("orthanc", "ws"));
   const v1::JobSpec& job = bone.job;
   EXPECT_FLOAT_EQ(job.threshold(), 300);
@@ -375,6 +377,7 @@ TEST_F(ConfigTest, FullRulesFile) {
   const Rule& mr = set->rules[1];
   EXPECT_EQ(mr.name, "#2");
   EXPECT_FALSE(mr.complete_on_release);
+  EXPECT_FALSE(mr.complete_on_request);
   EXPECT_EQ(mr.job.method(), v1::SOLVER_METHOD_CONJUGATE_GRADIENT);
   EXPECT_EQ(mr.job.max_iterations(), 20);
   EXPECT_DOUBLE_EQ(mr.job.tolerance(), 0.001);

@@ -12,6 +12,7 @@
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
 #include "dcmtk/dcmdata/dcfilefo.h"
+#include "dcmtk/dcmdata/dcuid.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "tests/server/net/dimse/raw_pdu.h"
@@ -103,7 +104,8 @@ class AssemblerTest : public ::testing::Test {
   }
   // Phantom files [first, last) in one association released normally.
   std::string Send(SeriesAssembler& a, size_t first, size_t last) {
-    const uint64_t id = a.BeginTransfer("PACS", "INTERSLICE");
+    const uint64_t id =
+        a.BeginTransfer(Door::kAssociation, "PACS", "INTERSLICE");
     std::string key;
     for (size_t i = first; i < last; ++i) {
       absl::StatusOr<std::string> k = Add(a, id, i);
@@ -144,7 +146,8 @@ class AssemblerTest : public ::testing::Test {
   }
   // Files [first, last) as given, in one association released normally.
   void SendFiles(SeriesAssembler& a, const std::vector<std::string>& files) {
-    const uint64_t id = a.BeginTransfer("PACS", "INTERSLICE");
+    const uint64_t id =
+        a.BeginTransfer(Door::kAssociation, "PACS", "INTERSLICE");
     for (const std::string& file : files) {
       absl::StatusOr<std::string> k = AddFile(a, id, file);
       EXPECT_TRUE(k.ok()) << k.status();
@@ -177,7 +180,8 @@ class AssemblerTest : public ::testing::Test {
 TEST_F(AssemblerTest, StableSeriesBecomesTheRulesJob) {
   auto a = Open(Rules("CT", 0.05));
   ASSERT_NE(a, nullptr);
-  const uint64_t id = a->BeginTransfer("PACS", "INTERSLICE");
+  const uint64_t id =
+      a->BeginTransfer(Door::kAssociation, "PACS", "INTERSLICE");
   std::string key;
   for (size_t i = 0; i < files_.size(); ++i) {
     absl::StatusOr<std::string> k = Add(*a, id, i);
@@ -211,7 +215,8 @@ TEST_F(AssemblerTest, SeriesThatGrowsAfterItsJobMakesAJobOnAllOfIt) {
   ASSERT_EQ(submitted_.size(), 1u);
   // One more image of the series, sent later on its own.
   const std::string extra = ExtraInstance(0, "1.2.826.0.1.3680043.2.1125.99.1");
-  const uint64_t id = a->BeginTransfer("PACS", "INTERSLICE");
+  const uint64_t id =
+      a->BeginTransfer(Door::kAssociation, "PACS", "INTERSLICE");
   ASSERT_TRUE(AddFile(*a, id, extra).ok());
   a->EndTransfer(id, true);
   fs::remove(extra);
@@ -241,7 +246,8 @@ TEST_F(AssemblerTest, NotCompleteBeforeTheStableWait) {
 
 TEST_F(AssemblerTest, ReleaseCompletesWhenTheRuleSaysSo) {
   auto a = Open(Rules("CT", 3600, /*complete_on_release=*/true));
-  const uint64_t id = a->BeginTransfer("PACS", "INTERSLICE");
+  const uint64_t id =
+      a->BeginTransfer(Door::kAssociation, "PACS", "INTERSLICE");
   for (size_t i = 0; i < 3; ++i) ASSERT_TRUE(Add(*a, id, i).ok());
   EXPECT_EQ(a->CompleteStableSeries(), 0);
   a->EndTransfer(id, true);
@@ -250,11 +256,89 @@ TEST_F(AssemblerTest, ReleaseCompletesWhenTheRuleSaysSo) {
   EXPECT_EQ(submitted_[0].files, 3);
 }
 
+// Issue 39 finding 3: a client that posts one instance per STOW-RS request
+// made one job per request under complete_on_release. A request is only part
+// of an upload: the series is grouped across requests and completes after
+// the stable wait, whatever complete_on_release says.
+TEST_F(AssemblerTest, StowRequestsAreGroupedWhateverCompleteOnReleaseSays) {
+  auto a = Open(Rules("CT", 3600, /*complete_on_release=*/true));
+  for (size_t i = 0; i < 5; ++i) {
+    const uint64_t id =
+        a->BeginTransfer(Door::kStowRequest, "STOW:ris", "INTERSLICE");
+    ASSERT_TRUE(Add(*a, id, i).ok());
+    a->EndTransfer(id, /*whole=*/true);
+    EXPECT_EQ(a->CompleteStableSeries(), 0) << "after request " << i + 1;
+  }
+  EXPECT_TRUE(submitted_.empty());
+  EXPECT_EQ(a->pending_series(), 1);
+}
+
+TEST_F(AssemblerTest, StowRequestsGroupedCompleteAfterTheStableWait) {
+  auto a = Open(Rules("CT", 0.05, /*complete_on_release=*/true));
+  for (size_t i = 0; i < 5; ++i) {
+    const uint64_t id =
+        a->BeginTransfer(Door::kStowRequest, "STOW:ris", "INTERSLICE");
+    ASSERT_TRUE(Add(*a, id, i).ok());
+    a->EndTransfer(id, /*whole=*/true);
+  }
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  EXPECT_EQ(a->CompleteStableSeries(), 1);
+  ASSERT_EQ(submitted_.size(), 1u);
+  EXPECT_EQ(submitted_[0].files, 5);
+}
+
+// A rule may opt into one job per request (complete_on_request); it is not
+// complete_on_release, which stays the association's.
+TEST_F(AssemblerTest, CompleteOnRequestMakesOneJobPerRequest) {
+  RuleSet rules = Rules("CT", 3600);
+  rules.rules[0].complete_on_request = true;
+  auto a = Open(std::move(rules));
+  const uint64_t dimse =
+      a->BeginTransfer(Door::kAssociation, "PACS", "INTERSLICE");
+  ASSERT_TRUE(Add(*a, dimse, 0).ok());
+  a->EndTransfer(dimse, true);
+  EXPECT_EQ(a->CompleteStableSeries(), 0);  // an association: stable wait
+  const uint64_t stow =
+      a->BeginTransfer(Door::kStowRequest, "STOW:ris", "INTERSLICE");
+  ASSERT_TRUE(Add(*a, stow, 1).ok());
+  a->EndTransfer(stow, true);
+  EXPECT_EQ(a->CompleteStableSeries(), 1);
+  ASSERT_EQ(submitted_.size(), 1u);
+  EXPECT_EQ(submitted_[0].files, 2);
+}
+
+// Issue 39 finding 6: the same SOP classes at every door. The intake refuses
+// an instance of a class the DIMSE listener would not negotiate, and its
+// transfer's series are incomplete.
+TEST_F(AssemblerTest, RefusesSopClassesTheNodeDoesNotStore) {
+  auto a = Open(Rules("CT", 0.05));
+  const std::string secondary_capture =
+      Changed(0, "secondary-capture", [](DcmDataset& ds) {
+        ds.putAndInsertString(DCM_SOPClassUID,
+                              UID_SecondaryCaptureImageStorage);
+      });
+  const uint64_t id =
+      a->BeginTransfer(Door::kStowRequest, "STOW:ris", "INTERSLICE");
+  ASSERT_TRUE(Add(*a, id, 1).ok());
+  absl::StatusOr<std::string> refused = AddFile(*a, id, secondary_capture);
+  fs::remove(secondary_capture);
+  ASSERT_FALSE(refused.ok());
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kUnimplemented);
+  EXPECT_THAT(refused.status().message(), HasSubstr("SOP class"));
+  a->EndTransfer(id, true);
+  EXPECT_EQ(IncompleteSeries(), 1);
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  EXPECT_EQ(a->CompleteStableSeries(), 0);
+  EXPECT_TRUE(StorableSopClass(UID_CTImageStorage));
+  EXPECT_FALSE(StorableSopClass(UID_DigitalXRayImageStorageForPresentation));
+}
+
 // Issue 22 finding 2: an aborted association leaves its series incomplete;
 // no wait and no release makes a job of it.
 TEST_F(AssemblerTest, AbortedTransferNeverBecomesAJob) {
   auto a = Open(Rules("CT", 0.05, /*complete_on_release=*/true));
-  const uint64_t id = a->BeginTransfer("PACS", "INTERSLICE");
+  const uint64_t id =
+      a->BeginTransfer(Door::kAssociation, "PACS", "INTERSLICE");
   for (size_t i = 0; i < 13; ++i) ASSERT_TRUE(Add(*a, id, i).ok());
   a->EndTransfer(id, /*released=*/false);
   EXPECT_EQ(IncompleteSeries(), 1);
@@ -262,7 +346,8 @@ TEST_F(AssemblerTest, AbortedTransferNeverBecomesAJob) {
   EXPECT_EQ(a->CompleteStableSeries(), 0);
   EXPECT_TRUE(submitted_.empty());
   // An unrelated association that stores nothing into it changes nothing.
-  a->EndTransfer(a->BeginTransfer("PACS", "INTERSLICE"), true);
+  a->EndTransfer(a->BeginTransfer(Door::kAssociation, "PACS", "INTERSLICE"),
+                 true);
   EXPECT_EQ(a->CompleteStableSeries(), 0);
   // The sender's retry of the whole series completes it: one job, all 28.
   Send(*a, 0, files_.size());
@@ -274,8 +359,10 @@ TEST_F(AssemblerTest, AbortedTransferNeverBecomesAJob) {
 
 TEST_F(AssemblerTest, OnlyATransferThatBeganLaterCompletesAnIncompleteOne) {
   auto a = Open(Rules("CT", 0.05));
-  const uint64_t first = a->BeginTransfer("PACS", "INTERSLICE");
-  const uint64_t second = a->BeginTransfer("PACS", "INTERSLICE");
+  const uint64_t first =
+      a->BeginTransfer(Door::kAssociation, "PACS", "INTERSLICE");
+  const uint64_t second =
+      a->BeginTransfer(Door::kAssociation, "PACS", "INTERSLICE");
   for (size_t i = 0; i < 10; ++i) ASSERT_TRUE(Add(*a, first, i).ok());
   for (size_t i = 10; i < 20; ++i) ASSERT_TRUE(Add(*a, second, i).ok());
   a->EndTransfer(first, /*released=*/false);
@@ -293,7 +380,8 @@ TEST_F(AssemblerTest, RefusedInstancesMakeTheSeriesIncomplete) {
     AssemblerOptions options;
     options.max_instances_per_series = 5;
     auto a = Open(Rules("CT", 0.05), options);
-    const uint64_t id = a->BeginTransfer("PACS", "INTERSLICE");
+    const uint64_t id =
+        a->BeginTransfer(Door::kAssociation, "PACS", "INTERSLICE");
     for (size_t i = 0; i < 5; ++i) ASSERT_TRUE(Add(*a, id, i).ok());
     EXPECT_EQ(Add(*a, id, 5).status().code(),
               absl::StatusCode::kResourceExhausted);
@@ -307,7 +395,8 @@ TEST_F(AssemblerTest, RefusedInstancesMakeTheSeriesIncomplete) {
     // Refused before its series was known (not readable): every series of
     // the association is incomplete.
     auto a = Open(Rules("CT", 0.05));
-    const uint64_t id = a->BeginTransfer("PACS", "INTERSLICE");
+    const uint64_t id =
+        a->BeginTransfer(Door::kAssociation, "PACS", "INTERSLICE");
     ASSERT_TRUE(Add(*a, id, 0).ok());
     const std::string staged = a->StagingPath();
     std::ofstream(staged) << "not a DICOM file";
@@ -326,7 +415,8 @@ TEST_F(AssemblerTest, RefusedInstancesMakeTheSeriesIncomplete) {
 TEST_F(AssemblerTest, TransferInterruptedByARestartIsIncomplete) {
   {
     auto a = Open(Rules("CT", 3600));
-    const uint64_t id = a->BeginTransfer("PACS", "INTERSLICE");
+    const uint64_t id =
+        a->BeginTransfer(Door::kAssociation, "PACS", "INTERSLICE");
     for (size_t i = 0; i < 5; ++i) ASSERT_TRUE(Add(*a, id, i).ok());
     // No EndTransfer: the process is gone.
   }
@@ -348,16 +438,29 @@ TEST_F(AssemblerTest, IncompleteSeriesIsDroppedAfterTheRetention) {
   AssemblerOptions options;
   options.unmatched_retention_seconds = 0.2;
   auto a = Open(Rules("CT", 0.05), options);
-  const uint64_t id = a->BeginTransfer("PACS", "INTERSLICE");
+  const uint64_t id =
+      a->BeginTransfer(Door::kAssociation, "PACS", "INTERSLICE");
   for (size_t i = 0; i < 3; ++i) ASSERT_TRUE(Add(*a, id, i).ok());
   a->EndTransfer(id, false);
   a->DropStaleIncomplete();
   EXPECT_EQ(a->pending_series(), 1);  // not yet
+  std::vector<KeptSeries> waiting = a->WaitingSeries();
+  ASSERT_EQ(waiting.size(), 1u);
+  EXPECT_EQ(waiting[0].state, "incomplete");
+  EXPECT_EQ(waiting[0].instances, 3);
   std::this_thread::sleep_for(std::chrono::milliseconds(300));
   a->DropStaleIncomplete();
   EXPECT_EQ(a->pending_series(), 0);
   EXPECT_TRUE(fs::is_empty(root_ / "series"));
   EXPECT_TRUE(submitted_.empty());
+  // The operator still sees that it was dropped, and why (issue 39).
+  waiting = a->WaitingSeries();
+  ASSERT_EQ(waiting.size(), 1u);
+  EXPECT_EQ(waiting[0].state, "dropped");
+  EXPECT_EQ(waiting[0].instances, 3);
+  EXPECT_EQ(waiting[0].calling_ae, "PACS");
+  EXPECT_THAT(waiting[0].why, HasSubstr("dropped as incomplete"));
+  EXPECT_EQ(a->ListKept().front().state, "dropped");
 }
 
 TEST_F(AssemblerTest, ResentInstanceReplacesItself) {
@@ -407,7 +510,8 @@ TEST_F(AssemblerTest, LimitsRefuseWithResourceExhausted) {
   AssemblerOptions options;
   options.max_instances_per_series = 2;
   auto a = Open(Rules("CT", 3600), options);
-  const uint64_t id = a->BeginTransfer("PACS", "INTERSLICE");
+  const uint64_t id =
+      a->BeginTransfer(Door::kAssociation, "PACS", "INTERSLICE");
   ASSERT_TRUE(Add(*a, id, 0).ok());
   ASSERT_TRUE(Add(*a, id, 1).ok());
   absl::StatusOr<std::string> third = Add(*a, id, 2);
@@ -416,7 +520,8 @@ TEST_F(AssemblerTest, LimitsRefuseWithResourceExhausted) {
   options.max_bytes_per_series = 100000;  // less than one slice
   fs::remove_all(root_);
   auto b = Open(Rules("CT", 3600), options);
-  const uint64_t other = b->BeginTransfer("PACS", "INTERSLICE");
+  const uint64_t other =
+      b->BeginTransfer(Door::kAssociation, "PACS", "INTERSLICE");
   EXPECT_EQ(Add(*b, other, 0).status().code(),
             absl::StatusCode::kResourceExhausted);
   EXPECT_EQ(b->pending_series(), 0);
@@ -424,7 +529,8 @@ TEST_F(AssemblerTest, LimitsRefuseWithResourceExhausted) {
 
 TEST_F(AssemblerTest, NotDicomIsInvalidArgument) {
   auto a = Open(Rules("CT", 3600));
-  const uint64_t id = a->BeginTransfer("PACS", "INTERSLICE");
+  const uint64_t id =
+      a->BeginTransfer(Door::kAssociation, "PACS", "INTERSLICE");
   const std::string staged = a->StagingPath();
   std::ofstream(staged) << "not a DICOM file";
   EXPECT_EQ(a->AddInstance(id, staged, -1).status().code(),
@@ -436,7 +542,8 @@ TEST_F(AssemblerTest, NotDicomIsInvalidArgument) {
 // parses it (issue 22 finding 1: 10,000 levels overflowed the stack).
 TEST_F(AssemblerTest, HostileNestingIsRefusedUnparsed) {
   auto a = Open(Rules("CT", 3600));
-  const uint64_t id = a->BeginTransfer("PACS", "INTERSLICE");
+  const uint64_t id =
+      a->BeginTransfer(Door::kAssociation, "PACS", "INTERSLICE");
   // A Part 10 file around issue 22's data set: preamble, DICM, a meta group
   // naming explicit VR little endian.
   std::string meta_elements;
@@ -615,7 +722,7 @@ TEST_F(AssemblerTest, LateInstanceOfAnotherFrameOfReferenceIsRefused) {
   // Alone in its association: refused, nothing starts.
   const std::string lone =
       Changed(0, "lone", other_frame("1.2.826.0.1.3680043.2.1125.99.11"));
-  uint64_t id = a->BeginTransfer("PACS", "INTERSLICE");
+  uint64_t id = a->BeginTransfer(Door::kAssociation, "PACS", "INTERSLICE");
   absl::StatusOr<std::string> key = AddFile(*a, id, lone);
   fs::remove(lone);
   ASSERT_FALSE(key.ok());
@@ -631,7 +738,7 @@ TEST_F(AssemblerTest, LateInstanceOfAnotherFrameOfReferenceIsRefused) {
   const std::string same = ExtraInstance(1, "1.2.826.0.1.3680043.2.1125.99.12");
   const std::string other =
       Changed(2, "other", other_frame("1.2.826.0.1.3680043.2.1125.99.13"));
-  id = a->BeginTransfer("PACS", "INTERSLICE");
+  id = a->BeginTransfer(Door::kAssociation, "PACS", "INTERSLICE");
   EXPECT_TRUE(AddFile(*a, id, same).ok());
   key = AddFile(*a, id, other);
   fs::remove(same);

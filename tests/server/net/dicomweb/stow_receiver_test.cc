@@ -92,7 +92,7 @@ class StowReceiverTest : public ::testing::Test {
     rule.name = "ct";
     rule.match.modality = "CT";
     rule.job.set_threshold(300);
-    rule.complete_on_release = true;
+    rule.complete_on_request = true;  // one job per request
     rules.rules.push_back(rule);
     node::AssemblerOptions options;
     options.root = (root_ / "spool" / "dicom-in").string();
@@ -175,7 +175,7 @@ TEST_F(StowReceiverTest, WholeSeriesIsStoredAndMakesTheRulesJob) {
             Tag(files_[3], DCM_SOPInstanceUID));
   EXPECT_EQ(referenced[3]["00081150"]["Value"][0],
             Tag(files_[3], DCM_SOPClassUID));
-  // complete_on_release: the released request completes it at once.
+  // complete_on_request: the whole request completes it at once.
   assembler_->CompleteStableSeries();
   ASSERT_EQ(jobs_.size(), 1u);
   EXPECT_EQ(jobs_[0].files, 28);
@@ -203,6 +203,49 @@ TEST_F(StowReceiverTest, CutOffBodyStoresNothingThatMakesAJob) {
   assembler_->CompleteStableSeries();
   ASSERT_EQ(jobs_.size(), 1u);
   EXPECT_EQ(jobs_[0].files, 28);
+}
+
+// Issue 39, finding 2: a whole multipart body that is shorter than its
+// Content-Length (the client still waiting when the read ended) is not a
+// whole request: 400, and its series is incomplete.
+TEST_F(StowReceiverTest, BodyShortOfItsContentLengthIsNotWhole) {
+  Open();
+  const std::string body = Body(Phantom());
+  size_t at = 0;
+  const StowResponse r = receiver_->Handle(
+      {.identity = "alice",
+       .content_type = kType,
+       .content_length = static_cast<int64_t>(body.size()) + 1,
+       .read = [&](char* buffer, size_t size) -> int64_t {
+         const size_t n = std::min(size, body.size() - at);
+         std::copy_n(body.data() + at, n, buffer);
+         at += n;
+         return static_cast<int64_t>(n);  // 0 at the end: the read timed out
+       }});
+  EXPECT_EQ(r.status, 400) << r.body;
+  EXPECT_THAT(r.body, HasSubstr("Content-Length promised"));
+  EXPECT_FALSE(r.released);
+  EXPECT_EQ(r.stored, 28);  // kept, but as an incomplete series
+  EXPECT_EQ(JobsAfterStableWait(), 0u);
+  // A single-part body (Content-Type application/dicom) of one instance is
+  // whole at its end; it makes no job of the incomplete series, since it
+  // re-sends, unchanged, one instance the series holds.
+  const std::string one = ReadAll(files_[0]);
+  at = 0;
+  const StowResponse single =
+      receiver_->Handle({.identity = "alice",
+                         .content_type = "application/dicom",
+                         .content_length = static_cast<int64_t>(one.size()),
+                         .read = [&](char* buffer, size_t size) -> int64_t {
+                           const size_t n = std::min(size, one.size() - at);
+                           std::copy_n(one.data() + at, n, buffer);
+                           at += n;
+                           return static_cast<int64_t>(n);
+                         }});
+  EXPECT_EQ(single.status, 200) << single.body;
+  EXPECT_TRUE(single.released);
+  EXPECT_EQ(single.stored, 1);
+  EXPECT_EQ(JobsAfterStableWait(), 0u);
 }
 
 TEST_F(StowReceiverTest, PartNotDicomIsRefusedAndTheSeriesIsIncomplete) {
@@ -256,7 +299,7 @@ TEST_F(StowReceiverTest, WrongTypeAndOversizeBodiesAreRefusedUnread) {
     EXPECT_FALSE(read);
     return r.status;
   };
-  EXPECT_EQ(unread("application/dicom", 10), 415);
+  EXPECT_EQ(unread("application/json", 10), 415);
   EXPECT_EQ(unread("multipart/related; type=\"application/dicom+json\"; "
                    "boundary=x",
                    10),

@@ -15,6 +15,7 @@
 #include <memory>
 #include <sstream>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "absl/strings/str_cat.h"
@@ -97,10 +98,10 @@ TEST(StowRoundTripTest, PostedSeriesComesBackProcessedByStowIntoItsStudy) {
       << "'}\n";
   std::ofstream(dir / "tokens") << "alice:tok-alice\nops:tok-ops\n";
   // The rule takes the phantom at the end of the STOW request
-  // (complete_on_release; stable_seconds far beyond the test, so only the
-  // release can start the job) and sends every result to the DICOMweb peer.
-  // A small region of the phantom keeps the job to seconds; its DICOM
-  // results are a derived series and a SEG.
+  // (complete_on_request: one job per request; stable_seconds far beyond the
+  // test, so only the request's end can start the job) and sends every result
+  // to the DICOMweb peer. A small region of the phantom keeps the job to
+  // seconds; its DICOM results are a derived series and a SEG.
   std::ofstream(dir / "rules.yaml")
       << "stable_seconds: 600\n"
          "rules:\n"
@@ -108,7 +109,7 @@ TEST(StowRoundTripTest, PostedSeriesComesBackProcessedByStowIntoItsStudy) {
          "    match: {modality: CT, called_ae: INTERSLICE}\n"
          "    job: {threshold: 300, roi: [208, 208, 0, 304, 304, 28],\n"
          "          output_series: [intensity], seg: true}\n"
-         "    complete_on_release: true\n"
+         "    complete_on_request: true\n"
          "    send_to: [web]\n";
   const int http_port = FreeTcpPort();
   const std::string base = absl::StrCat("http://127.0.0.1:", http_port);
@@ -238,6 +239,74 @@ TEST(StowRoundTripTest, PostedSeriesComesBackProcessedByStowIntoItsStudy) {
       "%.2f s\n",
       stow_seconds, made.size(), round_trip_seconds);
   EXPECT_EQ(server.Stop(), 0) << server.Log();
+}
+
+// Issue 39, findings 3 and 6, with a real STOW-RS client: Orthanc's
+// DICOMweb plugin sends a series to the node (POST
+// /dicom-web/servers/{name}/stow). Its multipart boundary is 73 characters
+// (the node answered 400 to the 1-70 of RFC 2046, and Orthanc reported
+// 500), and the series must make one job on all of its instances under the
+// shipped rule's complete_on_release, however many requests Orthanc splits
+// it into.
+TEST(StowRoundTripTest, OrthancsDicomWebPluginStowsASeriesThatMakesOneJob) {
+  TempDir dir("interslice_stow_from_orthanc_");
+  std::ofstream(dir / "tokens") << "orthanc:tok-orthanc\nops:tok-ops\n";
+  std::ofstream(dir / "rules.yaml")
+      << "stable_seconds: 2\n"
+         "rules:\n"
+         "  - name: stow-ct\n"
+         "    match: {modality: CT, called_ae: INTERSLICE}\n"
+         "    job: {threshold: 300, roi: [208, 208, 0, 304, 304, 28]}\n"
+         "    complete_on_release: true\n";
+  const int http_port = FreeTcpPort();
+  const std::string base = absl::StrCat("http://127.0.0.1:", http_port);
+  ServerProcess server(ServerOptions{
+      .spool = dir / "spool",
+      .log = dir / "server.log",
+      .extra = {"--auth-token-file", dir / "tokens", "--admin-identity", "ops",
+                "--dicom-listen", "127.0.0.1:0", "--dicom-ae", "INTERSLICE",
+                "--rules", dir / "rules.yaml", "--http-listen",
+                absl::StrCat("127.0.0.1:", http_port)}});
+  ASSERT_TRUE(server.Start());
+  auto orthanc =
+      Orthanc::Start(dir / "orthanc", {}, "WEB",
+                     {.dicomweb = true,
+                      .dicomweb_servers = {{.name = "interslice",
+                                            .url = base + "/dicomweb/",
+                                            .user = "orthanc",
+                                            .password = "tok-orthanc"}}});
+  ASSERT_TRUE(orthanc.ok()) << orthanc.status();
+  Orthanc& pacs = **orthanc;
+  absl::StatusOr<int> uploaded = pacs.UploadFolder(kPhantom);
+  ASSERT_TRUE(uploaded.ok()) << uploaded.status();
+  ASSERT_EQ(*uploaded, 28);
+  auto studies = pacs.GetJson("/studies");
+  ASSERT_TRUE(studies.ok() && studies->size() == 1u);
+
+  auto sent = pacs.PostJson(
+      "/dicom-web/servers/interslice/stow",
+      nlohmann::json({{"Resources", {(*studies)[0]}}, {"Synchronous", true}})
+          .dump());
+  ASSERT_TRUE(sent.ok()) << sent.status() << pacs.log() << server.Log();
+
+  nlohmann::json status;
+  auto jobs = [&] {
+    auto [code, body] = Curl({"-u", "x:tok-ops", base + "/status.json"});
+    if (code != 200) return size_t{0};
+    status = nlohmann::json::parse(body);
+    return status["jobs"].size();
+  };
+  ASSERT_TRUE(WaitFor([&] { return jobs() > 0; }, std::chrono::seconds(60),
+                      std::chrono::milliseconds(200)))
+      << server.Log();
+  // Past another stable wait: still one job, made of all 28 instances.
+  std::this_thread::sleep_for(std::chrono::seconds(4));
+  EXPECT_EQ(jobs(), 1u) << status.dump() << server.Log();
+  const std::string log = server.Log();
+  EXPECT_THAT(log, ::testing::HasSubstr("STOW:orthanc -> INTERSLICE"));
+  EXPECT_THAT(log, ::testing::HasSubstr("(28 instance(s))"));
+  EXPECT_THAT(log, ::testing::Not(::testing::HasSubstr("HTTP 400")));
+  EXPECT_EQ(server.Stop(), 0) << log;
 }
 
 }  // namespace

@@ -25,6 +25,11 @@
 #include "tests/testing/server_process.h"
 #include "tests/testing/temp_dir.h"
 #include "tests/testing/wait_for.h"
+// osconfig.h must precede every other DCMTK header.
+#include "dcmtk/config/osconfig.h"
+#include "dcmtk/dcmdata/dcdeftag.h"
+#include "dcmtk/dcmdata/dcfilefo.h"
+#include "dcmtk/dcmdata/dcuid.h"
 
 namespace interslice::testing {
 namespace {
@@ -111,16 +116,20 @@ bool ClosedByServer(int fd, int ms, std::string* answer) {
 
 class StowServerTest : public ::testing::Test {
  protected:
-  void SetUp() override {
-    std::ofstream(dir_ / "tokens") << "alice:tok-alice\nops:tok-ops\n";
-    std::ofstream(dir_ / "rules.yaml")
-        << "stable_seconds: 600\n"
+  // One job per request (complete_on_request), never by the stable wait.
+  virtual std::string Rules() const {
+    return "stable_seconds: 600\n"
            "rules:\n"
            "  - name: stow-ct\n"
            "    match: {modality: CT, called_ae: INTERSLICE, calling_ae: "
            "\"STOW:alice\"}\n"
            "    job: {threshold: 300, roi: [208, 208, 0, 304, 304, 28]}\n"
-           "    complete_on_release: true\n";
+           "    complete_on_request: true\n";
+  }
+
+  void SetUp() override {
+    std::ofstream(dir_ / "tokens") << "alice:tok-alice\nops:tok-ops\n";
+    std::ofstream(dir_ / "rules.yaml") << Rules();
     http_port_ = FreeTcpPort();
     base_ = absl::StrCat("http://127.0.0.1:", http_port_);
     server_ = std::make_unique<ServerProcess>(ServerOptions{
@@ -131,7 +140,8 @@ class StowServerTest : public ::testing::Test {
                   dir_ / "rules.yaml", "--http-listen",
                   absl::StrCat("127.0.0.1:", http_port_),
                   "--http-request-timeout", "2", "--stow-max-body-bytes",
-                  "16000000", "--audit-log", dir_ / "audit.jsonl"}});
+                  "16000000", "--audit-log", dir_ / "audit.jsonl",
+                  "--metrics-listen", "127.0.0.1:0"}});
     ASSERT_TRUE(server_->Start());
   }
 
@@ -166,7 +176,7 @@ TEST_F(StowServerTest, SeriesPostedMakesTheRulesJobAndBadRequestsAreRefused) {
   EXPECT_THAT(cut_body, HasSubstr("close delimiter"));
 
   // The phantom, whole: 200 with every instance referenced, and the rule's
-  // job at once (complete_on_release).
+  // job at once (complete_on_request).
   const std::vector<std::string> phantom = DicomFiles(kPhantom);
   ASSERT_EQ(phantom.size(), 28u);
   WriteBody(dir_ / "phantom.body", phantom);
@@ -210,7 +220,7 @@ TEST_F(StowServerTest, SeriesPostedMakesTheRulesJobAndBadRequestsAreRefused) {
   }
   // A wrong Content-Type: 415.
   EXPECT_EQ(
-      Curl({"-u", "x:tok-alice", "-H", "Content-Type: application/dicom",
+      Curl({"-u", "x:tok-alice", "-H", "Content-Type: application/json",
             "--data-binary", "@" + phantom[0], base_ + "/dicomweb/studies"})
           .first,
       415);
@@ -268,6 +278,178 @@ TEST_F(StowServerTest, SeriesPostedMakesTheRulesJobAndBadRequestsAreRefused) {
   EXPECT_THAT(audit, HasSubstr("\"event\":\"stow.received\""));
   EXPECT_THAT(audit, HasSubstr("\"identity\":\"STOW:alice\""));
   EXPECT_THAT(audit, ::testing::Not(HasSubstr("1.3.46.670589")));
+}
+
+// Sends `request` on a fresh connection, then (`close_after`) shuts the
+// sending side or keeps it open; returns what the server answered within
+// 30 s.
+std::string RawExchange(int port, const std::string& request,
+                        bool close_after) {
+  const int fd = Connect(port);
+  EXPECT_GE(fd, 0);
+  if (fd < 0) return "";
+  EXPECT_EQ(::send(fd, request.data(), request.size(), MSG_NOSIGNAL),
+            static_cast<ssize_t>(request.size()));
+  if (close_after) ::shutdown(fd, SHUT_WR);
+  std::string answer;
+  ClosedByServer(fd, 30000, &answer);
+  ::close(fd);
+  return answer;
+}
+
+// Issue 39, finding 2: a body that holds a whole multipart message but
+// fewer bytes than its Content-Length promised was answered 200 and made a
+// job when the client kept the connection open (and 400 when it closed).
+// Either way the request did not arrive as its sender said it would: 400,
+// and its series is incomplete (no job, even with complete_on_request).
+TEST_F(StowServerTest, BodyShorterThanItsContentLengthIsNeverWhole) {
+  WriteBody(dir_ / "small.body", DicomFiles(kSmallSeries));
+  const std::string body = ReadFileOrEmpty(dir_ / "small.body");
+  const std::string request = absl::StrCat(
+      "POST /dicomweb/studies HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer "
+      "tok-alice\r\n",
+      kType, "\r\nContent-Length: ", body.size() + 1, "\r\n\r\n", body);
+  for (const bool close_after : {false, true}) {
+    const std::string answer = RawExchange(http_port_, request, close_after);
+    EXPECT_THAT(answer, HasSubstr("HTTP/1.1 400")) << answer;
+    if (!close_after) {
+      EXPECT_THAT(answer, HasSubstr("its Content-Length promised")) << answer;
+    }
+  }
+  // The operator sees it waiting, incomplete, on the status page (issue 39,
+  // finding 7).
+  const nlohmann::json waiting = Status();
+  ASSERT_EQ(waiting["series"].size(), 1u) << waiting.dump();
+  EXPECT_EQ(waiting["series"][0]["state"], "incomplete");
+  EXPECT_EQ(waiting["series"][0]["instances"], 3);
+  EXPECT_EQ(waiting["series"][0]["calling_ae"], "STOW:alice");
+  EXPECT_THAT(waiting["series"][0]["why"].get<std::string>(),
+              HasSubstr("did not arrive whole"));
+  EXPECT_TRUE(waiting["jobs"].empty());
+  // The same body with its true length is whole: its job is made at once.
+  const std::string whole = absl::StrCat(
+      "POST /dicomweb/studies HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer "
+      "tok-alice\r\n",
+      kType, "\r\nContent-Length: ", body.size(), "\r\n\r\n", body);
+  EXPECT_THAT(RawExchange(http_port_, whole, false), HasSubstr("HTTP/1.1 200"));
+  nlohmann::json status;
+  ASSERT_TRUE(WaitFor(
+      [&] {
+        status = Status();
+        return status.contains("jobs") && !status["jobs"].empty();
+      },
+      std::chrono::seconds(60), std::chrono::milliseconds(200)))
+      << server_->Log();
+  // Made of the whole request after the two short ones: the series was
+  // incomplete until a whole transfer brought all of it.
+  EXPECT_EQ(status["jobs"].size(), 1u) << status.dump();
+  const std::string log = server_->Log();
+  EXPECT_THAT(log, HasSubstr("(3 instance(s)) is incomplete"));
+  EXPECT_THAT(log, HasSubstr("is complete again"));
+  ASSERT_EQ(server_->Stop(), 0) << log;
+  const std::string audit = ReadFileOrEmpty(dir_ / "audit.jsonl");
+  EXPECT_THAT(audit, HasSubstr("not complete"));
+}
+
+// A series sent the way many STOW-RS clients send it: one instance per
+// request, under the shipped rule's complete_on_release.
+class StowGroupingTest : public StowServerTest {
+ protected:
+  std::string Rules() const override {
+    return "stable_seconds: 2\n"
+           "rules:\n"
+           "  - name: stow-ct\n"
+           "    match: {modality: CT, called_ae: INTERSLICE, calling_ae: "
+           "\"STOW:alice\"}\n"
+           "    job: {threshold: 300}\n"
+           "    complete_on_release: true\n";
+  }
+};
+
+// Issue 39, finding 3: one job per request, each on a part of the series
+// (five jobs on 2-6 slices). And finding 6: a single-part application/dicom
+// body was 415, a boundary of Orthanc's 73 characters 400, and STOW took SOP
+// classes the DIMSE listener refuses.
+TEST_F(StowGroupingTest, OneInstancePerRequestMakesOneJobOfTheWholeSeries) {
+  const std::vector<std::string> files = DicomFiles(kSmallSeries);
+  ASSERT_EQ(files.size(), 3u);
+  const std::string url = base_ + "/dicomweb/studies";
+  // A single-part body: the instance itself.
+  auto [single, single_body] =
+      Curl({"-u", "x:tok-alice", "-H", "Content-Type: application/dicom",
+            "--data-binary", "@" + files[0], url});
+  EXPECT_EQ(single, 200) << single_body << server_->Log();
+  // A 73-character boundary, as Orthanc's DICOMweb plugin sends.
+  const std::string boundary(73, 'b');
+  {
+    std::ofstream out(dir_ / "long.body", std::ios::binary);
+    out << "--" << boundary << "\r\nContent-Type: application/dicom\r\n\r\n"
+        << std::ifstream(files[1], std::ios::binary).rdbuf() << "\r\n--"
+        << boundary << "--\r\n";
+  }
+  auto [long_boundary, long_body] =
+      Curl({"-u", "x:tok-alice", "-H",
+            "Content-Type: multipart/related; type=\"application/dicom\"; "
+            "boundary=" +
+                boundary,
+            "--data-binary", "@" + (dir_ / "long.body"), url});
+  EXPECT_EQ(long_boundary, 200) << long_body;
+  // Past the stated limit (256): 400 naming it.
+  auto [too_long, too_long_body] = Curl(
+      {"-u", "x:tok-alice", "-H",
+       "Content-Type: multipart/related; boundary=" + std::string(257, 'b'),
+       "--data-binary", "@" + (dir_ / "long.body"), url});
+  EXPECT_EQ(too_long, 400);
+  EXPECT_THAT(too_long_body, HasSubstr("1-256 characters"));
+  WriteBody(dir_ / "third.body", {files[2]});
+  EXPECT_EQ(Post(dir_ / "third.body").first, 200);
+  // Secondary Capture, which the DIMSE listener does not negotiate: 409,
+  // 0x0122 (SOP class not supported), and it makes no series here.
+  {
+    DcmFileFormat file;
+    ASSERT_TRUE(file.loadFile(OFFilename(files[0].c_str())).good());
+    DcmDataset* ds = file.getDataset();
+    ds->putAndInsertString(DCM_SOPClassUID, UID_SecondaryCaptureImageStorage);
+    ds->putAndInsertString(DCM_SeriesInstanceUID, "1.2.826.0.1.3680043.10.9");
+    ds->putAndInsertString(DCM_SOPInstanceUID, "1.2.826.0.1.3680043.10.9.1");
+    ASSERT_TRUE(file.saveFile(OFFilename((dir_ / "sc.dcm").c_str())).good());
+  }
+  WriteBody(dir_ / "sc.body", {dir_ / "sc.dcm"});
+  auto [sc, sc_body] = Post(dir_ / "sc.body");
+  EXPECT_EQ(sc, 409) << sc_body;
+  EXPECT_THAT(sc_body, HasSubstr("\"00081197\":{\"Value\":[290]"));
+
+  nlohmann::json status;
+  ASSERT_TRUE(WaitFor(
+      [&] {
+        status = Status();
+        return status.contains("jobs") && !status["jobs"].empty();
+      },
+      std::chrono::seconds(60), std::chrono::milliseconds(200)))
+      << server_->Log();
+  // Two more stable waits: still the one job, on all three instances.
+  std::this_thread::sleep_for(std::chrono::seconds(4));
+  status = Status();
+  EXPECT_EQ(status["jobs"].size(), 1u) << status.dump();
+  const std::string log = server_->Log();
+  EXPECT_THAT(log, HasSubstr("made by rule stow-ct for a series from "
+                             "STOW:alice -> INTERSLICE (3 instance(s))"));
+  // STOW traffic in /metrics (issue 39, finding 7).
+  auto [metrics_code, metrics] = Curl(
+      {absl::StrCat("http://127.0.0.1:", server_->metrics_port(), "/metrics")});
+  ASSERT_EQ(metrics_code, 200);
+  EXPECT_THAT(metrics,
+              HasSubstr("interslice_stow_instances_total{outcome=\"stored\"} "
+                        "3"));
+  EXPECT_THAT(metrics, HasSubstr("interslice_stow_instances_total{outcome="
+                                 "\"refused\"} 1"));
+  EXPECT_THAT(metrics, HasSubstr("interslice_http_requests_total{code=\"200\","
+                                 "route=\"STOW-RS\"} 3"));
+  EXPECT_THAT(metrics, HasSubstr("interslice_http_requests_total{code=\"409\","
+                                 "route=\"STOW-RS\"} 1"));
+  EXPECT_THAT(metrics, HasSubstr("interslice_http_requests_total{code=\"200\","
+                                 "route=\"status\"}"));
+  ASSERT_EQ(server_->Stop(), 0) << log;
 }
 
 // Slow loris: a client that trickles its headers (one byte every 200 ms, so

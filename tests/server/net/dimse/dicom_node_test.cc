@@ -1163,7 +1163,7 @@ TEST(DicomEdgeTest, ReSentInstanceNeverCompletesAnIncompleteSeries) {
     CommandResult again = StoreScu(server, {}, {files[i]});
     ASSERT_EQ(again.exit_code, 0) << again.err;
   }
-  ASSERT_TRUE(WaitUntil(
+  EXPECT_TRUE(WaitUntil(
       [&] {
         return server.Metric(
                    "interslice_dicom_events_total{event=\""
@@ -1227,7 +1227,9 @@ TEST(DicomEdgeTest, OwnResultsSentBackMakeNoJobUnlessARuleAsks) {
                        {"--dicom-peers", WritePeers(dir), "--rules", rules});
     ASSERT_TRUE(server.up()) << server.Log();
     ASSERT_EQ(StoreScu(server, {}, results).exit_code, 0);
-    ASSERT_TRUE(WaitUntil(
+    // Counted where the job would have been made; without the count (as
+    // before the fix), the wait ends after 30 s and the job is there.
+    EXPECT_TRUE(WaitUntil(
         [&] {
           return server.Metric(
                      "interslice_dicom_events_total{event=\""
@@ -1270,11 +1272,28 @@ TEST(DicomEdgeTest, SenderAtItsLimitMayAssociateAgainAtOnce) {
        "--dicom-max-associations-per-source", "1"});
   ASSERT_TRUE(server.up()) << server.Log();
   const std::vector<std::string> files = PhantomFiles();
-  for (int i = 0; i < 12; ++i) {
+  for (int i = 0; i < 4; ++i) {
     CommandResult store = StoreScu(server, {}, {files[i]});
     ASSERT_EQ(store.exit_code, 0)
         << "store " << i << ": " << store.err << server.Log();
   }
+  // Tighter than a process can be: the next association is requested the
+  // moment the A-RELEASE-RP is read, while the first socket is still open.
+  const int port = std::stoi(server.port());
+  int fd = RawAssociate(port);
+  ASSERT_GE(fd, 0) << server.Log();
+  for (int i = 0; i < 30; ++i) {
+    ASSERT_TRUE(raw::SendAll(fd, raw::ReleaseRq()));
+    const std::optional<raw::Pdu> rp = raw::ReadPdu(fd, 30);
+    ASSERT_TRUE(rp.has_value() && rp->type == 0x06) << "release " << i;
+    const int next = RawAssociate(port);
+    ::close(fd);
+    ASSERT_GE(next, 0) << "association " << i + 1
+                       << " right after a release was refused\n"
+                       << server.Log();
+    fd = next;
+  }
+  ::close(fd);
   EXPECT_EQ(server.Refused("associations_per_source"), 0) << server.Log();
 }
 

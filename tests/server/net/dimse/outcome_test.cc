@@ -9,6 +9,7 @@
 #include "gtest/gtest.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
+#include "dcmtk/dcmnet/dimse.h"
 #include "dcmtk/dcmnet/diutil.h"
 
 namespace interslice::server::node {
@@ -29,6 +30,21 @@ TEST(OutcomeTest, CStoreStatusTextIsDcmtksForEveryCode) {
   EXPECT_EQ(differing, 0) << first;
   EXPECT_EQ(CStoreStatusText(0xA700), "Refused: OutOfResources");
   EXPECT_EQ(CStoreStatusText(0xC123), "Error: CannotUnderstand");
+}
+
+// Both doors answer a refusal with the status of this one mapping; the codes
+// are DCMTK's C-STORE statuses.
+TEST(OutcomeTest, RefusalsMapToDimseStoreStatuses) {
+  EXPECT_EQ(StoreStatusOfRefusal(absl::OkStatus()), STATUS_Success);
+  EXPECT_EQ(StoreStatusOfRefusal(absl::ResourceExhaustedError("quota")),
+            STATUS_STORE_Refused_OutOfResources);
+  EXPECT_EQ(StoreStatusOfRefusal(absl::UnimplementedError("SC")),
+            STATUS_STORE_Refused_SOPClassNotSupported);
+  EXPECT_EQ(StoreStatusOfRefusal(absl::InvalidArgumentError("no UIDs")),
+            STATUS_STORE_Error_CannotUnderstand);
+  EXPECT_EQ(StoreStatusOfRefusal(absl::InternalError("?")), 0x0110);
+  EXPECT_EQ(CStoreStatusText(kStoreSopClassNotSupported),
+            "Refused: SOPClassNotSupported");
 }
 
 }  // namespace
