@@ -3,6 +3,7 @@
 #ifndef INTERSLICE_CORE_DICOM_OUT_DICOM_OUT_INTERNAL_H_
 #define INTERSLICE_CORE_DICOM_OUT_DICOM_OUT_INTERNAL_H_
 
+#include <array>
 #include <cstdint>
 #include <memory>
 #include <optional>
@@ -193,6 +194,12 @@ absl::Status SyncDirectory(const std::string& dir);
 absl::StatusOr<std::unique_ptr<DcmSegmentation>> CreateBinarySegmentation(
     const DicomSeries& source, const Grid& grid,
     const DerivedObjectIdentity& identity, const DicomWriteOptions& options);
+
+// `rgb` (sRGB, 0..255 each) as a DICOM CIELab colour (PS3.3 C.10.7.1.1:
+// CIELab D65 scaled to 0..65535 each), for RecommendedDisplayCIELabValue:
+// DCMTK's IODCIELabUtil does the conversion. Both SEG writers colour their
+// segments with it, so that a colour means the same in either.
+std::array<uint16_t, 3> RgbToDicomCieLab(const std::array<uint8_t, 3>& rgb);
 
 // Adds `frame` (nx*ny bytes, each 0 or 1) as the frame of segment
 // `segment_number` on slice k of `grid`: its plane position, its dimension

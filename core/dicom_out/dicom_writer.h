@@ -75,6 +75,7 @@
 #ifndef INTERSLICE_CORE_DICOM_OUT_DICOM_WRITER_H_
 #define INTERSLICE_CORE_DICOM_OUT_DICOM_WRITER_H_
 
+#include <array>
 #include <cstdint>
 #include <optional>
 #include <string>
@@ -274,6 +275,11 @@ struct SegmentDescription {
   CodedConcept category = {"85756007", "SCT", "Tissue"};
   CodedConcept type = {"272673000", "SCT", "Bone"};
   std::string algorithm_name = "interslice";
+  // The segment's display colour (sRGB, 0..255 each), written as its
+  // RecommendedDisplayCIELabValue (PS3.3 C.8.20.2): without one, viewers
+  // (OHIF) warn and pick a colour of their own. Default: bone as 3D Slicer's
+  // GenericAnatomyColors shows it.
+  std::array<uint8_t, 3> rgb = {241, 214, 145};
 };
 
 // The codes DescribeThresholdSegment chooses from. Bone: SNOMED CT
@@ -316,6 +322,9 @@ absl::Status ValidateSegmentLabel(std::string_view label);
 //   units are HU for CT, else the first source file's RescaleType (0028,1054)
 //   or Units (0054,1001, e.g. BQML for PET), else "units". `label` replaces
 //   the label, not the code.
+// The colour: SegmentDescription's default (bone) for the bone type, else
+// the colour a fill gives its first label (label_segmentation.h
+// DefaultLabelSegment(1)).
 // FAILED_PRECONDITION when the first source file cannot be read again;
 // INVALID_ARGUMENT for a label that is not a valid SegmentLabel.
 absl::StatusOr<SegmentDescription> DescribeThresholdSegment(
@@ -327,6 +336,9 @@ absl::StatusOr<SegmentDescription> DescribeThresholdSegment(
 // AUTOMATIC), atomically, to `path` (its folder must exist). `identity` is
 // PlanDerivedObjects(...).segmentation and `referenced` its .intensity: the
 // intensity series on the same grid, which the SEG derives from.
+// - The segment: `segment`'s label, category and type codes, and its colour
+//   as RecommendedDisplayCIELabValue (converted as the fill's SEG converts
+//   its colours, label_segmentation.h SegmentCieLab).
 // - One frame per output slice, in slice order, empty slices included, so
 //   that the frames tile the whole output grid and a reader needs nothing but
 //   the SEG to rebuild it. Shared functional groups: PixelMeasures (as in the

@@ -87,11 +87,9 @@ LabelSegment DefaultLabelSegment(int label) {
   return s;
 }
 
-std::array<uint16_t, 3> SegmentCieLab(const LabelSegment& segment) {
-  if (segment.cielab.has_value()) return *segment.cielab;
-  const std::array<uint8_t, 3> rgb =
-      segment.rgb.has_value() ? *segment.rgb
-                              : *DefaultLabelSegment(segment.number).rgb;
+namespace dicom_out_internal {
+
+std::array<uint16_t, 3> RgbToDicomCieLab(const std::array<uint8_t, 3>& rgb) {
   double l = 0, a = 0, b = 0;
   IODCIELabUtil::rgb2DicomLab(l, a, b, rgb[0] / 255.0, rgb[1] / 255.0,
                               rgb[2] / 255.0);
@@ -99,6 +97,15 @@ std::array<uint16_t, 3> SegmentCieLab(const LabelSegment& segment) {
     return static_cast<uint16_t>(std::clamp(std::lround(v), 0L, 65535L));
   };
   return {clamp(l), clamp(a), clamp(b)};
+}
+
+}  // namespace dicom_out_internal
+
+std::array<uint16_t, 3> SegmentCieLab(const LabelSegment& segment) {
+  if (segment.cielab.has_value()) return *segment.cielab;
+  return dicom_out_internal::RgbToDicomCieLab(
+      segment.rgb.has_value() ? *segment.rgb
+                              : *DefaultLabelSegment(segment.number).rgb);
 }
 
 std::array<uint8_t, 3> SegmentRgb(const LabelSegment& segment) {

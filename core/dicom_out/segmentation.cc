@@ -1,4 +1,5 @@
 // WriteSegmentation: a binary DICOM SEG of the mask (DCMTK dcmseg).
+#include <array>
 #include <cstdint>
 #include <filesystem>
 #include <memory>
@@ -15,6 +16,7 @@
 #include "core/common/status_macros.h"
 #include "core/dicom_out/dicom_out_internal.h"
 #include "core/dicom_out/dicom_writer.h"
+#include "core/dicom_out/label_segmentation.h"
 // osconfig.h must precede every other DCMTK header.
 #include "dcmtk/config/osconfig.h"
 #include "dcmtk/dcmdata/dcdeftag.h"
@@ -41,6 +43,7 @@ using dicom_out_internal::CurrentTime;
 using dicom_out_internal::FormatDecimalString;
 using dicom_out_internal::LoadSourceHeader;
 using dicom_out_internal::ReferenceSliceImage;
+using dicom_out_internal::RgbToDicomCieLab;
 using dicom_out_internal::SaveFileAtomically;
 using dicom_out_internal::SaveSegmentation;
 using dicom_out_internal::SliceImageReference;
@@ -102,6 +105,13 @@ absl::StatusOr<std::string> SourceUnits(const DicomSeries& source) {
   return std::string("units");
 }
 
+bool IsBone(const CodedConcept& type) {
+  return type.scheme == "SCT" && type.value == kBoneCodeValue;
+}
+
+// A segment that is not bone is shown as a fill shows its first label.
+std::array<uint8_t, 3> RegionRgb() { return *DefaultLabelSegment(1).rgb; }
+
 std::string FormatThreshold(double value) {
   return absl::StrFormat("%g", value);
 }
@@ -162,6 +172,7 @@ absl::StatusOr<SegmentDescription> DescribeThresholdSegment(
         (code->value == kBoneCodeValue || code->value == kTissueCodeValue);
     segment.category = is_tissue ? tissue : anatomical;
     segment.label = label.empty() ? code->meaning : std::string(label);
+    if (!IsBone(segment.type)) segment.rgb = RegionRgb();
     return segment;
   }
   if (source.modality == "CT" && lower >= kBoneThresholdHu) {
@@ -172,6 +183,7 @@ absl::StatusOr<SegmentDescription> DescribeThresholdSegment(
     INTERSLICE_ASSIGN_OR_RETURN(const std::string units, SourceUnits(source));
     segment.category = anatomical;
     segment.type = anatomical;
+    segment.rgb = RegionRgb();
     segment.label =
         upper.has_value()
             ? absl::StrCat("Region ", FormatThreshold(lower), " to ",
@@ -376,6 +388,14 @@ absl::Status WriteSegmentation(const DicomSeries& source,
                          DcmSegTypes::SAT_AUTOMATIC,
                          segment.algorithm_name.c_str()),
       "create the segment"));
+  // The colour a viewer shows it in; OHIF warns without one.
+  const std::array<uint16_t, 3> lab = RgbToDicomCieLab(segment.rgb);
+  if (const OFCondition cond =
+          raw_segment->setRecommendedDisplayCIELabValue(lab[0], lab[1], lab[2]);
+      cond.bad()) {
+    delete raw_segment;  // not the segmentation's yet
+    return Check(cond, "set the segment's colour");
+  }
   Uint16 segment_number = 0;
   {
     const OFCondition cond = seg->addSegment(raw_segment, segment_number);

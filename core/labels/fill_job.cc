@@ -360,8 +360,14 @@ absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
   }
   report.input_grid = series->image.grid;
   const Grid reference = series->image.grid;
-  const ReferenceSeries reference_series{reference, series->series_instance_uid,
-                                         series->frame_of_reference_uid};
+  ReferenceSeries reference_series{reference, series->series_instance_uid,
+                                   series->frame_of_reference_uid};
+  reference_series.image_sop_instance_uids.emplace();
+  for (const DicomSliceInfo& slice : series->slices) {
+    // An anonymised image has none: no reference can name it.
+    if (slice.sop_instance_uid.empty()) continue;
+    reference_series.image_sop_instance_uids->push_back(slice.sop_instance_uid);
+  }
   // The DICOM outputs lie on the reference's own images when they are on
   // its grid and it can be referenced image by image; otherwise on a derived
   // intensity series, which needs the grey values.
@@ -389,6 +395,15 @@ absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
                         : input.fractional ? "seg-fractional"
                                            : "seg-binary";
     report.segments = input.segments;
+    // Contours are always placed by position; silently so only when their
+    // references agree that they were drawn on this series.
+    if (input.unresolved_image_references > 0) {
+      report.warnings.push_back(absl::StrFormat(
+          "%d of the RTSTRUCT's %d contour image references name no image of "
+          "the reference series: its contours were matched to the "
+          "reference's slices by position",
+          input.unresolved_image_references, input.image_references));
+    }
   } else {
     // Any layout of the reference's voxels (label_map_io.h); the
     // reference's (DICOM) geometry is the one carried to the DICOM outputs,
@@ -452,7 +467,8 @@ absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
                       : std::string(SolverMethodName(spec.fill.solver.method));
   report.gap_voxels_closed = result.gap_voxels_closed;
   report.key_voxels_restored = result.key_voxels_restored;
-  report.warnings = result.warnings;
+  report.warnings.insert(report.warnings.end(), result.warnings.begin(),
+                         result.warnings.end());
 
   start = std::chrono::steady_clock::now();
   std::vector<std::pair<int, Mesh>> meshes;

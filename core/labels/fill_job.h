@@ -43,7 +43,10 @@
 //   series, the input labels and the fill parameters (dicom_writer.h
 //   "Identity"): the same fill names its objects the same.
 // An RTSTRUCT's key slices get the exact distance of its polygons
-// (FillOptions::contours, polygon_distance.h).
+// (FillOptions::contours, polygon_distance.h). Its contours are placed on the
+// reference's slices by position (segmentation_reader.h ReadRtStruct); when
+// some of their image references (ContourImageSequence) name no image of the
+// reference series, one warning says how many.
 #ifndef INTERSLICE_CORE_LABELS_FILL_JOB_H_
 #define INTERSLICE_CORE_LABELS_FILL_JOB_H_
 
@@ -112,6 +115,8 @@ struct FillJobReport {
   std::vector<LabelFillInfo> per_label;  // fields dropped
   int64_t gap_voxels_closed = 0;
   int64_t key_voxels_restored = 0;
+  // The input's (an RTSTRUCT's unresolved image references, above), then the
+  // fill's (FillResult::warnings); they name no UID.
   std::vector<std::string> warnings;
   // With preview_formats: one sentence each (a preview skipped and why, an
   // empty label, ...).

@@ -6,6 +6,8 @@
 #include <fstream>
 #include <map>
 #include <memory>
+#include <set>
+#include <string>
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
@@ -275,6 +277,13 @@ absl::StatusOr<SegmentationInput> ReadRtStruct(const std::string& path,
     names[number] = roi_name.c_str();
   }
 
+  // The reference's images, for counting the references that name none.
+  std::set<std::string> images;
+  if (reference.image_sop_instance_uids.has_value()) {
+    images.insert(reference.image_sop_instance_uids->begin(),
+                  reference.image_sop_instance_uids->end());
+  }
+
   const int64_t plane = g.SliceVoxelCount();
   DRTROIContourSequence& contours = rt.getROIContourSequence();
   for (size_t n = 0; n < contours.getNumberOfItems(); ++n) {
@@ -312,6 +321,15 @@ absl::StatusOr<SegmentationInput> ReadRtStruct(const std::string& path,
       OFString type;
       contour.getContourGeometricType(type);
       if (type != "CLOSED_PLANAR") continue;
+      if (reference.image_sop_instance_uids.has_value()) {
+        DRTContourImageSequence& refs = contour.getContourImageSequence();
+        for (size_t r = 0; r < refs.getNumberOfItems(); ++r) {
+          OFString uid;
+          refs.getItem(r).getReferencedSOPInstanceUID(uid);
+          ++out.image_references;
+          if (images.count(uid.c_str()) == 0) ++out.unresolved_image_references;
+        }
+      }
       OFVector<Float64> data;
       contour.getContourData(data);
       if (data.size() < 9 || data.size() % 3 != 0) {

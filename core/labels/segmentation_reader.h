@@ -22,6 +22,7 @@
 #define INTERSLICE_CORE_LABELS_SEGMENTATION_READER_H_
 
 #include <array>
+#include <cstdint>
 #include <optional>
 #include <string>
 #include <vector>
@@ -46,6 +47,14 @@ struct SegmentationInput {
   bool fractional = false;
   bool rtstruct = false;
   int64_t frames = 0;
+  // RTSTRUCT only, when ReferenceSeries::image_sop_instance_uids is given:
+  // the contour image references of the CLOSED_PLANAR contours read
+  // (ContourImageSequence > ReferencedSOPInstanceUID), and how many of them
+  // name no image of the reference series. Contours are placed on slices by
+  // their points' positions whatever they reference; a caller says so when
+  // the references could not have confirmed it (fill_job.h).
+  int64_t image_references = 0;
+  int64_t unresolved_image_references = 0;
 };
 
 // The reference series, as core/dicom read it.
@@ -53,6 +62,10 @@ struct ReferenceSeries {
   Grid grid;
   std::string series_instance_uid;
   std::string frame_of_reference_uid;
+  // The SOP Instance UIDs of its images (an anonymised series may have
+  // none), for counting an RTSTRUCT's unresolved image references
+  // (SegmentationInput); nullopt: not counted.
+  std::optional<std::vector<std::string>> image_sop_instance_uids;
 };
 
 // True if `path` is a DICOM file (the "DICM" magic at byte 128).
@@ -71,7 +84,9 @@ absl::StatusOr<SegmentationInput> ReadDicomSegmentation(
 // points within 5% of a slice gap of it); the pixels whose centres are
 // inside the contours of an ROI on that slice by the even-odd rule are set
 // (several polygons and holes drawn as inner contours included). Other
-// geometric types (POINT, OPEN_*) are skipped. Errors as for a SEG (file,
+// geometric types (POINT, OPEN_*) are skipped. The contours' image
+// references are counted (SegmentationInput::image_references), not used:
+// placement is by position. Errors as for a SEG (file,
 // ROI name and number, contour, slice), plus: a contour off the slice
 // planes, fewer than 3 points, an ROI number outside 1..65535, an ROI whose
 // ReferencedFrameOfReferenceUID is not the reference's.

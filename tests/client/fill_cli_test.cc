@@ -660,6 +660,87 @@ TEST_F(FillCliTest, RtStructInIsFilledFromItsPolygonsAndWrittenBack) {
   EXPECT_EQ(j["polygon_key_slices"], 2 * ((reference.grid.size[2] + 2) / 3));
 }
 
+// Issue 44: an RTSTRUCT whose contour image references resolve to no image
+// of the reference series was matched by position without a word
+// ("warnings": []). Made here from an RTSTRUCT the CLI writes (whose
+// references do resolve) by pointing them nowhere.
+TEST_F(FillCliTest, RtStructImageReferencesNamingNoImageAreAWarning) {
+  const std::string labels = (dir_ / "labels.nii.gz").string();
+  ASSERT_TRUE(WriteVolume(*truth_, labels).ok());
+  const std::string common =
+      " --reference " + kPhantom +
+      " --method linear --mesh none --volume nrrd --threads 2 --quiet --out ";
+  const fs::path written = dir_ / "written";
+  CommandResult r = RunCli("fill " + labels + " --key-slices 0-27:3" + common +
+                           written.string() + " --rtstruct");
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  const std::string resolving = (written / "rtstruct.dcm").string();
+
+  // Every contour's ContourImageSequence > ReferencedSOPInstanceUID
+  // rewritten to a UID no image has.
+  auto file = ::interslice::testing::LoadDicom(resolving);
+  DcmDataset& ds = *file->getDataset();
+  int64_t references = 0;
+  DcmItem* roi = nullptr;
+  for (int n = 0;
+       ds.findAndGetSequenceItem(DCM_ROIContourSequence, roi, n).good(); ++n) {
+    DcmItem* contour = nullptr;
+    for (int c = 0;
+         roi->findAndGetSequenceItem(DCM_ContourSequence, contour, c).good();
+         ++c) {
+      DcmItem* image = nullptr;
+      for (int i = 0;
+           contour->findAndGetSequenceItem(DCM_ContourImageSequence, image, i)
+               .good();
+           ++i) {
+        const std::string nowhere =
+            absl::StrCat("1.2.826.0.1.3680043.2.1125.44.", ++references);
+        ASSERT_TRUE(image
+                        ->putAndInsertString(DCM_ReferencedSOPInstanceUID,
+                                             nowhere.c_str())
+                        .good());
+      }
+    }
+  }
+  ASSERT_GT(references, 0) << "the CLI's RTSTRUCT references no image";
+  const std::string nowhere = (dir_ / "nowhere.dcm").string();
+  ASSERT_TRUE(file->saveFile(nowhere.c_str(), EXS_LittleEndianExplicit).good());
+
+  const auto warnings_of = [](const fs::path& report) {
+    std::ifstream in(report);
+    return nlohmann::json::parse(in)["warnings"];
+  };
+  // The CLI's own RTSTRUCT: its references resolve, nothing to say.
+  r = RunCli("fill " + resolving + common + (dir_ / "resolving").string() +
+             " --report " + (dir_ / "resolving.json").string());
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  EXPECT_EQ(warnings_of(dir_ / "resolving.json"), nlohmann::json::array());
+  EXPECT_THAT(r.out, ::testing::Not(HasSubstr("warning")));
+
+  // References pointing nowhere: still filled (by position), with one
+  // warning in the report and on stderr that counts them, naming no UID.
+  r = RunCli("fill " + nowhere + common + (dir_ / "out").string() +
+             " --report " + (dir_ / "report.json").string());
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  const nlohmann::json warnings = warnings_of(dir_ / "report.json");
+  ASSERT_EQ(warnings.size(), 1u) << warnings.dump();
+  const std::string warning = warnings[0].get<std::string>();
+  EXPECT_THAT(warning,
+              HasSubstr(absl::StrFormat("%d of the RTSTRUCT's %d contour image "
+                                        "references name no image",
+                                        references, references)));
+  EXPECT_THAT(warning, HasSubstr("by position"));
+  EXPECT_THAT(warning, ::testing::Not(HasSubstr("1.2.826")));
+  EXPECT_THAT(r.out, HasSubstr("interslice: warning: " + warning));
+  // Matched by position, the same labels as from the resolving RTSTRUCT.
+  absl::StatusOr<Volume<float>> a =
+      ReadVolumeAsFloat((dir_ / "resolving" / "labels.nrrd").string());
+  absl::StatusOr<Volume<float>> b =
+      ReadVolumeAsFloat((dir_ / "out" / "labels.nrrd").string());
+  ASSERT_TRUE(a.ok() && b.ok());
+  EXPECT_EQ(a->data, b->data);
+}
+
 TEST_F(FillCliTest, SegOnAFinerGridReferencesADerivedIntensitySeries) {
   const std::string small =
       std::string(::interslice::testing::SourceDir()) + "/tests/data/ct-thick";

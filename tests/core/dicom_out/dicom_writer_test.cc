@@ -3,6 +3,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <array>
 #include <atomic>
 #include <cmath>
 #include <cstdint>
@@ -18,6 +19,7 @@
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
 #include "core/dicom/series_reader.h"
+#include "core/dicom_out/label_segmentation.h"
 #include "core/dicom_out/preview_series.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
@@ -32,6 +34,7 @@
 #include "dcmtk/dcmfg/fgderimg.h"
 #include "dcmtk/dcmfg/fginterface.h"
 #include "dcmtk/dcmfg/fgplanpo.h"
+#include "dcmtk/dcmiod/cielabutil.h"
 #include "dcmtk/dcmseg/segdoc.h"
 #include "dcmtk/dcmseg/segment.h"
 #include "dcmtk/dcmseg/segutils.h"
@@ -1008,6 +1011,57 @@ TEST_F(DicomWriterTest, SegmentIsNamedForModalityAndThreshold) {
                 .status()
                 .code(),
             absl::StatusCode::kInvalidArgument);
+}
+
+// Issue 44: OHIF warned "RecommendedDisplayCIELabValue not found ... the
+// default color was used" for every `run` SEG (the fill's SEGs have one).
+TEST_F(DicomWriterTest, SegmentCarriesItsDisplayColour) {
+  TempDir dir;
+  struct Case {
+    const char* name;
+    const char* modality;
+    double lower;
+    std::array<uint8_t, 3> expected_rgb;
+  };
+  const Case cases[] = {
+      // Bone as 3D Slicer's GenericAnatomyColors shows it.
+      {"ct bone", "CT", 300, {241, 214, 145}},
+      // A region claims no tissue: the colour of a fill's first label.
+      {"mr region", "MR", 100, *DefaultLabelSegment(1).rgb},
+  };
+  const DerivedObjects objects = Plan();
+  for (const Case& c : cases) {
+    SCOPED_TRACE(c.name);
+    DicomSeries source = *source_;
+    source.modality = c.modality;
+    absl::StatusOr<SegmentDescription> segment = DescribeThresholdSegment(
+        source, c.lower, std::nullopt, "", std::nullopt);
+    ASSERT_TRUE(segment.ok()) << segment.status();
+    EXPECT_EQ(segment->rgb, c.expected_rgb);
+    const std::string path = (dir.path() / "seg.dcm").string();
+    ASSERT_TRUE(WriteSegmentation(source, Mask(Distance()),
+                                  objects.segmentation, objects.intensity,
+                                  *segment, Options(), path)
+                    .ok());
+    ExpectValidIod({path});
+    // Read back with DCMTK: present, encoded as the fill's SEG encodes its
+    // colours, and decoding to the intended sRGB colour.
+    DcmSegmentation* raw = nullptr;
+    ASSERT_TRUE(DcmSegmentation::loadFile(path.c_str(), raw).good());
+    std::unique_ptr<DcmSegmentation> seg(raw);
+    DcmSegment* written = seg->getSegment(1);
+    ASSERT_NE(written, nullptr);
+    Uint16 l = 0, a = 0, b = 0;
+    ASSERT_TRUE(written->getRecommendedDisplayCIELabValue(l, a, b).good());
+    LabelSegment same_colour;
+    same_colour.rgb = c.expected_rgb;
+    EXPECT_EQ((std::array<uint16_t, 3>{l, a, b}), SegmentCieLab(same_colour));
+    double r = 0, g = 0, bl = 0;
+    IODCIELabUtil::dicomLab2RGB(r, g, bl, l, a, b);
+    EXPECT_NEAR(255 * r, c.expected_rgb[0], 1);
+    EXPECT_NEAR(255 * g, c.expected_rgb[1], 1);
+    EXPECT_NEAR(255 * bl, c.expected_rgb[2], 1);
+  }
 }
 
 TEST(ParseCodedConceptTest, SchemeValueMeaningEachChecked) {
