@@ -18,7 +18,8 @@ namespace interslice::server::dimse {
 // INTERNAL: the network could not be initialised.
 absl::Status InitNetworkError(const OFCondition& cond);
 // INTERNAL naming the peer: the TLS layer was refused.
-absl::Status TlsLayerError(const node::DicomPeer& peer, const OFCondition& cond);
+absl::Status TlsLayerError(const node::DicomPeer& peer,
+                           const OFCondition& cond);
 // UNAVAILABLE naming the peer: the association was not made.
 absl::Status AssociationError(const node::DicomPeer& peer,
                               const OFCondition& cond);
