@@ -319,14 +319,17 @@ absl::Status ValidateSegmentLabel(std::string_view label);
 // - no code: Bone (SCT 272673000, category Tissue) only for CT with lower
 //   >= kBoneThresholdHu; otherwise "Region above N <units>" ("Region N to M
 //   <units>" with an upper threshold) coded Anatomical Structure, where the
-//   units are HU for CT, else the first source file's RescaleType (0028,1054)
-//   or Units (0054,1001, e.g. BQML for PET), else "units". `label` replaces
-//   the label, not the code.
+//   units are HU for CT, else the first source file's RescaleType (0028,1054;
+//   an LO, kept whole, e.g. "SIGNAL INTENSITY (UNITLESS)") or Units
+//   (0054,1001, e.g. BQML for PET), else "units". `label` replaces the
+//   label, not the code.
 // The colour: SegmentDescription's default (bone) for the bone type, else
 // the colour a fill gives its first label (label_segmentation.h
 // DefaultLabelSegment(1)).
 // FAILED_PRECONDITION when the first source file cannot be read again;
-// INVALID_ARGUMENT for a label that is not a valid SegmentLabel.
+// INVALID_ARGUMENT for a label that is not a valid SegmentLabel, or, without
+// `label`, when the units make "Region ..." longer than the 64 characters a
+// SegmentLabel holds (never cut: the message says to name the segment).
 absl::StatusOr<SegmentDescription> DescribeThresholdSegment(
     const DicomSeries& source, double lower, std::optional<double> upper,
     std::string_view label, const std::optional<CodedConcept>& code);

@@ -85,7 +85,9 @@ bool IsCodeString(std::string_view text) {
 }
 
 // The source's units for a label: HU for CT, else what its first file
-// says its modality values are, else "units".
+// says its modality values are, whole (RescaleType is an LO of up to 64
+// characters, e.g. "SIGNAL INTENSITY (UNITLESS)"; PET's Units a CS), else
+// "units".
 absl::StatusOr<std::string> SourceUnits(const DicomSeries& source) {
   if (source.modality == "CT") return std::string("HU");
   INTERSLICE_ASSIGN_OR_RETURN(std::unique_ptr<DcmFileFormat> file,
@@ -96,8 +98,10 @@ absl::StatusOr<std::string> SourceUnits(const DicomSeries& source) {
     if (header.findAndGetOFString(tag, value).good()) {
       std::string units(absl::StripAsciiWhitespace(value.c_str()));
       // "US" is RescaleType's "unspecified" (PS3.3 C.11.1.1.2).
-      if (!units.empty() && units != "US" && IsPlainText(units) &&
-          units.size() <= 16) {
+      // No length limit of its own: the label that holds it has one, which
+      // DescribeThresholdSegment checks (a limit here replaced long units
+      // with "units" without a word).
+      if (!units.empty() && units != "US" && IsPlainText(units)) {
         return units;
       }
     }
@@ -111,6 +115,9 @@ bool IsBone(const CodedConcept& type) {
 
 // A segment that is not bone is shown as a fill shows its first label.
 std::array<uint8_t, 3> RegionRgb() { return *DefaultLabelSegment(1).rgb; }
+
+// SegmentLabel is an LO (PS3.5 table 6.2-1).
+constexpr size_t kMaxSegmentLabelLength = 64;
 
 std::string FormatThreshold(double value) {
   return absl::StrFormat("%g", value);
@@ -148,7 +155,8 @@ absl::StatusOr<CodedConcept> ParseCodedConcept(std::string_view text) {
 }
 
 absl::Status ValidateSegmentLabel(std::string_view label) {
-  if (label.empty() || label.size() > 64 || !IsPlainText(label)) {
+  if (label.empty() || label.size() > kMaxSegmentLabelLength ||
+      !IsPlainText(label)) {
     return absl::InvalidArgumentError(
         "the segment label must be 1-64 characters without backslash or "
         "control characters");
@@ -189,6 +197,16 @@ absl::StatusOr<SegmentDescription> DescribeThresholdSegment(
             ? absl::StrCat("Region ", FormatThreshold(lower), " to ",
                            FormatThreshold(*upper), " ", units)
             : absl::StrCat("Region above ", FormatThreshold(lower), " ", units);
+    // The units are never cut or replaced: a label they make too long for
+    // a SegmentLabel fails, saying how to name the segment instead.
+    if (label.empty() && !ValidateSegmentLabel(segment.label).ok()) {
+      return absl::InvalidArgumentError(absl::StrFormat(
+          "the segment label would be %d characters with the source's units "
+          "(%d characters), more than the %d a SegmentLabel holds: name the "
+          "segment (--segment-label; rules: segment_label; gRPC: "
+          "segmentation.segment_label)",
+          segment.label.size(), units.size(), kMaxSegmentLabelLength));
+    }
   }
   if (!label.empty()) segment.label = std::string(label);
   return segment;

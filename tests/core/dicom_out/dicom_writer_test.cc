@@ -1013,6 +1013,58 @@ TEST_F(DicomWriterTest, SegmentIsNamedForModalityAndThreshold) {
             absl::StatusCode::kInvalidArgument);
 }
 
+// Issue 44: units longer than 16 characters became "units" ("SIGNAL
+// INTENSITY (UNITLESS)", an MR's RescaleType, an LO of up to 64).
+TEST_F(DicomWriterTest, LongUnitsAreKeptOrRefusedNeverReplaced) {
+  TempDir dir;
+  const std::string units = "SIGNAL INTENSITY (UNITLESS)";
+  const DicomSeries doctored =
+      DoctoredCopy(*source_, dir.path() / "mr", [&units](DcmDataset& ds) {
+        ds.putAndInsertString(DCM_RescaleType, units.c_str());
+      });
+  DicomSeries source = doctored;
+  source.modality = "MR";
+  const DerivedObjects objects = Plan();
+  for (const std::optional<double> upper :
+       {std::optional<double>(), std::optional<double>(1500)}) {
+    absl::StatusOr<SegmentDescription> segment =
+        DescribeThresholdSegment(source, 100, upper, "", std::nullopt);
+    ASSERT_TRUE(segment.ok()) << segment.status();
+    const std::string expected = upper.has_value()
+                                     ? "Region 100 to 1500 " + units
+                                     : "Region above 100 " + units;
+    EXPECT_EQ(segment->label, expected);
+    // The SEG holds it whole (SegmentLabel, LO) and stays valid.
+    const std::string path = (dir.path() / "seg.dcm").string();
+    ASSERT_TRUE(WriteSegmentation(source, Mask(Distance()),
+                                  objects.segmentation, objects.intensity,
+                                  *segment, Options(), path)
+                    .ok());
+    ExpectValidIod({path});
+    std::string type, category;
+    EXPECT_EQ(SegmentLabelOf(path, &type, &category), expected);
+  }
+
+  // Units that cannot fit the label (RescaleType's full 64 characters) are
+  // an error that says how to name the segment, not a shorter label.
+  const DicomSeries longest =
+      DoctoredCopy(*source_, dir.path() / "longest", [](DcmDataset& ds) {
+        ds.putAndInsertString(DCM_RescaleType, std::string(64, 'U').c_str());
+      });
+  source = longest;
+  source.modality = "MR";
+  absl::StatusOr<SegmentDescription> refused =
+      DescribeThresholdSegment(source, 100, std::nullopt, "", std::nullopt);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(std::string(refused.status().message()),
+              HasSubstr("--segment-label"));
+  // A label of the job's own needs no units.
+  absl::StatusOr<SegmentDescription> named = DescribeThresholdSegment(
+      source, 100, std::nullopt, "Brain mask", std::nullopt);
+  ASSERT_TRUE(named.ok()) << named.status();
+  EXPECT_EQ(named->label, "Brain mask");
+}
+
 // Issue 44: OHIF warned "RecommendedDisplayCIELabValue not found ... the
 // default color was used" for every `run` SEG (the fill's SEGs have one).
 TEST_F(DicomWriterTest, SegmentCarriesItsDisplayColour) {
