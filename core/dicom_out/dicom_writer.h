@@ -103,6 +103,10 @@ struct DicomWriteOptions {
   // method, grid and so on). Two jobs with the same key on the same source
   // get the same UIDs.
   std::string derivation_key;
+  // What, besides derivation_key, shapes the Encapsulated STL alone (the
+  // pipeline: its own mesh simplification when not the default): it names
+  // the STL's UIDs and no other object's. Empty = nothing more.
+  std::string surface_derivation_key;
   // First of the series numbers of the derived objects (see "Identity");
   // <= 0 derives it from the source's SeriesNumber and parameter_set.
   int series_number_base = 0;

@@ -335,10 +335,16 @@ absl::StatusOr<DerivedObjects> PlanDerivedObjects(
       SeriesDescription("interslice segmentation", options);
 
   DerivedObjectIdentity& stl = objects.surface_stl;
+  // "surface-stl" alone when nothing but the job's key shapes it, so that
+  // those UIDs stay as they were.
+  const std::string stl_name =
+      options.surface_derivation_key.empty()
+          ? std::string("surface-stl")
+          : absl::StrCat("surface-stl[", options.surface_derivation_key, "]");
   INTERSLICE_ASSIGN_OR_RETURN(stl.series_instance_uid,
-                              namer.Uid("surface-stl/series"));
+                              namer.Uid(absl::StrCat(stl_name, "/series")));
   INTERSLICE_ASSIGN_OR_RETURN(std::string stl_uid,
-                              namer.Uid("surface-stl/instance"));
+                              namer.Uid(absl::StrCat(stl_name, "/instance")));
   stl.sop_instance_uids = {stl_uid};
   stl.series_number = static_cast<int>(base + 4);
   stl.sop_class_uid = UID_EncapsulatedSTLStorage;

@@ -101,6 +101,12 @@ std::string DerivationKey(const JobSpec& spec,
   if (spec.intensity_method != "linear") {
     absl::StrAppend(&key, " intensity=", spec.intensity_method);
   }
+  // Slab deconvolution changes the distance map, the SEG and the mesh
+  // (pipeline.h): two jobs that differ only in it once got the same UIDs
+  // for different objects, and a PACS that keeps the first instance of a
+  // UID (Orthanc's default) showed the other job's results. Absent when off,
+  // so that the UIDs of the jobs without it stay as they were.
+  if (spec.slab_deconvolution) absl::StrAppend(&key, " slab-deconvolution=1");
   // Absent for the default segment, so that the UIDs of jobs that name
   // none stay as they were.
   if (!spec.segment_label.empty()) {
@@ -230,6 +236,15 @@ DicomWriteOptions JobDicomWriteOptions(const JobSpec& spec,
   dicom_options.parameter_set = dicom_options.derivation_key;
   dicom_options.parameter_summary =
       ParameterSummary(spec, source.modality, output_grid);
+  // The Encapsulated STL's own simplification changes that object alone:
+  // its UIDs, not the other objects', name it (empty for the defaults, whose
+  // UIDs stay as they were).
+  if (spec.dicom_mesh_adaptivity != kDefaultDicomMeshAdaptivity ||
+      spec.dicom_mesh_max_mb != kDefaultDicomMeshMaxMb) {
+    dicom_options.surface_derivation_key =
+        absl::StrFormat("adaptivity=%.9g max-mb=%.9g",
+                        spec.dicom_mesh_adaptivity, spec.dicom_mesh_max_mb);
+  }
   if (spec.dicom_compression == "rle") {
     dicom_options.intensity_encoding =
         DicomWriteOptions::PixelEncoding::kRleLossless;

@@ -647,6 +647,76 @@ TEST_F(PipelineTest, SlabDeconvolutionContoursTheEstimatesAndSaysSo) {
   fs::remove_all(inputs);
 }
 
+// The SOP Instance UID of a job's DICOM object (a file, or the first file
+// of a folder).
+std::string SopInstanceUidOf(const fs::path& path) {
+  fs::path file = path;
+  if (fs::is_directory(path)) {
+    std::set<fs::path> files;
+    for (const auto& entry : fs::directory_iterator(path)) {
+      files.insert(entry.path());
+    }
+    if (files.empty()) return "";
+    file = *files.begin();
+  }
+  DcmFileFormat dicom;
+  OFString uid;
+  if (!dicom.loadFile(OFFilename(file.c_str())).good() ||
+      !dicom.getDataset()->findAndGetOFString(DCM_SOPInstanceUID, uid).good()) {
+    return "";
+  }
+  return uid.c_str();
+}
+
+// Every parameter that changes an object changes its UIDs, and only that
+// object's: two jobs that differed only in slab deconvolution got the same
+// UIDs for different distance maps, SEGs and meshes, and a PACS that keeps
+// the first instance of a UID (Orthanc's default) showed the first job's
+// results for the second. The Encapsulated STL's own simplification changes
+// the STL alone, so the other objects keep theirs (no second copy of the
+// same intensity series in the study).
+TEST_F(PipelineTest, ParametersThatChangeAnObjectChangeItsUidsAndOnlyItsOwn) {
+  const char* const kObjects[] = {"series-intensity", "distance.dcm",
+                                  "seg.dcm", "surface-stl.dcm"};
+  auto run = [&](const char* name, auto edit) {
+    JobSpec spec = SmallJob();
+    spec.output_series = {"intensity", "mask", "distance"};
+    spec.intensity_method = "linear";
+    spec.output_dir = (dir_ / name).string();
+    edit(spec);
+    const auto report = RunJob(spec, {.threads = 2});
+    EXPECT_TRUE(report.ok()) << name << ": " << report.status();
+    std::map<std::string, std::string> uids;
+    for (const char* object : kObjects) {
+      uids[object] = SopInstanceUidOf(dir_ / name / object);
+      EXPECT_FALSE(uids[object].empty()) << name << " " << object;
+    }
+    return uids;
+  };
+  const auto plain = run("plain", [](JobSpec&) {});
+  const auto again = run("again", [](JobSpec&) {});
+  const auto slab =
+      run("slab", [](JobSpec& spec) { spec.slab_deconvolution = true; });
+  const auto mesh =
+      run("mesh", [](JobSpec& spec) { spec.dicom_mesh_adaptivity = 0.5; });
+  const auto capped =
+      run("capped", [](JobSpec& spec) { spec.dicom_mesh_max_mb = 10; });
+  // The same job: the same objects (a PACS replaces them).
+  EXPECT_EQ(again, plain);
+  // Slab deconvolution: the contoured slices, so every shape object.
+  for (const char* object : {"distance.dcm", "seg.dcm", "surface-stl.dcm"}) {
+    EXPECT_NE(slab.at(object), plain.at(object)) << object;
+  }
+  // The STL's own simplification: the STL only.
+  for (const auto* other : {&mesh, &capped}) {
+    EXPECT_NE(other->at("surface-stl.dcm"), plain.at("surface-stl.dcm"));
+    for (const char* object : {"series-intensity", "distance.dcm", "seg.dcm"}) {
+      EXPECT_EQ(other->at(object), plain.at(object)) << object;
+    }
+  }
+  EXPECT_NE(mesh.at("surface-stl.dcm"), capped.at("surface-stl.dcm"));
+}
+
 TEST_F(PipelineTest, RoiOfANonUniformSeriesStartsAtItsFirstSlice) {
   const fs::path inputs = dir_.string() + "_in";
   fs::create_directories(inputs);
