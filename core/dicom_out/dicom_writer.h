@@ -62,8 +62,14 @@
 //   or an explicit series_number_base: slot 0. A base that leaves no room
 //   for base + 6 in a DICOM IS (signed 32 bits) is INVALID_ARGUMENT; 1000 x
 //   a source number that does not is replaced by 9000.
-// - Series descriptions: the object ("interslice segmentation"), then ", "
-//   and options.parameter_summary when given, at most 64 characters (LO).
+// - Series descriptions, read at a glance in a study's series list: the
+//   object in words ("Segmentation", "Interpolated", "Distance (mm)",
+//   "Surface (STL)", "Previews"), then " " and the options' summary when
+//   given, then ", from #<source SeriesNumber> <source SeriesDescription>"
+//   (either alone when the other is missing; a source description that is
+//   not printable ASCII is left out), cut at the 64 characters of an LO
+//   from the end, e.g. "Segmentation >=300 HU, 0.5 mm, smooth, from #3
+//   HEAD 5MM".
 // - Equipment (Manufacturer etc.) describes interslice, the creator of the
 //   derived objects, not the scanner.
 //
@@ -107,16 +113,27 @@ struct DicomWriteOptions {
   // pipeline: its own mesh simplification when not the default): it names
   // the STL's UIDs and no other object's. Empty = nothing more.
   std::string surface_derivation_key;
+  // What shapes the intensity series alone (the pipeline: the grid, the ROI,
+  // the intensity method, ... but not the thresholds or the solver). When
+  // given, it replaces derivation_key and parameter_set for the intensity
+  // series: its UIDs and its series numbers' slot; so jobs on one source
+  // that differ only in what does not change a grey value share one
+  // intensity series (a PACS keeps one copy). Empty = derivation_key.
+  std::string intensity_derivation_key;
   // First of the series numbers of the derived objects (see "Identity");
   // <= 0 derives it from the source's SeriesNumber and parameter_set.
   int series_number_base = 0;
   // Results of other parameters told apart (see "Identity"): the parameters
   // that pick the series numbers' slot (the pipeline: method, thresholds,
-  // output grid, ...; empty = slot 0), and a short text of them for the
-  // series descriptions ("cg >=300 HU, 0.5 mm"; empty = none). Keep it
-  // within 38 characters and free of patient data.
+  // output grid, ...; empty = slot 0), and a short text of them in words for
+  // the series descriptions of the segmentation, distance map, mesh and
+  // previews (">=300 HU, 0.5 mm, smooth"; empty = none), and of the
+  // intensity series ("0.5 mm, motion-compensated"; empty = the same as the
+  // others'): what it depends on, not the thresholds. Keep them within 30
+  // characters and free of patient data.
   std::string parameter_set;
   std::string parameter_summary;
+  std::string intensity_summary;
   // Start of DerivationDescription; the writer appends what the content is
   // (and, for intensity, the interpolator). Keep it free of patient data.
   std::string derivation_description =
@@ -172,6 +189,14 @@ struct DerivedObjects {
   // one instance, series number base + 4.
   DerivedObjectIdentity surface_stl;
 };
+
+// The series description of another derived object of the source (a fill's
+// structure set): `object`, `summary` and the source series, as "Identity"
+// above says. FAILED_PRECONDITION when the first source file cannot be read
+// again.
+absl::StatusOr<std::string> DescribeDerivedSeries(const DicomSeries& source,
+                                                  std::string_view object,
+                                                  std::string_view summary);
 
 // Names the derived objects of a job whose output grid has `output_slices`
 // slices (see "Identity" above). INVALID_ARGUMENT for a malformed UID root

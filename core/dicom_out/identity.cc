@@ -2,6 +2,7 @@
 // objects one job writes, decided before any of them is written, so that the
 // SEG and the Parametric Map can reference the intensity series' instances
 // while all three are written in parallel.
+#include <algorithm>
 #include <cstdint>
 #include <limits>
 #include <map>
@@ -15,6 +16,7 @@
 #include "absl/status/statusor.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "absl/strings/strip.h"
 #include "core/common/status_macros.h"
 #include "core/dicom_out/dicom_out_internal.h"
 #include "core/dicom_out/dicom_writer.h"
@@ -214,18 +216,54 @@ absl::Status SetStudyAndFrame(const DicomSeries& source, const UidNamer& namer,
   return absl::OkStatus();
 }
 
-// "<object>, <parameter summary>" (dicom_writer.h, "Identity"), or the
-// object alone without a summary; at most 64 characters (LO).
-std::string SeriesDescription(std::string_view object,
-                              const DicomWriteOptions& options) {
-  std::string text(object);
-  if (!options.parameter_summary.empty()) {
-    absl::StrAppend(&text, ", ", options.parameter_summary);
+// The source series as a radiologist finds it in the study's series list:
+// "from #<SeriesNumber> <SeriesDescription>", either part alone when the
+// other is missing, "" when both are. A description that is not printable
+// ASCII is left out (the derived objects do not all carry the source's
+// SpecificCharacterSet, and a cut could split a multi-byte character).
+std::string SourceSeriesReference(DcmItem& header) {
+  std::string text;
+  const std::optional<int64_t> number = SourceSeriesNumber(header);
+  if (number.has_value()) text = absl::StrCat("#", *number);
+  OFString value;
+  if (header.findAndGetOFString(DCM_SeriesDescription, value).good()) {
+    const std::string description(absl::StripAsciiWhitespace(value.c_str()));
+    const bool printable =
+        std::all_of(description.begin(), description.end(),
+                    [](char c) { return c >= 0x20 && c <= 0x7e; });
+    if (!description.empty() && printable) {
+      absl::StrAppend(&text, text.empty() ? "" : " ", description);
+    }
   }
-  return text.substr(0, 64);
+  return text.empty() ? text : absl::StrCat("from ", text);
+}
+
+// "<object> <summary>, from #<n> <source description>" (dicom_writer.h,
+// "Identity"), leaving out what is empty; at most 64 characters (LO), cut
+// from the end, so the object and the parameters always show.
+std::string SeriesDescription(std::string_view object, std::string_view summary,
+                              std::string_view source_reference) {
+  std::string text(object);
+  if (!summary.empty()) text.append(" ").append(summary);
+  if (!source_reference.empty()) text.append(", ").append(source_reference);
+  text = text.substr(0, 64);
+  // No trailing blank or comma from the cut.
+  while (!text.empty() && (text.back() == ' ' || text.back() == ',')) {
+    text.pop_back();
+  }
+  return text;
 }
 
 }  // namespace
+
+absl::StatusOr<std::string> DescribeDerivedSeries(const DicomSeries& source,
+                                                  std::string_view object,
+                                                  std::string_view summary) {
+  INTERSLICE_ASSIGN_OR_RETURN(std::unique_ptr<DcmFileFormat> header,
+                              dicom_out_internal::LoadSourceHeader(source));
+  return SeriesDescription(object, summary,
+                           SourceSeriesReference(*header->getDataset()));
+}
 
 absl::StatusOr<DerivedObjectIdentity> PlanPreviewSeries(
     const DicomSeries& source, const std::vector<std::string>& names,
@@ -264,7 +302,8 @@ absl::StatusOr<DerivedObjectIdentity> PlanPreviewSeries(
   previews.series_number = static_cast<int>(base + kPreviewSeriesNumberOffset);
   previews.sop_class_uid = UID_SecondaryCaptureImageStorage;
   previews.series_description =
-      SeriesDescription("interslice previews", options);
+      SeriesDescription("Previews", options.parameter_summary,
+                        SourceSeriesReference(*header->getDataset()));
   return previews;
 }
 
@@ -293,20 +332,36 @@ absl::StatusOr<DerivedObjects> PlanDerivedObjects(
     o->frame_of_reference_uid = objects.intensity.frame_of_reference_uid;
   }
   DerivedObjectIdentity& intensity = objects.intensity;
+  // The intensity series by its own key when there is one (shared by the
+  // jobs whose other parameters differ: DicomWriteOptions::
+  // intensity_derivation_key): its UIDs and its series numbers' slot.
+  DicomWriteOptions intensity_options = options;
+  if (!options.intensity_derivation_key.empty()) {
+    intensity_options.derivation_key = options.intensity_derivation_key;
+    intensity_options.parameter_set = options.intensity_derivation_key;
+  }
+  INTERSLICE_ASSIGN_OR_RETURN(const UidNamer intensity_namer,
+                              UidNamer::Create(source, intensity_options));
+  INTERSLICE_ASSIGN_OR_RETURN(
+      const int64_t intensity_base,
+      SeriesNumberBase(*header->getDataset(), intensity_options));
   INTERSLICE_ASSIGN_OR_RETURN(intensity.series_instance_uid,
-                              namer.Uid("intensity/series"));
+                              intensity_namer.Uid("intensity/series"));
   intensity.sop_instance_uids.reserve(static_cast<size_t>(output_slices));
   for (int64_t k = 0; k < output_slices; ++k) {
-    INTERSLICE_ASSIGN_OR_RETURN(std::string uid,
-                                namer.Uid(absl::StrCat("intensity/", k)));
+    INTERSLICE_ASSIGN_OR_RETURN(
+        std::string uid, intensity_namer.Uid(absl::StrCat("intensity/", k)));
     intensity.sop_instance_uids.push_back(std::move(uid));
   }
-  intensity.series_number = static_cast<int>(base + 1);
+  intensity.series_number = static_cast<int>(intensity_base + 1);
   intensity.sop_class_uid = ImageSopClass(source);
+  const std::string source_reference =
+      SourceSeriesReference(*header->getDataset());
   intensity.series_description = SeriesDescription(
-      options.parameter_summary.empty() ? "interslice resampled intensity"
-                                        : "interslice intensity",
-      options);
+      "Interpolated",
+      options.intensity_summary.empty() ? options.parameter_summary
+                                        : options.intensity_summary,
+      source_reference);
 
   DerivedObjectIdentity& distance = objects.distance_map;
   INTERSLICE_ASSIGN_OR_RETURN(distance.series_instance_uid,
@@ -319,9 +374,7 @@ absl::StatusOr<DerivedObjects> PlanDerivedObjects(
   distance.series_number = static_cast<int>(base + 2);
   distance.sop_class_uid = UID_ParametricMapStorage;
   distance.series_description = SeriesDescription(
-      options.parameter_summary.empty() ? "interslice signed distance (mm)"
-                                        : "interslice distance (mm)",
-      options);
+      "Distance (mm)", options.parameter_summary, source_reference);
 
   DerivedObjectIdentity& seg = objects.segmentation;
   INTERSLICE_ASSIGN_OR_RETURN(seg.series_instance_uid, namer.Uid("seg/series"));
@@ -331,8 +384,8 @@ absl::StatusOr<DerivedObjects> PlanDerivedObjects(
                               namer.Uid("seg/dimensions"));
   seg.series_number = static_cast<int>(base + 3);
   seg.sop_class_uid = UID_SegmentationStorage;
-  seg.series_description =
-      SeriesDescription("interslice segmentation", options);
+  seg.series_description = SeriesDescription(
+      "Segmentation", options.parameter_summary, source_reference);
 
   DerivedObjectIdentity& stl = objects.surface_stl;
   // "surface-stl" alone when nothing but the job's key shapes it, so that
@@ -349,9 +402,7 @@ absl::StatusOr<DerivedObjects> PlanDerivedObjects(
   stl.series_number = static_cast<int>(base + 4);
   stl.sop_class_uid = UID_EncapsulatedSTLStorage;
   stl.series_description = SeriesDescription(
-      options.parameter_summary.empty() ? "interslice surface mesh (STL)"
-                                        : "interslice mesh (STL)",
-      options);
+      "Surface (STL)", options.parameter_summary, source_reference);
   return objects;
 }
 

@@ -107,6 +107,12 @@ absl::Status WriteDicomOutputs(const FillJobSpec& spec,
   }
   options.derivation_description =
       "interslice fill between key slices (Csebfalvi et al. 2001)";
+  // The series descriptions (dicom_writer.h, "Identity"): what the SEG is
+  // and, for a derived intensity series, its spacing and grey values.
+  options.parameter_summary = "filled between drawn slices";
+  options.intensity_summary = absl::StrFormat(
+      "%.3g mm, %s", grid.spacing[2],
+      spec.intensity_method == "morph" ? "motion-compensated" : "linear");
   INTERSLICE_ASSIGN_OR_RETURN(
       const DerivedObjects objects,
       PlanDerivedObjects(source, grid.size[2], options));
@@ -187,7 +193,10 @@ absl::Status WriteDicomOutputs(const FillJobSpec& spec,
     identity.frame_of_reference_uid =
         objects.segmentation.frame_of_reference_uid;
     identity.series_number = objects.segmentation.series_number + 2;
-    identity.series_description = "interslice structure set";
+    INTERSLICE_ASSIGN_OR_RETURN(
+        identity.series_description,
+        DescribeDerivedSeries(source, "Structure set",
+                              options.parameter_summary));
     const std::string path = (dir / "rtstruct.dcm").string();
     INTERSLICE_RETURN_IF_ERROR(
         Annotate(WriteRtStructureSet(source, grid, rois, identity, referenced,

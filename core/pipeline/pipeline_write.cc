@@ -60,11 +60,28 @@ absl::Status WriteTextFile(const std::string& path, const std::string& text) {
   return absl::OkStatus();
 }
 
-// What tells this job's DICOM results apart from those of other parameters
-// in the study's series descriptions (dicom_writer.h, "Identity"): the
-// solver method, the threshold(s) (modality units; HU for CT) and the output
-// slice spacing, e.g. "cg >=300 HU, 0.5 mm" or "direct 300..1500 HU,
-// 0.625 mm"; at most 38 characters for every finite threshold (%.6g).
+// The solver in words for a series description: what a reader needs to
+// know is whether the shape was smoothed between the slices (the conjugate
+// gradient and the exact solver minimise the same energy, paper section 3).
+std::string_view SolverMethodWords(SolverMethod method) {
+  switch (method) {
+    case SolverMethod::kLinear:
+      return "linear";
+    case SolverMethod::kConjugateGradient:
+    case SolverMethod::kDirect:
+      return "smooth";
+    case SolverMethod::kMorph:
+      return "registered";
+  }
+  return "";
+}
+
+// What tells this job's segmentation, distance map, mesh and previews apart
+// from those of other parameters in the study's series descriptions
+// (dicom_writer.h, "Identity"): the threshold(s) (modality units; HU for
+// CT), the output slice spacing and the solver in words, e.g. ">=300 HU,
+// 0.5 mm, smooth"; at most 40 characters for every finite threshold
+// (%.6g).
 std::string ParameterSummary(const JobSpec& spec, const std::string& modality,
                              const Grid& output_grid) {
   const std::string unit = modality == "CT" ? " HU" : "";
@@ -73,9 +90,36 @@ std::string ParameterSummary(const JobSpec& spec, const std::string& modality,
           ? absl::StrFormat("%.6g..%.6g", spec.lower_threshold,
                             *spec.upper_threshold)
           : absl::StrFormat(">=%.6g", spec.lower_threshold);
-  return absl::StrFormat("%s %s%s, %.3g mm",
-                         SolverMethodName(spec.solver.method), thresholds, unit,
-                         output_grid.spacing[2]);
+  return absl::StrFormat("%s%s, %.3g mm, %s", thresholds, unit,
+                         output_grid.spacing[2],
+                         SolverMethodWords(spec.solver.method));
+}
+
+// The same for the intensity series, which the thresholds and the solver do
+// not change: the spacing and how the grey values between the source slices
+// were made, e.g. "0.5 mm, motion-compensated".
+std::string IntensitySummary(const JobSpec& spec, const Grid& output_grid) {
+  return absl::StrFormat(
+      "%.3g mm, %s", output_grid.spacing[2],
+      spec.intensity_method == "morph" ? "motion-compensated" : "linear");
+}
+
+// The voxel box, however it was given (a box in mm that maps to the same
+// voxels makes the same objects), and the output grid, appended to a
+// derivation key.
+void AppendGridKey(const std::optional<VoxelBox>& roi, const Grid& output_grid,
+                   std::string& key) {
+  if (roi.has_value()) {
+    absl::StrAppend(&key, " roi=", absl::StrJoin(roi->begin, ","), ",",
+                    absl::StrJoin(roi->end, ","));
+  }
+  absl::StrAppend(&key, " grid=", absl::StrJoin(output_grid.size, ","));
+  for (double v : output_grid.spacing) {
+    absl::StrAppend(&key, absl::StrFormat(" %.9g", v));
+  }
+  for (double v : output_grid.origin) {
+    absl::StrAppend(&key, absl::StrFormat(" %.9g", v));
+  }
 }
 
 // The job's parameters that shape its results, in a canonical text: with the
@@ -115,19 +159,32 @@ std::string DerivationKey(const JobSpec& spec,
   if (!spec.segment_code.empty()) {
     absl::StrAppend(&key, " segment-code=", spec.segment_code);
   }
-  // The voxel box, however it was given (a box in mm that maps to the same
-  // voxels makes the same objects).
-  if (roi.has_value()) {
-    absl::StrAppend(&key, " roi=", absl::StrJoin(roi->begin, ","), ",",
-                    absl::StrJoin(roi->end, ","));
+  AppendGridKey(roi, output_grid, key);
+  return key;
+}
+
+// What shapes the intensity series alone, in a canonical text that names
+// its UIDs and picks its series numbers' slot (DicomWriteOptions::
+// intensity_derivation_key): everything of DerivationKey but what changes
+// only the shape objects (thresholds, band, solver, slab deconvolution,
+// segment label and code), plus an explicit series number base (the series
+// carries its number). Jobs on one series that differ only in those share
+// one intensity series in the study instead of storing identical copies.
+// Built by exclusion from DerivationKey's list: a parameter added there
+// and not here would give two different series one set of UIDs, so every
+// JobSpec field that can change a grey value or the grid belongs here
+// (PipelineTest.ParametersThatChangeAnObjectChangeItsUidsAndOnlyItsOwn).
+std::string IntensityDerivationKey(const JobSpec& spec,
+                                   const std::optional<VoxelBox>& roi,
+                                   const Grid& output_grid) {
+  std::string key = absl::StrFormat(
+      "intensity-series v1 method=%s strict=%d volume=%s",
+      spec.intensity_method, spec.strict_spacing ? 1 : 0,
+      spec.multiframe_volume);
+  if (spec.series_number_base > 0) {
+    absl::StrAppend(&key, " number-base=", spec.series_number_base);
   }
-  absl::StrAppend(&key, " grid=", absl::StrJoin(output_grid.size, ","));
-  for (double v : output_grid.spacing) {
-    absl::StrAppend(&key, absl::StrFormat(" %.9g", v));
-  }
-  for (double v : output_grid.origin) {
-    absl::StrAppend(&key, absl::StrFormat(" %.9g", v));
-  }
+  AppendGridKey(roi, output_grid, key);
   return key;
 }
 
@@ -234,8 +291,14 @@ DicomWriteOptions JobDicomWriteOptions(const JobSpec& spec,
   dicom_options.series_number_base = spec.series_number_base;
   dicom_options.derivation_key = DerivationKey(spec, report.roi, output_grid);
   dicom_options.parameter_set = dicom_options.derivation_key;
+  // Random UIDs are random for every object: nothing to share.
+  if (!spec.random_uids) {
+    dicom_options.intensity_derivation_key =
+        IntensityDerivationKey(spec, report.roi, output_grid);
+  }
   dicom_options.parameter_summary =
       ParameterSummary(spec, source.modality, output_grid);
+  dicom_options.intensity_summary = IntensitySummary(spec, output_grid);
   // The Encapsulated STL's own simplification changes that object alone:
   // its UIDs, not the other objects', name it (empty for the defaults, whose
   // UIDs stay as they were).

@@ -290,25 +290,29 @@ TEST_F(DicomOutputTest, ShippedPhantomObjectsValidateAndLieOnTheReportGrid) {
   EXPECT_TRUE(std::equal(distance->data.begin(), distance->data.end(), floats));
 
   // Series numbers from the source's (201 x 1000, + 10 x the parameter
-  // set's slot, + the object) and descriptions that say what each object
-  // holds and with which parameters (docs/dicom-output.md).
+  // set's slot, + the object; the intensity series in the slot of what
+  // shapes it alone) and descriptions that say what each object holds,
+  // with which parameters and from which series (docs/dicom-output.md).
   DcmFileFormat first;
   ASSERT_TRUE(first.loadFile(OFFilename(files.front().c_str())).good());
   const int intensity_number =
       std::stoi(GetString(*first.getDataset(), DCM_SeriesNumber));
   EXPECT_EQ(intensity_number / 1000, 201);
   EXPECT_EQ(intensity_number % 10, 1);
-  EXPECT_EQ(GetString(*pmap.getDataset(), DCM_SeriesNumber),
-            std::to_string(intensity_number + 1));
+  const int distance_number =
+      std::stoi(GetString(*pmap.getDataset(), DCM_SeriesNumber));
+  EXPECT_EQ(distance_number / 1000, 201);
+  EXPECT_EQ(distance_number % 10, 2);
   EXPECT_EQ(
       GetString(*pmap.getDataset(), DCM_SeriesDescription),
-      "interslice distance (mm), direct >=300 HU, " +
-          absl::StrFormat("%.3g", report["grid"]["spacing"][2].get<double>()) +
-          " mm");
+      ("Distance (mm) >=300 HU, " +
+       absl::StrFormat("%.3g", report["grid"]["spacing"][2].get<double>()) +
+       " mm, smooth, from #201 STD BRAIN 5MM")
+          .substr(0, 64));
   DcmFileFormat seg;
   ASSERT_TRUE(seg.loadFile(OFFilename((out / "seg.dcm").c_str())).good());
   EXPECT_EQ(GetString(*seg.getDataset(), DCM_SeriesNumber),
-            std::to_string(intensity_number + 2));
+            std::to_string(distance_number + 1));
   EXPECT_EQ(GetString(*seg.getDataset(), DCM_SOPClassUID),
             "1.2.840.10008.5.1.4.1.1.66.4");
   EXPECT_EQ(GetString(*pmap.getDataset(), DCM_SOPClassUID),
@@ -701,24 +705,34 @@ TEST_F(DicomOutputTest, RerunKeepsUidsAndRandomUidsDoNot) {
   EXPECT_NE(first[0], other_job[0]);
 
   // Results of other parameters are told apart in the study: thresholds 250
-  // and 300 give other series numbers and descriptions for every object; a
-  // rerun of 300 the same ones (so the PACS replaces them).
+  // and 300 give the SEG other series numbers and descriptions, and share
+  // the intensity series, which the threshold does not change (issue 44: one
+  // copy in the study, saying nothing of a threshold); a rerun of 300 gives
+  // the same ones (so the PACS replaces them).
   run("t250", "--threshold 250");
   const std::vector<std::string>& t300 = series_of["first"];
   ASSERT_EQ(t300.size(), 3u);
   EXPECT_EQ(series_of["again"], t300);
   EXPECT_EQ(t300[0].substr(0, t300[0].find(' ')).size(), 6u) << t300[0];
-  EXPECT_THAT(t300[0],
-              HasSubstr("| interslice segmentation, linear >=300 HU, "));
-  EXPECT_THAT(t300[1], HasSubstr("| interslice intensity, linear >=300 HU, "));
-  for (size_t k = 0; k < t300.size(); ++k) {
-    const std::string& a = t300[k];
-    const std::string& b = series_of["t250"][k];
+  EXPECT_THAT(t300[0], HasSubstr("| Segmentation >=300 HU, "));
+  EXPECT_THAT(t300[0], HasSubstr(" mm, linear, from #"));
+  EXPECT_THAT(t300[1], HasSubstr("| Interpolated "));
+  EXPECT_THAT(t300[1], HasSubstr(" mm, motion-compensated, from #"));
+  {
+    const std::string& a = t300[0];
+    const std::string& b = series_of["t250"][0];
     EXPECT_NE(a.substr(0, a.find(' ')), b.substr(0, b.find(' ')))
         << a << " vs " << b;
     EXPECT_NE(a.substr(a.find('|')), b.substr(b.find('|')));
     EXPECT_THAT(b, HasSubstr(">=250 HU"));
   }
+  for (size_t k = 1; k < t300.size(); ++k) {
+    EXPECT_EQ(series_of["t250"][k], t300[k]);
+    EXPECT_THAT(t300[k], Not(HasSubstr("HU")));
+  }
+  const std::vector<std::string> t250 = run("t250-uids", "--threshold 250");
+  EXPECT_NE(t250[0], first[0]);  // the SEG
+  for (size_t i = 2; i < first.size(); ++i) EXPECT_EQ(t250[i], first[i]);
   const std::vector<std::string> random1 =
       run("random1", "--threshold 300 --random-uids");
   const std::vector<std::string> random2 =

@@ -457,8 +457,10 @@ TEST_F(DicomWriterTest, IntensityUidsPositionsAndInstanceNumbers) {
               GetString(src, DCM_StudyDescription));
     EXPECT_EQ(GetString(ds, DCM_ImageType), "DERIVED\\SECONDARY\\AXIAL");
     EXPECT_EQ(GetString(ds, DCM_SeriesNumber), "901");
+    // The object, then the source series as the study lists it.
     EXPECT_EQ(GetString(ds, DCM_SeriesDescription),
-              "interslice resampled intensity");
+              "Interpolated, from #" + GetString(src, DCM_SeriesNumber) + " " +
+                  GetString(src, DCM_SeriesDescription));
     EXPECT_EQ(GetString(ds, DCM_RescaleType), "HU");
 
     long number = 0;
@@ -1011,6 +1013,59 @@ TEST_F(DicomWriterTest, SegmentIsNamedForModalityAndThreshold) {
                 .status()
                 .code(),
             absl::StatusCode::kInvalidArgument);
+}
+
+// Issue 44: series descriptions a radiologist reads at a glance: the object
+// in words, the parameters, and the source series' number and description;
+// cut at the 64 characters of an LO from the end, a source description that
+// is not printable ASCII left out rather than copied into objects that may
+// declare another character set.
+TEST_F(DicomWriterTest, SeriesDescriptionsNameTheObjectAndTheSourceSeries) {
+  TempDir dir;
+  auto describe = [&](const char* name, const std::string& number,
+                      const std::string& description) {
+    const DicomSeries copy = DoctoredCopy(
+        *source_, dir.path() / name, [&](DcmDataset& ds) {
+          ds.findAndDeleteElement(DCM_SeriesNumber);
+          ds.findAndDeleteElement(DCM_SeriesDescription);
+          if (!number.empty()) {
+            ds.putAndInsertString(DCM_SeriesNumber, number.c_str());
+          }
+          if (!description.empty()) {
+            ds.putAndInsertString(DCM_SeriesDescription, description.c_str());
+          }
+        });
+    DicomWriteOptions options = Options();
+    options.parameter_summary = ">=300 HU, 0.5 mm, smooth";
+    options.intensity_summary = "0.5 mm, linear";
+    const absl::StatusOr<DerivedObjects> objects =
+        PlanDerivedObjects(copy, grid_->size[2], options);
+    EXPECT_TRUE(objects.ok()) << objects.status();
+    return objects.ok() ? *objects : DerivedObjects{};
+  };
+  const DerivedObjects named = describe("named", "3", "HEAD 5MM");
+  EXPECT_EQ(named.segmentation.series_description,
+            "Segmentation >=300 HU, 0.5 mm, smooth, from #3 HEAD 5MM");
+  EXPECT_EQ(named.distance_map.series_description,
+            "Distance (mm) >=300 HU, 0.5 mm, smooth, from #3 HEAD 5MM");
+  EXPECT_EQ(named.surface_stl.series_description,
+            "Surface (STL) >=300 HU, 0.5 mm, smooth, from #3 HEAD 5MM");
+  EXPECT_EQ(named.intensity.series_description,
+            "Interpolated 0.5 mm, linear, from #3 HEAD 5MM");
+  EXPECT_EQ(describe("number only", "3", "").segmentation.series_description,
+            "Segmentation >=300 HU, 0.5 mm, smooth, from #3");
+  EXPECT_EQ(describe("none", "", "").segmentation.series_description,
+            "Segmentation >=300 HU, 0.5 mm, smooth");
+  // UTF-8 "Kopf ä": left out, the number kept.
+  EXPECT_EQ(
+      describe("utf8", "3", "Kopf \xc3\xa4").segmentation.series_description,
+      "Segmentation >=300 HU, 0.5 mm, smooth, from #3");
+  // A long source description is cut, never the object or the parameters,
+  // and the cut leaves no trailing blank.
+  const std::string cut =
+      describe("long", "3", "Head routine a 5 mm")
+          .segmentation.series_description;
+  EXPECT_EQ(cut, "Segmentation >=300 HU, 0.5 mm, smooth, from #3 Head routine a 5");
 }
 
 // Issue 44: units longer than 16 characters became "units" ("SIGNAL

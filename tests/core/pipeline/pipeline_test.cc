@@ -673,8 +673,9 @@ std::string SopInstanceUidOf(const fs::path& path) {
 // UIDs for different distance maps, SEGs and meshes, and a PACS that keeps
 // the first instance of a UID (Orthanc's default) showed the first job's
 // results for the second. The Encapsulated STL's own simplification changes
-// the STL alone, so the other objects keep theirs (no second copy of the
-// same intensity series in the study).
+// the STL alone; the thresholds, the solver and slab deconvolution leave the
+// intensity series as it is, so jobs that differ only in them share it (one
+// copy in the study instead of one per rule, issue 44).
 TEST_F(PipelineTest, ParametersThatChangeAnObjectChangeItsUidsAndOnlyItsOwn) {
   const char* const kObjects[] = {"series-intensity", "distance.dcm",
                                   "seg.dcm", "surface-stl.dcm"};
@@ -701,11 +702,51 @@ TEST_F(PipelineTest, ParametersThatChangeAnObjectChangeItsUidsAndOnlyItsOwn) {
       run("mesh", [](JobSpec& spec) { spec.dicom_mesh_adaptivity = 0.5; });
   const auto capped =
       run("capped", [](JobSpec& spec) { spec.dicom_mesh_max_mb = 10; });
+  const auto t250 =
+      run("t250", [](JobSpec& spec) { spec.lower_threshold = 250; });
+  const auto cg = run("cg", [](JobSpec& spec) {
+    spec.solver.method = SolverMethod::kConjugateGradient;
+  });
+  const auto morph =
+      run("morph", [](JobSpec& spec) { spec.intensity_method = "morph"; });
+  const auto finer =
+      run("finer", [](JobSpec& spec) { spec.z_resolution.factor = 5; });
   // The same job: the same objects (a PACS replaces them).
   EXPECT_EQ(again, plain);
-  // Slab deconvolution: the contoured slices, so every shape object.
-  for (const char* object : {"distance.dcm", "seg.dcm", "surface-stl.dcm"}) {
-    EXPECT_NE(slab.at(object), plain.at(object)) << object;
+  // What shapes the objects but not a grey value: every shape object
+  // changes, the intensity series is shared (the same UIDs, and so the same
+  // series number).
+  for (const auto* other : {&slab, &t250, &cg}) {
+    for (const char* object : {"distance.dcm", "seg.dcm", "surface-stl.dcm"}) {
+      EXPECT_NE(other->at(object), plain.at(object)) << object;
+    }
+    EXPECT_EQ(other->at("series-intensity"), plain.at("series-intensity"));
+  }
+  // A shared series says the same of itself whichever job wrote it: its
+  // number and description (no threshold in them).
+  auto header = [&](const char* name, const DcmTagKey& tag) {
+    std::set<fs::path> files;
+    for (const auto& entry :
+         fs::directory_iterator(dir_ / name / "series-intensity")) {
+      files.insert(entry.path());
+    }
+    DcmFileFormat file;
+    OFString value;
+    EXPECT_TRUE(file.loadFile(OFFilename(files.begin()->c_str())).good());
+    file.getDataset()->findAndGetOFString(tag, value);
+    return std::string(value.c_str());
+  };
+  for (const DcmTagKey& tag : {DCM_SeriesNumber, DCM_SeriesDescription}) {
+    EXPECT_EQ(header("t250", tag), header("plain", tag)) << tag;
+    EXPECT_FALSE(header("plain", tag).empty()) << tag;
+  }
+  EXPECT_THAT(header("plain", DCM_SeriesDescription),
+              ::testing::Not(::testing::HasSubstr("300")));
+  // The grey values' method changes the intensity series alone; the grid
+  // changes everything.
+  EXPECT_NE(morph.at("series-intensity"), plain.at("series-intensity"));
+  for (const char* object : kObjects) {
+    EXPECT_NE(finer.at(object), plain.at(object)) << object;
   }
   // The STL's own simplification: the STL only.
   for (const auto* other : {&mesh, &capped}) {

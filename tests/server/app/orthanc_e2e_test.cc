@@ -645,17 +645,17 @@ TEST_F(OrthancEndToEndTest, SeriesFromOrthancComesBackProcessed) {
   EXPECT_EQ(series->size(), 5u) << series->dump();
   std::map<std::string, size_t> by_description;
   for (const auto& one : *series) {
-    // "interslice segmentation, direct >=300 HU, 0.45 mm": the object, then
-    // the parameters (docs/dicom-output.md).
+    // "Segmentation >=300 HU, 0.45 mm, smooth, from #201 STD BRAIN 5MM": the
+    // object, the parameters, the source series (docs/dicom-output.md).
     const std::string description =
         one["MainDicomTags"].value("SeriesDescription", "");
-    by_description[description.substr(0, description.find(','))] =
+    by_description[description.substr(0, description.find(' '))] =
         one["Instances"].size();
   }
-  EXPECT_EQ(by_description["interslice segmentation"], 1u) << series->dump();
-  EXPECT_EQ(by_description["interslice mesh (STL)"], 1u);
-  EXPECT_EQ(by_description["interslice intensity"], 55u);
-  EXPECT_EQ(by_description["interslice previews"], 4u);
+  EXPECT_EQ(by_description["Segmentation"], 1u) << series->dump();
+  EXPECT_EQ(by_description["Surface"], 1u);
+  EXPECT_EQ(by_description["Interpolated"], 55u);
+  EXPECT_EQ(by_description["Previews"], 4u);
   std::printf(
       "Orthanc -> interslice (C-STORE of 28 instances): %.2f s; to the "
       "results in Orthanc: %.2f s (stable_seconds 1)\n",
