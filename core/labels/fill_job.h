@@ -44,6 +44,9 @@
 //   "Identity"): the same fill names its objects the same.
 // An RTSTRUCT's key slices get the exact distance of its polygons
 // (FillOptions::contours, polygon_distance.h).
+// The reference is read with DicomReadOptions::strict_frame_of_reference:
+// slices whose FrameOfReferenceUIDs differ are INVALID_ARGUMENT (a DICOM
+// segmentation is matched to the reference by its one Frame of Reference).
 #ifndef INTERSLICE_CORE_LABELS_FILL_JOB_H_
 #define INTERSLICE_CORE_LABELS_FILL_JOB_H_
 
