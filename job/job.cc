@@ -165,7 +165,9 @@ class InterpolationJob final : public JobKind {
     result.stages = report->stages;
     result.artifacts = report->artifacts;
     result.peak_rss_bytes = report->peak_rss_bytes;
-    result.warnings = report->preview_notes;
+    result.warnings = report->input_warnings;
+    result.warnings.insert(result.warnings.end(), report->preview_notes.begin(),
+                           report->preview_notes.end());
     result.summary = InterpolationSummary(*report, spec_.output_dir);
     if (relative_paths_) {
       for (Artifact& a : report->artifacts) a.path = FileName(a.path);

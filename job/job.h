@@ -41,7 +41,12 @@ struct JobResult {
   std::vector<std::string> summary;
   // Things the person should know although the job succeeded.
   std::vector<std::string> warnings;
-  // Of the process that ran the job (getrusage), bytes.
+  // Peak resident set size of the process that ran the job, bytes
+  // (core/pipeline PeakRssBytes, VmHWM): the CLI's own process for
+  // `interslice run`/`fill` (not its parent's), the worker process for a
+  // server job in one (as the worker measured itself), the whole server
+  // process since it started for a job run in the server (--isolation
+  // thread), where a job's own share is not measurable. -1 when unknown.
   int64_t peak_rss_bytes = 0;
 };
 

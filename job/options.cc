@@ -116,6 +116,11 @@ constexpr OptionDef<IO> kInterpolationOptions[] = {
      &IO::strict_spacing,
      "Fail on non-uniform slice spacing (missing slices) instead of placing "
      "each slice on the nearest output slice"},
+    {"strict_frame_of_reference", "spec.strict_frame_of_reference",
+     ValueKind::kFlag, &IO::strict_frame_of_reference,
+     "Fail when the slices' FrameOfReferenceUIDs differ (e.g. an anonymiser "
+     "gave each file its own) instead of reading them as one stack when "
+     "their geometry is one, with a note in the report"},
     {"slab_deconvolution", "spec.slab_deconvolution", ValueKind::kFlag,
      &IO::slab_deconvolution,
      "Thick slices: contour an estimate of the thin object at each slice "
@@ -566,6 +571,7 @@ absl::StatusOr<JobSpec> BuildJobSpec(const InterpolationOptions& o) {
     return s;
   }
   spec.strict_spacing = o.strict_spacing;
+  spec.strict_frame_of_reference = o.strict_frame_of_reference;
   spec.slab_deconvolution = o.slab_deconvolution;
   absl::StatusOr<std::vector<std::string>> series = ParseNames(
       o.output_series, {"mask", "distance", "intensity"}, "output_series");

@@ -75,6 +75,7 @@ struct InterpolationOptions {
   std::optional<int64_t> factor;
   std::optional<double> spacing;
   bool strict_spacing = false;
+  bool strict_frame_of_reference = false;
   bool slab_deconvolution = false;
   std::string output_series;  // "mask,distance,intensity"
   bool seg = false;

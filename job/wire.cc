@@ -211,6 +211,7 @@ v1::JobSpec ToWire(const JobSpec& spec) {
   }
   p.set_method(WireMethod(spec.solver.method));
   p.set_strict_spacing(spec.strict_spacing);
+  p.set_strict_frame_of_reference(spec.strict_frame_of_reference);
   p.set_slab_deconvolution(spec.slab_deconvolution);
   if (spec.series_number_base > 0) {
     p.mutable_derived_series()->set_series_number(spec.series_number_base);
@@ -280,6 +281,7 @@ absl::StatusOr<InterpolationOptions> InterpolationOptionsFromWire(
   if (!method.ok()) return method.status();
   o.method = *method;
   o.strict_spacing = p.strict_spacing();
+  o.strict_frame_of_reference = p.strict_frame_of_reference();
   o.slab_deconvolution = p.slab_deconvolution();
   const v1::DicomSeriesOutput& d = p.derived_series();
   if (d.enabled()) {
@@ -352,6 +354,9 @@ absl::StatusOr<FillJobOptions> FillOptionsFromWire(const v1::JobSpec& p) {
   if (p.has_roi()) return NotForFill("roi");
   if (p.has_roi_mm()) return NotForFill("roi_mm");
   if (p.strict_spacing()) return NotForFill("strict_spacing");
+  if (p.strict_frame_of_reference()) {
+    return NotForFill("strict_frame_of_reference");
+  }
   if (p.slab_deconvolution()) return NotForFill("slab_deconvolution");
   if (!p.multiframe_volume().empty()) return NotForFill("multiframe_volume");
   if (p.has_dicom_mesh_adaptivity()) {

@@ -7,6 +7,7 @@
 #include <cstdint>
 #include <functional>
 #include <map>
+#include <set>
 #include <string>
 #include <utility>
 #include <vector>
@@ -148,8 +149,11 @@ absl::Status CheckConsistent(const std::vector<FileHeader>& headers,
 
 // INVALID_ARGUMENT when `value` (of a slice's file) is not the same for
 // every slice: names the first slice, in path order, that differs from the
-// value most slices have, and one that has it. `show` prints a value for the
-// message; null when values must not appear (UIDs).
+// value most slices have, and one that has it; when no value is shared by
+// two slices, says that each has its own (a "majority" of one slice would
+// read as if one slice were odd); with more than two values, how many.
+// `show` prints a value for the message; null when values must not appear
+// (UIDs).
 absl::Status CheckSameForAll(
     const std::vector<FileHeader>& headers,
     const std::vector<DicomSliceRef>& slices, const std::string& attribute,
@@ -158,6 +162,24 @@ absl::Status CheckSameForAll(
   std::map<std::string, int64_t> counts;
   for (const DicomSliceRef& s : slices) ++counts[value(headers[s.header])];
   if (counts.size() <= 1) return absl::OkStatus();
+  auto text = [&show](const std::string& v) {
+    return v.empty() ? std::string("none") : show(v);
+  };
+  if (counts.size() == slices.size()) {
+    const DicomSliceRef& a = slices[0];
+    const DicomSliceRef& b = slices[1];
+    std::string example = absl::StrCat(SliceName(headers, a), " and ",
+                                       SliceName(headers, b), " differ");
+    if (show) {
+      example = absl::StrCat(
+          SliceName(headers, a), " has ", text(value(headers[a.header])), ", ",
+          SliceName(headers, b), " has ", text(value(headers[b.header])));
+    }
+    return absl::InvalidArgumentError(absl::StrFormat(
+        "inconsistent %s: each of the %d slices has a different one (e.g. "
+        "%s); the files do not form one series",
+        attribute, slices.size(), example));
+  }
   std::string majority;
   int64_t most = 0;
   for (const auto& [v, count] : counts) {
@@ -179,9 +201,6 @@ absl::Status CheckSameForAll(
                       SliceName(headers, *typical));
   std::string difference;
   if (show) {
-    auto text = [&show](const std::string& v) {
-      return v.empty() ? std::string("none") : show(v);
-    };
     difference = absl::StrCat("has ", text(odd_value), ", but ", others,
                               " have ", text(majority));
   } else if (odd_value.empty()) {
@@ -191,21 +210,48 @@ absl::Status CheckSameForAll(
   } else {
     difference = absl::StrCat("has a different one from ", others);
   }
+  if (counts.size() > 2) {
+    absl::StrAppend(&difference, ", ", counts.size(),
+                    " different values in all");
+  }
   return absl::InvalidArgumentError(
       absl::StrCat("inconsistent ", attribute, ": ", SliceName(headers, *odd),
                    " ", difference, "; the files do not form one series"));
 }
 
-// Attributes the stack relies on that must not change from slice to slice.
-// Each would otherwise be accepted silently: a slice of another frame of
-// reference or modality is not part of this volume, and another pixel
-// layout means another acquisition or a broken export.
+// FrameOfReferenceUIDs of the slices (step 3 of the header), their counts
+// into `stack`; with `strict`, INVALID_ARGUMENT when they differ.
+absl::Status CountFramesOfReference(const std::vector<FileHeader>& headers,
+                                    const std::vector<DicomSliceRef>& slices,
+                                    bool strict, DicomStackLayout& stack) {
+  std::set<std::string> uids;
+  int64_t without = 0;
+  for (const DicomSliceRef& s : slices) {
+    const std::string& uid = headers[s.header].frame_of_reference_uid;
+    if (uid.empty()) {
+      ++without;
+    } else {
+      uids.insert(uid);
+    }
+  }
+  stack.frame_of_reference_uids = static_cast<int64_t>(uids.size());
+  stack.slices_without_frame_of_reference = without;
+  stack.frames_of_reference_differ =
+      uids.size() > 1 || (uids.size() == 1 && without > 0);
+  if (!strict || !stack.frames_of_reference_differ) return absl::OkStatus();
+  return CheckSameForAll(
+      headers, slices, "FrameOfReferenceUID",
+      [](const FileHeader& h) { return h.frame_of_reference_uid; }, nullptr);
+}
+
+// Attributes the stack relies on that must not change from slice to slice
+// (the Frame of Reference is CountFramesOfReference's). Each would otherwise
+// be accepted silently: a slice of another modality is not part of this
+// volume, and another pixel layout means another acquisition or a broken
+// export.
 absl::Status CheckSeriesConsistent(const std::vector<FileHeader>& headers,
                                    const std::vector<DicomSliceRef>& slices) {
   auto as_is = [](const std::string& v) { return v; };
-  INTERSLICE_RETURN_IF_ERROR(CheckSameForAll(
-      headers, slices, "FrameOfReferenceUID",
-      [](const FileHeader& h) { return h.frame_of_reference_uid; }, nullptr));
   INTERSLICE_RETURN_IF_ERROR(CheckSameForAll(
       headers, slices, "Modality",
       [](const FileHeader& h) { return h.modality; }, as_is));
@@ -230,8 +276,9 @@ absl::Status CheckSeriesConsistent(const std::vector<FileHeader>& headers,
 
 // Steps 4 to 7 of the header: `slices` are those of one volume, checked for
 // the attributes of step 3.
-absl::StatusOr<DicomStackLayout> LayOutSlices(
-    const std::vector<FileHeader>& headers, std::vector<DicomSliceRef> slices) {
+absl::Status LayOutSlices(const std::vector<FileHeader>& headers,
+                          std::vector<DicomSliceRef> slices,
+                          DicomStackLayout& stack) {
   const DicomSliceRef& ref = slices.front();
   for (const DicomSliceRef& s : slices) {
     INTERSLICE_RETURN_IF_ERROR(CheckConsistent(headers, ref, s));
@@ -253,7 +300,6 @@ absl::StatusOr<DicomStackLayout> LayOutSlices(
   col = Scale(col, 1 / Norm(col));
   const Vec3 normal = Cross(row, col);
 
-  DicomStackLayout stack;
   std::sort(slices.begin(), slices.end(),
             [&](const DicomSliceRef& a, const DicomSliceRef& b) {
               const double pa = Dot(a.position, normal);
@@ -351,15 +397,14 @@ absl::StatusOr<DicomStackLayout> LayOutSlices(
     grid.direction[3 * r + 1] = col[r];
     grid.direction[3 * r + 2] = normal[r];
   }
-  INTERSLICE_RETURN_IF_ERROR(grid.Validate());
-  return stack;
+  return grid.Validate();
 }
 
 }  // namespace
 
 absl::StatusOr<DicomStackLayout> LayOutDicomStack(
     const std::vector<FileHeader>& headers, const std::vector<size_t>& members,
-    const std::string& volume) {
+    const std::string& volume, bool strict_frame_of_reference) {
   if (members.empty()) {
     return absl::InvalidArgumentError("no slices to lay out");
   }
@@ -369,8 +414,32 @@ absl::StatusOr<DicomStackLayout> LayOutDicomStack(
   }
   INTERSLICE_ASSIGN_OR_RETURN(std::vector<DicomSliceRef> slices,
                               ChooseVolume(SlicesOf(headers, members), volume));
+  DicomStackLayout stack;
+  INTERSLICE_RETURN_IF_ERROR(CountFramesOfReference(
+      headers, slices, strict_frame_of_reference, stack));
   INTERSLICE_RETURN_IF_ERROR(CheckSeriesConsistent(headers, slices));
-  return LayOutSlices(headers, std::move(slices));
+  const absl::Status laid_out = LayOutSlices(headers, std::move(slices), stack);
+  if (!laid_out.ok() && stack.frames_of_reference_differ) {
+    // Differing UIDs were let through for the geometry to decide; say that
+    // they differ too, since that alone would have refused the series.
+    std::string frames =
+        stack.frame_of_reference_uids == 1
+            ? std::string("1 UID")
+            : absl::StrCat(stack.frame_of_reference_uids, " different UIDs");
+    if (stack.slices_without_frame_of_reference > 0) {
+      absl::StrAppend(&frames, ", ", stack.slices_without_frame_of_reference,
+                      " slice(s) without one");
+    }
+    return absl::Status(
+        laid_out.code(),
+        absl::StrCat(laid_out.message(),
+                     "; the slices' FrameOfReferenceUIDs differ as well (",
+                     frames,
+                     "), which is accepted only when the geometry is one "
+                     "stack"));
+  }
+  INTERSLICE_RETURN_IF_ERROR(laid_out);
+  return stack;
 }
 
 absl::Status CorrectGantryTilt(const DicomStackLayout& layout,

@@ -13,10 +13,20 @@
 //    one volume is laid out at a time: the only one, or `volume`.
 //    FAILED_PRECONDITION, listing each volume with its slice count, when
 //    there are several and `volume` is empty, or `volume` is not one of them.
-// 3. Attributes a stack must not change: FrameOfReferenceUID (never shown),
-//    Modality, BitsAllocated, BitsStored, PixelRepresentation.
-//    INVALID_ARGUMENT naming the first slice (index order) that differs from
-//    the value most slices have, and one slice that has it.
+// 3. Attributes a stack must not change: Modality, BitsAllocated,
+//    BitsStored, PixelRepresentation, and with strict_frame_of_reference
+//    FrameOfReferenceUID (never shown). INVALID_ARGUMENT naming the first
+//    slice (index order) that differs from the value most slices have, and
+//    one slice that has it; when no value is shared by two slices, that each
+//    slice has its own (naming two), and when there are more than two
+//    values, how many.
+//    Without strict_frame_of_reference, FrameOfReferenceUIDs that differ
+//    (several UIDs, or some slices without one) are accepted when the
+//    geometry checks below (4. to 7.) pass: some anonymisers give every file
+//    its own Frame of Reference although the slices are one acquisition, and
+//    what makes slices one stack is their geometry, which is checked. The
+//    counts are in DicomStackLayout; a failure of the geometry checks then
+//    says that the UIDs differ too.
 // 4. Rows/Columns, ImageOrientationPatient (each component within 1e-4) and
 //    PixelSpacing (relative 1e-4) equal to the first slice's;
 //    ImageOrientationPatient two orthogonal unit vectors (to 1e-3; then
@@ -43,6 +53,7 @@
 
 #include <array>
 #include <cstddef>
+#include <cstdint>
 #include <string>
 #include <vector>
 
@@ -80,16 +91,26 @@ struct DicomStackLayout {
   // first, in pixels along (i, j); empty when the stack is not tilted.
   std::vector<std::array<double, 2>> tilt_shift;
   double tilt_degrees = 0;  // 0 when not tilted
+  // Step 3: whether the slices' FrameOfReferenceUIDs differ (several UIDs,
+  // or some slices with one and some without; accepted only without
+  // strict_frame_of_reference), the distinct non-empty UIDs among them and
+  // the slices without one.
+  bool frames_of_reference_differ = false;
+  int64_t frame_of_reference_uids = 0;
+  int64_t slices_without_frame_of_reference = 0;
 };
 
 // Lays out the stack of `members` (indices into `headers`, the files of one
 // series, e.g. DicomSeriesGroup::members) as described above. `volume`
 // chooses among the volumes of multi-frame files; empty means "the only
-// one". `members` must be valid indices of FileKind::kImage headers;
-// INVALID_ARGUMENT when it is empty.
+// one". strict_frame_of_reference: refuse slices whose FrameOfReferenceUIDs
+// differ even when their geometry is one stack (step 3). `members` must be
+// valid indices of FileKind::kImage headers; INVALID_ARGUMENT when it is
+// empty.
 absl::StatusOr<DicomStackLayout> LayOutDicomStack(
     const std::vector<dicom_internal::FileHeader>& headers,
-    const std::vector<size_t>& members, const std::string& volume);
+    const std::vector<size_t>& members, const std::string& volume,
+    bool strict_frame_of_reference = false);
 
 // Gantry tilt correction (dcm2niix's approach): slice k of `image` (laid out
 // as `layout`, decoded) is resampled bilinearly at (i - shift_i, j - shift_j)

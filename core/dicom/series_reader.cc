@@ -12,6 +12,7 @@
 #include <vector>
 
 #include "absl/status/status.h"
+#include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "core/common/sha256.h"
 #include "core/common/status_macros.h"
@@ -86,6 +87,32 @@ absl::Status DecodeStack(const std::vector<FileHeader>& headers,
   return absl::OkStatus();
 }
 
+// The sentence on a stack whose FrameOfReferenceUIDs differ (see the header):
+// counts only, never a UID.
+std::string FrameOfReferenceNote(const DicomStackLayout& stack,
+                                 const FileHeader& first) {
+  std::string counts =
+      stack.frame_of_reference_uids == 1
+          ? std::string("1 UID")
+          : absl::StrFormat("%d different UIDs", stack.frame_of_reference_uids);
+  absl::StrAppendFormat(&counts, " among the %d slices", stack.order.size());
+  if (stack.slices_without_frame_of_reference > 0) {
+    absl::StrAppendFormat(&counts, ", %d without one",
+                          stack.slices_without_frame_of_reference);
+  }
+  const std::string used =
+      first.frame_of_reference_uid.empty()
+          ? "the first slice (k = 0) has none, so the outputs get one named "
+            "from the source"
+          : "the outputs use the first slice's (k = 0)";
+  return absl::StrCat(
+      "FrameOfReferenceUID not the same on every slice (", counts,
+      "): read as one stack because the geometry was checked (same "
+      "orientation, Rows/Columns and PixelSpacing, distinct positions along "
+      "one slice normal); ",
+      used);
+}
+
 }  // namespace
 
 void QuietDicomToolkitLogging() {
@@ -133,7 +160,8 @@ absl::StatusOr<DicomSeries> ReadDicomSeries(
   // Layout (headers only).
   INTERSLICE_ASSIGN_OR_RETURN(
       const DicomStackLayout stack,
-      LayOutDicomStack(headers, chosen->members, options.volume));
+      LayOutDicomStack(headers, chosen->members, options.volume,
+                       options.strict_frame_of_reference));
   const int64_t voxels = stack.grid.VoxelCount();
   if (voxels > options.max_voxels) {
     return absl::InvalidArgumentError(absl::StrFormat(
@@ -210,6 +238,10 @@ absl::StatusOr<DicomSeries> ReadDicomSeries(
   result.volume = stack.order.front().volume;
   result.slice_thickness_mm = first.slice_thickness;
   result.notes = DicomSeriesNotes(index, *chosen);
+  if (stack.frames_of_reference_differ) {
+    result.warnings.push_back(FrameOfReferenceNote(stack, first));
+    result.notes.push_back(result.warnings.back());
+  }
   result.uniform_spacing = stack.uniform;
   result.min_gap_mm = stack.min_gap;
   result.max_gap_mm = stack.max_gap;

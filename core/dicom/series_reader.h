@@ -78,10 +78,24 @@
 //   several volumes and none chosen; chosen volume absent.
 // - Inconsistent Rows/Columns, PixelSpacing or ImageOrientationPatient
 //   between slices; two slices at the same position.
-// - FrameOfReferenceUID (its value never shown), Modality, BitsAllocated,
-//   BitsStored or PixelRepresentation not the same on every slice: the
-//   message names the first slice that differs from most and says what
-//   differs.
+// - Modality, BitsAllocated, BitsStored or PixelRepresentation not the same
+//   on every slice, and FrameOfReferenceUID (its value never shown) with
+//   options.strict_frame_of_reference: the message names the first slice
+//   that differs from most and says what differs (or that each slice has
+//   its own, see series_layout.h).
+//
+// Frames of reference: slices whose FrameOfReferenceUIDs differ (several
+// UIDs, e.g. an anonymiser that gave every file its own, or some slices
+// without one) are read when their geometry is one stack, i.e. passes every
+// geometry check above (same Rows/Columns, orientation and pixel spacing,
+// distinct positions along one normal, overlapping slices), unless
+// options.strict_frame_of_reference. The series then takes the first
+// slice's UID (k = 0, as for the study; core/dicom_out gives the outputs
+// that one, or one named from the source when it is empty), and a sentence
+// in DicomSeries::notes and DicomSeries::warnings says how many UIDs there
+// were, that the geometry was checked and which one the outputs use. When
+// the geometry is not one stack, the geometry error says that the UIDs
+// differ as well.
 // - RescaleSlope or RescaleIntercept present but empty, not one finite
 //   number, or a RescaleSlope of 0 (checked while scanning headers, before
 //   any pixel data is decoded).
@@ -123,6 +137,10 @@ struct DicomReadOptions {
   // position 2, frame type ORIGINAL\PRIMARY\M\NONE"); empty means "the
   // only one".
   std::string volume;
+  // Refuse slices whose FrameOfReferenceUIDs differ (INVALID_ARGUMENT) even
+  // when their geometry is one stack; default false: read them, with a note
+  // (see "Frames of reference" above).
+  bool strict_frame_of_reference = false;
 };
 
 // One original slice of the series, in volume order (k).
@@ -167,6 +185,10 @@ struct DicomSeries {
   // (MediaStorageSOPClassUID)". Empty for complete files. Never UIDs or
   // patient data: fit for reports and logs.
   std::vector<std::string> notes;
+  // The notes (each also in `notes`) a person should see although the read
+  // succeeded, i.e. where the reader accepted what a stricter reading
+  // refuses: so far the sentence on differing FrameOfReferenceUIDs.
+  std::vector<std::string> warnings;
 };
 
 // Reads the series. `paths` are files or directories.

@@ -362,6 +362,11 @@ absl::StatusOr<FillJobReport> RunFillJob(const FillJobSpec& spec,
   DicomReadOptions read_options;
   read_options.series_instance_uid = spec.series_instance_uid;
   read_options.max_voxels = spec.max_input_voxels;
+  // A fill's DICOM segmentation is matched to the reference by its one
+  // Frame of Reference (segmentation_reader.h), and its outputs carry it:
+  // slices of several frames of reference are refused here as before
+  // (interpolation jobs accept them when the geometry is one stack).
+  read_options.strict_frame_of_reference = true;
   absl::StatusOr<DicomSeries> series =
       ReadDicomSeries(spec.reference, read_options, context);
   if (!series.ok()) {

@@ -47,6 +47,9 @@
 // reference's slices by position (segmentation_reader.h ReadRtStruct); when
 // some of their image references (ContourImageSequence) name no image of the
 // reference series, one warning says how many.
+// The reference is read with DicomReadOptions::strict_frame_of_reference:
+// slices whose FrameOfReferenceUIDs differ are INVALID_ARGUMENT (a DICOM
+// segmentation is matched to the reference by its one Frame of Reference).
 #ifndef INTERSLICE_CORE_LABELS_FILL_JOB_H_
 #define INTERSLICE_CORE_LABELS_FILL_JOB_H_
 

@@ -1,9 +1,10 @@
 #include "core/pipeline/pipeline.h"
 
-#include <sys/resource.h>
-
 #include <algorithm>
+#include <cinttypes>
 #include <cmath>
+#include <cstdio>
+#include <fstream>
 #include <future>
 #include <limits>
 #include <optional>
@@ -489,9 +490,17 @@ absl::StatusOr<JobReport> JobReportFromJson(const std::string& text) {
 }
 
 int64_t PeakRssBytes() {
-  struct rusage usage {};
-  if (getrusage(RUSAGE_SELF, &usage) != 0) return -1;
-  return static_cast<int64_t>(usage.ru_maxrss) * 1024;  // Linux: kilobytes
+  // The mm's own high-water mark, which starts afresh at execve (see the
+  // header for why not getrusage).
+  std::ifstream status("/proc/self/status");
+  std::string line;
+  while (std::getline(status, line)) {
+    int64_t kilobytes = 0;
+    if (std::sscanf(line.c_str(), "VmHWM: %" SCNd64 " kB", &kilobytes) == 1) {
+      return kilobytes * 1024;
+    }
+  }
+  return -1;
 }
 
 }  // namespace interslice

@@ -73,6 +73,11 @@ struct JobSpec {
   // PlanStack); with strict_spacing it is INVALID_ARGUMENT naming the
   // smallest and largest gap.
   bool strict_spacing = false;
+  // Slices whose FrameOfReferenceUIDs differ are normally read when their
+  // geometry is one stack, with a note (JobReport::input_notes and
+  // input_warnings; core/dicom series_reader.h, "Frames of reference"); with
+  // strict_frame_of_reference they are INVALID_ARGUMENT.
+  bool strict_frame_of_reference = false;
   // Thick slices (SliceThickness wider than the output z spacing): contour
   // not the slices as read but their slab deconvolution (core/slab
   // DeconvolveSlabs, slab = the series' SliceThickness, the output factor of
@@ -253,6 +258,11 @@ struct JobReport {
   // What the reader inferred about the input (DicomSeries::notes): no UIDs,
   // no patient data.
   std::vector<std::string> input_notes;
+  // Those of input_notes a person should see although the job succeeded
+  // (DicomSeries::warnings, e.g. differing FrameOfReferenceUIDs accepted).
+  // Not a field of the JSON (it is in input.notes): empty after
+  // JobReportFromJson.
+  std::vector<std::string> input_warnings;
   // JobSpec::slab_deconvolution only: the slab (mm, 0 = not run), the
   // iterations, and the RMS of (slices - slab averages of the estimate)
   // before and after, in modality units.
@@ -302,7 +312,14 @@ struct JobReport {
   // preview skipped and why, an empty mask, ...).
   std::vector<std::string> preview_notes;
   std::vector<Artifact> artifacts;
-  int64_t peak_rss_bytes = 0;  // filled by callers that know it (the CLI)
+  // Peak resident set size of the process that ran the job, bytes
+  // (PeakRssBytes); filled by the caller (job/job.h fills it after RunJob).
+  // A process that runs one job (`interslice run`, the server's worker
+  // process) measures that job, libraries and start-up included; a job run
+  // inside a process that runs others (the server with --isolation thread)
+  // gets that process's peak since it started, other jobs included: a
+  // job's own share of one process is not measurable. -1 when unknown.
+  int64_t peak_rss_bytes = 0;
 };
 
 // INVALID_ARGUMENT naming the field for a spec that cannot run (no inputs,
@@ -330,7 +347,12 @@ std::string JobReportToJson(const JobReport& report);
 // INVALID_ARGUMENT naming the field for malformed or incomplete JSON.
 absl::StatusOr<JobReport> JobReportFromJson(const std::string& json);
 
-// Peak resident set size of this process, bytes (getrusage).
+// Peak resident set size of this process since it started (its execve),
+// bytes: VmHWM of /proc/self/status. Not getrusage's ru_maxrss, which Linux
+// carries over from the image a process replaced at execve (fs/exec.c), so
+// that a process started by fork or vfork (posix_spawn, Python's
+// subprocess) from a large parent reported at least the parent's size.
+// -1 when /proc/self/status cannot be read.
 int64_t PeakRssBytes();
 
 }  // namespace interslice

@@ -214,6 +214,7 @@ absl::StatusOr<SourceSlices> ReadSourceStage(const JobSpec& spec,
   options.series_instance_uid = spec.series_instance_uid;
   options.volume = spec.multiframe_volume;
   options.max_voxels = spec.max_input_voxels;
+  options.strict_frame_of_reference = spec.strict_frame_of_reference;
   INTERSLICE_ASSIGN_OR_RETURN(DicomSeries series,
                               ReadDicomSeries(spec.inputs, options, context));
   report.input_grid = series.image.grid;
@@ -222,6 +223,7 @@ absl::StatusOr<SourceSlices> ReadSourceStage(const JobSpec& spec,
   report.min_gap_mm = series.min_gap_mm;
   report.max_gap_mm = series.max_gap_mm;
   report.input_notes = series.notes;
+  report.input_warnings = series.warnings;
   int64_t first_slice = 0;
   report.roi = spec.roi;
   report.roi_mm = spec.roi_mm;

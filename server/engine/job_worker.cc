@@ -5,7 +5,6 @@
 #include <signal.h>
 #include <spawn.h>
 #include <sys/prctl.h>
-#include <sys/resource.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -233,6 +232,7 @@ void HandleWorkerEvent(
   } else if (event.has_result()) {
     exchange.result = event.result();
     exchange.have_result = true;
+    out.peak_rss_bytes = event.result().peak_rss_bytes();
   } else if (event.has_source() && on_source) {
     const spool::v1::WorkerSource& w = event.source();
     on_source({.study_instance_uid = w.study_instance_uid(),
@@ -275,14 +275,13 @@ void ReadWorkerEvents(
   }
 }
 
-// Waits for the worker to end: its exit code or signal, whether that is a
-// crash (a signal the server did not send) and its peak RSS, into `out`.
+// Waits for the worker to end: its exit code or signal and whether that is
+// a crash (a signal the server did not send), into `out`. Its peak RSS is
+// the one it sent (WorkerOutcome::peak_rss_bytes says why not wait4's).
 void ReapWorker(pid_t pid, const WorkerExchange& exchange, WorkerOutcome& out) {
   int status = 0;
-  struct rusage usage {};
-  while (::wait4(pid, &status, 0, &usage) < 0 && errno == EINTR) {
+  while (::waitpid(pid, &status, 0) < 0 && errno == EINTR) {
   }
-  out.peak_rss_bytes = static_cast<int64_t>(usage.ru_maxrss) * 1024;
   if (WIFEXITED(status)) out.exit_code = WEXITSTATUS(status);
   if (WIFSIGNALED(status)) {
     out.signal = WTERMSIG(status);
@@ -444,8 +443,11 @@ int RunJobWorker(int in_fd, int out_fd) {
         artifact->set_size_bytes(a.size_bytes);
       }
       for (const std::string& w : made.warnings) result->add_warnings(w);
-      result->set_peak_rss_bytes(made.peak_rss_bytes);
     }
+    // The worker's own peak, failed jobs included: the server cannot measure
+    // it from outside (WorkerOutcome::peak_rss_bytes).
+    result->set_peak_rss_bytes(status.ok() ? made.peak_rss_bytes
+                                           : PeakRssBytes());
     return WriteFrame(protocol_fd, event) ? 0 : 3;
   };
 

@@ -41,16 +41,21 @@ struct WorkerOptions {
 
 // How the worker process ended, for logs and metrics.
 struct WorkerOutcome {
-  bool crashed = false;         // ended by a signal the server did not send
-  int signal = 0;               // that signal, else 0
-  int exit_code = -1;           // when it exited normally
-  int64_t peak_rss_bytes = -1;  // of the worker (wait4's ru_maxrss)
-  std::string last_stage;       // the stage it last reported
+  bool crashed = false;  // ended by a signal the server did not send
+  int signal = 0;        // that signal, else 0
+  int exit_code = -1;    // when it exited normally
+  // The worker's peak resident set size, bytes, as it measured itself
+  // (core/pipeline PeakRssBytes: VmHWM) and sent with its result; -1 when
+  // it sent none (a crash). Not wait4's ru_maxrss: posix_spawn shares the
+  // server's memory until the worker's execve, and Linux carries that
+  // image's peak into the worker's ru_maxrss, so it reported the server's.
+  int64_t peak_rss_bytes = -1;
+  std::string last_stage;  // the stage it last reported
 };
 
 // Runs `request` in a worker process, forwarding its progress to
 // context.progress and context.cancel to it (polled every 100 ms). Returns
-// what the job made (job/job.h; peak_rss_bytes: the worker's, from wait4)
+// what the job made (job/job.h; peak_rss_bytes: the worker's own)
 // or its error, for any kind of job; a worker that crashes gives INTERNAL
 // "the job's worker process crashed (signal N, NAME) during stage S; ...";
 // one that cannot be started gives UNAVAILABLE. Blocking: call it from a

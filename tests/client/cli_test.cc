@@ -4,10 +4,13 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <cstdint>
 #include <cstdio>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <string>
+#include <vector>
 
 #include "core/dicom/series_reader.h"
 #include "core/volume_io/volume_io.h"
@@ -17,6 +20,11 @@
 #include "tests/testing/mesh_checks.h"
 #include "tests/testing/paths.h"
 #include "tests/testing/process.h"
+// osconfig.h must precede every other DCMTK header.
+#include "dcmtk/config/osconfig.h"
+#include "dcmtk/dcmdata/dcdeftag.h"
+#include "dcmtk/dcmdata/dcfilefo.h"
+#include "dcmtk/dcmdata/dcuid.h"
 
 namespace interslice {
 namespace {
@@ -136,6 +144,108 @@ TEST_F(CliTest, RunWritesVolumesMeshAndReport) {
   const testing::MeshTopology topo = testing::AnalyzeSoup(soup);
   EXPECT_EQ(topo.boundary_edges, 0);
   EXPECT_GT(topo.signed_volume, 0);
+}
+
+// Issue 42: a series whose anonymiser gave every slice its own
+// FrameOfReferenceUID, with one geometry, is read as one stack with a note
+// in the report and a warning; --strict-frame-of-reference refuses it.
+TEST_F(CliTest, OwnFrameOfReferencePerSliceIsAReportNoteAndAWarning) {
+  const fs::path series = dir_ / "series";
+  fs::create_directories(series);
+  for (const char* name : {"I10.dcm", "I20.dcm", "I30.dcm", "I40.dcm"}) {
+    DcmFileFormat file;
+    ASSERT_TRUE(file.loadFile((kSmallSeries + "/" + name).c_str()).good());
+    char uid[100];
+    ASSERT_TRUE(file.getDataset()
+                    ->putAndInsertString(DCM_FrameOfReferenceUID,
+                                         dcmGenerateUniqueIdentifier(
+                                             uid, SITE_INSTANCE_UID_ROOT))
+                    .good());
+    ASSERT_TRUE(file.saveFile((series / name).c_str(), EXS_LittleEndianExplicit)
+                    .good());
+  }
+  const std::string job = "run " + series.string() +
+                          " --threshold 300 --roi 200,40,0,296,136,4 --method "
+                          "linear --factor 2 --volume none --previews none "
+                          "--out ";
+  const fs::path report = dir_ / "report.json";
+  const CommandResult r =
+      RunCli(job + (dir_ / "out").string() + " --report " + report.string());
+  ASSERT_EQ(r.exit_code, 0) << r.out;
+  const std::string note =
+      "FrameOfReferenceUID not the same on every slice (4 different UIDs "
+      "among the 4 slices): read as one stack because the geometry was "
+      "checked";
+  EXPECT_THAT(r.out, ::testing::HasSubstr("interslice: warning: " + note));
+  std::ifstream in(report);
+  const nlohmann::json j = nlohmann::json::parse(in);
+  EXPECT_THAT(j["input"]["notes"].get<std::vector<std::string>>(),
+              ::testing::ElementsAre(::testing::HasSubstr(note)));
+
+  const CommandResult strict =
+      RunCli(job + (dir_ / "strict").string() + " --strict-frame-of-reference");
+  EXPECT_EQ(strict.exit_code, 1) << strict.out;
+  EXPECT_THAT(strict.out,
+              ::testing::HasSubstr("inconsistent FrameOfReferenceUID: each of "
+                                   "the 4 slices has a different one"));
+}
+
+// This process's resident set size now, bytes (VmRSS).
+int64_t ResidentBytes() {
+  std::ifstream status("/proc/self/status");
+  for (std::string line; std::getline(status, line);) {
+    long long kilobytes = 0;
+    if (std::sscanf(line.c_str(), "VmRSS: %lld kB", &kilobytes) == 1) {
+      return kilobytes * 1024;
+    }
+  }
+  return -1;
+}
+
+// Issue 42: the report's peak_rss_bytes counted the parent (1.6 GB for a
+// 230 MB job started from Python): Linux carries getrusage's ru_maxrss
+// over execve, and a forked child starts with its parent's pages. The
+// same tiny job, started by this process as it is and then while it holds
+// 320 MB more (touched), must report the same peak: the CLI's own.
+TEST_F(CliTest, ReportPeakRssIsTheCliProcessNotItsParent) {
+  const std::vector<std::string> job = {::interslice::testing::CliPath(),
+                                        "run",
+                                        kSmallSeries,
+                                        "--threshold",
+                                        "300",
+                                        "--roi",
+                                        "200,40,0,296,136,4",
+                                        "--method",
+                                        "linear",
+                                        "--factor",
+                                        "2",
+                                        "--volume",
+                                        "none",
+                                        "--previews",
+                                        "none",
+                                        "--quiet",
+                                        "--out"};
+  auto peak_of = [&](const std::string& name) -> int64_t {
+    const fs::path report = dir_ / (name + ".json");
+    const CommandResult r = testing::RunCommand(testing::Cat(
+        job, {(dir_ / name).string(), "--report", report.string()}));
+    EXPECT_EQ(r.exit_code, 0) << r.out << r.err;
+    std::ifstream in(report);
+    return nlohmann::json::parse(in)["peak_rss_bytes"].get<int64_t>();
+  };
+  const int64_t alone = peak_of("alone");
+
+  constexpr size_t kParentBytes = size_t{320} << 20;
+  std::vector<char> ballast(kParentBytes);
+  std::memset(ballast.data(), 1, ballast.size());  // every page resident
+  ASSERT_GE(ResidentBytes(), static_cast<int64_t>(kParentBytes));
+  const int64_t beside_ballast = peak_of("beside-ballast");
+  EXPECT_EQ(ballast[kParentBytes - 1], 1);
+
+  EXPECT_GT(alone, 0);
+  EXPECT_LT(beside_ballast, alone + static_cast<int64_t>(kParentBytes / 2))
+      << "alone " << alone << " bytes, beside a parent of " << ResidentBytes()
+      << " bytes: " << beside_ballast;
 }
 
 TEST_F(CliTest, CgLinearDirectAndMorphAllRun) {

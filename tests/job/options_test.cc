@@ -68,6 +68,7 @@ TEST(OptionTableTest, SetOptionByKeyGivesTheSameSpecAsTypedValues) {
   typed.uid_root = "1.2.826.0.1.3680043.10.1";
   typed.series_number_base = 4000;
   typed.strict_spacing = true;
+  typed.strict_frame_of_reference = true;
   typed.band = 3.5;
   typed.adaptivity = 0.25;
   typed.mesh = "stl,ply";
@@ -88,6 +89,7 @@ TEST(OptionTableTest, SetOptionByKeyGivesTheSameSpecAsTypedValues) {
            {"uid_root", "1.2.826.0.1.3680043.10.1"},
            {"series_number_base", "4000"},
            {"strict_spacing", "yes"},
+           {"strict_frame_of_reference", "true"},
            {"band", "3.5"},
            {"adaptivity", "0.25"},
            {"mesh", "stl,ply"},
@@ -104,6 +106,8 @@ TEST(OptionTableTest, SetOptionByKeyGivesTheSameSpecAsTypedValues) {
   EXPECT_EQ(a->solver.units, EnergyUnits::kMillimetre);
   EXPECT_EQ(a->z_resolution.factor, 3);
   EXPECT_EQ(a->series_number_base, 4000);
+  EXPECT_TRUE(a->strict_frame_of_reference);
+  EXPECT_FALSE(BuildJobSpec(Minimal())->strict_frame_of_reference);
   EXPECT_EQ(a->dicom_layout, "enhanced");
   EXPECT_EQ(BuildJobSpec(Minimal())->dicom_layout, "classic");
   EXPECT_EQ(a->mesh_formats, (std::vector<std::string>{"stl", "ply"}));

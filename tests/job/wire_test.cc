@@ -44,12 +44,14 @@ TEST(WireTest, DefaultsMatchTheCli) {
   p.mutable_outputs();  // present and empty: no files
   EXPECT_TRUE(JobSpecFromWire(p)->mesh_formats.empty());
   p.set_strict_spacing(true);
+  p.set_strict_frame_of_reference(true);
   p.set_uid_root("1.2.3");
   p.mutable_segmentation()->set_enabled(true);
   p.set_multiframe_volume("stack 1");
   auto mapped = JobSpecFromWire(p);
   ASSERT_TRUE(mapped.ok()) << mapped.status();
   EXPECT_TRUE(mapped->strict_spacing);
+  EXPECT_TRUE(mapped->strict_frame_of_reference);
   EXPECT_TRUE(mapped->write_seg);
   EXPECT_EQ(mapped->uid_root, "1.2.3");
   EXPECT_EQ(mapped->multiframe_volume, "stack 1");
@@ -172,6 +174,7 @@ TEST(WireTest, InterpolationSpecsRoundTrip) {
   cases[2].series_uid = "1.2.3";
   cases[2].multiframe_volume = "stack 1";
   cases[2].strict_spacing = true;
+  cases[2].strict_frame_of_reference = true;
   cases[2].dicom_mesh_adaptivity = 0.25;
   cases[2].dicom_mesh_max_mb = 12.5;
   // A box in mm with fractions and negative coordinates, corners reversed.
@@ -200,6 +203,7 @@ TEST(WireTest, InterpolationSpecsRoundTrip) {
     EXPECT_EQ(back->mesh_formats, spec->mesh_formats);
     EXPECT_EQ(back->preview_formats, spec->preview_formats);
     EXPECT_EQ(back->slab_deconvolution, spec->slab_deconvolution);
+    EXPECT_EQ(back->strict_frame_of_reference, spec->strict_frame_of_reference);
     EXPECT_EQ(back->intensity_method, spec->intensity_method);
     EXPECT_EQ(back->series_number_base, spec->series_number_base);
     EXPECT_EQ(back->series_instance_uid, spec->series_instance_uid);
@@ -302,6 +306,11 @@ TEST(WireTest, FillSpecsRoundTripAndRefuseInterpolationFields) {
   bad.set_threshold(300);
   EXPECT_THAT(std::string(FillJobSpecFromWire(bad).status().message()),
               HasSubstr("spec.threshold is not used by fill jobs"));
+  bad = wire;
+  bad.set_strict_frame_of_reference(true);
+  EXPECT_THAT(
+      std::string(FillJobSpecFromWire(bad).status().message()),
+      HasSubstr("spec.strict_frame_of_reference is not used by fill jobs"));
   // The morph fills too (per label, core/labels).
   bad = wire;
   bad.set_method(v1::SOLVER_METHOD_MORPH);

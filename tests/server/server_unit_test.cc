@@ -8,6 +8,9 @@
 
 #include <atomic>
 #include <chrono>
+#include <cstdint>
+#include <cstdio>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <mutex>
@@ -15,9 +18,12 @@
 #include <string>
 #include <string_view>
 #include <thread>
+#include <utility>
 #include <vector>
 
 #include "absl/strings/str_cat.h"
+#include "job/options.h"
+#include "job/wire.h"
 #include "nlohmann/json.hpp"
 #include "server/base/audit.h"
 #include "server/base/identity.h"
@@ -29,6 +35,7 @@
 #include "server/net/grpc/upload_guard.h"
 #include "server/net/http/http_handler.h"
 #include "server/net/http/status_page.h"
+#include "tests/testing/paths.h"
 #include "tests/testing/temp_dir.h"
 #include "tests/testing/wait_for.h"
 
@@ -387,6 +394,71 @@ TEST(JobWorkerTest, UnreadableWorkerOutputIsAProtocolErrorNotACancellation) {
   EXPECT_THAT(result.status().message(), HasSubstr("protocol error"));
   EXPECT_THAT(result.status().message(), Not(HasSubstr("cancelled")));
   EXPECT_FALSE(outcome.crashed);
+}
+
+// This process's resident set size now, bytes (VmRSS).
+int64_t ResidentBytes() {
+  std::ifstream status("/proc/self/status");
+  for (std::string line; std::getline(status, line);) {
+    long long kilobytes = 0;
+    if (std::sscanf(line.c_str(), "VmRSS: %lld kB", &kilobytes) == 1) {
+      return kilobytes * 1024;
+    }
+  }
+  return -1;
+}
+
+// Issue 42: peak_rss_bytes counted the parent's memory. posix_spawn shares
+// the server's memory until the worker's execve, and Linux carries that
+// image's peak into the worker's ru_maxrss (wait4's and its own getrusage):
+// a worker reported the server's peak. The same tiny job in a worker, once
+// as this process is and once after it touched 320 MB more, must report
+// the same peak: the worker's own, in the result and in the job's report.
+TEST(JobWorkerTest, ReportPeakRssIsTheWorkersOwnNotTheServers) {
+  testing::TempDir dir;
+  job::InterpolationOptions options;
+  options.inputs = {"unused: the worker reads input_dir"};
+  options.out = "unused: the worker writes output_dir";
+  options.threshold = 300;
+  options.roi = "200,40,0,296,136,4";
+  options.method = "linear";
+  options.factor = 2;
+  options.volume = "none";
+  options.previews = "none";
+  const absl::StatusOr<JobSpec> spec = job::BuildJobSpec(options);
+  ASSERT_TRUE(spec.ok()) << spec.status();
+  WorkerOptions worker;
+  worker.executable = ::interslice::testing::ServerPath();
+  auto peaks_of = [&](const std::string& name) -> std::pair<int64_t, int64_t> {
+    spool::v1::WorkerRequest request;
+    *request.mutable_spec() = job::ToWire(*spec);
+    request.set_input_dir(std::string(::interslice::testing::TestDataDir()) +
+                          "/ct-thick");
+    request.set_output_dir((dir.path() / name).string());
+    std::filesystem::create_directories(dir.path() / name);
+    const absl::StatusOr<job::JobResult> result =
+        RunInWorkerProcess(request, ComputeContext(), worker, nullptr);
+    EXPECT_TRUE(result.ok()) << result.status();
+    if (!result.ok()) return {-1, -1};
+    return {result->peak_rss_bytes,
+            nlohmann::json::parse(result->report_json)["peak_rss_bytes"]
+                .get<int64_t>()};
+  };
+  const auto [alone, alone_report] = peaks_of("alone");
+
+  constexpr size_t kServerBytes = size_t{320} << 20;
+  std::vector<char> ballast(kServerBytes);
+  std::memset(ballast.data(), 1, ballast.size());  // every page resident
+  ASSERT_GE(ResidentBytes(), static_cast<int64_t>(kServerBytes));
+  const auto [beside, beside_report] = peaks_of("beside-ballast");
+  EXPECT_EQ(ballast[kServerBytes - 1], 1);
+
+  EXPECT_GT(alone, 0);
+  EXPECT_EQ(alone_report, alone);
+  EXPECT_EQ(beside_report, beside);
+  EXPECT_LT(beside, alone + static_cast<int64_t>(kServerBytes / 2))
+      << "alone " << alone << " bytes, beside a server of " << ResidentBytes()
+      << " bytes: " << beside;
 }
 
 TEST(RedactPhiTest, ReplacesUidsButKeepsNumbers) {

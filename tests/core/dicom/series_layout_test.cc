@@ -289,13 +289,88 @@ TEST(LayOutDicomStackTest, AnOddFrameOfReferenceIsNamedWithoutItsUid) {
                                      Slice("b.dcm", {0, 0, 1}),
                                      Slice("c.dcm", {0, 0, 2})};
   headers[1].frame_of_reference_uid = "9.8.7.6";
-  const auto stack = LayOut(headers);
+  const auto stack = LayOutDicomStack(headers, All(headers), "",
+                                      /*strict_frame_of_reference=*/true);
   EXPECT_EQ(stack.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_THAT(
       stack.status().message(),
       AllOf(HasSubstr("inconsistent FrameOfReferenceUID: b.dcm has a "
                       "different one from 2 of the 3 slices (e.g. a.dcm)"),
-            Not(HasSubstr("9.8.7.6")), Not(HasSubstr("1.2.3.4.5"))));
+            Not(HasSubstr("9.8.7.6")), Not(HasSubstr("1.2.3.4.5")),
+            Not(HasSubstr("values in all"))));
+}
+
+// Issue 42: with every UID different, the message said "b.dcm has a
+// different one from 1 of the 3 slices": no slice is the odd one out.
+TEST(LayOutDicomStackTest, FramesOfReferenceAllDifferentAreCountedRight) {
+  std::vector<FileHeader> headers = {Slice("a.dcm", {0, 0, 0}),
+                                     Slice("b.dcm", {0, 0, 1}),
+                                     Slice("c.dcm", {0, 0, 2})};
+  headers[1].frame_of_reference_uid = "9.8.7.6";
+  headers[2].frame_of_reference_uid = "9.8.7.7";
+  const auto strict = LayOutDicomStack(headers, All(headers), "",
+                                       /*strict_frame_of_reference=*/true);
+  EXPECT_EQ(strict.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(strict.status().message(),
+              AllOf(HasSubstr("inconsistent FrameOfReferenceUID: each of the "
+                              "3 slices has a different one (e.g. a.dcm and "
+                              "b.dcm differ)"),
+                    Not(HasSubstr("1 of the 3")), Not(HasSubstr("9.8.7"))));
+  // Three values, one of them shared: the majority, and how many values.
+  headers.push_back(Slice("d.dcm", {0, 0, 3}));
+  const auto three = LayOutDicomStack(headers, All(headers), "",
+                                      /*strict_frame_of_reference=*/true);
+  EXPECT_THAT(three.status().message(),
+              HasSubstr("b.dcm has a different one from 2 of the 4 slices "
+                        "(e.g. a.dcm), 3 different values in all"));
+  // Without strict: one stack, with the counts.
+  const auto stack = LayOut(headers);
+  ASSERT_TRUE(stack.ok()) << stack.status();
+  EXPECT_TRUE(stack->frames_of_reference_differ);
+  EXPECT_EQ(stack->frame_of_reference_uids, 3);
+  EXPECT_EQ(stack->slices_without_frame_of_reference, 0);
+  EXPECT_EQ(stack->order.size(), 4u);
+}
+
+TEST(LayOutDicomStackTest, OneFrameOfReferenceIsNotReportedAsDiffering) {
+  std::vector<FileHeader> headers = {Slice("a.dcm", {0, 0, 0}),
+                                     Slice("b.dcm", {0, 0, 1})};
+  auto stack = LayOut(headers);
+  ASSERT_TRUE(stack.ok()) << stack.status();
+  EXPECT_FALSE(stack->frames_of_reference_differ);
+  EXPECT_EQ(stack->frame_of_reference_uids, 1);
+  for (FileHeader& h : headers) h.frame_of_reference_uid.clear();
+  stack = LayOut(headers);
+  ASSERT_TRUE(stack.ok()) << stack.status();
+  EXPECT_FALSE(stack->frames_of_reference_differ);
+  EXPECT_EQ(stack->slices_without_frame_of_reference, 2);
+  // Some with one, some without: they differ.
+  headers[0].frame_of_reference_uid = "1.2.3.4.5";
+  stack = LayOut(headers);
+  ASSERT_TRUE(stack.ok()) << stack.status();
+  EXPECT_TRUE(stack->frames_of_reference_differ);
+}
+
+// Differing UIDs are let through only for a geometry that is one stack; when
+// it is not, its error says that the UIDs differ too.
+TEST(LayOutDicomStackTest, DifferingFramesOfReferenceNeedOneStack) {
+  std::vector<FileHeader> headers = {Slice("a.dcm", {0, 0, 0}),
+                                     Slice("b.dcm", {0, 0, 1}),
+                                     Slice("c.dcm", {0, 0, 1})};
+  headers[1].frame_of_reference_uid = "9.8.7.6";
+  headers[2].frame_of_reference_uid = "9.8.7.7";
+  const auto stack = LayOut(headers);
+  EXPECT_EQ(stack.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(stack.status().message(),
+              AllOf(HasSubstr("b.dcm and c.dcm are at the same slice position"),
+                    HasSubstr("the slices' FrameOfReferenceUIDs differ as well "
+                              "(3 different UIDs), which is accepted only when "
+                              "the geometry is one stack"),
+                    Not(HasSubstr("9.8.7"))));
+  // One UID: the same error as ever.
+  for (FileHeader& h : headers) h.frame_of_reference_uid = "1.2.3.4.5";
+  EXPECT_THAT(LayOut(headers).status().message(),
+              Not(HasSubstr("FrameOfReferenceUID")));
 }
 
 TEST(LayOutDicomStackTest, OddModalityAndPixelRepresentationShowTheValues) {

@@ -12,6 +12,7 @@
 #include <fstream>
 #include <functional>
 #include <iterator>
+#include <map>
 #include <memory>
 #include <random>
 #include <set>
@@ -1396,30 +1397,50 @@ TEST(HardeningTest, FrameWithRescaleSlopeZeroIsNamedWithItsFrame) {
                     HasSubstr("RescaleSlope (0028,1053) is 0")));
 }
 
-TEST(HardeningTest, SliceOfAnotherFrameOfReferenceIsAnError) {
+// A slice of another frame of reference is read (the geometry is one stack:
+// see ReadDicomSeriesTest.SlicesEachWithTheirOwnFrameOfReference...) with a
+// note, and refused with strict_frame_of_reference.
+TEST(HardeningTest, SliceOfAnotherFrameOfReferenceIsAnErrorWhenStrict) {
   TempDir dir;
   CopyThick(dir.path(), {"I10.dcm", "I20.dcm", "I40.dcm"});
   const std::string other = NewUid();
   CopyEdited("I30.dcm", dir.path() / "I30.dcm", [&](DcmDataset& ds) {
     ds.putAndInsertString(DCM_FrameOfReferenceUID, other.c_str());
   });
-  const auto result = Read({dir.str()});
+  DicomReadOptions strict;
+  strict.strict_frame_of_reference = true;
+  const auto result = Read({dir.str()}, strict);
   EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_THAT(result.status().message(),
               AllOf(HasSubstr("FrameOfReferenceUID"), HasSubstr("I30.dcm"),
                     HasSubstr("3 of the 4 slices"), Not(HasSubstr(other)),
                     Not(HasSubstr("1.3.46.670589"))));
+  const auto read = Read({dir.str()});
+  ASSERT_TRUE(read.ok()) << read.status();
+  EXPECT_THAT(read->warnings,
+              ::testing::ElementsAre(HasSubstr(
+                  "FrameOfReferenceUID not the same on every slice (2 "
+                  "different UIDs among the 4 slices)")));
 }
 
-TEST(HardeningTest, SliceWithoutTheFrameOfReferenceOfTheOthersIsAnError) {
+TEST(HardeningTest,
+     SliceWithoutTheFrameOfReferenceOfTheOthersIsAnErrorWhenStrict) {
   TempDir dir;
   CopyThick(dir.path(), {"I10.dcm", "I20.dcm", "I40.dcm"});
   CopyEdited("I30.dcm", dir.path() / "I30.dcm",
              [](DcmDataset& ds) { delete ds.remove(DCM_FrameOfReferenceUID); });
-  const auto result = Read({dir.str()});
+  DicomReadOptions strict;
+  strict.strict_frame_of_reference = true;
+  const auto result = Read({dir.str()}, strict);
   EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_THAT(result.status().message(), AllOf(HasSubstr("FrameOfReferenceUID"),
                                                HasSubstr("I30.dcm has none")));
+  const auto read = Read({dir.str()});
+  ASSERT_TRUE(read.ok()) << read.status();
+  EXPECT_THAT(read->warnings,
+              ::testing::ElementsAre(
+                  HasSubstr("FrameOfReferenceUID not the same on every slice "
+                            "(1 UID among the 4 slices, 1 without one)")));
 }
 
 TEST(HardeningTest, SliceOfAnotherModalityIsAnError) {
@@ -1676,6 +1697,130 @@ TEST(AnonymisedTest, SameSeriesWithDifferentlyFormattedNumbersStaysOne) {
   const auto series = Read({dir.str()});
   ASSERT_TRUE(series.ok()) << series.status();
   EXPECT_EQ(series->slices.size(), 4u);
+}
+
+// ImagePositionPatient of a vendored slice, as stored.
+std::string PositionOf(const std::string& name) {
+  auto file = Load(kThick / name);
+  OFString value;
+  EXPECT_TRUE(file->getDataset()
+                  ->findAndGetOFStringArray(DCM_ImagePositionPatient, value)
+                  .good());
+  return value.c_str();
+}
+
+// Issue 42: a 1 mm chest CT whose anonymiser gave each of its 138 slices its
+// own FrameOfReferenceUID was refused ("inconsistent FrameOfReferenceUID:
+// ... from 1 of the 138 slices"), although it has one SeriesInstanceUID and
+// its geometry is one stack. Here the 4 slices of ct-thick, each with a
+// FrameOfReferenceUID of its own; the UIDs given, by file name.
+std::map<std::string, std::string> WriteOwnFramesOfReference(
+    const fs::path& dir,
+    const std::function<void(const std::string&, DcmDataset&)>& edit =
+        nullptr) {
+  std::map<std::string, std::string> uids;
+  for (const std::string& name : kThickNames) {
+    uids[name] = NewUid();
+    CopyEdited(name, dir / name, [&](DcmDataset& ds) {
+      ASSERT_TRUE(
+          ds.putAndInsertString(DCM_FrameOfReferenceUID, uids[name].c_str())
+              .good());
+      if (edit) edit(name, ds);
+    });
+  }
+  return uids;
+}
+
+TEST(ReadDicomSeriesTest,
+     SlicesEachWithTheirOwnFrameOfReferenceAreOneStackWithANote) {
+  TempDir dir;
+  const std::map<std::string, std::string> uids =
+      WriteOwnFramesOfReference(dir.path());
+  const auto original = Read({kThick.string()});
+  ASSERT_TRUE(original.ok()) << original.status();
+  const auto series = Read({dir.str()});
+  ASSERT_TRUE(series.ok()) << series.status();
+  ExpectSameVolume(*series, *original);
+  // The outputs' Frame of Reference (core/dicom_out takes this one): the
+  // first slice's along the normal.
+  const std::string first = fs::path(series->slices[0].path).filename();
+  EXPECT_EQ(series->frame_of_reference_uid, uids.at(first));
+  const std::string note =
+      "FrameOfReferenceUID not the same on every slice (4 different UIDs "
+      "among the 4 slices): read as one stack because the geometry was "
+      "checked (same orientation, Rows/Columns and PixelSpacing, distinct "
+      "positions along one slice normal); the outputs use the first slice's "
+      "(k = 0)";
+  EXPECT_THAT(series->notes, ::testing::ElementsAre(note));
+  EXPECT_THAT(series->warnings, ::testing::ElementsAre(note));
+  EXPECT_TRUE(original->warnings.empty());
+  EXPECT_TRUE(original->notes.empty());
+}
+
+TEST(ReadDicomSeriesTest,
+     SlicesEachWithTheirOwnFrameOfReferenceAreRefusedWhenStrict) {
+  TempDir dir;
+  const std::map<std::string, std::string> uids =
+      WriteOwnFramesOfReference(dir.path());
+  DicomReadOptions strict;
+  strict.strict_frame_of_reference = true;
+  const auto result = Read({dir.str()}, strict);
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
+  // All 4 differ: not "a different one from 1 of the 4 slices".
+  EXPECT_THAT(result.status().message(),
+              AllOf(HasSubstr("inconsistent FrameOfReferenceUID: each of the "
+                              "4 slices has a different one (e.g. I10.dcm and "
+                              "I20.dcm differ)"),
+                    Not(HasSubstr("1 of the 4"))));
+  for (const auto& [name, uid] : uids) {
+    EXPECT_THAT(result.status().message(), Not(HasSubstr(uid)));
+  }
+}
+
+// What makes differing Frames of Reference acceptable is one stack's
+// geometry: slices that are not one stack are still refused, and the error
+// says that the UIDs differ too.
+TEST(ReadDicomSeriesTest,
+     SlicesEachWithTheirOwnFrameOfReferenceButNotOneStackAreRefused) {
+  struct Case {
+    std::string what;
+    std::function<void(DcmDataset&)> edit_i40;
+    std::string message;
+  };
+  const std::vector<Case> cases = {
+      {"another orientation",
+       [](DcmDataset& ds) {
+         ds.putAndInsertString(DCM_ImageOrientationPatient,
+                               "1\\0\\0\\0\\0\\-1");
+       },
+       "inconsistent ImageOrientationPatient: I40.dcm differs from I10.dcm"},
+      {"another pixel spacing",
+       [](DcmDataset& ds) {
+         ds.putAndInsertString(DCM_PixelSpacing, "0.5\\0.5");
+       },
+       "inconsistent PixelSpacing: I40.dcm"},
+      {"the position of another slice",
+       [](DcmDataset& ds) {
+         ds.putAndInsertString(DCM_ImagePositionPatient,
+                               PositionOf("I30.dcm").c_str());
+       },
+       "at the same slice position"},
+  };
+  for (const Case& c : cases) {
+    SCOPED_TRACE(c.what);
+    TempDir dir;
+    WriteOwnFramesOfReference(dir.path(),
+                              [&](const std::string& name, DcmDataset& ds) {
+                                if (name == "I40.dcm") c.edit_i40(ds);
+                              });
+    const auto result = Read({dir.str()});
+    EXPECT_EQ(result.status().code(), absl::StatusCode::kInvalidArgument);
+    EXPECT_THAT(result.status().message(),
+                AllOf(HasSubstr(c.message),
+                      HasSubstr("the slices' FrameOfReferenceUIDs differ as "
+                                "well (4 different UIDs), which is accepted "
+                                "only when the geometry is one stack")));
+  }
 }
 
 }  // namespace
