@@ -177,10 +177,10 @@ std::string DerivationKey(const JobSpec& spec,
 std::string IntensityDerivationKey(const JobSpec& spec,
                                    const std::optional<VoxelBox>& roi,
                                    const Grid& output_grid) {
-  std::string key = absl::StrFormat(
-      "intensity-series v1 method=%s strict=%d volume=%s",
-      spec.intensity_method, spec.strict_spacing ? 1 : 0,
-      spec.multiframe_volume);
+  std::string key =
+      absl::StrFormat("intensity-series v1 method=%s strict=%d volume=%s",
+                      spec.intensity_method, spec.strict_spacing ? 1 : 0,
+                      spec.multiframe_volume);
   if (spec.series_number_base > 0) {
     absl::StrAppend(&key, " number-base=", spec.series_number_base);
   }

@@ -1024,8 +1024,8 @@ TEST_F(DicomWriterTest, SeriesDescriptionsNameTheObjectAndTheSourceSeries) {
   TempDir dir;
   auto describe = [&](const char* name, const std::string& number,
                       const std::string& description) {
-    const DicomSeries copy = DoctoredCopy(
-        *source_, dir.path() / name, [&](DcmDataset& ds) {
+    const DicomSeries copy =
+        DoctoredCopy(*source_, dir.path() / name, [&](DcmDataset& ds) {
           ds.findAndDeleteElement(DCM_SeriesNumber);
           ds.findAndDeleteElement(DCM_SeriesDescription);
           if (!number.empty()) {
@@ -1062,10 +1062,10 @@ TEST_F(DicomWriterTest, SeriesDescriptionsNameTheObjectAndTheSourceSeries) {
       "Segmentation >=300 HU, 0.5 mm, smooth, from #3");
   // A long source description is cut, never the object or the parameters,
   // and the cut leaves no trailing blank.
-  const std::string cut =
-      describe("long", "3", "Head routine a 5 mm")
-          .segmentation.series_description;
-  EXPECT_EQ(cut, "Segmentation >=300 HU, 0.5 mm, smooth, from #3 Head routine a 5");
+  const std::string cut = describe("long", "3", "Head routine a 5 mm")
+                              .segmentation.series_description;
+  EXPECT_EQ(cut,
+            "Segmentation >=300 HU, 0.5 mm, smooth, from #3 Head routine a 5");
 }
 
 // Issue 44: units longer than 16 characters became "units" ("SIGNAL

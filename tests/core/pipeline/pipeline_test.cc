@@ -677,8 +677,8 @@ std::string SopInstanceUidOf(const fs::path& path) {
 // intensity series as it is, so jobs that differ only in them share it (one
 // copy in the study instead of one per rule, issue 44).
 TEST_F(PipelineTest, ParametersThatChangeAnObjectChangeItsUidsAndOnlyItsOwn) {
-  const char* const kObjects[] = {"series-intensity", "distance.dcm",
-                                  "seg.dcm", "surface-stl.dcm"};
+  const char* const kObjects[] = {"series-intensity", "distance.dcm", "seg.dcm",
+                                  "surface-stl.dcm"};
   auto run = [&](const char* name, auto edit) {
     JobSpec spec = SmallJob();
     spec.output_series = {"intensity", "mask", "distance"};
