@@ -170,10 +170,11 @@ std::string DerivationKey(const JobSpec& spec,
 // segment label and code), plus an explicit series number base (the series
 // carries its number). Jobs on one series that differ only in those share
 // one intensity series in the study instead of storing identical copies.
-// Built by exclusion from DerivationKey's list: a parameter added there
-// and not here would give two different series one set of UIDs, so every
-// JobSpec field that can change a grey value or the grid belongs here
-// (PipelineTest.ParametersThatChangeAnObjectChangeItsUidsAndOnlyItsOwn).
+// A list of its own, not derived from DerivationKey's: a new JobSpec field
+// that can change a grey value or the grid must be added here as well as
+// there, or two different intensity series would get one set of UIDs
+// (PipelineTest.ParametersThatChangeAnObjectChangeItsUidsAndOnlyItsOwn
+// checks the fields known today).
 std::string IntensityDerivationKey(const JobSpec& spec,
                                    const std::optional<VoxelBox>& roi,
                                    const Grid& output_grid) {
